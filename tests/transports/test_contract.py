@@ -1,0 +1,62 @@
+"""The transport contract (uniros_async.testing.transport_contract) against every transport, in one process and
+across real processes."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+
+import pytest
+
+from uniros_async.testing import transport_contract as contract
+from uniros_async.transports.base import TransportOptions, connect
+
+URIS = {"memory": "memory://", "shm": "shm://", "tcp": "tcp://127.0.0.1:0"}
+CROSS_PROCESS = ["shm", "tcp"]  # memory:// is in-process by definition
+AUTH = ["shm", "tcp"]
+
+
+@pytest.mark.parametrize("check", contract.CHECKS, ids=lambda c: c.__name__.removeprefix("check_"))
+@pytest.mark.parametrize("kind", list(URIS))
+async def test_contract(kind: str, check) -> None:  # type: ignore[no-untyped-def]
+    await check(URIS[kind])
+
+
+@pytest.mark.parametrize("check", contract.AUTH_CHECKS, ids=lambda c: c.__name__.removeprefix("check_"))
+@pytest.mark.parametrize("kind", AUTH)
+async def test_auth_contract(kind: str, check) -> None:  # type: ignore[no-untyped-def]
+    await check(URIS[kind])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", CROSS_PROCESS)
+async def test_cross_process_echo(kind: str) -> None:
+    """Frames small and large make the round trip through an echo server in another process."""
+    with contract.EchoServer(URIS[kind]) as uri:
+        async with asyncio.timeout(30):
+            t = await connect(uri, TransportOptions())
+            try:
+                for payload in (b"x" * 277, os.urandom(64 * 1024), os.urandom(640 * 480 * 3), b""):
+                    for _ in range(3):
+                        await t.send(payload)
+                        assert bytes(await t.receive()) == payload
+                # several connections to the same server process
+                t2 = await connect(uri, TransportOptions())
+                await t2.send(b"second peer")
+                assert bytes(await t2.receive()) == b"second peer"
+                await t2.aclose()
+                await t.send(b"first still works")
+                assert bytes(await t.receive()) == b"first still works"
+            finally:
+                await t.aclose()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", AUTH)
+async def test_cross_process_auth(kind: str) -> None:
+    with contract.EchoServer(URIS[kind], auth_key=b"k3y") as uri:
+        async with asyncio.timeout(30):
+            t = await connect(uri, TransportOptions(auth_key=b"k3y"))
+            await t.send(b"hello")
+            assert bytes(await t.receive()) == b"hello"
+            await t.aclose()

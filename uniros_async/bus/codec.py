@@ -1,0 +1,226 @@
+"""The one module that knows msgpack: messages <-> frames.
+
+A frame is::
+
+    u32 body_len (little endian) | body (msgpack) | zero padding to 8 bytes | array blobs, each 8-aligned
+
+``body`` is ``[type_name, [field values in declaration order], [[dtype, shape, offset], ...]]``. An array field
+is an ExtType(1) whose data is the index into that table; the blob bytes travel beside the msgpack body, so a
+900 KiB image costs no msgpack copy and the receiver views it in place (``np.frombuffer`` on the frame).
+``encode`` returns the frame as a list of buffers (header bytes, then each array's own memory, no join), which
+transports send back to back. ``decode`` checks the type name, field count, dtypes and ndims, and raises
+CodecError naming the field.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Sequence
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from uniros_async.bus.messages import FieldSpec, message_type
+from uniros_async.errors import CodecError
+
+__all__ = ["decode", "decode_plain", "encode", "encode_plain", "frame_type_name"]
+
+_ARRAY_EXT = 1
+_U32 = struct.Struct("<I")
+_PAD = bytes(8)
+_EXT_CACHE = [msgpack.ExtType(_ARRAY_EXT, _U32.pack(i)) for i in range(64)]
+
+
+def _ext(i: int) -> msgpack.ExtType:
+    return _EXT_CACHE[i] if i < len(_EXT_CACHE) else msgpack.ExtType(_ARRAY_EXT, _U32.pack(i))
+
+
+def _fields_to_list(msg: Any, arrays: list[np.ndarray]) -> list[Any]:
+    out: list[Any] = []
+    for spec in msg.__uniros_schema__:
+        value = getattr(msg, spec.name)
+        if value is None:
+            out.append(None)
+        elif spec.kind == "array":
+            arrays.append(value)
+            out.append(_ext(len(arrays) - 1))
+        elif spec.kind == "message":
+            out.append(_fields_to_list(value, arrays))
+        else:
+            out.append(value)
+    return out
+
+
+def encode(msg: Any) -> list[bytes | memoryview]:
+    """Encode a message into frame parts (send them back to back as one frame).
+
+    The arrays' own memory is referenced, not copied: do not mutate them until the frame was sent.
+
+    Raises:
+        CodecError: ``msg`` is not a registered message, or a field is not msgpack-able (named).
+    """
+    try:
+        schema = msg.__uniros_schema__
+    except AttributeError:
+        raise CodecError(f"expected a @message instance, got {type(msg).__name__}") from None
+    del schema
+    arrays: list[np.ndarray] = []
+    values = _fields_to_list(msg, arrays)
+    table: list[list[Any]] = []
+    blobs: list[bytes | memoryview] = []
+    offset = 0
+    for a in arrays:
+        if not a.flags.c_contiguous:
+            a = np.ascontiguousarray(a)
+        table.append([a.dtype.str, list(a.shape), offset])
+        n = a.nbytes
+        blobs.append(memoryview(a).cast("B") if n else b"")
+        pad = -n % 8
+        if pad:
+            blobs.append(_PAD[:pad])
+        offset += n + pad
+    try:
+        body = msgpack.packb([type(msg).__name__, values, table], use_bin_type=True)
+    except (TypeError, ValueError) as exc:
+        raise CodecError(f"{type(msg).__name__}: a field is not msgpack-able: {exc}") from exc
+    head_len = 4 + len(body)
+    head = _U32.pack(len(body)) + body + _PAD[: -head_len % 8]
+    if not blobs:
+        return [head]
+    return [head, *blobs]
+
+
+def _ext_hook(code: int, data: bytes) -> Any:
+    if code == _ARRAY_EXT:
+        return _ArrayRef(_U32.unpack(data)[0])
+    raise CodecError(f"unknown msgpack extension type {code}")
+
+
+class _ArrayRef:
+    __slots__ = ("index",)
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+
+
+def frame_type_name(frame: bytes | memoryview) -> str:
+    """The message type name of a frame, without decoding the rest (for introspection and filtering)."""
+    view = memoryview(frame)
+    body_len, head_len = _check_head(view)
+    try:
+        unp = msgpack.Unpacker(raw=False, ext_hook=_ext_hook)
+        unp.feed(view[4 : 4 + body_len])
+        unp.read_array_header()
+        name = unp.unpack()
+    except (ValueError, msgpack.UnpackException) as exc:
+        raise CodecError(f"malformed frame body: {exc}") from exc
+    if not isinstance(name, str):
+        raise CodecError(f"malformed frame: type name is {type(name).__name__}, expected str")
+    return name
+
+
+def _check_head(view: memoryview) -> tuple[int, int]:
+    if view.nbytes < 4:
+        raise CodecError(f"frame of {view.nbytes} bytes is shorter than its 4-byte header")
+    (body_len,) = _U32.unpack_from(view, 0)
+    head_len = 4 + body_len
+    head_len += -head_len % 8
+    if 4 + body_len > view.nbytes:
+        raise CodecError(f"frame announces a {body_len}-byte body but holds only {view.nbytes - 4} bytes")
+    return body_len, head_len
+
+
+def decode(frame: bytes | memoryview, expected: type | None = None) -> Any:
+    """Decode a frame; array fields are read-only views into ``frame`` when it is read-only (no copy).
+
+    Args:
+        frame: the whole frame.
+        expected: if given, the frame must hold this message type.
+
+    Raises:
+        CodecError: malformed frame, unknown type, a type other than ``expected``, or a field of the wrong
+            kind, dtype, ndim or shape (the message names the field).
+    """
+    view = memoryview(frame)
+    if view.format != "B" or view.ndim != 1:
+        view = view.cast("B")
+    body_len, head_len = _check_head(view)
+    try:
+        body = msgpack.unpackb(view[4 : 4 + body_len], raw=False, ext_hook=_ext_hook, strict_map_key=False)
+        name, values, table = body
+    except CodecError:
+        raise
+    except (ValueError, TypeError, msgpack.UnpackException) as exc:
+        raise CodecError(f"malformed frame body: {exc}") from exc
+    cls = message_type(name) if isinstance(name, str) else None
+    if cls is None:
+        raise CodecError(f"malformed frame: type name is {type(name).__name__}, expected str")
+    if expected is not None and cls is not expected:
+        raise CodecError(f"expected {expected.__name__}, got {name}")
+    blob = view[head_len:]
+    return _build(cls, values, table, blob)
+
+
+def _array(spec: FieldSpec, where: str, ref: _ArrayRef, table: list[Any], blob: memoryview) -> np.ndarray:
+    try:
+        dtype_str, shape, offset = table[ref.index]
+        dtype = np.dtype(dtype_str)
+        count = 1
+        for s in shape:
+            count *= int(s)
+    except (IndexError, TypeError, ValueError) as exc:
+        raise CodecError(f"{where}: malformed array table entry: {exc}") from exc
+    if dtype != spec.dtype:
+        raise CodecError(f"{where}: expected dtype {spec.dtype}, got {dtype}")
+    if len(shape) != spec.ndim:
+        raise CodecError(f"{where}: expected ndim {spec.ndim}, got shape {tuple(shape)}")
+    nbytes = count * dtype.itemsize
+    if offset < 0 or offset + nbytes > blob.nbytes:
+        raise CodecError(f"{where}: array of {nbytes} bytes at offset {offset} overruns the frame")
+    return np.frombuffer(blob, dtype=dtype, count=count, offset=offset).reshape(shape)
+
+
+def _build(cls: type, values: Any, table: list[Any], blob: memoryview) -> Any:
+    schema: Sequence[FieldSpec] = cls.__uniros_schema__  # type: ignore[attr-defined]
+    if not isinstance(values, list) or len(values) != len(schema):
+        n = len(values) if isinstance(values, list) else type(values).__name__
+        raise CodecError(f"{cls.__name__}: expected {len(schema)} fields, got {n}")
+    kwargs: dict[str, Any] = {}
+    for spec, value in zip(schema, values, strict=True):
+        where = f"{cls.__name__}.{spec.name}"
+        if value is None:
+            kwargs[spec.name] = None
+        elif spec.kind == "array":
+            if not isinstance(value, _ArrayRef):
+                raise CodecError(f"{where}: expected an array, got {type(value).__name__}")
+            kwargs[spec.name] = _array(spec, where, value, table, blob)
+        elif spec.kind == "message":
+            assert spec.message_cls is not None
+            kwargs[spec.name] = _build(spec.message_cls, value, table, blob)
+        else:
+            if isinstance(value, _ArrayRef):
+                raise CodecError(f"{where}: unexpected array")
+            kwargs[spec.name] = value
+    try:
+        return cls(**kwargs)
+    except CodecError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise CodecError(f"{cls.__name__}: {exc}") from exc
+
+
+def encode_plain(value: Any) -> bytes:
+    """msgpack for control traffic (registry, handshakes): plain data only."""
+    try:
+        return msgpack.packb(value, use_bin_type=True)  # type: ignore[no-any-return]
+    except (TypeError, ValueError) as exc:
+        raise CodecError(f"value is not msgpack-able: {exc}") from exc
+
+
+def decode_plain(frame: bytes | memoryview) -> Any:
+    """Inverse of encode_plain; malformed input raises CodecError."""
+    try:
+        return msgpack.unpackb(frame, raw=False, strict_map_key=False)
+    except (ValueError, TypeError, msgpack.UnpackException) as exc:
+        raise CodecError(f"malformed control frame: {exc}") from exc

@@ -1,0 +1,243 @@
+"""The Transport interface: a connection that moves whole frames, in order, between two endpoints.
+
+A transport moves bytes; ``uniros_async.bus.codec`` turns messages into frames and the bus connects the two.
+Every implementation passes ``uniros_async.testing.transport_contract`` (as trio's check_one_way_stream does for
+streams). Implementations are chosen by URI scheme:
+
+    memory://NAME           in-process (the reference implementation and test double)
+    shm://NAME              same machine: shared-memory rings with eventfd wakeups
+    tcp://HOST:PORT         network: length-prefixed frames over TCP (port 0: pick a free one)
+
+``listen(uri)`` returns a Listener whose ``uri`` is concrete (the chosen port or name) and whose ``accept()``
+yields one Transport per peer; ``connect(uri)`` returns the peer's Transport.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import enum
+import importlib
+from collections.abc import Sequence
+from types import TracebackType
+from typing import ClassVar, Self
+from urllib.parse import urlsplit
+
+from uniros_async.errors import ConfigError
+
+__all__ = [
+    "Buffer",
+    "Delivery",
+    "Listener",
+    "Transport",
+    "TransportOptions",
+    "TransportStats",
+    "connect",
+    "frame_nbytes",
+    "listen",
+    "register_scheme",
+    "split_uri",
+]
+
+Buffer = bytes | bytearray | memoryview
+"""What ``send`` takes: one buffer, or a sequence of buffers sent as one frame without joining them first."""
+
+DEFAULT_MAX_FRAME_BYTES = 64 * 1024 * 1024
+
+
+class Delivery(enum.Enum):
+    """The guarantee of a transport."""
+
+    RELIABLE = "reliable"
+    """Every frame, in order, exactly once, or an error."""
+    LATEST = "latest"
+    """Frames may be dropped in favour of newer ones; those delivered are in order."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TransportOptions:
+    """Options every transport accepts (a transport ignores what does not apply to it, and says so in its doc).
+
+    Attributes:
+        max_frame_bytes: larger frames are refused by ``send`` (FrameTooLargeError) and, when announced by a
+            peer, the connection is dropped and counted as a rejection without allocating the frame.
+        auth_key: shared secret; when set, both ends prove knowledge of it (HMAC challenge-response) before any
+            frame moves, and a peer that fails is rejected and counted. None disables authentication.
+        connect_timeout_s: how long ``connect`` keeps trying (with exponential backoff) before TimeoutError.
+        bind_host: for listeners on the network: the interface to bind (loopback unless told otherwise).
+        ring_bytes: for shared memory: the capacity of each direction's ring.
+    """
+
+    max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES
+    auth_key: bytes | None = None
+    connect_timeout_s: float = 5.0
+    bind_host: str = "127.0.0.1"
+    ring_bytes: int = 4 * 1024 * 1024
+
+    def __post_init__(self) -> None:
+        if self.max_frame_bytes <= 0:
+            raise ConfigError(f"max_frame_bytes must be > 0, got {self.max_frame_bytes}")
+        if self.connect_timeout_s <= 0:
+            raise ConfigError(f"connect_timeout_s must be > 0, got {self.connect_timeout_s}")
+        if self.auth_key is not None and not isinstance(self.auth_key, bytes | bytearray):
+            raise ConfigError(f"auth_key must be bytes or None, got {type(self.auth_key).__name__}")
+        if self.ring_bytes < 4096:
+            raise ConfigError(f"ring_bytes must be >= 4096, got {self.ring_bytes}")
+
+
+@dataclasses.dataclass
+class TransportStats:
+    """Counters of one transport end (read them; the transport updates them)."""
+
+    frames_sent: int = 0
+    frames_received: int = 0
+    bytes_sent: int = 0
+    bytes_received: int = 0
+    rejected: int = 0
+    """Frames or peers refused: oversized, malformed, unauthenticated."""
+
+
+class Transport(abc.ABC):
+    """One end of a connection that moves whole frames.
+
+    ``delivery`` states the guarantee. ``receive()`` returns a memoryview that stays valid until the next
+    ``receive()`` on the same end (so shared memory can hand out a zero-copy view); copy what you keep longer.
+    Both directions work at once; one task may send while another receives. Two concurrent ``send`` calls (or
+    two ``receive`` calls) on one end are not allowed.
+    """
+
+    delivery: ClassVar[Delivery] = Delivery.RELIABLE
+    scheme: ClassVar[str] = ""
+
+    def __init__(self) -> None:
+        self.stats = TransportStats()
+
+    @property
+    @abc.abstractmethod
+    def peer(self) -> str:
+        """A printable description of the other end (for logs and errors)."""
+
+    @abc.abstractmethod
+    async def send(self, frame: Buffer | Sequence[Buffer]) -> None:
+        """Send one frame (a buffer, or buffers sent back to back as one frame).
+
+        If cancelled, the frame may or may not have been sent, but the connection stays usable (no half frame).
+
+        Raises:
+            TransportClosedError: our own code closed this end.
+            TransportBrokenError: the peer or the medium failed; ``__cause__`` holds the OSError.
+            FrameTooLargeError: the frame is over ``max_frame_bytes``; nothing was sent, the connection stays.
+        """
+
+    @abc.abstractmethod
+    async def receive(self) -> memoryview:
+        """Wait for the next frame. Cancelling leaves no frame half-read.
+
+        Raises:
+            TransportClosedError: our own code closed this end.
+            TransportBrokenError: the peer vanished or broke the protocol (EndOfStream-style clean close too:
+                message "peer closed the connection").
+        """
+
+    @abc.abstractmethod
+    async def aclose(self) -> None:
+        """Close this end; idempotent. A task blocked in ``receive`` or ``send`` gets TransportClosedError."""
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.aclose()
+
+
+class Listener(abc.ABC):
+    """Accepts connections; ``uri`` is the concrete address peers pass to ``connect``."""
+
+    @property
+    @abc.abstractmethod
+    def uri(self) -> str:
+        """The URI to connect to (with the port or name actually chosen)."""
+
+    @abc.abstractmethod
+    async def accept(self) -> Transport:
+        """Wait for the next peer that completed the handshake (authentication included).
+
+        Raises:
+            TransportClosedError: the listener was closed.
+        """
+
+    @abc.abstractmethod
+    async def aclose(self) -> None:
+        """Stop listening and release names/ports/segments; idempotent. Accepted transports stay open."""
+
+    @property
+    def rejected(self) -> int:
+        """Peers refused during the handshake (bad key, bad hello)."""
+        return 0
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.aclose()
+
+
+def frame_nbytes(frame: Buffer | Sequence[Buffer]) -> int:
+    """Total size of a frame given as one buffer or a sequence of buffers."""
+    if isinstance(frame, bytes | bytearray | memoryview):
+        return memoryview(frame).nbytes
+    return sum(memoryview(part).nbytes for part in frame)
+
+
+# scheme -> "module:ListenFn:ConnectFn"; imported on first use so `memory://` users never import shm or tcp code.
+_SCHEMES: dict[str, str] = {
+    "memory": "uniros_async.transports.memory",
+    "shm": "uniros_async.transports.shm",
+    "tcp": "uniros_async.transports.tcp",
+}
+
+
+def register_scheme(scheme: str, module: str) -> None:
+    """Make ``scheme://`` URIs use ``module``, which must define ``async listen(uri, options)`` and
+    ``async connect(uri, options)`` (see docs/howto/add-a-transport.md)."""
+    _SCHEMES[scheme] = module
+
+
+def split_uri(uri: str) -> tuple[str, str]:
+    """Split ``scheme://rest`` and check the scheme is known.
+
+    Raises:
+        ConfigError: the URI has no scheme or an unknown one (the known ones are listed).
+    """
+    if "://" not in uri:
+        raise ConfigError(f"transport URI {uri!r} has no scheme; expected one of {sorted(_SCHEMES)}, e.g. tcp://127.0.0.1:0")
+    scheme = urlsplit(uri).scheme
+    if scheme not in _SCHEMES:
+        raise ConfigError(f"unknown transport scheme {scheme!r} in {uri!r}; known: {sorted(_SCHEMES)}")
+    return scheme, uri.split("://", 1)[1]
+
+
+def _module(uri: str) -> object:
+    scheme, _ = split_uri(uri)
+    return importlib.import_module(_SCHEMES[scheme])
+
+
+async def listen(uri: str, options: TransportOptions | None = None) -> Listener:
+    """Start listening at ``uri`` (``tcp://127.0.0.1:0``, ``shm://name``, ``memory://name``)."""
+    mod = _module(uri)
+    return await mod.listen(uri, options or TransportOptions())  # type: ignore[attr-defined, no-any-return]
+
+
+async def connect(uri: str, options: TransportOptions | None = None) -> Transport:
+    """Connect to a listener at ``uri``, retrying with backoff up to ``options.connect_timeout_s``.
+
+    Raises:
+        TimeoutError: nobody accepted within ``connect_timeout_s``.
+        AuthenticationError: the listener refused our key (or we refused its proof).
+    """
+    mod = _module(uri)
+    return await mod.connect(uri, options or TransportOptions())  # type: ignore[attr-defined, no-any-return]
