@@ -162,7 +162,7 @@ def decode(frame: bytes | memoryview, expected: type | None = None) -> Any:
     return _build(cls, values, table, blob)
 
 
-def _array(spec: FieldSpec, where: str, ref: _ArrayRef, table: list[Any], blob: memoryview) -> np.ndarray:
+def _array(spec: FieldSpec, cls: type, ref: _ArrayRef, table: list[Any], blob: memoryview) -> np.ndarray:
     try:
         dtype_str, shape, offset = table[ref.index]
         dtype = np.dtype(dtype_str)
@@ -170,37 +170,37 @@ def _array(spec: FieldSpec, where: str, ref: _ArrayRef, table: list[Any], blob: 
         for s in shape:
             count *= int(s)
     except (IndexError, TypeError, ValueError) as exc:
-        raise CodecError(f"{where}: malformed array table entry: {exc}") from exc
+        raise CodecError(f"{cls.__name__}.{spec.name}: malformed array table entry: {exc}") from exc
     if dtype != spec.dtype:
-        raise CodecError(f"{where}: expected dtype {spec.dtype}, got {dtype}")
+        raise CodecError(f"{cls.__name__}.{spec.name}: expected dtype {spec.dtype}, got {dtype}")
     if len(shape) != spec.ndim:
-        raise CodecError(f"{where}: expected ndim {spec.ndim}, got shape {tuple(shape)}")
+        raise CodecError(f"{cls.__name__}.{spec.name}: expected ndim {spec.ndim}, got shape {tuple(shape)}")
     nbytes = count * dtype.itemsize
     if offset < 0 or offset + nbytes > blob.nbytes:
-        raise CodecError(f"{where}: array of {nbytes} bytes at offset {offset} overruns the frame")
-    return np.frombuffer(blob, dtype=dtype, count=count, offset=offset).reshape(shape)
+        raise CodecError(f"{cls.__name__}.{spec.name}: array of {nbytes} bytes at offset {offset} overruns the frame")
+    a = np.frombuffer(blob, dtype=dtype, count=count, offset=offset)
+    return a if len(shape) == 1 else a.reshape(shape)
 
 
 def _build(cls: type, values: Any, table: list[Any], blob: memoryview) -> Any:
     schema: Sequence[FieldSpec] = cls.__uniros_schema__  # type: ignore[attr-defined]
-    if not isinstance(values, list) or len(values) != len(schema):
+    if type(values) is not list or len(values) != len(schema):
         n = len(values) if isinstance(values, list) else type(values).__name__
         raise CodecError(f"{cls.__name__}: expected {len(schema)} fields, got {n}")
     kwargs: dict[str, Any] = {}
-    for spec, value in zip(schema, values, strict=True):
-        where = f"{cls.__name__}.{spec.name}"
+    for spec, value in zip(schema, values):
+        kind = spec.kind
         if value is None:
             kwargs[spec.name] = None
-        elif spec.kind == "array":
-            if not isinstance(value, _ArrayRef):
-                raise CodecError(f"{where}: expected an array, got {type(value).__name__}")
-            kwargs[spec.name] = _array(spec, where, value, table, blob)
-        elif spec.kind == "message":
-            assert spec.message_cls is not None
-            kwargs[spec.name] = _build(spec.message_cls, value, table, blob)
+        elif kind == "array":
+            if type(value) is not _ArrayRef:
+                raise CodecError(f"{cls.__name__}.{spec.name}: expected an array, got {type(value).__name__}")
+            kwargs[spec.name] = _array(spec, cls, value, table, blob)
+        elif kind == "message":
+            kwargs[spec.name] = _build(spec.message_cls, value, table, blob)  # type: ignore[arg-type]
+        elif type(value) is _ArrayRef:
+            raise CodecError(f"{cls.__name__}.{spec.name}: unexpected array")
         else:
-            if isinstance(value, _ArrayRef):
-                raise CodecError(f"{where}: unexpected array")
             kwargs[spec.name] = value
     try:
         return cls(**kwargs)

@@ -32,6 +32,8 @@ __all__ = [
     "Text",
     "Trigger",
     "array_field",
+    "from_dict",
+    "to_dict",
     "message",
     "message_type",
     "registered_types",
@@ -73,25 +75,24 @@ def message(cls: type[M]) -> type[M]:
     user_post_init = cls.__dict__.get("__post_init__")
 
     def __post_init__(self: Any) -> None:
-        for spec in self.__uniros_schema__:
-            if spec.kind == "array":
-                value = getattr(self, spec.name)
-                if value is None:
-                    if not spec.optional:
-                        raise CodecError(f"{type(self).__name__}.{spec.name}: required array is None")
-                    continue
-                if not isinstance(value, np.ndarray) or value.dtype != spec.dtype:
-                    try:
-                        value = np.asarray(value, dtype=spec.dtype)
-                    except (TypeError, ValueError) as exc:
-                        raise CodecError(
-                            f"{type(self).__name__}.{spec.name}: expected {spec.dtype} array, got {value!r:.80}"
-                        ) from exc
-                    object.__setattr__(self, spec.name, value)
-                if value.ndim != spec.ndim:
+        for spec in self.__uniros_arrays__:
+            value = getattr(self, spec.name)
+            if value is None:
+                if not spec.optional:
+                    raise CodecError(f"{type(self).__name__}.{spec.name}: required array is None")
+                continue
+            if not isinstance(value, np.ndarray) or value.dtype != spec.dtype:
+                try:
+                    value = np.asarray(value, dtype=spec.dtype)
+                except (TypeError, ValueError) as exc:
                     raise CodecError(
-                        f"{type(self).__name__}.{spec.name}: expected ndim {spec.ndim}, got shape {value.shape}"
-                    )
+                        f"{type(self).__name__}.{spec.name}: expected {spec.dtype} array, got {value!r:.80}"
+                    ) from exc
+                object.__setattr__(self, spec.name, value)
+            if value.ndim != spec.ndim:
+                raise CodecError(
+                    f"{type(self).__name__}.{spec.name}: expected ndim {spec.ndim}, got shape {value.shape}"
+                )
         if user_post_init is not None:
             user_post_init(self)
 
@@ -111,6 +112,7 @@ def message(cls: type[M]) -> type[M]:
         else:
             schema.append(FieldSpec(f.name, "data"))
     new_cls.__uniros_schema__ = tuple(schema)  # type: ignore[attr-defined]
+    new_cls.__uniros_arrays__ = tuple(s for s in schema if s.kind == "array")  # type: ignore[attr-defined]
     name = new_cls.__name__
     if name in _REGISTRY:
         raise CodecError(f"message type {name!r} is already registered")
@@ -286,3 +288,48 @@ class Data:
     """Any msgpack-able value: dicts, lists, numbers, strings (parameters, generic service payloads)."""
 
     value: Any = None
+
+
+def to_dict(msg: Any) -> dict[str, Any]:
+    """A message as plain data (arrays as lists), for printing and YAML."""
+    out: dict[str, Any] = {}
+    for spec in msg.__uniros_schema__:
+        v = getattr(msg, spec.name)
+        if v is None:
+            out[spec.name] = None
+        elif spec.kind == "array":
+            out[spec.name] = v.tolist()
+        elif spec.kind == "message":
+            out[spec.name] = to_dict(v)
+        else:
+            out[spec.name] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def from_dict(cls: type[M], data: Any) -> M:
+    """Build message ``cls`` from plain data (the inverse of to_dict; nested messages may be omitted).
+
+    Raises:
+        CodecError: not a mapping, unknown or missing fields (the valid ones are listed), or bad values.
+    """
+    if not isinstance(data, dict):
+        raise CodecError(f"{cls.__name__}: expected a mapping of fields, got {type(data).__name__}")
+    schema = {s.name: s for s in cls.__uniros_schema__}  # type: ignore[attr-defined]
+    unknown = sorted(set(data) - set(schema))
+    if unknown:
+        raise CodecError(f"{cls.__name__}: unknown field(s) {unknown}; fields are {sorted(schema)}")
+    kwargs: dict[str, Any] = {}
+    for name, spec in schema.items():
+        if name in data:
+            v = data[name]
+            if spec.kind == "message" and v is not None:
+                assert spec.message_cls is not None
+                v = from_dict(spec.message_cls, v)
+            kwargs[name] = v
+        elif spec.kind == "message" and not spec.optional:
+            assert spec.message_cls is not None
+            kwargs[name] = spec.message_cls()
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:
+        raise CodecError(f"{cls.__name__}: {exc}") from exc

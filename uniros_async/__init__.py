@@ -1,0 +1,28 @@
+"""uniros_async: a middleware-free asyncio runtime for reinforcement learning on simulated and real robot arms.
+
+The bus (``uniros_async.bus``: domains, nodes, topics, timers, services, parameters) runs over pluggable
+transports (``uniros_async.transports``: memory, shm, tcp); robots, environments and training build on it.
+"""
+
+from uniros_async.errors import (
+    ConfigError,
+    SimulationError,
+    TransportBrokenError,
+    TransportClosedError,
+    TransportError,
+    UnirosError,
+    WorkerError,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConfigError",
+    "SimulationError",
+    "TransportBrokenError",
+    "TransportClosedError",
+    "TransportError",
+    "UnirosError",
+    "WorkerError",
+    "__version__",
+]

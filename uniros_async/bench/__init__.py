@@ -1,0 +1,1 @@
+"""``uniros bench``: benchmark scenarios. Each module keeps ``main(config)`` apart from argparse."""

@@ -1,0 +1,153 @@
+"""Echo servers for the transport benchmark, one per implementation, each run in its own (spawned) process.
+
+Every server takes (address, ready pipe): it binds, sends its concrete address on the pipe, then echoes every
+frame back until the peer sends the 4-byte frame b"STOP" (or the pipe closes), and for throughput counts frames:
+a frame starting with b"COUNT" makes it reply, after that many frames arrived, with one ack frame.
+Peers are imported inside their functions so a missing optional package only disables that peer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import struct
+from multiprocessing.connection import Connection
+from typing import Any
+
+STOP = b"STOP"
+COUNT = b"COUNT"
+_Q = struct.Struct("<Q")
+
+
+def _quiet() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def serve_uniros(uri: str, ready: Connection) -> None:
+    """Echo server on one of our transports (shm://, tcp://)."""
+    _quiet()
+    from uniros_async.errors import TransportBrokenError, TransportClosedError
+    from uniros_async.transports.base import TransportOptions, listen
+
+    async def main() -> None:
+        lst = await listen(uri, TransportOptions())
+        ready.send(lst.uri)
+        t = await lst.accept()
+        try:
+            while True:
+                f = await t.receive()
+                if f.nbytes == 4 and bytes(f) == STOP:
+                    break
+                if f.nbytes == 13 and bytes(f[:5]) == COUNT:
+                    (n,) = _Q.unpack(f[5:13])
+                    for _ in range(n):
+                        await t.receive()
+                    await t.send(b"ACK")
+                    continue
+                await t.send(f)
+        except (TransportBrokenError, TransportClosedError):
+            pass
+        finally:
+            await t.aclose()
+            await lst.aclose()
+
+    asyncio.run(main())
+
+
+def serve_pipe(_addr: str, ready: Connection, conn: Connection) -> None:
+    """multiprocessing.Pipe echo (the connection is passed in at spawn)."""
+    _quiet()
+    ready.send("pipe")
+    while True:
+        try:
+            f = conn.recv_bytes()
+        except EOFError:
+            return
+        if f == STOP:
+            return
+        if len(f) == 13 and f[:5] == COUNT:
+            (n,) = _Q.unpack(f[5:13])
+            for _ in range(n):
+                conn.recv_bytes()
+            conn.send_bytes(b"ACK")
+            continue
+        conn.send_bytes(f)
+
+
+def serve_zmq(addr: str, ready: Connection) -> None:
+    """pyzmq PAIR echo, blocking sockets (no asyncio overhead: the strongest form of this peer)."""
+    _quiet()
+    import zmq
+
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.PAIR)
+    if addr.startswith("tcp://"):
+        port = s.bind_to_random_port("tcp://127.0.0.1")
+        addr = f"tcp://127.0.0.1:{port}"
+    else:
+        s.bind(addr)
+    ready.send(addr)
+    try:
+        while True:
+            f = s.recv(copy=False)
+            b = f.buffer
+            if len(b) == 4 and bytes(b) == STOP:
+                break
+            if len(b) == 13 and bytes(b[:5]) == COUNT:
+                (n,) = _Q.unpack(bytes(b[5:13]))
+                for _ in range(n):
+                    s.recv(copy=False)
+                s.send(b"ACK")
+                continue
+            s.send(f, copy=False)
+    finally:
+        s.close(linger=0)
+        ctx.term()
+
+
+def zenoh_config(port: int, listen: bool) -> Any:
+    import json
+
+    import zenoh
+
+    conf: dict[str, Any] = {"mode": "peer", "scouting": {"multicast": {"enabled": False}}}
+    if listen:
+        conf["listen"] = {"endpoints": [f"tcp/127.0.0.1:{port}"]}
+    else:
+        conf["connect"] = {"endpoints": [f"tcp/127.0.0.1:{port}"]}
+    return zenoh.Config.from_json5(json.dumps(conf))
+
+
+def serve_zenoh(addr: str, ready: Connection) -> None:
+    """zenoh peer: subscribes bench/ping, republishes on bench/pong."""
+    _quiet()
+    import threading
+
+    import zenoh
+
+    port = int(addr.rsplit(":", 1)[1])
+    session = zenoh.open(zenoh_config(port, listen=True))
+    pong = session.declare_publisher("bench/pong")
+    done = threading.Event()
+    counting = {"left": 0}
+
+    def on_ping(sample: Any) -> None:
+        b = sample.payload.to_bytes()
+        if b == STOP:
+            done.set()
+            return
+        if counting["left"] > 0:
+            counting["left"] -= 1
+            if counting["left"] == 0:
+                pong.put(b"ACK")
+            return
+        if len(b) == 13 and b[:5] == COUNT:
+            counting["left"] = _Q.unpack(b[5:13])[0]
+            return
+        pong.put(b)
+
+    sub = session.declare_subscriber("bench/ping", on_ping)
+    ready.send(addr)
+    done.wait(600)
+    sub.undeclare()
+    session.close()

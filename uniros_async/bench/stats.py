@@ -1,0 +1,27 @@
+"""Order statistics for benchmark samples (medians and percentiles, never means of latencies)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = ["summary"]
+
+
+def summary(samples: Sequence[float]) -> dict[str, float]:
+    """p50, p90, p99, IQR, min, max and count of ``samples`` (NaN when empty)."""
+    if len(samples) == 0:
+        nan = float("nan")
+        return {"p50": nan, "p90": nan, "p99": nan, "iqr": nan, "min": nan, "max": nan, "count": 0}
+    a = np.asarray(samples, dtype=np.float64)
+    p25, p50, p75, p90, p99 = np.percentile(a, [25, 50, 75, 90, 99])
+    return {
+        "p50": float(p50),
+        "p90": float(p90),
+        "p99": float(p99),
+        "iqr": float(p75 - p25),
+        "min": float(a.min()),
+        "max": float(a.max()),
+        "count": int(a.size),
+    }

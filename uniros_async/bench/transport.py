@@ -1,0 +1,439 @@
+"""``uniros bench transport``: round-trip latency and one-way throughput of every transport and installed peer.
+
+In one run, for each payload (277-byte joint state, 64 KiB blob, 640x480x3 uint8 image) and each
+implementation (our memory, shm and tcp transports; multiprocessing.Pipe, pyzmq ipc and tcp, zenoh when
+installed), a client in this process ping-pongs frames with an echo server in another process (memory:
+in-process, by definition) and records every round trip; then it streams frames one way and times until the
+server acknowledges the last one. Latencies are reported as percentiles, never means.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import logging
+import multiprocessing as mp
+import os
+import socket
+import struct
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from uniros_async.bench import _peers
+from uniros_async.bench.stats import summary
+from uniros_async.errors import ConfigError
+
+__all__ = ["PAYLOADS", "TransportBenchConfig", "format_table", "main"]
+
+logger = logging.getLogger(__name__)
+
+PAYLOADS: dict[str, int] = {"small": 277, "64k": 64 * 1024, "image": 640 * 480 * 3}
+OURS = ("memory", "shm", "tcp")
+PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TransportBenchConfig:
+    """What to run. ``quick`` shrinks the sample counts so the whole run takes under a minute on 2 cores."""
+
+    transports: tuple[str, ...] = OURS + PEERS
+    payloads: tuple[str, ...] = tuple(PAYLOADS)
+    quick: bool = False
+    rtt_samples: int = 0  # 0: by payload and quick
+    throughput_frames: int = 0
+    json_path: str | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        bad = [t for t in self.transports if t not in OURS + PEERS]
+        if bad:
+            raise ConfigError(f"unknown transport(s) {bad}; choose from {list(OURS + PEERS)}")
+        badp = [p for p in self.payloads if p not in PAYLOADS]
+        if badp:
+            raise ConfigError(f"unknown payload(s) {badp}; choose from {list(PAYLOADS)}")
+
+    def n_rtt(self, payload: str) -> int:
+        if self.rtt_samples:
+            return self.rtt_samples
+        base = {"small": 5000, "64k": 2000, "image": 500}[payload]
+        return base // 5 if self.quick else base
+
+    def n_tput(self, payload: str) -> int:
+        if self.throughput_frames:
+            return self.throughput_frames
+        base = {"small": 50000, "64k": 5000, "image": 2000}[payload]
+        return base // 10 if self.quick else base
+
+
+# ------------------------------------------------------------------------------------------------- clients
+
+
+class _Client:
+    name = ""
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        raise NotImplementedError
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+def _count_frame(n: int) -> bytes:
+    return _peers.COUNT + struct.pack("<Q", n)
+
+
+class _UnirosClient(_Client):
+    """Our transports, driven from an asyncio loop in this process."""
+
+    def __init__(self, kind: str) -> None:
+        self.name = kind
+        self._runner = asyncio.Runner()
+        self._proc: Any = None
+        self._echo_task: Any = None
+        self._t: Any = None
+        self._runner.run(self._open(kind))
+
+    async def _open(self, kind: str) -> None:
+        from uniros_async.transports.base import TransportOptions, connect, listen
+
+        opts = TransportOptions()
+        if kind == "memory":
+            lst = await listen("memory://", opts)
+            acc = asyncio.ensure_future(lst.accept())
+            self._t = await connect(lst.uri, opts)
+            server = await acc
+            await lst.aclose()
+            self._echo_task = asyncio.ensure_future(self._memory_echo(server))
+            return
+        uri = {"shm": "shm://", "tcp": "tcp://127.0.0.1:0"}[kind]
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_peers.serve_uniros, args=(uri, child), daemon=True)
+        self._proc.start()
+        child.close()
+        if not parent.poll(30):
+            raise TimeoutError(f"{kind} echo server did not start")
+        self._t = await connect(parent.recv(), opts)
+        parent.close()
+
+    @staticmethod
+    async def _memory_echo(t: Any) -> None:
+        from uniros_async.errors import TransportError
+
+        try:
+            while True:
+                f = await t.receive()
+                if f.nbytes == 13 and bytes(f[:5]) == _peers.COUNT:
+                    (n,) = struct.unpack("<Q", f[5:13])
+                    for _ in range(n):
+                        await t.receive()
+                    await t.send(b"ACK")
+                    continue
+                await t.send(f)
+        except TransportError:
+            await t.aclose()
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        async def run() -> list[float]:
+            t = self._t
+            out = []
+            clock = time.perf_counter_ns
+            async with asyncio.timeout(120):
+                for _ in range(n):
+                    t0 = clock()
+                    await t.send(payload)
+                    await t.receive()
+                    out.append((clock() - t0) / 1e3)
+            return out
+
+        return self._runner.run(run())
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        async def run() -> float:
+            t = self._t
+            async with asyncio.timeout(300):
+                t0 = time.perf_counter()
+                await t.send(_count_frame(n))
+                for _ in range(n):
+                    await t.send(payload)
+                ack = await t.receive()
+                assert bytes(ack) == b"ACK"
+                return n / (time.perf_counter() - t0)
+
+        return self._runner.run(run())
+
+    def close(self) -> None:
+        async def run() -> None:
+            if self._proc is not None:
+                await self._t.send(_peers.STOP)
+            await self._t.aclose()
+            if self._echo_task is not None:
+                self._echo_task.cancel()
+
+        try:
+            self._runner.run(run())
+        finally:
+            self._runner.close()
+            if self._proc is not None:
+                self._proc.join(10)
+                if self._proc.is_alive():
+                    self._proc.kill()
+
+
+class _PipeClient(_Client):
+    name = "mp-pipe"
+
+    def __init__(self) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child_conn = ctx.Pipe()
+        ready_parent, ready_child = ctx.Pipe()
+        self._proc = ctx.Process(target=_peers.serve_pipe, args=("", ready_child, child_conn), daemon=True)
+        self._proc.start()
+        child_conn.close()
+        if not ready_parent.poll(30):
+            raise TimeoutError("pipe echo server did not start")
+        ready_parent.recv()
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        c, clock, out = self._conn, time.perf_counter_ns, []
+        for _ in range(n):
+            t0 = clock()
+            c.send_bytes(payload)
+            c.recv_bytes()
+            out.append((clock() - t0) / 1e3)
+        return out
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        c = self._conn
+        t0 = time.perf_counter()
+        c.send_bytes(_count_frame(n))
+        for _ in range(n):
+            c.send_bytes(payload)
+        c.recv_bytes()
+        return n / (time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self._conn.send_bytes(_peers.STOP)
+        self._conn.close()
+        self._proc.join(10)
+
+
+class _ZmqClient(_Client):
+    def __init__(self, kind: str) -> None:
+        import zmq
+
+        self.name = kind
+        ctx = mp.get_context("spawn")
+        ready_parent, ready_child = ctx.Pipe()
+        addr = f"ipc:///tmp/uniros-bench-{os.getpid()}.ipc" if kind == "zmq-ipc" else "tcp://127.0.0.1:0"
+        self._ipc = addr if kind == "zmq-ipc" else None
+        self._proc = ctx.Process(target=_peers.serve_zmq, args=(addr, ready_child), daemon=True)
+        self._proc.start()
+        if not ready_parent.poll(30):
+            raise TimeoutError("zmq echo server did not start")
+        addr = ready_parent.recv()
+        self._ctx = zmq.Context()
+        self._s = self._ctx.socket(zmq.PAIR)
+        self._s.connect(addr)
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        s, clock, out = self._s, time.perf_counter_ns, []
+        big = len(payload) > 16384
+        for _ in range(n):
+            t0 = clock()
+            s.send(payload, copy=not big)
+            s.recv(copy=not big)
+            out.append((clock() - t0) / 1e3)
+        return out
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        s = self._s
+        big = len(payload) > 16384
+        t0 = time.perf_counter()
+        s.send(_count_frame(n))
+        for _ in range(n):
+            s.send(payload, copy=not big)
+        s.recv()
+        return n / (time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self._s.send(_peers.STOP)
+        self._proc.join(10)
+        self._s.close(linger=0)
+        self._ctx.term()
+        if self._ipc:
+            Path(self._ipc.removeprefix("ipc://")).unlink(missing_ok=True)
+
+
+class _ZenohClient(_Client):
+    name = "zenoh"
+
+    def __init__(self) -> None:
+        import zenoh
+
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        ctx = mp.get_context("spawn")
+        ready_parent, ready_child = ctx.Pipe()
+        self._proc = ctx.Process(target=_peers.serve_zenoh, args=(f"tcp:127.0.0.1:{port}", ready_child), daemon=True)
+        self._proc.start()
+        if not ready_parent.poll(30):
+            raise TimeoutError("zenoh echo server did not start")
+        ready_parent.recv()
+        self._session = zenoh.open(_peers.zenoh_config(port, listen=False))
+        self._pub = self._session.declare_publisher("bench/ping", congestion_control=zenoh.CongestionControl.BLOCK)
+        self._sub = self._session.declare_subscriber("bench/pong")
+        # wait until the route exists both ways
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            self._pub.put(b"hello")
+            if self._sub.try_recv() is not None:
+                break
+            time.sleep(0.05)
+        else:
+            raise TimeoutError("zenoh peers did not connect within 10 s")
+        time.sleep(0.1)
+        while self._sub.try_recv() is not None:
+            pass
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        pub, sub, clock, out = self._pub, self._sub, time.perf_counter_ns, []
+        for _ in range(n):
+            t0 = clock()
+            pub.put(payload)
+            sub.recv()
+            out.append((clock() - t0) / 1e3)
+        return out
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        t0 = time.perf_counter()
+        self._pub.put(_count_frame(n))
+        for _ in range(n):
+            self._pub.put(payload)
+        self._sub.recv()
+        return n / (time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self._pub.put(_peers.STOP)
+        self._proc.join(10)
+        if self._proc.is_alive():
+            self._proc.kill()
+        self._sub.undeclare()
+        self._pub.undeclare()
+        self._session.close()
+
+
+def _make_client(kind: str) -> _Client:
+    if kind in OURS:
+        return _UnirosClient(kind)
+    if kind == "mp-pipe":
+        return _PipeClient()
+    if kind in ("zmq-ipc", "zmq-tcp"):
+        return _ZmqClient(kind)
+    if kind == "zenoh":
+        return _ZenohClient()
+    raise ConfigError(f"unknown transport {kind!r}")
+
+
+def _available(kind: str) -> str | None:
+    """None if ``kind`` can run here, else why not."""
+    mod = {"zmq-ipc": "zmq", "zmq-tcp": "zmq", "zenoh": "zenoh"}.get(kind)
+    if mod is None:
+        return None
+    try:
+        __import__(mod)
+    except ImportError:
+        return f"{mod} is not installed (pip install 'uniros-async[bench]')"
+    return None
+
+
+# ------------------------------------------------------------------------------------------------- driver
+
+
+def main(config: TransportBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Run the benchmark; print the table; write JSON when asked. Returns the records."""
+    records: list[dict[str, Any]] = []
+    skipped: list[str] = []
+    todo = [(k, p) for k in config.transports for p in config.payloads]
+    bar = _progress(len(todo), config.progress)
+    for kind in config.transports:
+        why = _available(kind)
+        if why is not None:
+            skipped.append(f"{kind}: {why}")
+            bar(len(config.payloads))
+            continue
+        client = _make_client(kind)
+        try:
+            for pname in config.payloads:
+                payload = os.urandom(PAYLOADS[pname])
+                n = config.n_rtt(pname)
+                client.rtt(payload, max(10, n // 10))  # warm-up, discarded
+                rtts = client.rtt(payload, n)
+                tput = client.throughput(payload, config.n_tput(pname))
+                s = summary(rtts)
+                records.append(
+                    {
+                        "transport": kind,
+                        "payload": pname,
+                        "rtt_p50_us": round(s["p50"], 2),
+                        "rtt_p90_us": round(s["p90"], 2),
+                        "rtt_p99_us": round(s["p99"], 2),
+                        "throughput_msg_s": round(tput, 1),
+                    }
+                )
+                bar(1)
+        finally:
+            client.close()
+    bar(0, done=True)
+    log(format_table(records))
+    for s in skipped:
+        log(f"skipped {s}")
+    if config.json_path:
+        Path(config.json_path).write_text(json.dumps(records, indent=2) + "\n")
+        log(f"wrote {config.json_path}")
+    return records
+
+
+def format_table(records: list[dict[str, Any]]) -> str:
+    """A fixed-width table, one row per (payload, transport), ours and peers side by side per payload."""
+    head = f"{'payload':<8} {'transport':<10} {'rtt p50 us':>11} {'p90 us':>9} {'p99 us':>9} {'msgs/s one way':>15}"
+    lines = [head, "-" * len(head)]
+    for pname in PAYLOADS:
+        rows = [r for r in records if r["payload"] == pname]
+        for r in rows:
+            lines.append(
+                f"{pname:<8} {r['transport']:<10} {r['rtt_p50_us']:>11.1f} {r['rtt_p90_us']:>9.1f} "
+                f"{r['rtt_p99_us']:>9.1f} {r['throughput_msg_s']:>15,.0f}"
+            )
+        if rows:
+            best_peer = min((r for r in rows if r["transport"] not in OURS), key=lambda r: r["rtt_p50_us"], default=None)
+            for ours in ("shm", "tcp"):
+                mine = next((r for r in rows if r["transport"] == ours), None)
+                if mine and best_peer:
+                    ratio = best_peer["rtt_p50_us"] / mine["rtt_p50_us"]
+                    lines.append(f"{'':<8} {ours} vs fastest peer ({best_peer['transport']}): {ratio:.2f}x lower p50")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def _progress(total: int, enabled: bool) -> Callable[..., None]:
+    if not enabled:
+        return lambda n, done=False: None
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc="transport bench", unit="case", leave=False)
+
+    def step(n: int, done: bool = False) -> None:
+        if n:
+            bar.update(n)
+        if done:
+            bar.close()
+
+    return step

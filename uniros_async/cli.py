@@ -1,0 +1,270 @@
+"""The one ``uniros`` entry point.
+
+    uniros bench transport|timers [...]   benchmarks (bench/)
+    uniros topic list|echo|hz|pub         topics of a domain, as rostopic
+    uniros node list                      nodes of a domain, as rosnode
+    uniros param get|set|load|list        parameters of a domain, as rosparam
+    uniros robot ...                      simulated and emulated arms (sim/cli.py)
+
+Every introspection command takes ``--domain URI`` or reads ``UNIROS_DOMAIN``. Errors print one line and exit 2;
+nothing here starts a domain (``open_domain()`` does that from Python).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import yaml
+
+from uniros_async.errors import UnirosError
+
+__all__ = ["main"]
+
+
+def _domain_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--domain", default=None, help="domain URI (default: $UNIROS_DOMAIN)")
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="uniros", description="uniros_async: real-time RL on simulated and real robots")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    bench = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="scenario", required=True)
+    bt = bench.add_parser("transport", help="round trip and throughput of every transport and installed peer")
+    bt.add_argument("--quick", action="store_true", help="fewer samples: finishes within 60 s")
+    bt.add_argument("--json", dest="json_path", default=None, metavar="PATH", help="write records as JSON")
+    bt.add_argument("--transports", nargs="+", default=None, help="subset to run (default: all)")
+    bt.add_argument("--payloads", nargs="+", default=None, help="small, 64k, image (default: all)")
+    bt.add_argument("--no-progress", action="store_true")
+    bti = bench.add_parser("timers", help="fire-time error of 10 Hz and 25 Hz timers vs asyncio.sleep")
+    bti.add_argument("--duration", type=float, default=60.0, help="seconds per phase (default 60)")
+    bti.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+    bti.add_argument("--no-progress", action="store_true")
+
+    topic = sub.add_parser("topic", help="topics of a domain").add_subparsers(dest="action", required=True)
+    tl = topic.add_parser("list", help="topics with their types, publishers and subscribers")
+    _domain_arg(tl)
+    te = topic.add_parser("echo", help="print messages of a topic")
+    _domain_arg(te)
+    te.add_argument("topic")
+    te.add_argument("-n", "--count", type=int, default=0, help="stop after N messages (0: until Ctrl-C)")
+    te.add_argument("--timeout", type=float, default=0.0, help="stop after this many seconds (0: never)")
+    th = topic.add_parser("hz", help="measure the publishing rate of a topic")
+    _domain_arg(th)
+    th.add_argument("topic")
+    th.add_argument("--window", type=float, default=1.0, help="seconds per report")
+    th.add_argument("--reports", type=int, default=0, help="stop after N reports (0: until Ctrl-C)")
+    tp = topic.add_parser("pub", help="publish a message given as YAML/JSON")
+    _domain_arg(tp)
+    tp.add_argument("topic")
+    tp.add_argument("type", help="message type, e.g. Text, JointCommand")
+    tp.add_argument("data", help="fields as YAML, e.g. '{data: hello}'")
+    tp.add_argument("-r", "--rate", type=float, default=0.0, help="repeat at this rate in Hz (0: once)")
+    tp.add_argument("-n", "--count", type=int, default=1, help="how many times (with --rate; 0: forever)")
+    tp.add_argument("--wait", type=float, default=1.0, help="seconds to wait for subscribers before publishing")
+
+    node = sub.add_parser("node", help="nodes of a domain").add_subparsers(dest="action", required=True)
+    _domain_arg(node.add_parser("list", help="names of the nodes"))
+
+    param = sub.add_parser("param", help="parameters of a domain").add_subparsers(dest="action", required=True)
+    pg = param.add_parser("get", help="print a parameter (or a namespace as a mapping) as YAML")
+    _domain_arg(pg)
+    pg.add_argument("name")
+    ps = param.add_parser("set", help="set a parameter to a YAML value")
+    _domain_arg(ps)
+    ps.add_argument("name")
+    ps.add_argument("value")
+    pl = param.add_parser("load", help="load a YAML file of parameters")
+    _domain_arg(pl)
+    pl.add_argument("path")
+    pl.add_argument("--namespace", default="/")
+    pli = param.add_parser("list", help="names of parameters")
+    _domain_arg(pli)
+    pli.add_argument("prefix", nargs="?", default="/")
+
+    try:
+        from uniros_async.sim import cli as robot_cli
+    except ImportError:  # pragma: no cover - the sim package is part of the distribution
+        robot_cli = None
+    if robot_cli is not None:
+        robot_cli.add_parser(sub)
+    return parser
+
+
+async def _with_node(args: argparse.Namespace, fn: Any) -> Any:
+    from uniros_async.bus import open_node
+
+    async with open_node(f"uniros_cli_{int(time.time() * 1e6) % 10**9}", domain=args.domain) as node:
+        return await fn(node)
+
+
+async def _topic_type(node: Any, topic: str) -> type:
+    from uniros_async.bus.messages import message_type
+
+    for t in await node.list_topics():
+        if t["topic"] == topic:
+            return message_type(t["type"])
+    raise UnirosError(f"no topic {topic!r} in the domain (see `uniros topic list`)")
+
+
+def _run_topic(args: argparse.Namespace) -> int:
+    from uniros_async.bus import reliable
+    from uniros_async.bus.messages import from_dict, message_type, to_dict
+
+    if args.action == "list":
+
+        async def go(node: Any) -> None:
+            for t in await node.list_topics():
+                print(f"{t['topic']}  [{t['type']}]  pubs: {', '.join(t['publishers']) or '-'}  subs: "
+                      f"{', '.join(s for s in t['subscribers'] if not s.startswith('/uniros_cli_')) or '-'}")
+
+    elif args.action == "echo":
+
+        async def go(node: Any) -> None:
+            cls = await _topic_type(node, args.topic)
+            sub = await node.create_subscription(cls, args.topic, qos=reliable(100))
+            n = 0
+            deadline = time.monotonic() + args.timeout if args.timeout else None
+            while not args.count or n < args.count:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    break
+                try:
+                    async with asyncio.timeout(left):
+                        msg = await sub.receive()
+                except TimeoutError:
+                    break
+                print(yaml.safe_dump(to_dict(msg), sort_keys=False, default_flow_style=None).rstrip() + "\n---", flush=True)
+                n += 1
+
+    elif args.action == "hz":
+
+        async def go(node: Any) -> None:
+            cls = await _topic_type(node, args.topic)
+            sub = await node.create_subscription(cls, args.topic, qos=reliable(10000))
+            reports = 0
+            while not args.reports or reports < args.reports:
+                stamps: list[int] = []
+                end = time.monotonic() + args.window
+                while (left := end - time.monotonic()) > 0:
+                    try:
+                        async with asyncio.timeout(left):
+                            await sub.receive()
+                    except TimeoutError:
+                        break
+                    stamps.append(time.monotonic_ns())
+                if len(stamps) >= 2:
+                    import numpy as np
+
+                    d = np.diff(stamps) / 1e9
+                    print(f"average rate: {1 / d.mean():.3f} Hz  min {d.min() * 1e3:.2f} ms  max {d.max() * 1e3:.2f} ms  "
+                          f"std {d.std() * 1e3:.3f} ms  window: {len(stamps)}", flush=True)
+                else:
+                    print("no new messages", flush=True)
+                reports += 1
+
+    else:  # pub
+
+        async def go(node: Any) -> None:
+            cls = message_type(args.type)
+            msg = from_dict(cls, yaml.safe_load(args.data) or {})
+            pub = await node.create_publisher(cls, args.topic)
+            try:
+                await pub.wait_for_subscribers(1, timeout_s=args.wait)
+            except TimeoutError:
+                pass
+            n = 0
+            while True:
+                pub.publish(msg)
+                n += 1
+                if not args.rate or (args.count and n >= args.count):
+                    break
+                await asyncio.sleep(1 / args.rate)
+            await asyncio.sleep(0.1)  # let the frames leave before the node closes
+            print(f"published {n} {cls.__name__} on {args.topic} to {pub.subscription_count} subscriber(s)")
+
+    asyncio.run(_with_node(args, go))
+    return 0
+
+
+def _run_param(args: argparse.Namespace) -> int:
+    async def go(node: Any) -> None:
+        if args.action == "get":
+            print(yaml.safe_dump(await node.get_parameter(args.name), default_flow_style=None).rstrip())
+        elif args.action == "set":
+            await node.set_parameter(args.name, yaml.safe_load(args.value))
+        elif args.action == "load":
+            n = await node.load_parameters(args.path, namespace=args.namespace)
+            print(f"loaded {n} parameter(s) from {args.path}")
+        else:
+            for name in await node.list_parameters(args.prefix):
+                print(name)
+
+    asyncio.run(_with_node(args, go))
+    return 0
+
+
+def _run_node(args: argparse.Namespace) -> int:
+    async def go(node: Any) -> None:
+        for name in await node.list_nodes():
+            if name != node.name:
+                print(name)
+
+    asyncio.run(_with_node(args, go))
+    return 0
+
+
+def _run_bench(args: argparse.Namespace) -> int:
+    if args.scenario == "transport":
+        from uniros_async.bench import transport
+
+        cfg = transport.TransportBenchConfig(
+            quick=args.quick,
+            json_path=args.json_path,
+            progress=not args.no_progress,
+            **({"transports": tuple(args.transports)} if args.transports else {}),
+            **({"payloads": tuple(args.payloads)} if args.payloads else {}),
+        )
+        transport.main(cfg)
+    else:
+        from uniros_async.bench import timers
+
+        timers.main(timers.TimerBenchConfig(duration_s=args.duration, json_path=args.json_path, progress=not args.no_progress))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``uniros`` command; returns the exit code."""
+    args = _build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        if args.command == "bench":
+            return _run_bench(args)
+        if args.command == "topic":
+            return _run_topic(args)
+        if args.command == "param":
+            return _run_param(args)
+        if args.command == "node":
+            return _run_node(args)
+        if args.command == "robot":
+            from uniros_async.sim import cli as robot_cli
+
+            return int(robot_cli.run(args))
+    except KeyboardInterrupt:
+        return 130
+    except (UnirosError, KeyError, TimeoutError) as exc:
+        print(f"uniros: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

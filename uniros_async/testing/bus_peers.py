@@ -1,0 +1,97 @@
+"""Bus nodes that run in another process, for cross-process tests: ``async with BusPeer(uri, "talker"): ...``."""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing as mp
+import signal
+from multiprocessing.connection import Connection
+
+import numpy as np
+
+__all__ = ["BusPeer", "peer_main"]
+
+
+def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> None:
+    """Entry point of a peer process. Roles:
+
+    - ``talker``: publishes JointState on /chatter at 200 Hz (seq counts up) and serves /add (Data -> Data).
+    - ``echo``: subscribes /ping (Blob, reliable) and republishes each message on /pong.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from uniros_async.bus import open_node, reliable
+    from uniros_async.bus.messages import Blob, Data, Header, JointState
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        asyncio.get_running_loop().add_reader(conn.fileno(), stop.set)
+        async with open_node(role, domain=domain_uri, transport=transport) as node:
+            if role == "talker":
+                pub = await node.create_publisher(JointState, "/chatter", qos=reliable(1000))
+                await node.create_service(Data, Data, "/add", lambda r: Data(value=sum(r.value)))
+                seq = 0
+
+                def tick() -> None:
+                    nonlocal seq
+                    seq += 1
+                    pub.publish(JointState(header=Header(stamp_ns=node.now_ns(), seq=seq), name=("j1", "j2"),
+                                           position=np.array([seq, -seq], float), velocity=np.zeros(2),
+                                           effort=np.zeros(2)))
+
+                node.create_timer(0.005, tick)
+            elif role == "echo":
+                pong = await node.create_publisher(Blob, "/pong", qos=reliable(1000))
+                await node.create_subscription(Blob, "/ping", pong.publish, qos=reliable(1000))
+            conn.send("ready")
+            await stop.wait()
+
+    asyncio.run(main())
+
+
+class BusPeer:
+    """Runs ``peer_main`` in a spawned process: ``async with BusPeer(uri, "talker"):``; leaving the block stops it
+    (closing the pipe), or kill() it."""
+
+    def __init__(self, domain_uri: str, role: str, transport: str = "auto") -> None:
+        ctx = mp.get_context("spawn")
+        self._parent, child = ctx.Pipe()
+        self.proc = ctx.Process(target=peer_main, args=(domain_uri, role, transport, child), daemon=True)
+        self._child = child
+
+    async def __aenter__(self) -> BusPeer:
+        # The domain may be served by this very event loop: wait for "ready" without blocking it.
+        self.proc.start()
+        self._child.close()
+        loop = asyncio.get_running_loop()
+        ready = asyncio.Event()
+        loop.add_reader(self._parent.fileno(), ready.set)
+        try:
+            async with asyncio.timeout(60):
+                await ready.wait()
+        except TimeoutError:
+            self.proc.kill()
+            self.proc.join(5)
+            raise TimeoutError("bus peer did not start within 60 s") from None
+        finally:
+            loop.remove_reader(self._parent.fileno())
+        msg = self._parent.recv() if self._parent.poll(0) else None
+        if msg != "ready":
+            self.proc.join(5)
+            raise RuntimeError(f"bus peer failed to start (exit code {self.proc.exitcode})")
+        return self
+
+    def kill(self) -> None:
+        self.proc.kill()
+        self.proc.join(5)
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._parent.close()
+        for _ in range(200):  # up to 10 s, without blocking the loop that may serve the domain
+            if not self.proc.is_alive():
+                break
+            await asyncio.sleep(0.05)
+        self.proc.join(0.1)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(5)
+            raise AssertionError("bus peer did not stop within 10 s")
