@@ -26,3 +26,8 @@ __all__ = [
     "WorkerError",
     "__version__",
 ]
+
+# Register the gymnasium ids ("uniros/Rx200Reach-v0", ...) on import, as gymnasium-robotics does.
+from uniros_async.tasks.reach import register_reach_envs as _register  # noqa: E402
+
+_register()

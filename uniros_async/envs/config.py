@@ -1,0 +1,83 @@
+"""EnvConfig: how an environment runs (clock, robot placement, rates, timeouts, latency model)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from uniros_async.errors import ConfigError
+
+__all__ = ["CLOCKS", "EnvConfig"]
+
+CLOCKS = ("wall", "sim")
+ROBOT_PLACEMENTS = ("sim", "sim-process", "emulated-real")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EnvConfig:
+    """Runtime settings shared by every task.
+
+    Attributes:
+        robot: where the arm is: ``"sim"`` (servo sim in the env's own process, memory transport),
+            ``"sim-process"`` (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as
+            a tcp service in its own process), or ``"tcp://host:port"`` (the domain of an arm served elsewhere,
+            e.g. by ``uniros robot serve``).
+        clock: ``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``).
+        env_loop_rate_hz: env loop rate; None: the robot's hardware rate.
+        action_cycle_s: time between agent steps (an absolute deadline from the previous step).
+        turn_based: the baseline: the world is paused while the agent thinks and ``step`` advances the sim in
+            lockstep for one action cycle, returning a fresh observation (implies ``clock="sim"``).
+        agent_latency_s: with ``clock="sim"``: sim time between the returns the agent was given and its action
+            reaching the loop. A number (fixed), ``"measured"`` (the agent's measured wall time), or 0.
+        agent_latency_jitter_s: standard deviation of a Gaussian added to a fixed latency (clipped at 0).
+        robot_timeout_s: joint states older than this make ``step`` raise RobotError and the arm hold.
+        step_timeout_s: bound on any one ``step`` call (beyond the action cycle itself).
+        reset_timeout_s: bound on ``reset`` (moving home and settling).
+        reset_move_s: time to move home on an arm that cannot be teleported (emulated or real).
+        settle_tol_rad: the arm is settled when every joint is within this of home and slower than 10x it per s.
+        emulation_seed: seed of the emulated real arm's perturbations and noise.
+    """
+
+    robot: str = "sim"
+    clock: str = "wall"
+    env_loop_rate_hz: float | None = None
+    action_cycle_s: float = 0.8
+    turn_based: bool = False
+    agent_latency_s: float | str = 0.0
+    agent_latency_jitter_s: float = 0.0
+    robot_timeout_s: float = 2.0
+    step_timeout_s: float = 10.0
+    reset_timeout_s: float = 20.0
+    reset_move_s: float = 1.5
+    settle_tol_rad: float = 0.01
+    emulation_seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.robot not in ROBOT_PLACEMENTS and not self.robot.startswith("tcp://"):
+            raise ConfigError(f"robot must be one of {ROBOT_PLACEMENTS} or a tcp://host:port URI, got {self.robot!r}")
+        if self.clock not in CLOCKS:
+            raise ConfigError(f"clock must be one of {CLOCKS}, got {self.clock!r}")
+        if self.turn_based and self.clock != "sim":
+            object.__setattr__(self, "clock", "sim")
+        if self.clock == "sim" and self.robot != "sim":
+            raise ConfigError(f"clock='sim' needs robot='sim' (the sim in this process), got robot={self.robot!r}")
+        if self.env_loop_rate_hz is not None and not 0 < self.env_loop_rate_hz <= 1000:
+            raise ConfigError(f"env_loop_rate_hz must be in (0, 1000], got {self.env_loop_rate_hz}")
+        if not 0 < self.action_cycle_s <= 60:
+            raise ConfigError(f"action_cycle_s must be in (0, 60], got {self.action_cycle_s}")
+        if isinstance(self.agent_latency_s, str):
+            if self.agent_latency_s != "measured":
+                raise ConfigError(f"agent_latency_s must be a number or 'measured', got {self.agent_latency_s!r}")
+        elif self.agent_latency_s < 0:
+            raise ConfigError(f"agent_latency_s must be >= 0, got {self.agent_latency_s}")
+        for name in ("robot_timeout_s", "step_timeout_s", "reset_timeout_s", "reset_move_s", "settle_tol_rad"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+
+    @classmethod
+    def split(cls, kwargs: dict[str, Any]) -> tuple[EnvConfig, dict[str, Any]]:
+        """Take the EnvConfig fields out of ``kwargs``; return the config and what is left (task settings)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        mine = {k: v for k, v in kwargs.items() if k in names}
+        rest = {k: v for k, v in kwargs.items() if k not in names}
+        return cls(**mine), rest

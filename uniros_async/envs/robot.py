@@ -1,0 +1,310 @@
+"""RobotEnv: one arm on the bus, the real-time env loop, safety checks, and where the arm runs.
+
+The env loop is a bus timer at ``env_loop_rate_hz`` (default: the arm's hardware rate). Each tick it reads the
+newest joint state (never waits for one), builds observation, reward, terminated and info through the task's
+hooks and caches them with the tick's stamp, and sends the current action's joint target to the arm again
+(action repeat), limited to ``max_joint_step_rad`` per tick. An action whose target fails a safety check (joint
+limits, a link near the table, the EE outside the workspace box, self-collision) is never sent: the arm is told
+to hold and ``info["unsafe_reason"]`` says why. ``step`` hands the action over at once and returns the cached
+returns at the end of the action cycle, an absolute deadline from the previous step.
+
+The arm is reached only through its topics (``joint_states``, ``command``) and services (``hold``, ``reset``)
+in namespace ``/<robot>``, so the same code drives the sim in this process, a sim in another process, the
+emulated real arm over tcp, or a real arm behind an adapter.
+"""
+
+from __future__ import annotations
+
+import abc
+import contextlib
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from uniros_async.bus import open_domain, open_node
+from uniros_async.bus.messages import Data, Header, JointCommand, JointState, Trigger
+from uniros_async.clock import Clock, wall_clock
+from uniros_async.envs.base import BaseEnv
+from uniros_async.envs.config import EnvConfig
+from uniros_async.envs.safety import SafetyChecker, SafetyConfig
+from uniros_async.envs.timing import Timing
+from uniros_async.errors import RobotError
+from uniros_async.kinematics import Kinematics
+from uniros_async.robots import get_robot_spec
+from uniros_async.sim_clock import SimClock
+
+__all__ = ["RobotEnv"]
+
+logger = logging.getLogger(__name__)
+
+Returns = tuple[Any, float, bool, dict[str, Any]]
+
+
+class RobotEnv(BaseEnv):
+    """A BaseEnv with one robot arm. Subclasses (TaskEnv) supply the task hooks and call ``_start()`` last."""
+
+    def __init__(self, arm: str, config: EnvConfig, safety: SafetyConfig | None = None) -> None:
+        super().__init__(config)
+        self.robot_spec = get_robot_spec(arm)
+        spec = self.robot_spec
+        self.kin = Kinematics.from_spec(spec)
+        self.safety = SafetyChecker(spec, self.kin, safety)
+        self.env_loop_rate_hz = config.env_loop_rate_hz or spec.hardware_rate_hz
+        self.timing = Timing()
+        self._arm_idx = np.array([spec.joint_state_names.index(n) for n in spec.arm_joint_names])
+        self.home_q = np.asarray(spec.home_q_rad, dtype=np.float64)
+        self._clock: Clock = wall_clock()
+        self._target: np.ndarray | None = None
+        self._target_unsafe: str | None = None
+        self._action_t_ns: int | None = None
+        self._cache: tuple[int, Returns] | None = None
+        self._deadline_ns = 0
+        self._last_return_wall_ns: int | None = None
+        self._cmd_seq = 0
+        self.unsafe_actions = 0
+        self.robot_process: Any = None  # the ServoSimProcess of robot="sim-process" / "emulated-real"
+
+    # ------------------------------------------------------------------------------------------ task hooks
+
+    @abc.abstractmethod
+    def _compute_returns(self, state: JointState, q_arm: np.ndarray) -> Returns:
+        """Observation, reward, terminated and info for the newest joint state (called every tick)."""
+
+    @abc.abstractmethod
+    def _action_to_target(self, action: np.ndarray, q_arm: np.ndarray) -> tuple[np.ndarray, bool]:
+        """The joint target of ``action`` and whether it hit a joint limit."""
+
+    @abc.abstractmethod
+    def _on_reset(self, q_arm: np.ndarray) -> None:
+        """Sample the episode's goal and clear per-episode state (``self.np_random`` is seeded)."""
+
+    # ------------------------------------------------------------------------------------------ the loop
+
+    def _start(self) -> None:
+        timeout = 60.0 if self.config.robot != "sim" else 30.0
+        self._start_runtime(self._main, name=f"{self.robot_spec.name} env loop", timeout_s=timeout)
+
+    async def _main(self, started: Any) -> None:
+        spec, cfg = self.robot_spec, self.config
+        try:
+            async with contextlib.AsyncExitStack() as stack:
+                clock: Clock = SimClock(time_scale=None) if cfg.clock == "sim" else wall_clock()
+                self._clock = clock
+                transport = "auto"
+                if cfg.robot == "sim":
+                    from uniros_async.sim.node import open_servo_sim
+
+                    domain: Any = await stack.enter_async_context(open_domain("memory://"))
+                    await stack.enter_async_context(open_servo_sim(spec, domain=domain, clock=clock))
+                elif cfg.robot in ("sim-process", "emulated-real"):
+                    from uniros_async.sim.emulated import EmulationConfig
+                    from uniros_async.sim.serve import open_servo_sim_process
+
+                    domain = await stack.enter_async_context(open_domain("tcp://127.0.0.1:0"))
+                    emulated = cfg.robot == "emulated-real"
+                    transport = "tcp" if emulated else "auto"
+                    self.robot_process = await stack.enter_async_context(
+                        open_servo_sim_process(
+                            spec.name,
+                            domain=domain,
+                            emulation=EmulationConfig(seed=cfg.emulation_seed) if emulated else None,
+                            transport=transport,
+                        )
+                    )
+                else:
+                    domain, transport = cfg.robot, "tcp"
+                node = await stack.enter_async_context(
+                    open_node("env", domain=domain, namespace=f"/{spec.name}", clock=clock, transport=transport)
+                )
+                self._node = node
+                self._js = await node.create_subscription(JointState, "joint_states")
+                self._cmd = await node.create_publisher(JointCommand, "command")
+                self._reset_cli = node.create_client(Data, Trigger, "reset")
+                await self._js.wait_for_publishers(1, timeout_s=30.0)
+                await self._wait_for_state(after_ns=None)
+                if isinstance(clock, SimClock):
+                    clock.pause()
+                node.create_timer(1.0 / self.env_loop_rate_hz, self._tick)
+                started(None)
+                await _forever()
+        except BaseException as exc:
+            started(exc)
+            raise
+
+    def _tick(self) -> None:
+        now = self._clock.now_ns()
+        self.timing.tick_ns.append(now)
+        js = self._js.latest()
+        if js is None:
+            return
+        q_arm = js.position[self._arm_idx]
+        self._cache = (now, self._compute_returns(js, q_arm))
+        target = self._target
+        if target is None or self._target_unsafe is not None:
+            return
+        self._send(self.safety.limit_step(q_arm, target), now)
+        if self._action_t_ns is not None:
+            self.timing.action_latency_ns.append(now - self._action_t_ns)
+            self._action_t_ns = None
+
+    def _send(self, q: np.ndarray, now: int) -> None:
+        self._cmd_seq += 1
+        self._cmd.publish(JointCommand(header=Header(stamp_ns=now, seq=self._cmd_seq), position=q, duration_s=0.0))
+        self.timing.command_ns.append(now)
+
+    def _state_age_s(self) -> float:
+        js = self._js.latest()
+        if js is None:
+            return float("inf")
+        if isinstance(self._clock, SimClock):
+            return (self._clock.now_ns() - js.header.stamp_ns) / 1e9
+        return (time.monotonic_ns() - self._js.latest_recv_ns) / 1e9
+
+    async def _wait_for_state(self, after_ns: int | None, timeout_s: float | None = None) -> JointState:
+        """The first joint state stamped after ``after_ns`` (any, when None), waiting on the env's clock."""
+        timeout_s = timeout_s or self.config.robot_timeout_s * 5
+        deadline = time.monotonic() + timeout_s
+        if isinstance(self._clock, SimClock):
+            self._clock.resume()
+        while True:
+            js = self._js.latest()
+            if js is not None and (after_ns is None or js.header.stamp_ns > after_ns):
+                return js
+            if time.monotonic() > deadline:
+                raise RobotError(
+                    f"{self.robot_spec.name}: no joint state on {self._js.topic} within {timeout_s} s; is the arm running?"
+                )
+            await self._clock.sleep(0.2 / self.robot_spec.hardware_rate_hz)
+
+    # ------------------------------------------------------------------------------------------ step / reset
+
+    def _set_action(self, action: np.ndarray) -> None:
+        js = self._js.latest()
+        assert js is not None
+        q_arm = js.position[self._arm_idx]
+        target, limit_hit = self._action_to_target(action, q_arm)
+        self._limit_hit = limit_hit
+        why = self.safety.check(target)
+        self._target_unsafe = why
+        self._target = target
+        self._action_t_ns = self._clock.now_ns()
+        if why is not None:
+            self.unsafe_actions += 1
+            self._send(q_arm, self._action_t_ns)  # hold where it is
+            self._action_t_ns = None
+
+    async def _astep(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        clock, cfg = self._clock, self.config
+        sim = isinstance(clock, SimClock)
+        if sim:
+            clock.resume()
+            latency = self._agent_latency_s()
+            if latency > 0:
+                await clock.sleep(latency)
+        self._set_action(action)
+        self._on_action(action)
+        now = clock.now_ns()
+        cycle_ns = round(cfg.action_cycle_s * 1e9)
+        deadline = self._deadline_ns + cycle_ns
+        if deadline <= now:  # the agent took longer than a cycle: start a new one rather than return at once
+            self.timing.step_overruns += 1
+            deadline = now + cycle_ns
+        await clock.sleep_until(deadline)
+        self._deadline_ns = deadline
+        if cfg.turn_based:  # the baseline: a fresh observation at the end of the lockstep cycle
+            js = self._js.latest()
+            assert js is not None
+            self._cache = (clock.now_ns(), self._compute_returns(js, js.position[self._arm_idx]))
+        age_s = self._state_age_s()
+        if age_s > cfg.robot_timeout_s:
+            await self._ahold()
+            raise RobotError(
+                f"{self.robot_spec.name}: the newest joint state on {self._js.topic} is {age_s:.2f} s old "
+                f"(robot_timeout_s={cfg.robot_timeout_s}); the arm was told to hold"
+            )
+        assert self._cache is not None
+        stamp, (obs, reward, terminated, info) = self._cache
+        end = clock.now_ns()
+        self.timing.step_ns.append(end)
+        self.timing.observation_age_ns.append(end - stamp)
+        if sim:
+            clock.pause()
+        self._last_return_wall_ns = time.monotonic_ns()
+        info = dict(info)
+        if self._target_unsafe is not None:
+            info["unsafe_reason"] = self._target_unsafe
+        return obs, float(reward), bool(terminated), False, info
+
+    def _on_action(self, action: np.ndarray) -> None:
+        """Hook: the task records the action (e.g. for the previous-action observation)."""
+
+    def _agent_latency_s(self) -> float:
+        cfg = self.config
+        if cfg.turn_based:
+            return 0.0
+        if cfg.agent_latency_s == "measured":
+            if self._last_return_wall_ns is None:
+                return 0.0
+            return (time.monotonic_ns() - self._last_return_wall_ns) / 1e9
+        base = float(cfg.agent_latency_s)
+        if cfg.agent_latency_jitter_s > 0:
+            base += float(self.np_random.normal(0.0, cfg.agent_latency_jitter_s))
+        return max(0.0, base)
+
+    async def _areset(self, options: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+        clock, cfg = self._clock, self.config
+        sim = isinstance(clock, SimClock)
+        if sim:
+            clock.resume()
+        self._target, self._target_unsafe, self._action_t_ns = None, None, None
+        t0 = clock.now_ns()
+        if cfg.robot == "sim":
+            reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=cfg.reset_timeout_s)
+            if not reply.success:
+                raise RobotError(f"{self.robot_spec.name}: reset refused: {reply.message}")
+            js = await self._wait_for_state(after_ns=t0)
+        else:
+            self._target = self.home_q.copy()  # the loop re-sends it every tick until settled
+            js = await self._settle(cfg.reset_timeout_s)
+        self._target = self.home_q.copy()  # hold home until the first action
+        q_arm = js.position[self._arm_idx]
+        self._on_reset(q_arm)
+        now = clock.now_ns()
+        obs, _, _, info = self._compute_returns(js, q_arm)
+        self._cache = (now, (obs, 0.0, False, info))
+        self._deadline_ns = now
+        if sim:
+            clock.pause()
+        self._last_return_wall_ns = time.monotonic_ns()
+        return obs, dict(info)
+
+    async def _settle(self, timeout_s: float) -> JointState:
+        tol = self.config.settle_tol_rad
+        deadline = time.monotonic() + timeout_s
+        while True:
+            await self._clock.sleep(1.0 / self.robot_spec.hardware_rate_hz)
+            js = self._js.latest()
+            if js is not None:
+                q = js.position[self._arm_idx]
+                v = js.velocity[self._arm_idx]
+                if np.max(np.abs(q - self.home_q)) < tol and np.max(np.abs(v)) < 10 * tol:
+                    return js
+            if time.monotonic() > deadline:
+                err = "no state" if js is None else f"{np.max(np.abs(js.position[self._arm_idx] - self.home_q)):.3f} rad away"
+                raise RobotError(f"{self.robot_spec.name}: did not settle at home within {timeout_s} s ({err})")
+
+    async def _ahold(self) -> None:
+        js = self._js.latest()
+        self._target_unsafe = None
+        self._action_t_ns = None
+        if js is not None:  # hold = keep commanding where it is (action repeat of the current position)
+            self._target = js.position[self._arm_idx].copy()
+            self._send(self._target, self._clock.now_ns())
+
+
+async def _forever() -> None:
+    import asyncio
+
+    await asyncio.Event().wait()

@@ -1,0 +1,91 @@
+"""Safety checks of a target joint configuration, run by the env loop before anything is sent to the arm."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+
+from uniros_async.kinematics import Kinematics
+from uniros_async.robots.spec import RobotSpec
+
+__all__ = ["SafetyChecker", "SafetyConfig"]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SafetyConfig:
+    """Limits of what the env loop will send.
+
+    Attributes:
+        table_margin_m: every link surface must stay this far above the table plane (z = 0).
+        workspace_min_m / workspace_max_m: the box the EE must stay inside.
+        max_joint_step_rad: the most any joint's command may move per env-loop tick (larger moves are spread
+            over several ticks: a rate limiter, not a rejection).
+        check_self_collision: reject targets where two non-adjacent links collide (MuJoCo collision of the
+            robot's own capsules at the target configuration).
+    """
+
+    table_margin_m: float = 0.01
+    workspace_min_m: tuple[float, float, float] = (-0.05, -0.6, 0.02)
+    workspace_max_m: tuple[float, float, float] = (0.65, 0.6, 0.75)
+    max_joint_step_rad: float = 0.5
+    check_self_collision: bool = True
+
+
+class SafetyChecker:
+    """Checks targets (``check``) and limits per-tick steps (``limit_step``)."""
+
+    def __init__(self, spec: RobotSpec, kin: Kinematics, config: SafetyConfig | None = None) -> None:
+        self.spec = spec
+        self.kin = kin
+        self.config = config or SafetyConfig()
+        self.lower = np.asarray(spec.joint_lower_rad)
+        self.upper = np.asarray(spec.joint_upper_rad)
+        self._lo = np.asarray(self.config.workspace_min_m)
+        self._hi = np.asarray(self.config.workspace_max_m)
+        self._model = mujoco.MjModel.from_xml_path(str(spec.mjcf_path))
+        self._data = mujoco.MjData(self._model)
+        self._qadr = np.array([self._model.joint(n).qposadr[0] for n in spec.arm_joint_names])
+        table = [i for i in range(self._model.ngeom) if self._model.geom(i).name == "table"]
+        self._table_geoms = set(table)
+        # pairs that touch at home by construction (e.g. fingers on the gripper bar) are not collisions
+        self._allowed = self._contact_pairs(np.asarray(spec.home_q_rad))
+
+    def _contact_pairs(self, q: np.ndarray) -> set[tuple[int, int]]:
+        d = self._data
+        d.qpos[:] = self._model.qpos0
+        d.qpos[self._qadr] = q
+        mujoco.mj_kinematics(self._model, d)
+        mujoco.mj_collision(self._model, d)
+        pairs = set()
+        for c in d.contact[: d.ncon]:
+            g1, g2 = int(c.geom1), int(c.geom2)
+            if g1 in self._table_geoms or g2 in self._table_geoms:
+                continue
+            pairs.add((min(g1, g2), max(g1, g2)))
+        return pairs
+
+    def check(self, q_target: np.ndarray) -> str | None:
+        """None if ``q_target`` is safe to command, else why not (for ``info["unsafe_reason"]``)."""
+        if q_target.shape != self.lower.shape or not np.all(np.isfinite(q_target)):
+            return f"target of shape {q_target.shape} is not {self.lower.shape} finite values"
+        if np.any(q_target < self.lower - 1e-9) or np.any(q_target > self.upper + 1e-9):
+            return "target outside the joint limits"
+        clearance = self.kin.table_clearance_m(q_target)
+        if clearance < self.config.table_margin_m:
+            return f"a link would be {clearance * 100:.1f} cm above the table (margin {self.config.table_margin_m * 100:.1f} cm)"
+        ee = self.kin.ee_position(q_target)
+        if np.any(ee < self._lo) or np.any(ee > self._hi):
+            return f"the end effector would leave the workspace box at {np.round(ee, 3).tolist()}"
+        if self.config.check_self_collision:
+            extra = self._contact_pairs(q_target) - self._allowed
+            if extra:
+                g1, g2 = next(iter(extra))
+                return f"self-collision between {self._model.geom(g1).name or g1} and {self._model.geom(g2).name or g2}"
+        return None
+
+    def limit_step(self, q_now: np.ndarray, q_target: np.ndarray) -> np.ndarray:
+        """The command for this tick: ``q_target``, moved at most ``max_joint_step_rad`` per joint from ``q_now``."""
+        step = self.config.max_joint_step_rad
+        return np.clip(q_target, q_now - step, q_now + step)

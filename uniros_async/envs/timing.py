@@ -1,0 +1,43 @@
+"""What the env loop and ``step`` record, so benchmarks can read the paper's timing figures."""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+
+__all__ = ["Timing"]
+
+
+@dataclasses.dataclass
+class Timing:
+    """Time stamps (ns of the env's clock) of the env loop and the agent's steps; bounded histories.
+
+    - ``tick_ns``: every env-loop tick; ``command_ns``: ticks that sent a command (the actuator cycle is their
+      difference);
+    - ``step_ns``: when each ``step`` returned (the action cycle is their difference);
+    - ``observation_age_ns``: how old the returned observation was when ``step`` returned;
+    - ``action_latency_ns``: from an action reaching the loop to the first command sent with it.
+    """
+
+    history: int = 100_000
+    tick_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    command_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    step_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    observation_age_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    action_latency_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    step_overruns: int = 0
+
+    def __post_init__(self) -> None:
+        for f in ("tick_ns", "command_ns", "step_ns", "observation_age_ns", "action_latency_ns"):
+            setattr(self, f, collections.deque(maxlen=self.history))
+
+    def clear(self) -> None:
+        for f in ("tick_ns", "command_ns", "step_ns", "observation_age_ns", "action_latency_ns"):
+            getattr(self, f).clear()
+        self.step_overruns = 0
+
+    @staticmethod
+    def periods_ms(stamps: collections.deque[int]) -> list[float]:
+        """Differences of consecutive stamps, in ms."""
+        s = list(stamps)
+        return [(b - a) / 1e6 for a, b in zip(s, s[1:], strict=False)]

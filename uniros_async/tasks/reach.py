@@ -1,0 +1,231 @@
+"""Reach: move the end effector to a goal point, for the ReactorX-200 and the Ned2, standard and goal-conditioned.
+
+Action: target positions of the arm joints normalised to [-1, 1] over their limits (``action_mode="absolute"``),
+or joint deltas of at most ``delta_coeff`` rad per step (``"delta"``). Observation (standard env): EE position
+(3), goal minus EE (3), distance (1), the joint_states positions (rx200: 8, with gripper and fingers; ned2: 6),
+and the previous action; the goal env gives that vector as ``observation``, the EE position as
+``achieved_goal`` and the goal as ``desired_goal``. Goals are uniform in a box, keeping only points the arm can
+reach (IK succeeds). Rewards follow UniROS: sparse +1 on reaching (distance <= tolerance) else -1; dense +20 on
+reaching, else -2 x distance - 0.5, plus -2 when the action hits a joint limit and -5 when it could not be
+executed (unsafe). Reaching terminates the episode with ``info["is_success"] = True``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from uniros_async.bus.messages import JointState
+from uniros_async.envs.base import GoalEnv
+from uniros_async.envs.task import TaskEnv, split_kwargs
+from uniros_async.errors import ConfigError
+
+__all__ = ["ReachEnv", "ReachGoalEnv", "register_reach_envs"]
+
+GOAL_MIN = (0.15, -0.40, 0.05)
+GOAL_MAX = (0.40, 0.40, 0.40)
+REWARD_TYPES = ("dense", "sparse")
+ACTION_MODES = ("absolute", "delta")
+
+
+class ReachEnv(TaskEnv):
+    """The standard (vector observation) reach task; see the module docstring."""
+
+    TASK_KEYS = ("reward_type", "action_mode", "reach_tolerance", "goal_min", "goal_max", "delta_coeff", "render_mode")
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, arm: str = "rx200", **kwargs: Any) -> None:
+        config, task = split_kwargs(type(self), kwargs)
+        self.reward_type = task.get("reward_type", "dense")
+        self.action_mode = task.get("action_mode", "absolute")
+        self.reach_tolerance = float(task.get("reach_tolerance", 0.02))
+        self.goal_min = np.asarray(task.get("goal_min", GOAL_MIN), dtype=np.float64)
+        self.goal_max = np.asarray(task.get("goal_max", GOAL_MAX), dtype=np.float64)
+        self.delta_coeff = float(task.get("delta_coeff", 0.05))
+        self.render_mode = task.get("render_mode")
+        if self.reward_type not in REWARD_TYPES:
+            raise ConfigError(f"reward_type must be one of {REWARD_TYPES}, got {self.reward_type!r}")
+        if self.action_mode not in ACTION_MODES:
+            raise ConfigError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
+        if self.goal_min.shape != (3,) or self.goal_max.shape != (3,) or np.any(self.goal_min > self.goal_max):
+            raise ConfigError(f"goal_min/goal_max must be 3 numbers with min <= max, got {self.goal_min}, {self.goal_max}")
+        if self.reach_tolerance <= 0:
+            raise ConfigError(f"reach_tolerance must be > 0, got {self.reach_tolerance}")
+        if self.render_mode not in (None, "rgb_array"):
+            raise ConfigError(f"render_mode must be None or 'rgb_array', got {self.render_mode!r}")
+        super().__init__(arm, config)
+        spec = self.robot_spec
+        n = spec.n_arm_joints
+        self._lower = np.asarray(spec.joint_lower_rad)
+        self._upper = np.asarray(spec.joint_upper_rad)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (n,), np.float32)
+        self._obs_dim = 3 + 3 + 1 + len(spec.joint_state_names) + n
+        self.observation_space = self._make_observation_space()
+        self.goal = np.zeros(3)
+        self._prev_action = np.zeros(n, dtype=np.float32)
+        self._limit_hit = False
+        self._start()
+
+    def _vector_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Physical bounds of the vector observation: EE within 1 m of the base, goal offsets within 2 m,
+        joint_states positions within +-(pi + 0.1) (fingers in metres fall inside), actions within [-1, 1]."""
+        n_js, n = len(self.robot_spec.joint_state_names), self.robot_spec.n_arm_joints
+        hi = np.concatenate([np.full(3, 1.0), np.full(3, 2.0), [3.5], np.full(n_js, np.pi + 0.1), np.ones(n)])
+        lo = -hi
+        lo[6] = 0.0
+        return lo.astype(np.float32), hi.astype(np.float32)
+
+    def _make_observation_space(self) -> gym.Space[Any]:
+        lo, hi = self._vector_bounds()
+        return gym.spaces.Box(lo, hi, dtype=np.float32)
+
+    # ---- hooks
+
+    def _action_to_target(self, action: np.ndarray, q_arm: np.ndarray) -> tuple[np.ndarray, bool]:
+        a = action.astype(np.float64)
+        if self.action_mode == "absolute":
+            target = self._lower + (a + 1.0) * 0.5 * (self._upper - self._lower)
+            hit = bool(np.any(np.abs(a) >= 0.999))
+        else:
+            raw = q_arm + a * self.delta_coeff
+            target = np.clip(raw, self._lower, self._upper)
+            hit = bool(np.any(raw != target))
+        return target, hit
+
+    def _on_action(self, action: np.ndarray) -> None:
+        self._prev_action = action.astype(np.float32)
+
+    def _on_reset(self, q_arm: np.ndarray) -> None:
+        self._prev_action = np.zeros_like(self._prev_action)
+        self._limit_hit = False
+        self.goal = self.sample_goal(self.np_random)
+
+    def sample_goal(self, rng: np.random.Generator, max_tries: int = 200) -> np.ndarray:
+        """A goal uniform in the goal box that the arm can reach (IK succeeds, EE inside the workspace).
+
+        Raises:
+            ConfigError: no reachable point found in ``max_tries`` draws (the box is out of reach).
+        """
+        for _ in range(max_tries):
+            g = rng.uniform(self.goal_min, self.goal_max)
+            q, ok = self.kin.ik(g, rng=rng)
+            if ok and self.safety.check(q) is None:
+                return g
+        raise ConfigError(
+            f"no reachable goal in the box {self.goal_min.tolist()}..{self.goal_max.tolist()} for "
+            f"{self.robot_spec.name} after {max_tries} draws"
+        )
+
+    def _vector_obs(self, state: JointState, ee: np.ndarray) -> np.ndarray:
+        d = self.goal - ee
+        return np.concatenate([ee, d, [np.linalg.norm(d)], state.position, self._prev_action]).astype(np.float32)
+
+    def _compute_returns(self, state: JointState, q_arm: np.ndarray) -> tuple[Any, float, bool, dict[str, Any]]:
+        ee = self.kin.ee_position(q_arm)
+        # reward and success from the float32 values the agent sees, so that HER's compute_reward on the
+        # observation's achieved/desired goals reproduces the step's reward exactly
+        ee32, goal32 = ee.astype(np.float32), self.goal.astype(np.float32)
+        distance = float(np.linalg.norm(ee32 - goal32))
+        success = distance <= self.reach_tolerance
+        info = {
+            "is_success": bool(success),
+            "distance": distance,
+            "joint_limit_hit": bool(self._limit_hit),
+            "not_executable": self._target_unsafe is not None,
+        }
+        reward = float(self.batch_reward(ee32, goal32, info))
+        return self._observation(state, ee), reward, bool(success), info
+
+    def _observation(self, state: JointState, ee: np.ndarray) -> Any:
+        return self._vector_obs(state, ee)
+
+    # ---- reward (vectorised: HER relabels batches of goals)
+
+    def batch_reward(self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Any) -> np.ndarray:
+        """Reward per (achieved, desired) pair; penalties come from ``info`` (a dict or an array of dicts).
+
+        (Named so on the standard env: SB3 takes any env with ``compute_reward`` for a GoalEnv. ReachGoalEnv
+        exposes it as ``compute_reward``.)
+        """
+        d = np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1)
+        reached = d <= self.reach_tolerance
+        if self.reward_type == "sparse":
+            return np.where(reached, 1.0, -1.0)
+        r = np.where(reached, 20.0, -2.0 * d - 0.5)
+        return r + self._penalties(info, d.shape)
+
+    @staticmethod
+    def _penalties(info: Any, shape: tuple[int, ...]) -> np.ndarray:
+        def one(i: Any) -> float:
+            if not isinstance(i, dict):
+                return 0.0
+            return -2.0 * bool(i.get("joint_limit_hit")) - 5.0 * bool(i.get("not_executable"))
+
+        if isinstance(info, dict):
+            return np.full(shape, one(info))
+        flat = np.asarray([one(i) for i in np.ravel(np.asarray(info, dtype=object))], dtype=np.float64)
+        return flat.reshape(shape) if flat.size == int(np.prod(shape)) else np.zeros(shape)
+
+    def render(self) -> np.ndarray | None:  # type: ignore[override]
+        """An RGB image of the arm at its newest state with the goal marker (``render_mode="rgb_array"``)."""
+        if self.render_mode != "rgb_array":
+            return None
+        from uniros_async.sim.render import render_rgb
+
+        js = self._js.latest()
+        q = None if js is None else js.position[self._arm_idx]
+        return render_rgb(self.robot_spec.name, q=q, goal=self.goal)
+
+
+class ReachGoalEnv(ReachEnv, GoalEnv):
+    """The goal-conditioned reach task (dict observation for HER)."""
+
+    def compute_reward(self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Any) -> np.ndarray:
+        """Reward per (achieved, desired) pair, vectorised for HER (see ``batch_reward``)."""
+        return self.batch_reward(achieved_goal, desired_goal, info)
+
+    def compute_terminated(self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Any) -> np.ndarray:
+        """Reaching ends the episode."""
+        return np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1) <= self.reach_tolerance
+
+    def _make_observation_space(self) -> gym.Space[Any]:
+        box3 = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+        lo, hi = self._vector_bounds()
+        return gym.spaces.Dict(
+            {
+                "observation": gym.spaces.Box(lo, hi, dtype=np.float32),
+                "achieved_goal": box3,
+                "desired_goal": box3,
+            }
+        )
+
+    def _observation(self, state: JointState, ee: np.ndarray) -> Any:
+        return {
+            "observation": self._vector_obs(state, ee),
+            "achieved_goal": ee.astype(np.float32),
+            "desired_goal": self.goal.astype(np.float32),
+        }
+
+
+ENV_IDS = {
+    "uniros/Rx200Reach-v0": ("rx200", "ReachEnv"),
+    "uniros/Rx200ReachGoal-v0": ("rx200", "ReachGoalEnv"),
+    "uniros/Ned2Reach-v0": ("ned2", "ReachEnv"),
+    "uniros/Ned2ReachGoal-v0": ("ned2", "ReachGoalEnv"),
+}
+
+
+def register_reach_envs() -> None:
+    """Register the four reach ids with gymnasium (idempotent)."""
+    for env_id, (arm, cls) in ENV_IDS.items():
+        if env_id in gym.registry:
+            continue
+        gym.register(
+            id=env_id,
+            entry_point=f"uniros_async.tasks.reach:{cls}",
+            max_episode_steps=100,
+            kwargs={"arm": arm},
+            disable_env_checker=True,  # step() validates actions itself; tests run the full checkers
+        )
