@@ -49,6 +49,15 @@ def _build_parser() -> argparse.ArgumentParser:
     bti.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     bti.add_argument("--no-progress", action="store_true")
 
+    be = bench.add_parser("envloop", help="actuator cycle, action cycle, observation age of the real-time reach envs")
+    be.add_argument("--duration", type=float, default=60.0, help="wall seconds per arm (default 60)")
+    be.add_argument("--arms", nargs="+", default=["rx200", "ned2"])
+    be.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
+    be.add_argument("--robot", default="sim", help="sim, sim-process, emulated-real, or tcp://host:port")
+    be.add_argument("--concurrent", action="store_true", help="run the arms at the same time")
+    be.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+    be.add_argument("--no-progress", action="store_true")
+
     topic = sub.add_parser("topic", help="topics of a domain").add_subparsers(dest="action", required=True)
     tl = topic.add_parser("list", help="topics with their types, publishers and subscribers")
     _domain_arg(tl)
@@ -234,6 +243,15 @@ def _run_bench(args: argparse.Namespace) -> int:
             **({"payloads": tuple(args.payloads)} if args.payloads else {}),
         )
         transport.main(cfg)
+    elif args.scenario == "envloop":
+        from uniros_async.bench import envloop
+
+        envloop.main(
+            envloop.EnvLoopBenchConfig(
+                duration_s=args.duration, arms=tuple(args.arms), action_cycle_s=args.action_cycle, robot=args.robot,
+                concurrent=args.concurrent, json_path=args.json_path, progress=not args.no_progress,
+            )
+        )
     else:
         from uniros_async.bench import timers
 

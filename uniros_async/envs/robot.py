@@ -40,6 +40,8 @@ __all__ = ["RobotEnv"]
 logger = logging.getLogger(__name__)
 
 Returns = tuple[Any, float, bool, dict[str, Any]]
+TICK_ALIGN_NS = 1_000_000
+"""Step deadlines fall this long after an env-loop tick: time for the tick's own work (~0.2 ms here)."""
 
 
 class RobotEnv(BaseEnv):
@@ -274,11 +276,21 @@ class RobotEnv(BaseEnv):
         now = clock.now_ns()
         obs, _, _, info = self._compute_returns(js, q_arm)
         self._cache = (now, (obs, 0.0, False, info))
-        self._deadline_ns = now
+        self._deadline_ns = self._aligned_start(now)
         if sim:
             clock.pause()
         self._last_return_wall_ns = time.monotonic_ns()
         return obs, dict(info)
+
+    def _aligned_start(self, now: int) -> int:
+        """The first action cycle starts just after an env-loop tick (``TICK_ALIGN_NS`` later), so that when the
+        action cycle is a multiple of the loop period every step returns returns at most that old, instead of
+        up to a whole period (the phase of the deadlines is otherwise arbitrary)."""
+        if self.config.turn_based or not self.timing.tick_ns:
+            return now
+        period = round(1e9 / self.env_loop_rate_hz)
+        last_tick = self.timing.tick_ns[-1]
+        return last_tick + TICK_ALIGN_NS - period * (1 if last_tick + TICK_ALIGN_NS > now else 0)
 
     async def _settle(self, timeout_s: float) -> JointState:
         tol = self.config.settle_tol_rad

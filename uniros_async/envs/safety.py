@@ -47,8 +47,16 @@ class SafetyChecker:
         self._model = mujoco.MjModel.from_xml_path(str(spec.mjcf_path))
         self._data = mujoco.MjData(self._model)
         self._qadr = np.array([self._model.joint(n).qposadr[0] for n in spec.arm_joint_names])
-        table = [i for i in range(self._model.ngeom) if self._model.geom(i).name == "table"]
+        m = self._model
+        table = [i for i in range(m.ngeom) if m.geom(i).name == "table"]
         self._table_geoms = set(table)
+        # The robot models let arm geoms touch only the world (their capsules are too coarse for dynamics).
+        # This private copy lets them touch each other too, for the check alone; geoms of bodies within two
+        # kinematic hops always overlap at the joints and are excluded.
+        arm = [i for i in range(m.ngeom) if m.geom_bodyid[i] != 0 and i not in self._table_geoms and m.geom_contype[i]]
+        for i in arm:
+            m.geom_conaffinity[i] |= m.geom_contype[i]
+        self._near = {(a, b) for a in range(m.nbody) for b in range(m.nbody) if _hops(m, a, b) <= 2}
         # pairs that touch at home by construction (e.g. fingers on the gripper bar) are not collisions
         self._allowed = self._contact_pairs(np.asarray(spec.home_q_rad))
 
@@ -62,6 +70,8 @@ class SafetyChecker:
         for c in d.contact[: d.ncon]:
             g1, g2 = int(c.geom1), int(c.geom2)
             if g1 in self._table_geoms or g2 in self._table_geoms:
+                continue
+            if (int(self._model.geom_bodyid[g1]), int(self._model.geom_bodyid[g2])) in self._near:
                 continue
             pairs.add((min(g1, g2), max(g1, g2)))
         return pairs
@@ -89,3 +99,18 @@ class SafetyChecker:
         """The command for this tick: ``q_target``, moved at most ``max_joint_step_rad`` per joint from ``q_now``."""
         step = self.config.max_joint_step_rad
         return np.clip(q_target, q_now - step, q_now + step)
+
+
+def _hops(m: mujoco.MjModel, a: int, b: int) -> int:
+    """Kinematic-tree distance between bodies ``a`` and ``b``."""
+
+    def chain(x: int) -> list[int]:
+        out = [x]
+        while x != 0:
+            x = int(m.body_parentid[x])
+            out.append(x)
+        return out
+
+    ca, cb = chain(a), chain(b)
+    common = next(x for x in ca if x in cb)
+    return ca.index(common) + cb.index(common)
