@@ -66,6 +66,7 @@ def array_field(dtype: Any, ndim: int, *, optional: bool = False, default: Any =
     return field(default=default, metadata=meta)
 
 
+@typing.dataclass_transform(kw_only_default=True, frozen_default=True, field_specifiers=(dataclasses.field, array_field))
 def message(cls: type[M]) -> type[M]:
     """Make ``cls`` a frozen, slotted, keyword-only message dataclass and register it for the codec.
 
@@ -198,7 +199,7 @@ class Pose:
 
     header: Header
     position: np.ndarray = array_field(np.float64, 1)
-    orientation: np.ndarray = array_field(np.float64, 1, default=None)
+    orientation: np.ndarray = array_field(np.float64, 1, optional=True)  # None: identity
 
     def __post_init__(self) -> None:
         if self.orientation is None:
@@ -222,9 +223,10 @@ class Marker:
     id: int = 0
     kind: str = "sphere"
     action: str = "add"
-    position: np.ndarray = array_field(np.float64, 1, default=None)
-    scale: np.ndarray = array_field(np.float64, 1, default=None)
-    color: np.ndarray = array_field(np.float64, 1, default=None)
+    # optional on the wire, filled with defaults in __post_init__ (a marker needs only its position)
+    position: np.ndarray = array_field(np.float64, 1, optional=True)
+    scale: np.ndarray = array_field(np.float64, 1, optional=True)
+    color: np.ndarray = array_field(np.float64, 1, optional=True)
     points: np.ndarray | None = array_field(np.float64, 2, optional=True)
 
     def __post_init__(self) -> None:

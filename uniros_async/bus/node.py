@@ -612,6 +612,12 @@ class ServiceClient(Generic[Req, Resp]):
             conn, self._conn = self._conn, None
             await conn.aclose()
 
+    async def aclose(self) -> None:
+        """Close the connection to the server (the node closes its clients too); idempotent."""
+        await self._drop()
+        with contextlib.suppress(ValueError):
+            self.node._clients.remove(self)
+
     async def wait_for_service(self, timeout_s: float = 5.0) -> None:
         """Wait until the service is advertised in the domain.
 
@@ -668,6 +674,7 @@ class Node:
         self._subscriptions: list[Subscription[Any]] = []
         self._services: dict[str, Service[Any, Any]] = {}
         self._timers: list[Timer] = []
+        self._clients: list[ServiceClient[Any, Any]] = []
         self.rejected_connections = 0
 
     @property
@@ -836,8 +843,10 @@ class Node:
         return svc
 
     def create_client(self, req_type: type[Req], resp_type: type[Resp], name: str) -> ServiceClient[Req, Resp]:
-        """A client of service ``name``."""
-        return ServiceClient(self, req_type, resp_type, self.resolve(name))
+        """A client of service ``name`` (closed with the node, or by ``aclose()``)."""
+        client = ServiceClient(self, req_type, resp_type, self.resolve(name))
+        self._clients.append(client)
+        return client
 
     # ---- parameters
 
@@ -984,7 +993,10 @@ async def _close_node(node: Node) -> None:
             _LOCAL_PUBS[(node.domain_id, pub.topic)].remove(pub)
     for sname in node._services:
         _LOCAL_SERVICES.pop((node.domain_id, sname), None)
-    if node._registry is not None and not node._registry.closed:
+    for client in list(node._clients):
+        await client.aclose()
+    reader_alive = any(t.get_name() == f"{node.name} registry" and not t.done() for t in node._tasks)
+    if node._registry is not None and not node._registry.closed and reader_alive:
         with contextlib.suppress(DomainError, TimeoutError):
             async with asyncio.timeout(1.0):
                 await node._registry.request("unregister_node", name=node.name)

@@ -1,0 +1,141 @@
+"""``uniros robot ...``: serve, render and view simulated arms (wired into uniros_async/cli.py).
+
+    uniros robot serve rx200 --port 0 --emulate-real   # prints the domain URI, serves until SIGINT/SIGTERM
+    uniros robot render rx200 --out pic.png --goal 0.3 0.1 0.25
+    uniros robot view rx200                            # needs a display
+
+Importing this module is cheap (no MuJoCo): the ``uniros`` parser imports it for every command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+__all__ = ["add_parser", "main", "run"]
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``robot`` command to the ``uniros`` subparsers; returns its parser."""
+    robot: argparse.ArgumentParser = subparsers.add_parser(
+        "robot", help="simulated and emulated arms: serve, render, view"
+    )
+    actions = robot.add_subparsers(dest="robot_action", required=True)
+
+    serve = actions.add_parser("serve", help="serve a servo sim in an own tcp domain; prints the domain URI")
+    serve.add_argument("robot", help="robot name (rx200, ned2)")
+    serve.add_argument("--host", default="127.0.0.1", help="bind host of the domain and the node (default %(default)s)")
+    serve.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
+    serve.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
+    serve.add_argument("--emulate-real", action="store_true",
+                       help="perturbed dynamics, sensor noise and network delay (sim/emulated.py)")
+    serve.add_argument("--seed", type=int, default=0, help="seed of the emulated arm (default %(default)s)")
+    serve.add_argument("--sim-time", action="store_true", help="drive a SimClock and publish /clock")
+    serve.add_argument("--time-scale", type=float, default=1.0,
+                       help="with --sim-time: sim seconds per wall second; 0 = unbounded (default %(default)s)")
+    serve.add_argument("--command-timeout", type=float, default=1.0,
+                       help="watchdog: hold after this many seconds without a command; 0 disables")
+    serve.add_argument("--markers", action="store_true", help="publish EE and goal markers on ROBOT/markers")
+
+    render = actions.add_parser("render", help="render the arm to a PNG offscreen")
+    render.add_argument("robot", help="robot name (rx200, ned2)")
+    render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
+    render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
+    render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
+    render.add_argument("--width", type=int, default=640)
+    render.add_argument("--height", type=int, default=480)
+    render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
+
+    view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
+    view.add_argument("robot", help="robot name (rx200, ned2)")
+    return robot
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run a parsed ``uniros robot ...`` command; returns the exit code.
+
+    Raises:
+        UnirosError: (ConfigError, RenderError, SimulationError) reported by the ``uniros`` entry point.
+    """
+    action = args.robot_action
+    if action == "serve":
+        return _serve(args)
+    if action == "render":
+        from uniros_async.sim.render import render_png
+
+        path = render_png(args.robot, q=args.q, goal=args.goal, out=args.out, width=args.width, height=args.height,
+                          camera=None if args.camera == "free" else args.camera)
+        sys.stdout.write(f"{path}\n")
+        return 0
+    if action == "view":
+        from uniros_async.sim.render import view
+
+        view(args.robot)
+        return 0
+    raise AssertionError(f"unknown robot action {action!r}")
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from uniros_async.sim.emulated import EmulationConfig
+    from uniros_async.sim.serve import ServeConfig, serve_servo_sim
+    from uniros_async.sim.servo import ServoSimConfig
+
+    cfg = ServeConfig(
+        robot=args.robot,
+        host=args.host,
+        port=args.port,
+        namespace=args.namespace,
+        servo=ServoSimConfig(command_timeout_s=args.command_timeout or None),
+        emulation=EmulationConfig(seed=args.seed) if args.emulate_real else None,
+        clock="sim" if args.sim_time else "wall",
+        time_scale=args.time_scale or None,
+        publish_markers=args.markers,
+    )
+
+    def ready(uri: str) -> None:
+        sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join
+        sys.stdout.flush()
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        assert task is not None
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, task.cancel)
+        await serve_servo_sim(cfg, on_ready=ready)
+
+    try:
+        asyncio.run(main())
+    except asyncio.CancelledError:  # SIGINT/SIGTERM: an orderly stop
+        logger.info("stopped")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Stand-alone entry (``python -m uniros_async.sim.cli serve rx200``), same as ``uniros robot ...``."""
+    parser = argparse.ArgumentParser(prog="uniros robot")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+    robot = add_parser(sub)
+    args = parser.parse_args(["robot", *(argv if argv is not None else sys.argv[1:])])
+    del robot
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    from uniros_async.errors import UnirosError
+
+    try:
+        return run(args)
+    except UnirosError as exc:
+        sys.stderr.write(f"uniros robot: error: {exc}\n")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

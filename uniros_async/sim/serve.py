@@ -1,0 +1,305 @@
+"""A servo sim outside the caller's process: in a child process of the same domain, or as a remote service.
+
+- ``open_servo_sim_process(robot, domain=uri)``: spawns a process (``get_context("spawn")``, daemon) that joins
+  the caller's domain by its tcp URI and runs the ServoSimNode there; data between the processes goes over shm
+  when both are on one machine (the bus picks it per connection), else tcp. Leaving the block stops the
+  process (a stop message, then ``join``, then ``terminate``, then ``kill``): no process outlives the block.
+- ``serve_servo_sim(robot, host=..., port=...)``: opens its own domain on ``tcp://HOST:PORT`` and runs the node
+  in it until cancelled; ``uniros robot serve rx200 --port 0 --emulate-real`` prints that URI on stdout and
+  serves until SIGINT/SIGTERM. With ``emulation`` it is the emulated real arm (sim/emulated.py), reached
+  only over tcp (its node offers no shm endpoint), as a physical arm on the network would be.
+
+Clocks: by default the sim follows wall time. ``clock="sim"`` makes it a SimClock source at ``time_scale`` that
+publishes ``/clock``; nodes in other processes follow it with ``uniros_async.sim_clock.follow_clock``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import traceback
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+from typing import Any
+
+from uniros_async.bus.domain import Domain, open_domain
+from uniros_async.clock import Clock
+from uniros_async.errors import ConfigError, RobotError
+from uniros_async.sim.emulated import EmulationConfig
+from uniros_async.sim.servo import ServoSimConfig
+from uniros_async.sim_clock import SimClock
+from uniros_async.transports.base import TransportOptions
+
+__all__ = ["ServeConfig", "ServoSimProcess", "open_servo_sim_process", "serve_servo_sim"]
+
+logger = logging.getLogger(__name__)
+
+CLOCKS = ("wall", "sim")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServeConfig:
+    """Everything a servo sim process needs (picklable, for ``spawn``).
+
+    Attributes:
+        robot: robot name.
+        domain: URI of the domain to join; None: open an own domain on ``tcp://host:port``.
+        host: bind host of an own domain and of the node's endpoints.
+        port: port of an own domain (0: a free one).
+        namespace: topic namespace; None: ``/<robot>``.
+        node_name: the node's name.
+        servo: servo settings.
+        emulation: an emulated real arm's perturbations, or None for the nominal sim.
+        clock: ``"wall"`` or ``"sim"`` (a SimClock source publishing ``/clock``).
+        time_scale: the SimClock's time scale (None: unbounded); only with ``clock="sim"``.
+        transport: the node's transport choice; ``auto`` uses shm to peers on the same machine.
+        publish_markers: publish EE and goal markers.
+        auth_key: shared key of the domain, or None.
+    """
+
+    robot: str
+    domain: str | None = None
+    host: str = "127.0.0.1"
+    port: int = 0
+    namespace: str | None = None
+    node_name: str = "servo_sim"
+    servo: ServoSimConfig = dataclasses.field(default_factory=ServoSimConfig)
+    emulation: EmulationConfig | None = None
+    clock: str = "wall"
+    time_scale: float | None = 1.0
+    transport: str = "auto"
+    publish_markers: bool = False
+    auth_key: bytes | None = None
+
+    def __post_init__(self) -> None:
+        if self.clock not in CLOCKS:
+            raise ConfigError(f"ServeConfig.clock: expected one of {CLOCKS}, got {self.clock!r}")
+        if not 0 <= self.port <= 65535:
+            raise ConfigError(f"ServeConfig.port: expected 0..65535, got {self.port}")
+        if self.domain is not None and not self.domain.startswith("tcp://"):
+            raise ConfigError(
+                f"ServeConfig.domain: another process joins a domain over tcp; expected tcp://HOST:PORT, got "
+                f"{self.domain!r} (open the domain with open_domain('tcp://127.0.0.1:0'))"
+            )
+
+    def options(self) -> TransportOptions:
+        return TransportOptions(bind_host=self.host, auth_key=self.auth_key)
+
+    def make_clock(self) -> Clock | None:
+        return SimClock(time_scale=self.time_scale) if self.clock == "sim" else None
+
+
+async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any] | None = None) -> None:
+    """Run a servo sim node until cancelled: in ``config.domain``, or in an own domain on ``host:port``.
+
+    Args:
+        config: what to run.
+        on_ready: called with the domain URI once the node serves (the CLI prints it).
+
+    Raises:
+        ConfigError: bad robot or settings.
+        SimulationError: (inside an ExceptionGroup) physics diverged.
+    """
+    from uniros_async.sim.node import open_servo_sim
+
+    options = config.options()
+    async with contextlib.AsyncExitStack() as stack:
+        if config.domain is None:
+            dom: Domain | str = await stack.enter_async_context(
+                open_domain(f"tcp://{config.host}:{config.port}", options=options)
+            )
+            uri = dom.uri  # type: ignore[union-attr]
+        else:
+            dom = uri = config.domain
+        # the emulated real arm is a device on the network: tcp only
+        transport = "tcp" if config.emulation is not None and config.transport == "auto" else config.transport
+        sim_node = await stack.enter_async_context(
+            open_servo_sim(
+                config.robot, domain=dom, namespace=config.namespace, config=config.servo, clock=config.make_clock(),
+                emulation=config.emulation, publish_markers=config.publish_markers, node_name=config.node_name,
+                transport=transport, options=options,
+            )
+        )
+        logger.info("serving %s as %s in %s", config.robot, sim_node.node.name, uri)
+        if on_ready is not None:
+            on_ready(uri)
+        await asyncio.Event().wait()  # until cancelled
+
+
+# ================================================================================================ child process
+
+
+def _child_main(config: ServeConfig, conn: multiprocessing.connection.Connection) -> None:
+    """Entry of the spawned process: run until the parent says stop, closes the pipe, or sends SIGTERM."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the parent, which stops us in order
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s servo_sim[%(process)d] %(name)s: %(message)s")
+    try:
+        asyncio.run(_child_async(config, conn))
+    except asyncio.CancelledError:  # the stop we were asked for
+        pass
+    except BaseException:  # noqa: BLE001 - report every failure to the parent before dying
+        with contextlib.suppress(OSError, ValueError):
+            conn.send(("error", traceback.format_exc()))
+        raise
+    finally:
+        conn.close()
+
+
+async def _child_async(config: ServeConfig, conn: multiprocessing.connection.Connection) -> None:
+    loop = asyncio.get_running_loop()
+    main = asyncio.current_task()
+    assert main is not None
+    loop.add_signal_handler(signal.SIGTERM, main.cancel)
+
+    def on_pipe() -> None:  # "stop", or EOF when the parent died
+        loop.remove_reader(conn.fileno())
+        main.cancel()
+
+    def ready(uri: str) -> None:
+        conn.send(("ready", {"pid": os.getpid(), "domain": uri}))
+        loop.add_reader(conn.fileno(), on_pipe)
+
+    await serve_servo_sim(config, on_ready=ready)
+
+
+class ServoSimProcess:
+    """Handle of a servo sim running in a child process (from ``open_servo_sim_process``).
+
+    Attributes:
+        process: the multiprocessing.Process.
+        domain: the domain URI it joined (or serves).
+        namespace: its topic namespace.
+    """
+
+    def __init__(self, process: multiprocessing.process.BaseProcess, domain: str, namespace: str) -> None:
+        self.process = process
+        self.domain = domain
+        self.namespace = namespace
+
+    @property
+    def pid(self) -> int | None:
+        return self.process.pid
+
+    def is_alive(self) -> bool:
+        return self.process.is_alive()
+
+
+async def _recv(conn: multiprocessing.connection.Connection, timeout_s: float) -> Any:
+    loop = asyncio.get_running_loop()
+    fut: asyncio.Future[None] = loop.create_future()
+
+    def readable() -> None:
+        if not fut.done():
+            fut.set_result(None)
+
+    loop.add_reader(conn.fileno(), readable)
+    try:
+        async with asyncio.timeout(timeout_s):
+            await fut
+    finally:
+        loop.remove_reader(conn.fileno())
+    return conn.recv()
+
+
+@contextlib.asynccontextmanager
+async def open_servo_sim_process(
+    robot: str,
+    *,
+    domain: str | Domain,
+    namespace: str | None = None,
+    config: ServoSimConfig | None = None,
+    emulation: EmulationConfig | None = None,
+    clock: str = "wall",
+    time_scale: float | None = 1.0,
+    publish_markers: bool = False,
+    transport: str = "auto",
+    auth_key: bytes | None = None,
+    start_timeout_s: float = 30.0,
+    stop_timeout_s: float = 5.0,
+) -> AsyncIterator[ServoSimProcess]:
+    """Run a servo sim node in its own process, in the caller's domain, for the duration of the block.
+
+    Args:
+        robot: robot name.
+        domain: the Domain or its ``tcp://`` URI (a ``memory://`` domain cannot be joined from another process).
+        namespace: topic namespace; default ``/<robot>``.
+        config: servo settings.
+        emulation: run the emulated real arm instead of the nominal sim.
+        clock: ``"wall"`` or ``"sim"`` (the child drives a SimClock and publishes ``/clock``).
+        time_scale: with ``clock="sim"``: sim seconds per wall second (None: unbounded).
+        publish_markers: publish EE and goal markers.
+        transport: the child node's transport choice (``auto``: shm on this machine).
+        auth_key: the domain's shared key.
+        start_timeout_s: bound on the child's start (spawn, imports, joining the domain).
+        stop_timeout_s: how long to wait for an orderly exit before terminate() and kill().
+
+    Yields:
+        A ServoSimProcess; its topics are live when the block starts.
+
+    Raises:
+        ConfigError: a non-tcp domain or bad settings.
+        RobotError: the child failed to start (its traceback is in the message) or did not start in time.
+    """
+    uri = domain.uri if isinstance(domain, Domain) else domain
+    cfg = ServeConfig(
+        robot=robot, domain=uri, namespace=namespace, servo=config or ServoSimConfig(), emulation=emulation,
+        clock=clock, time_scale=time_scale, publish_markers=publish_markers, transport=transport, auth_key=auth_key,
+    )
+    ctx = multiprocessing.get_context("spawn")
+    parent_conn, child_conn = ctx.Pipe()
+    # daemon=True: if this process dies, the child must not be left running the arm
+    proc = ctx.Process(target=_child_main, args=(cfg, child_conn), name=f"servo_sim {robot}", daemon=True)
+    proc.start()
+    child_conn.close()
+    try:
+        try:
+            kind, info = await _recv(parent_conn, start_timeout_s)
+        except TimeoutError:
+            raise RobotError(f"the {robot} servo sim process did not start within {start_timeout_s} s") from None
+        except EOFError:
+            raise RobotError(f"the {robot} servo sim process exited during start (exit code {proc.exitcode})") from None
+        if kind != "ready":
+            raise RobotError(f"the {robot} servo sim process failed to start:\n{info}")
+        yield ServoSimProcess(proc, uri, namespace if namespace is not None else f"/{robot}")
+    finally:
+        await _stop_process(proc, parent_conn, stop_timeout_s)
+
+
+async def _stop_process(
+    proc: multiprocessing.process.BaseProcess, conn: multiprocessing.connection.Connection, timeout_s: float
+) -> None:
+    with contextlib.suppress(OSError, ValueError):
+        conn.send(("stop", None))
+    if proc.is_alive():
+        loop = asyncio.get_running_loop()
+        exited = asyncio.Event()
+        loop.add_reader(proc.sentinel, exited.set)  # the sentinel becomes readable when the process ends
+        try:
+            async with asyncio.timeout(timeout_s):
+                await exited.wait()
+        except TimeoutError:
+            logger.warning("servo sim process %s did not stop within %.1f s; terminating", proc.pid, timeout_s)
+        finally:
+            loop.remove_reader(proc.sentinel)
+    if proc.is_alive():
+        proc.terminate()
+        proc.join(1.0)
+    if proc.is_alive():  # pragma: no cover - a child that ignores SIGTERM
+        proc.kill()
+        proc.join(1.0)
+    proc.join(0)
+    if conn.poll(0):  # an error the child reported after it had started
+        with contextlib.suppress(EOFError, OSError):
+            kind, info = conn.recv()
+            if kind == "error":
+                logger.error("servo sim process %s failed:\n%s", proc.pid, info)
+    with contextlib.suppress(OSError):
+        conn.close()
+    with contextlib.suppress(ValueError):
+        proc.close()
