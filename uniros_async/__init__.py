@@ -28,6 +28,6 @@ __all__ = [
 ]
 
 # Register the gymnasium ids ("uniros/Rx200Reach-v0", ...) on import, as gymnasium-robotics does.
-from uniros_async.tasks.reach import register_reach_envs as _register  # noqa: E402
+from uniros_async.tasks.registry import register_envs as _register  # noqa: E402
 
 _register()

@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 import uniros_async  # noqa: F401  (registers the ids)
 from uniros_async.errors import ConfigError, RobotError
-from uniros_async.tasks.reach import ENV_IDS
+from uniros_async.tasks.registry import ENV_IDS
 
 pytestmark = pytest.mark.slow
 

@@ -22,7 +22,7 @@ from uniros_async.envs.base import GoalEnv
 from uniros_async.envs.task import TaskEnv, split_kwargs
 from uniros_async.errors import ConfigError
 
-__all__ = ["ReachEnv", "ReachGoalEnv", "register_reach_envs"]
+__all__ = ["ReachEnv", "ReachGoalEnv"]
 
 GOAL_MIN = (0.15, -0.40, 0.05)
 GOAL_MAX = (0.40, 0.40, 0.40)
@@ -207,25 +207,3 @@ class ReachGoalEnv(ReachEnv, GoalEnv):
             "achieved_goal": ee.astype(np.float32),
             "desired_goal": self.goal.astype(np.float32),
         }
-
-
-ENV_IDS = {
-    "uniros/Rx200Reach-v0": ("rx200", "ReachEnv"),
-    "uniros/Rx200ReachGoal-v0": ("rx200", "ReachGoalEnv"),
-    "uniros/Ned2Reach-v0": ("ned2", "ReachEnv"),
-    "uniros/Ned2ReachGoal-v0": ("ned2", "ReachGoalEnv"),
-}
-
-
-def register_reach_envs() -> None:
-    """Register the four reach ids with gymnasium (idempotent)."""
-    for env_id, (arm, cls) in ENV_IDS.items():
-        if env_id in gym.registry:
-            continue
-        gym.register(
-            id=env_id,
-            entry_point=f"uniros_async.tasks.reach:{cls}",
-            max_episode_steps=100,
-            kwargs={"arm": arm},
-            disable_env_checker=True,  # step() validates actions itself; tests run the full checkers
-        )
