@@ -58,6 +58,11 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     be.add_argument("--no-progress", action="store_true")
 
+    bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
+    bs.add_argument("--sim-seconds", type=float, default=60.0)
+    bs.add_argument("--episodes", type=int, default=3)
+    bs.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+
     topic = sub.add_parser("topic", help="topics of a domain").add_subparsers(dest="action", required=True)
     tl = topic.add_parser("list", help="topics with their types, publishers and subscribers")
     _domain_arg(tl)
@@ -243,6 +248,10 @@ def _run_bench(args: argparse.Namespace) -> int:
             **({"payloads": tuple(args.payloads)} if args.payloads else {}),
         )
         transport.main(cfg)
+    elif args.scenario == "simclock":
+        from uniros_async.bench import simclock
+
+        simclock.main(simclock.SimClockBenchConfig(sim_seconds=args.sim_seconds, episodes=args.episodes, json_path=args.json_path))
     elif args.scenario == "envloop":
         from uniros_async.bench import envloop
 

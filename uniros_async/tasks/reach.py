@@ -127,16 +127,22 @@ class ReachEnv(TaskEnv):
         # reward and success from the float32 values the agent sees, so that HER's compute_reward on the
         # observation's achieved/desired goals reproduces the step's reward exactly
         ee32, goal32 = ee.astype(np.float32), self.goal.astype(np.float32)
-        distance = float(np.linalg.norm(ee32 - goal32))
-        success = distance <= self.reach_tolerance
+        d32 = np.linalg.norm(ee32 - goal32, axis=-1)  # float32, the same reduction batch_reward uses
+        success = bool(d32 <= self.reach_tolerance)
+        limit_hit, not_executable = bool(self._limit_hit), self._target_unsafe is not None
         info = {
-            "is_success": bool(success),
-            "distance": distance,
-            "joint_limit_hit": bool(self._limit_hit),
-            "not_executable": self._target_unsafe is not None,
+            "is_success": success,
+            "distance": float(d32),
+            "joint_limit_hit": limit_hit,
+            "not_executable": not_executable,
         }
-        reward = float(self.batch_reward(ee32, goal32, info))
-        return self._observation(state, ee), reward, bool(success), info
+        # the scalar twin of batch_reward (same float32 arithmetic, ~20x cheaper than broadcasting per tick)
+        if self.reward_type == "sparse":
+            reward = 1.0 if success else -1.0
+        else:
+            reward = 20.0 if success else float(-2.0 * d32 - 0.5)
+            reward += -2.0 * limit_hit - 5.0 * not_executable
+        return self._observation(state, ee), reward, success, info
 
     def _observation(self, state: JointState, ee: np.ndarray) -> Any:
         return self._vector_obs(state, ee)
