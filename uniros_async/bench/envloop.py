@@ -12,16 +12,14 @@ several workers, turn-based baseline) builds on this.
 from __future__ import annotations
 
 import dataclasses
-import json
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from uniros_async.bench.stats import summary
+from uniros_async.bench.stats import report, summary
 from uniros_async.errors import ConfigError
 
 __all__ = ["EnvLoopBenchConfig", "main"]
@@ -140,8 +138,5 @@ def main(config: EnvLoopBenchConfig, *, log: Callable[[str], None] = print) -> l
             f"{rec['env']:<14} {rec['metric']:<16} {rec['median_ms']:>10.3f} {rec['iqr_ms']:>8.3f} {rec['p99_ms']:>8.3f} "
             f"{rec['max_ms']:>8.3f} {rec['count']:>6}  {target}"
         )
-    log("\n".join(lines))
-    if config.json_path:
-        Path(config.json_path).write_text(json.dumps(records, indent=2) + "\n")
-        log(f"wrote {config.json_path}")
+    report("\n".join(lines), records, config.json_path, log)
     return records

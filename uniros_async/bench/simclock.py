@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from uniros_async.bench.stats import report
 
 __all__ = ["SimClockBenchConfig", "main"]
 
@@ -104,8 +104,5 @@ def main(config: SimClockBenchConfig, *, log: Callable[[str], None] = print) -> 
     for r in records:
         extra = f"   ({r['wall_s']} s per episode)" if "wall_s" in r else ""
         lines.append(f"{r['case']:<58} {r['x_real_time']:>11.1f}{extra}")
-    log("\n".join(lines))
-    if config.json_path:
-        Path(config.json_path).write_text(json.dumps(records, indent=2) + "\n")
-        log(f"wrote {config.json_path}")
+    report("\n".join(lines), records, config.json_path, log)
     return records

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-__all__ = ["summary"]
+__all__ = ["report", "summary"]
 
 
 def summary(samples: Sequence[float]) -> dict[str, float]:
@@ -25,3 +28,11 @@ def summary(samples: Sequence[float]) -> dict[str, float]:
         "max": float(a.max()),
         "count": int(a.size),
     }
+
+
+def report(table: str, records: list[dict[str, Any]], json_path: str | None, log: Callable[[str], None]) -> None:
+    """Print a benchmark's table and, when asked, write its records as JSON (every ``uniros bench`` ends so)."""
+    log(table)
+    if json_path:
+        Path(json_path).write_text(json.dumps(records, indent=2) + "\n")
+        log(f"wrote {json_path}")

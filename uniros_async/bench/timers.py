@@ -10,13 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
-from uniros_async.bench.stats import summary
+from uniros_async.bench.stats import report, summary
 from uniros_async.bus import open_domain, open_node
 from uniros_async.errors import ConfigError
 
@@ -102,8 +100,5 @@ def main(config: TimerBenchConfig, *, log: Callable[[str], None] = print) -> lis
             f"{r['impl']:<18} {r['rate_hz']:>7g} {r['median_ms']:>14.4f} {r['p99_ms']:>8.3f} {r['max_ms']:>8.3f} "
             f"{r['count']:>6} {r['overruns']:>8}"
         )
-    log("\n".join(lines))
-    if config.json_path:
-        Path(config.json_path).write_text(json.dumps(records, indent=2) + "\n")
-        log(f"wrote {config.json_path}")
+    report("\n".join(lines), records, config.json_path, log)
     return records

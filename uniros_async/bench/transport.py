@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import logging
 import multiprocessing as mp
 import os
@@ -23,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from uniros_async.bench import _peers
-from uniros_async.bench.stats import summary
+from uniros_async.bench.stats import report, summary
 from uniros_async.errors import ConfigError
 
 __all__ = ["PAYLOADS", "TransportBenchConfig", "format_table", "main"]
@@ -393,12 +392,8 @@ def main(config: TransportBenchConfig, *, log: Callable[[str], None] = print) ->
         finally:
             client.close()
     bar(0, done=True)
-    log(format_table(records))
-    for s in skipped:
-        log(f"skipped {s}")
-    if config.json_path:
-        Path(config.json_path).write_text(json.dumps(records, indent=2) + "\n")
-        log(f"wrote {config.json_path}")
+    table = format_table(records) + "".join(f"\nskipped {s}" for s in skipped)
+    report(table, records, config.json_path, log)
     return records
 
 

@@ -188,7 +188,7 @@ def _build(cls: type, values: Any, table: list[Any], blob: memoryview) -> Any:
         n = len(values) if isinstance(values, list) else type(values).__name__
         raise CodecError(f"{cls.__name__}: expected {len(schema)} fields, got {n}")
     kwargs: dict[str, Any] = {}
-    for spec, value in zip(schema, values):
+    for spec, value in zip(schema, values, strict=True):
         kind = spec.kind
         if value is None:
             kwargs[spec.name] = None

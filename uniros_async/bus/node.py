@@ -36,8 +36,8 @@ from typing import Any, Generic, TypeVar
 
 from uniros_async.bus import codec
 from uniros_async.bus.domain import Domain
-from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.bus.qos import QoS, latest
+from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.clock import Clock, wall_clock
 from uniros_async.config import load_yaml
 from uniros_async.errors import (
@@ -397,7 +397,7 @@ class Subscription(Generic[M]):
                 if not reply.get("ok"):
                     logger.error("%s: publisher %s refused the subscription: %s", self.topic, info["node"], reply.get("error"))
                     return
-                setattr(task, "connected", True)
+                task.connected = True
                 self._pub_count_changed.set()
                 delay = 0.01
                 expected = self.msg_type
@@ -418,7 +418,7 @@ class Subscription(Generic[M]):
             except (TransportError, TimeoutError, OSError, CodecError) as exc:
                 logger.debug("%s: connection to %s lost (%s); retrying in %.2f s", self.topic, info["node"], exc, delay)
             finally:
-                setattr(task, "connected", False)
+                task.connected = False
                 self._pub_count_changed.set()
                 if conn is not None:
                     await conn.aclose()
