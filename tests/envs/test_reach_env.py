@@ -153,3 +153,18 @@ def test_a_robot_that_stops_publishing_is_reported() -> None:
                 env.step(np.zeros(6, np.float32))
     finally:
         env.close()
+
+
+def test_turn_based_baseline_returns_fresh_observations() -> None:
+    env = gym.make("uniros/Rx200Reach-v0", turn_based=True)
+    try:
+        u = env.unwrapped
+        assert u.config.clock == "sim", "turn-based mode pauses the world, so it runs on the sim clock"
+        env.reset(seed=0)
+        for _ in range(3):
+            env.step(ik_action(env))
+        assert list(u.timing.observation_age_ns) == [0, 0, 0]
+        steps = list(u.timing.step_ns)
+        assert all(b - a == 800_000_000 for a, b in zip(steps, steps[1:], strict=False))
+    finally:
+        env.close()
