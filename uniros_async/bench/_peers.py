@@ -110,7 +110,13 @@ def zenoh_config(port: int, listen: bool) -> Any:
 
     import zenoh
 
-    conf: dict[str, Any] = {"mode": "peer", "scouting": {"multicast": {"enabled": False}}}
+    # no multicast scouting (loopback only) and no shared memory: zenoh otherwise leaves <pid>.zenoh files in
+    # /dev/shm behind, and this peer is measured over tcp anyway
+    conf: dict[str, Any] = {
+        "mode": "peer",
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"shared_memory": {"enabled": False}},
+    }
     if listen:
         conf["listen"] = {"endpoints": [f"tcp/127.0.0.1:{port}"]}
     else:
