@@ -46,7 +46,9 @@ async def test_command_over_the_bus_reaches_target(robot: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize(("robot", "rate_hz"), [("rx200", 10.0), ("ned2", 25.0)])
 async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: float) -> None:
-    """Wall clock; the tight period figure is the lead's benchmark, this bound is loose for a shared CI machine."""
+    """Wall clock. Issue 3 asks the tests to show a median period error below 0.1 ms: the stamps are the timer's
+    fire times at absolute deadlines, so their median period holds even when a busy machine delays single ticks
+    (the max is printed, not asserted)."""
     async with open_domain("memory://") as domain:
         async with open_servo_sim(robot, domain=domain), open_node("env", domain=domain) as env:
             states = await env.create_subscription(JointState, f"/{robot}/joint_states", qos=reliable(1000))
@@ -58,7 +60,7 @@ async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: flo
     median = statistics.median(periods_ms)
     print(f"\n{robot} joint_states: median period {median:.4f} ms (nominal {1000 / rate_hz:.1f}), "
           f"max {periods_ms.max():.3f} ms, n={len(periods_ms)}")
-    assert abs(median - 1000.0 / rate_hz) < 2.0
+    assert abs(median - 1000.0 / rate_hz) < 0.1
 
 
 async def test_env_polling_at_50hz_sees_each_state_repeated() -> None:
