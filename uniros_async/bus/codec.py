@@ -75,7 +75,7 @@ def encode(msg: Any) -> list[bytes | memoryview]:
             a = np.ascontiguousarray(a)
         table.append([a.dtype.str, list(a.shape), offset])
         n = a.nbytes
-        blobs.append(memoryview(a).cast("B") if n else b"")
+        blobs.append(a.data.cast("B") if n else b"")
         pad = -n % 8
         if pad:
             blobs.append(_PAD[:pad])

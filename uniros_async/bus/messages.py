@@ -101,7 +101,7 @@ def message(cls: type[M]) -> type[M]:
     new_cls = dataclass(frozen=True, slots=True, kw_only=True, eq=False)(cls)
     hints = typing.get_type_hints(new_cls)
     schema = []
-    for f in dataclasses.fields(new_cls):
+    for f in dataclasses.fields(new_cls):  # type: ignore[arg-type]
         if "uniros_array" in f.metadata:
             dtype, ndim, optional = f.metadata["uniros_array"]
             schema.append(FieldSpec(f.name, "array", dtype=dtype, ndim=ndim, optional=optional))
