@@ -19,6 +19,17 @@ from uniros_async.tasks.registry import ENV_IDS
 pytestmark = pytest.mark.slow
 
 
+def drive_to_goal(env: gym.Env, seed: int, max_steps: int) -> tuple[float, dict]:  # type: ignore[type-arg]
+    """Reset, then repeat the IK action of the goal until the episode ends; returns the last reward and info."""
+    env.reset(seed=seed)
+    a = ik_action(env)
+    for _ in range(max_steps):
+        _, reward, terminated, _, info = env.step(a)
+        if terminated:
+            return float(reward), info
+    raise AssertionError(f"no success within {max_steps} steps: {info}")
+
+
 def ik_action(env: gym.Env) -> np.ndarray:
     u = env.unwrapped
     q, ok = u.kin.ik(u.goal)
@@ -43,13 +54,8 @@ def test_gymnasium_and_sb3_checkers(env_id: str, reward_type: str) -> None:
 def test_ik_action_reaches_the_goal_in_real_time(env_id: str) -> None:
     env = gym.make(env_id, action_cycle_s=0.4)
     try:
-        env.reset(seed=3)
-        a = ik_action(env)
-        for _ in range(10):
-            obs, reward, terminated, truncated, info = env.step(a)
-            if terminated:
-                break
-        assert terminated and info["is_success"], info
+        reward, info = drive_to_goal(env, seed=3, max_steps=10)
+        assert info["is_success"], info
         u = env.unwrapped
         assert reward == (20.0 if u.reward_type == "dense" else 1.0)
         # action repeat: the loop sent a command on every tick since the first action
@@ -131,13 +137,8 @@ def test_unknown_kwargs_are_a_clear_error() -> None:
 def test_same_task_on_the_emulated_real_arm_over_tcp() -> None:
     env = gym.make("uniros/Rx200Reach-v0", robot="emulated-real", action_cycle_s=0.4)
     try:
-        env.reset(seed=5)
-        a = ik_action(env)
-        for _ in range(12):
-            obs, reward, terminated, truncated, info = env.step(a)
-            if terminated:
-                break
-        assert terminated and info["is_success"], info
+        _, info = drive_to_goal(env, seed=5, max_steps=12)
+        assert info["is_success"], info
     finally:
         env.close()
 
