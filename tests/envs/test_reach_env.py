@@ -169,3 +169,20 @@ def test_turn_based_baseline_returns_fresh_observations() -> None:
         assert all(b - a == 800_000_000 for a, b in zip(steps, steps[1:], strict=False))
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.3])
+def test_modelled_agent_latency_in_sim_time(latency: float) -> None:
+    env = gym.make("uniros/Ned2Reach-v0", clock="sim", agent_latency_s=latency)
+    try:
+        u = env.unwrapped
+        env.reset(seed=0)
+        for _ in range(3):
+            env.step(np.zeros(6, np.float32))
+        steps, actions = list(u.timing.step_ns), list(u.timing.action_ns)
+        # the action reaches the loop exactly `latency` of sim time after the previous step returned,
+        # and the cycles keep their length
+        assert [a - s for s, a in zip(steps, actions[1:], strict=False)] == [round(latency * 1e9)] * 2
+        assert all(b - a == 800_000_000 for a, b in zip(steps, steps[1:], strict=False))
+    finally:
+        env.close()

@@ -192,6 +192,7 @@ class RobotEnv(BaseEnv):
         self._target_unsafe = why
         self._target = target
         self._action_t_ns = self._clock.now_ns()
+        self.timing.action_ns.append(self._action_t_ns)
         if why is not None:
             self.unsafe_actions += 1
             self._send(q_arm, self._action_t_ns)  # hold where it is

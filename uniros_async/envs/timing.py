@@ -15,6 +15,8 @@ class Timing:
     - ``tick_ns``: every env-loop tick; ``command_ns``: ticks that sent a command (the actuator cycle is their
       difference);
     - ``step_ns``: when each ``step`` returned (the action cycle is their difference);
+    - ``action_ns``: when each action reached the loop (with ``clock="sim"`` and a modelled agent latency, that
+      latency after the previous ``step`` returned);
     - ``observation_age_ns``: how old the returned observation was when ``step`` returned;
     - ``action_latency_ns``: from an action reaching the loop to the first command sent with it.
     """
@@ -23,16 +25,18 @@ class Timing:
     tick_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     command_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     step_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    action_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     observation_age_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     action_latency_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     step_overruns: int = 0
+    _SERIES = ("tick_ns", "command_ns", "step_ns", "action_ns", "observation_age_ns", "action_latency_ns")
 
     def __post_init__(self) -> None:
-        for f in ("tick_ns", "command_ns", "step_ns", "observation_age_ns", "action_latency_ns"):
+        for f in self._SERIES:
             setattr(self, f, collections.deque(maxlen=self.history))
 
     def clear(self) -> None:
-        for f in ("tick_ns", "command_ns", "step_ns", "observation_age_ns", "action_latency_ns"):
+        for f in self._SERIES:
             getattr(self, f).clear()
         self.step_overruns = 0
 
