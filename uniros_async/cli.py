@@ -103,12 +103,9 @@ def _build_parser() -> argparse.ArgumentParser:
     _domain_arg(pli)
     pli.add_argument("prefix", nargs="?", default="/")
 
-    try:
-        from uniros_async.sim import cli as robot_cli
-    except ImportError:  # pragma: no cover - the sim package is part of the distribution
-        robot_cli = None
-    if robot_cli is not None:
-        robot_cli.add_parser(sub)
+    from uniros_async.sim import cli as robot_cli  # imports no MuJoCo until a robot command runs
+
+    robot_cli.add_parser(sub)
     return parser
 
 
@@ -243,8 +240,8 @@ def _run_bench(args: argparse.Namespace) -> int:
             quick=args.quick,
             json_path=args.json_path,
             progress=not args.no_progress,
-            **({"transports": tuple(args.transports)} if args.transports else {}),
-            **({"payloads": tuple(args.payloads)} if args.payloads else {}),
+            transports=tuple(args.transports) if args.transports else transport.OURS + transport.PEERS,
+            payloads=tuple(args.payloads) if args.payloads else tuple(transport.PAYLOADS),
         )
         transport.main(cfg)
     elif args.scenario == "simclock":

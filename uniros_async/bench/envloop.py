@@ -58,7 +58,7 @@ def _run_one(arm: str, cfg: EnvLoopBenchConfig, out: dict[str, Any], bar: Any) -
     env = gym.make(ENVS[arm], robot=cfg.robot, action_cycle_s=cfg.action_cycle_s, max_episode_steps=10**9)
     try:
         env.reset(seed=cfg.seed)
-        u = env.unwrapped
+        u: Any = env.unwrapped  # a ReachEnv
         u.timing.clear()
         end = time.monotonic() + cfg.duration_s
         while time.monotonic() < end:
@@ -132,8 +132,8 @@ def main(config: EnvLoopBenchConfig, *, log: Callable[[str], None] = print) -> l
     head = f"{'env':<14} {'metric':<16} {'median ms':>10} {'IQR ms':>8} {'p99 ms':>8} {'max ms':>8} {'count':>6}  target"
     lines = [head, "-" * len(head)]
     for rec in records:
-        arm = rec["env"].split()[0]
-        target = {"actuator_cycle": f"{results[arm]['period_ms']:g} +- 0.1", "action_cycle": f"{config.action_cycle_s * 1e3:g} +- 0.5"}.get(rec["metric"], "")
+        arm = str(rec["env"]).split()[0]
+        target = {"actuator_cycle": f"{results[arm]['period_ms']:g} +- 0.1", "action_cycle": f"{config.action_cycle_s * 1e3:g} +- 0.5"}.get(str(rec["metric"]), "")
         lines.append(
             f"{rec['env']:<14} {rec['metric']:<16} {rec['median_ms']:>10.3f} {rec['iqr_ms']:>8.3f} {rec['p99_ms']:>8.3f} "
             f"{rec['max_ms']:>8.3f} {rec['count']:>6}  {target}"

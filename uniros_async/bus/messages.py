@@ -183,7 +183,7 @@ class JointCommand:
 
     header: Header
     position: np.ndarray = array_field(np.float64, 1)
-    velocity: np.ndarray | None = array_field(np.float64, 1, optional=True)
+    velocity: np.ndarray | None = array_field(np.float64, 1, optional=True, default=None)
     duration_s: float = 0.0
 
     def __post_init__(self) -> None:
@@ -199,7 +199,7 @@ class Pose:
 
     header: Header
     position: np.ndarray = array_field(np.float64, 1)
-    orientation: np.ndarray = array_field(np.float64, 1, optional=True)  # None: identity
+    orientation: np.ndarray = array_field(np.float64, 1, optional=True, default=None)  # None: identity
 
     def __post_init__(self) -> None:
         if self.orientation is None:
@@ -224,10 +224,10 @@ class Marker:
     kind: str = "sphere"
     action: str = "add"
     # optional on the wire, filled with defaults in __post_init__ (a marker needs only its position)
-    position: np.ndarray = array_field(np.float64, 1, optional=True)
-    scale: np.ndarray = array_field(np.float64, 1, optional=True)
-    color: np.ndarray = array_field(np.float64, 1, optional=True)
-    points: np.ndarray | None = array_field(np.float64, 2, optional=True)
+    position: np.ndarray = array_field(np.float64, 1, optional=True, default=None)
+    scale: np.ndarray = array_field(np.float64, 1, optional=True, default=None)
+    color: np.ndarray = array_field(np.float64, 1, optional=True, default=None)
+    points: np.ndarray | None = array_field(np.float64, 2, optional=True, default=None)
 
     def __post_init__(self) -> None:
         if self.kind not in MARKER_KINDS:

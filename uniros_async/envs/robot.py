@@ -200,8 +200,7 @@ class RobotEnv(BaseEnv):
 
     async def _astep(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         clock, cfg = self._clock, self.config
-        sim = isinstance(clock, SimClock)
-        if sim:
+        if isinstance(clock, SimClock):
             clock.resume()
             latency = self._agent_latency_s()
             if latency > 0:
@@ -232,7 +231,7 @@ class RobotEnv(BaseEnv):
         end = clock.now_ns()
         self.timing.step_ns.append(end)
         self.timing.observation_age_ns.append(end - stamp)
-        if sim:
+        if isinstance(clock, SimClock):
             clock.pause()
         self._last_return_wall_ns = time.monotonic_ns()
         info = dict(info)
@@ -258,8 +257,7 @@ class RobotEnv(BaseEnv):
 
     async def _areset(self, options: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
         clock, cfg = self._clock, self.config
-        sim = isinstance(clock, SimClock)
-        if sim:
+        if isinstance(clock, SimClock):
             clock.resume()
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
         t0 = clock.now_ns()
@@ -278,7 +276,7 @@ class RobotEnv(BaseEnv):
         obs, _, _, info = self._compute_returns(js, q_arm)
         self._cache = (now, (obs, 0.0, False, info))
         self._deadline_ns = self._aligned_start(now)
-        if sim:
+        if isinstance(clock, SimClock):
             clock.pause()
         self._last_return_wall_ns = time.monotonic_ns()
         return obs, dict(info)
