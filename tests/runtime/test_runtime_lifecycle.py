@@ -1,0 +1,182 @@
+"""Worker lifetime: a killed worker is reported, workers ignore SIGINT, nothing outlives close() or a SIGKILLed
+parent (no process, no /dev/shm entry)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from uniros_async.errors import ConfigError, WorkerError
+from uniros_async.runtime import make_vec
+
+pytestmark = pytest.mark.slow
+
+RX, NED = "uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped by its parent) counts as gone
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ", 1)[1][0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _wait_gone(pids: list[int], timeout_s: float) -> list[int]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        left = [p for p in pids if _alive(p)]
+        if not left:
+            return []
+        time.sleep(0.05)
+    return [p for p in pids if _alive(p)]
+
+
+def _shm_entries() -> set[str]:
+    return {n for n in os.listdir("/dev/shm") if "uniros" in n}
+
+
+def test_killed_worker_is_reported_by_index_and_close_is_bounded() -> None:
+    venv = make_vec([RX, NED], clock="sim")
+    try:
+        venv.reset(seed=0)
+        venv.step(np.zeros((2, 6), np.float32))
+        victim = venv.pids[1]
+        assert victim is not None
+        os.kill(victim, signal.SIGKILL)
+        t0 = time.monotonic()
+        with pytest.raises(WorkerError) as e:
+            for _ in range(3):  # the kill may land just after a reply was sent
+                venv.step(np.zeros((2, 6), np.float32))
+        assert time.monotonic() - t0 < 5.0
+        assert e.value.index == 1
+        assert "died" in str(e.value) or "broke" in str(e.value)
+        with pytest.raises(WorkerError) as e2:  # stays reported
+            venv.step(np.zeros((2, 6), np.float32))
+        assert e2.value.index == 1
+    finally:
+        t0 = time.monotonic()
+        venv.close()
+        assert time.monotonic() - t0 < 10.0
+    assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
+
+
+def test_restart_on_failure_replaces_the_worker_and_truncates_its_episode() -> None:
+    venv = make_vec([RX, NED], clock="sim", restart_on_failure=True)
+    try:
+        venv.reset(seed=0)
+        old = venv.pids[0]
+        assert old is not None
+        os.kill(old, signal.SIGKILL)
+        restarted = None
+        for _ in range(3):  # the kill may land just after a reply was sent
+            obs, rewards, terminated, truncated, info = venv.step(np.zeros((2, 6), np.float32))
+            if info.get("_worker_restarted", np.zeros(2, bool))[0]:
+                restarted = (obs, rewards, terminated, truncated, info)
+                break
+        assert restarted is not None, "the dead worker was not restarted"
+        obs, rewards, terminated, truncated, info = restarted
+        assert truncated[0] and not terminated[0] and rewards[0] == 0.0
+        assert obs.shape == (2, 20) and "died" in info["worker_error"][0]
+        assert venv.restarts == [1, 0] and venv.pids[0] != old and not _alive(old)
+        obs, *_ = venv.step(np.zeros((2, 6), np.float32))  # both usable again, padding restored
+        assert obs.shape == (2, 20)
+    finally:
+        venv.close()
+    assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
+
+
+def test_workers_ignore_sigint() -> None:
+    venv = make_vec([RX], clock="sim")
+    try:
+        venv.reset(seed=0)
+        pid = venv.pids[0]
+        assert pid is not None
+        os.kill(pid, signal.SIGINT)
+        time.sleep(0.2)
+        obs, *_ = venv.step(np.zeros((1, 5), np.float32))
+        assert obs.shape == (1, 20)
+    finally:
+        venv.close()
+
+
+CHILD = textwrap.dedent(
+    """
+    import sys, time
+    from uniros_async.runtime import make_vec
+    venv = make_vec(["uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"], clock="sim")
+    venv.reset(seed=0)
+    print(" ".join(str(p) for p in venv.pids), flush=True)
+    time.sleep(120)
+    """
+)
+
+
+def test_no_worker_or_shm_entry_outlives_a_sigkilled_parent() -> None:
+    shm_before = _shm_entries()
+    proc = subprocess.Popen([sys.executable, "-c", CHILD], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # bounded by the child's own start timeout (and faulthandler_timeout)
+        pids = [int(p) for p in line.split()]
+        assert len(pids) == 2 and all(_alive(p) for p in pids), line
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(5)
+        assert _wait_gone(pids, 8.0) == []
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+        if proc.stdout is not None:
+            proc.stdout.close()
+    assert _shm_entries() - shm_before == set()
+
+
+def test_hung_worker_times_out_and_close_stays_bounded() -> None:
+    venv = make_vec([RX, NED], clock="sim", call_timeout_s=1.0)
+    victim = venv.pids[0]
+    assert victim is not None
+    try:
+        venv.reset(seed=0)
+        os.kill(victim, signal.SIGSTOP)  # alive but silent: only the deadline can tell
+        t0 = time.monotonic()
+        with pytest.raises(WorkerError) as e:
+            venv.step(np.zeros((2, 6), np.float32))
+        assert e.value.index == 0 and "within 1.0 s" in str(e.value)
+        assert time.monotonic() - t0 < 3.0
+    finally:
+        t0 = time.monotonic()
+        venv.close()
+        assert time.monotonic() - t0 < 8.0
+    assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
+
+
+def test_tcp_transport_works_and_reports_a_killed_worker() -> None:
+    with pytest.raises(ConfigError, match="transport"):
+        make_vec([RX], transport="udp")
+    venv = make_vec([RX, NED], clock="sim", transport="tcp")
+    try:
+        obs, info = venv.reset(seed=0)
+        assert obs.shape == (2, 20) and list(info["env_id"]) == [RX, NED]
+        venv.step(np.zeros((2, 6), np.float32))
+        victim = venv.pids[0]
+        assert victim is not None
+        os.kill(victim, signal.SIGKILL)
+        with pytest.raises(WorkerError) as e:
+            for _ in range(3):
+                venv.step(np.zeros((2, 6), np.float32))
+        assert e.value.index == 0
+    finally:
+        venv.close()
+    assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []

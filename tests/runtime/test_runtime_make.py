@@ -1,0 +1,92 @@
+"""make(): one env in a worker process; bad input in the caller; worker exceptions as WorkerError."""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from uniros_async.errors import ConfigError, WorkerError
+from uniros_async.runtime import ProxyEnv, make
+from uniros_async.tasks.registry import ENV_IDS
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.mark.parametrize("env_id", list(ENV_IDS))
+def test_make_resets_steps_and_closes_every_id(env_id: str) -> None:
+    env = make(env_id, clock="sim")
+    try:
+        assert isinstance(env, ProxyEnv)
+        reference = gym.make(env_id, clock="sim")
+        try:
+            assert env.observation_space == reference.observation_space
+            assert env.action_space == reference.action_space
+        finally:
+            reference.close()
+        obs, info = env.reset(seed=0)
+        assert env.observation_space.contains(obs), obs
+        assert info["env_id"] == env_id
+        for _ in range(3):
+            obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+            assert env.observation_space.contains(obs)
+            assert isinstance(reward, float) and isinstance(terminated, bool) and isinstance(truncated, bool)
+        pid = env.pid
+    finally:
+        t0 = time.monotonic()
+        env.close()
+        env.close()  # idempotent
+        assert time.monotonic() - t0 < 10.0
+    assert pid is not None
+    assert not any(p.pid == pid for p in multiprocessing.active_children())
+    with pytest.raises(gym.error.ClosedEnvironmentError):
+        env.step(env.action_space.sample())
+
+
+def test_in_process_returns_the_plain_env() -> None:
+    env = make("uniros/Rx200Reach-v0", in_process=True, clock="sim")
+    try:
+        assert not isinstance(env, ProxyEnv)
+        assert env.unwrapped.__class__.__name__ == "ReachEnv"
+    finally:
+        env.close()
+
+
+def test_unknown_id_and_kwarg_fail_in_the_caller_before_any_process() -> None:
+    before = set(multiprocessing.active_children())
+    with pytest.raises(ConfigError, match="uniros/Rx200Reach-v0") as e:
+        make("uniros/Rx300Reach-v0")
+    assert "unknown env id" in str(e.value)
+    with pytest.raises(ConfigError, match="reward_type") as e:
+        make("uniros/Rx200Reach-v0", rewardtype="dense")
+    assert "rewardtype" in str(e.value)
+    with pytest.raises(ConfigError, match="clock"):
+        make("uniros/Rx200Reach-v0", clock="fast")
+    assert set(multiprocessing.active_children()) == before
+
+
+def test_env_construction_error_comes_back_with_traceback() -> None:
+    with pytest.raises(WorkerError) as e:
+        make("uniros/Rx200Reach-v0", clock="sim", reward_type="bogus")
+    assert e.value.index == 0
+    assert "reward_type" in str(e.value)
+    assert "ConfigError" in e.value.remote_traceback and "reach.py" in e.value.remote_traceback
+    assert multiprocessing.active_children() == []
+
+
+def test_step_error_comes_back_and_the_env_stays_usable() -> None:
+    env = make("uniros/Rx200Reach-v0", clock="sim")
+    try:
+        env.reset(seed=1)
+        with pytest.raises(WorkerError) as e:
+            env.step(np.zeros(3, dtype=np.float32))
+        assert e.value.index == 0
+        assert "InvalidAction" in str(e.value)
+        assert "Traceback" in e.value.remote_traceback and "_validate_action" in e.value.remote_traceback
+        obs, *_ = env.step(np.zeros(5, dtype=np.float32))
+        assert obs.shape == (20,)
+    finally:
+        env.close()

@@ -1,0 +1,182 @@
+"""make_vec(): heterogeneous envs padded, parallel steps, NEXT_STEP autoreset, goal envs, and SB3 on top."""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from uniros_async.errors import ConfigError, WorkerError
+from uniros_async.runtime import UnirosVectorEnv, make_vec
+
+pytestmark = pytest.mark.slow
+
+RX, NED = "uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"
+
+
+def test_mixed_rx200_ned2_are_padded_and_say_so_in_infos() -> None:
+    venv = make_vec([RX, (NED, {"reward_type": "sparse"})], clock="sim")
+    try:
+        assert isinstance(venv, UnirosVectorEnv) and isinstance(venv, gym.vector.VectorEnv)
+        assert venv.num_envs == 2
+        assert venv.single_observation_space.shape == (20,)  # rx200 20, ned2 19
+        assert venv.single_action_space.shape == (6,)  # rx200 5, ned2 6
+        assert venv.observation_space.shape == (2, 20) and venv.action_space.shape == (2, 6)
+        obs, info = venv.reset(seed=0)
+        assert obs.shape == (2, 20) and obs.dtype == np.float32
+        assert obs[1, -1] == 0.0  # ned2's padding
+        assert list(info["env_id"]) == [RX, NED]
+        assert list(info["padding"]["observation"]) == [0, 1]
+        assert list(info["padding"]["action"]) == [1, 0]
+        for _ in range(5):
+            obs, rewards, terminated, truncated, info = venv.step(venv.action_space.sample())
+            assert obs.shape == (2, 20) and rewards.shape == (2,) and terminated.dtype == np.bool_
+            assert obs[1, -1] == 0.0
+            assert rewards[1] in (-1.0, 1.0)  # sparse reward reached the ned2 worker
+            assert list(info["env_id"]) == [RX, NED]
+        # step_async / step_wait are plain methods
+        venv.step_async(np.zeros((2, 6), np.float32))
+        obs, *_ = venv.step_wait()
+        assert obs.shape == (2, 20)
+        with pytest.raises(gym.error.InvalidAction):
+            venv.step(np.zeros((2, 5), np.float32))
+    finally:
+        venv.close()
+        venv.close()
+    assert multiprocessing.active_children() == []
+
+
+def test_next_step_autoreset_after_truncation() -> None:
+    venv = make_vec([(RX, {"max_episode_steps": 3})], clock="sim")
+    try:
+        venv.reset(seed=0)
+        a = np.zeros((1, 5), np.float32)
+        for _ in range(2):
+            _, _, terminated, truncated, _ = venv.step(a)
+            assert not truncated[0]
+        _, _, terminated, truncated, _ = venv.step(a)
+        assert truncated[0] or terminated[0]
+        _, rewards, terminated, truncated, _ = venv.step(a)  # the reset step
+        assert rewards[0] == 0.0 and not terminated[0] and not truncated[0]
+    finally:
+        venv.close()
+
+
+def test_goal_envs_pad_the_observation_key() -> None:
+    venv = make_vec(["uniros/Rx200ReachGoal-v0", "uniros/Ned2ReachGoal-v0"], clock="sim")
+    try:
+        space = venv.single_observation_space
+        assert isinstance(space, gym.spaces.Dict)
+        assert space["observation"].shape == (20,) and space["desired_goal"].shape == (3,)
+        obs, info = venv.reset(seed=2)
+        assert obs["observation"].shape == (2, 20) and obs["achieved_goal"].shape == (2, 3)
+        obs, *_ = venv.step(venv.action_space.sample())
+        assert obs["observation"][1, -1] == 0.0
+    finally:
+        venv.close()
+
+
+def test_spaces_that_cannot_be_combined_name_the_envs() -> None:
+    with pytest.raises(ConfigError, match="Rx200ReachGoal-v0") as e:
+        make_vec([RX, "uniros/Rx200ReachGoal-v0"], clock="sim")
+    assert RX in str(e.value)
+    with pytest.raises(ConfigError, match="cannot be combined"):
+        make_vec([RX, NED], clock="sim", pad=False)
+    assert multiprocessing.active_children() == []
+
+
+def test_bad_spec_fails_before_any_process() -> None:
+    with pytest.raises(ConfigError, match="spec 1"):
+        make_vec([RX, 42])  # type: ignore[list-item]
+    with pytest.raises(ConfigError, match="registered uniros ids"):
+        make_vec([RX, "uniros/Nope-v0"])
+    assert multiprocessing.active_children() == []
+
+
+def test_sb3_td3_trains_on_mixed_rx200_ned2() -> None:
+    import torch
+    from stable_baselines3 import TD3
+    from stable_baselines3.common.vec_env import VecEnv
+
+    torch.set_num_threads(1)
+    venv = make_vec([RX, NED], clock="sim")
+    try:
+        sb3_env = venv.as_sb3()
+        assert isinstance(sb3_env, VecEnv)
+        assert sb3_env.num_envs == 2 and sb3_env.observation_space.shape == (20,)
+        model = TD3(
+            "MlpPolicy",
+            sb3_env,
+            learning_starts=50,
+            train_freq=(4, "step"),
+            gradient_steps=1,
+            batch_size=32,
+            policy_kwargs={"net_arch": [32, 32]},
+            seed=0,
+            device="cpu",
+            verbose=0,
+        )
+        model.learn(total_timesteps=200)
+        assert model.num_timesteps >= 200
+        action, _ = model.predict(sb3_env.reset(), deterministic=True)
+        assert action.shape == (2, 6)
+    finally:
+        venv.close()
+
+
+def test_a_worker_that_cannot_start_is_named_and_the_others_are_closed() -> None:
+    with pytest.raises(WorkerError) as e:
+        make_vec([RX, (NED, {"reward_type": "bogus"})], clock="sim")
+    assert e.value.index == 1 and NED in str(e.value) and "reward_type" in str(e.value)
+    assert "ConfigError" in e.value.remote_traceback
+    assert multiprocessing.active_children() == []
+
+
+def test_real_time_mixed_placements() -> None:
+    # wall clock, every env at its own rates: ned2 servo sim in its own process, rx200 emulated real arm (tcp)
+    venv = make_vec(
+        [(NED, {"robot": "sim-process"}), (RX, {"robot": "emulated-real"})], clock="wall", action_cycle_s=0.2
+    )
+    try:
+        venv.reset(seed=0)
+        t0 = time.monotonic()
+        for _ in range(3):
+            obs, rewards, *_ = venv.step(np.zeros((2, 6), np.float32))
+        elapsed = time.monotonic() - t0
+        assert obs.shape == (2, 20) and np.all(np.isfinite(rewards))
+        assert 0.3 < elapsed < 3.0, elapsed  # three 0.2 s action cycles, stepped in parallel
+    finally:
+        venv.close()
+    assert multiprocessing.active_children() == []
+
+
+def test_sb3_her_uses_compute_reward_in_the_workers() -> None:
+    import torch
+    from stable_baselines3 import SAC, HerReplayBuffer
+
+    torch.set_num_threads(1)
+    venv = make_vec(["uniros/Rx200ReachGoal-v0", "uniros/Ned2ReachGoal-v0"], clock="sim")
+    try:
+        sb3_env = venv.as_sb3()
+        rewards = sb3_env.env_method("compute_reward", np.zeros((4, 3)), np.ones((4, 3)), [{}] * 4, indices=[1])
+        assert rewards[0].shape == (4,)
+        model = SAC(
+            "MultiInputPolicy",
+            sb3_env,
+            replay_buffer_class=HerReplayBuffer,
+            replay_buffer_kwargs={"n_sampled_goal": 2, "goal_selection_strategy": "future"},
+            learning_starts=210,  # HER samples only after a first episode (100 steps per env) has ended
+            train_freq=(4, "step"),
+            batch_size=32,
+            policy_kwargs={"net_arch": [32, 32]},
+            seed=0,
+            device="cpu",
+            verbose=0,
+        )
+        model.learn(total_timesteps=300)
+        assert model.num_timesteps >= 300
+    finally:
+        venv.close()

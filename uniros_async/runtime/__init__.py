@@ -1,0 +1,11 @@
+"""Env workers and the agent-side API over them: ``make`` (one env in a worker process) and ``make_vec`` (a
+gymnasium VectorEnv, and through ``.as_sb3()`` an SB3 VecEnv, over one worker per env).
+
+See docs/architecture.md and issue 5: every env runs in its own spawned process with its own event loop; the agent
+side talks to it over ``shm://``; worker failures come back as WorkerError with the worker's index and traceback.
+"""
+
+from uniros_async.runtime.supervisor import ProxyEnv, Supervisor, make
+from uniros_async.runtime.vector import UnirosVectorEnv, make_vec
+
+__all__ = ["ProxyEnv", "Supervisor", "UnirosVectorEnv", "make", "make_vec"]

@@ -1,0 +1,454 @@
+"""The supervisor: starts env workers, talks to them over shm, turns their failures into WorkerError.
+
+The agent side is synchronous (gymnasium), the transports are asyncio: the supervisor runs a private event loop
+on a daemon thread (``envs.runtime.LoopThread``) and hands it coroutines under timeouts. Every wait on a worker
+has a deadline; a worker that does not answer in time, whose connection breaks or whose process died is marked
+broken and every later request to it raises WorkerError naming its index (issue 5).
+
+Start-up: every process is started first (spawn, daemon), then each worker's listen URI (``shm://`` by default,
+``tcp://127.0.0.1:0`` with ``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the
+supervisor connects to all of them and asks each for its spaces, in parallel.
+If any worker fails to start, all are closed and the error names the worker and why.
+
+``make(env_id, **kwargs)`` returns ``ProxyEnv``, a gymnasium.Env over one worker.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import dataclasses
+import importlib
+import logging
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Coroutine, Sequence
+from typing import Any, TypeVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.envs.registration import registry
+
+from uniros_async.envs.runtime import LoopThread
+from uniros_async.errors import ConfigError, TransportError, WorkerError
+from uniros_async.runtime.worker import WorkerSpec, pack, space_from_plain, unpack, worker_entry
+
+__all__ = ["ProxyEnv", "Supervisor", "WorkerHandle", "check_env_args", "make"]
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+# how the supervisor reaches its workers: shared memory on one machine (the default), or tcp on loopback
+_LISTEN_URIS = {"shm": "shm://", "tcp": "tcp://127.0.0.1:0"}
+
+# gymnasium.make's own keyword arguments (not passed to the env constructor)
+_MAKE_KWARGS = {"max_episode_steps", "disable_env_checker", "autoreset", "apply_api_compatibility"}
+
+
+def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
+    """Check, in the caller, that ``env_id`` is registered and (for uniros envs) that ``kwargs`` are known.
+
+    Raises:
+        ConfigError: an unknown id (the registered uniros ids are listed) or unknown keyword arguments (the
+            valid ones are listed), or an invalid run-time setting (EnvConfig's own checks).
+    """
+    from uniros_async.tasks.registry import ENV_IDS, register_envs
+
+    register_envs()
+    if not isinstance(env_id, str) or env_id not in registry:
+        raise ConfigError(f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}")
+    entry = registry[env_id].entry_point
+    if not isinstance(entry, str) or not entry.startswith("uniros_async."):
+        return
+    module, _, name = entry.partition(":")
+    cls = getattr(importlib.import_module(module), name)
+    if not hasattr(cls, "TASK_KEYS"):
+        return
+    from uniros_async.envs.task import split_kwargs
+
+    env_kwargs = {k: v for k, v in kwargs.items() if k not in _MAKE_KWARGS and k not in registry[env_id].kwargs}
+    split_kwargs(cls, env_kwargs)
+
+
+@dataclasses.dataclass
+class WorkerHandle:
+    """The supervisor's side of one worker."""
+
+    spec: WorkerSpec
+    process: multiprocessing.process.BaseProcess
+    conn: Any  # the start-up pipe end
+    transport: Any = None
+    broken: str | None = None
+    info: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def index(self) -> int:
+        return self.spec.index
+
+    async def request(self, message: dict[str, Any], timeout_s: float) -> Any:
+        """Send ``message`` and wait for the reply's result.
+
+        Raises:
+            WorkerError: the worker raised (its traceback attached; the worker stays usable), or it did not answer
+                within ``timeout_s``, its connection broke or its process died (the worker is then broken).
+        """
+        if self.broken is not None:
+            raise WorkerError(self.index, self.broken)
+        op = message.get("op")
+        try:
+            async with asyncio.timeout(timeout_s):
+                await self.transport.send(pack(message))
+                frame = await self.transport.receive()
+                reply = unpack(frame)
+        except TimeoutError:
+            self.broken = f"no reply to {op!r} within {timeout_s} s ({self.spec.env_id})"
+            raise WorkerError(self.index, self.broken) from None
+        except TransportError as exc:
+            self.broken = await self._death_reason()
+            raise WorkerError(self.index, self.broken) from exc
+        if not reply.get("ok"):
+            raise WorkerError(
+                self.index, f"{self.spec.env_id}: {reply.get('error')}", remote_traceback=reply.get("traceback", "")
+            )
+        return reply.get("result")
+
+    async def _death_reason(self) -> str:
+        for _ in range(20):  # the connection usually breaks a moment before the process is reaped
+            if self.process.exitcode is not None:
+                break
+            await asyncio.sleep(0.025)
+        code = self.process.exitcode
+        if code is None:
+            return f"the connection to the worker ({self.spec.env_id}, pid {self.process.pid}) broke"
+        return f"the worker process ({self.spec.env_id}, pid {self.process.pid}) died with exit code {code}"
+
+
+class Supervisor:
+    """Starts one worker per spec and runs requests on them; ``close()`` stops them all (idempotent, bounded).
+
+    Args:
+        specs: ``(env_id, kwargs)`` per worker, in index order.
+        start_timeout_s: bound on starting every worker and building its env.
+        call_timeout_s: bound on any one request (reset, step, ...).
+        close_timeout_s: bound on ``close`` per stage (ask, join, terminate).
+        transport: ``"shm"`` (same machine, the default) or ``"tcp"`` (loopback).
+    """
+
+    def __init__(
+        self,
+        specs: Sequence[tuple[str, dict[str, Any]]],
+        *,
+        start_timeout_s: float = 60.0,
+        call_timeout_s: float = 60.0,
+        close_timeout_s: float = 3.0,
+        transport: str = "shm",
+    ) -> None:
+        if not specs:
+            raise ConfigError("expected at least one env spec, got none")
+        for env_id, kwargs in specs:
+            check_env_args(env_id, kwargs)
+        self.call_timeout_s = call_timeout_s
+        self.close_timeout_s = close_timeout_s
+        if transport not in _LISTEN_URIS:
+            raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
+        self.listen_uri = _LISTEN_URIS[transport]
+        self.workers: list[WorkerHandle] = []
+        self._closed = False
+        self._rt = LoopThread(_idle_main, name="uniros-supervisor")
+        self._rt.start(10.0)
+        try:
+            self._start(specs, start_timeout_s)
+        except BaseException:
+            self.close()
+            raise
+
+    # ---- start-up
+
+    def _start(self, specs: Sequence[tuple[str, dict[str, Any]]], timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        for index, (env_id, kwargs) in enumerate(specs):
+            self.workers.append(self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri))
+        uris = [self._wait_uri(w, deadline) for w in self.workers]
+        remaining = max(0.1, deadline - time.monotonic())
+        self.call(self._connect_all(self.workers, uris, remaining), remaining + 1.0)
+
+    @staticmethod
+    def _spawn(index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str) -> WorkerHandle:
+        ctx = multiprocessing.get_context("spawn")
+        spec = WorkerSpec(
+            index=index,
+            env_id=env_id,
+            kwargs=dict(kwargs),
+            parent_pid=os.getpid(),
+            accept_timeout_s=timeout_s,
+            listen_uri=listen_uri,
+        )
+        parent_conn, child_conn = ctx.Pipe(duplex=False)
+        # daemon=True: if the supervisor's process exits, multiprocessing terminates the workers (and a
+        # SIGKILLed supervisor is noticed by each worker's watchdog)
+        proc = ctx.Process(target=worker_entry, args=(spec, child_conn), name=f"uniros-worker-{index}", daemon=True)
+        proc.start()
+        child_conn.close()
+        return WorkerHandle(spec=spec, process=proc, conn=parent_conn)
+
+    def restart(self, index: int, timeout_s: float = 60.0) -> WorkerHandle:
+        """Stop worker ``index`` (whatever its state) and start a new one with the same spec.
+
+        The new worker's env is built but not padded or reset; that is the caller's business.
+
+        Raises:
+            WorkerError: the new worker failed to start (it is stopped again).
+        """
+        old = self.workers[index]
+        with contextlib.suppress(Exception):
+            self.call(_aclose(old.transport), 5.0)
+        _stop_process(old.process, self.close_timeout_s)
+        new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri)
+        self.workers[index] = new
+        deadline = time.monotonic() + timeout_s
+        try:
+            uri = self._wait_uri(new, deadline)
+            remaining = max(0.1, deadline - time.monotonic())
+            self.call(self._connect_all([new], [uri], remaining), remaining + 1.0)
+        except BaseException:
+            new.broken = "restart failed"
+            with contextlib.suppress(Exception):
+                self.call(_aclose(new.transport), 5.0)
+            _stop_process(new.process, self.close_timeout_s)
+            raise
+        return new
+
+    @staticmethod
+    def _wait_uri(w: WorkerHandle, deadline: float) -> str:
+        hint = "see its stderr; a script that starts workers needs `if __name__ == '__main__':` (spawn start method)"
+        while not w.conn.poll(0.05):
+            if not w.process.is_alive():
+                raise WorkerError(
+                    w.index, f"{w.spec.env_id}: the worker exited with code {w.process.exitcode} at start; {hint}"
+                )
+            if time.monotonic() > deadline:
+                raise WorkerError(w.index, f"{w.spec.env_id}: the worker did not start in time")
+        try:
+            uri = w.conn.recv()
+        except EOFError:
+            w.process.join(1.0)
+            raise WorkerError(
+                w.index, f"{w.spec.env_id}: the worker exited with code {w.process.exitcode} at start; {hint}"
+            ) from None
+        w.conn.close()
+        return str(uri)
+
+    async def _connect_all(self, workers: list[WorkerHandle], uris: list[str], timeout_s: float) -> None:
+        from uniros_async.transports.base import TransportOptions, connect
+
+        async def one(w: WorkerHandle, uri: str) -> None:
+            try:
+                w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s))
+            except (TransportError, OSError, TimeoutError) as exc:
+                raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
+            w.info = await w.request({"op": "spaces"}, timeout_s)
+
+        results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
+        for r in results:
+            if isinstance(r, BaseException):
+                raise r
+
+    # ---- requests
+
+    def call(self, coro: Coroutine[Any, Any, T], timeout_s: float | None = None) -> T:
+        """Run ``coro`` on the supervisor's loop; a timeout here means the loop itself is stuck."""
+        t = self.call_timeout_s + 5.0 if timeout_s is None else timeout_s
+        return self._rt.call(coro, t)
+
+    def submit(self, coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T]:
+        """Start ``coro`` on the supervisor's loop and return at once."""
+        assert self._rt.loop is not None
+        return asyncio.run_coroutine_threadsafe(coro, self._rt.loop)
+
+    async def request_all(
+        self, messages: Sequence[dict[str, Any] | None], *, return_exceptions: bool = False
+    ) -> list[Any]:
+        """Send ``messages[i]`` to worker i (None: skip), all before waiting for any. Once every reply is in,
+        raise the first failure (by index), or with ``return_exceptions`` put each WorkerError in its slot."""
+        jobs = [self.workers[i].request(m, self.call_timeout_s) for i, m in enumerate(messages) if m is not None]
+        results = await asyncio.gather(*jobs, return_exceptions=True)
+        for r in results:
+            if isinstance(r, BaseException) and not (return_exceptions and isinstance(r, WorkerError)):
+                raise r
+        out: list[Any] = []
+        it = iter(results)
+        for m in messages:
+            out.append(next(it) if m is not None else None)
+        return out
+
+    def pids(self) -> list[int | None]:
+        """The worker process ids, in index order."""
+        return [w.process.pid for w in self.workers]
+
+    # ---- shutdown
+
+    def close(self) -> None:
+        """Ask every worker to close its env, then join, terminate, kill; idempotent, bounded in time.
+
+        A worker that acknowledged gets ``close_timeout_s`` to exit; one that did not (dead, hung, broken) is
+        terminated at once, and killed if it is still there ``close_timeout_s`` later (gymnasium close_extras).
+        """
+        if self._closed:
+            return
+        self._closed = True
+        t = self.close_timeout_s
+        acked = [False] * len(self.workers)
+        if self._rt.alive:
+            try:
+                acked = self._rt.call(self._close_all(t), t + 2.0)
+            except Exception:  # noqa: BLE001 - shutting down whatever state they are in
+                logger.warning("asking the workers to close failed", exc_info=True)
+        deadline = time.monotonic() + t
+        for w, ok in zip(self.workers, acked, strict=True):
+            if ok:
+                w.process.join(max(0.0, deadline - time.monotonic()))
+        for w in self.workers:
+            if w.process.is_alive():
+                w.process.terminate()
+        deadline = time.monotonic() + t
+        for w in self.workers:
+            w.process.join(max(0.0, deadline - time.monotonic()))
+            if w.process.is_alive():
+                w.process.kill()
+                w.process.join(1.0)
+        for w in self.workers:
+            if not w.conn.closed:
+                w.conn.close()
+        self._rt.close(5.0)
+
+    async def _close_all(self, timeout_s: float) -> list[bool]:
+        async def one(w: WorkerHandle) -> bool:
+            try:
+                if w.transport is not None and w.broken is None and w.process.is_alive():
+                    await w.request({"op": "close"}, timeout_s)
+                    return True
+                return False
+            except WorkerError:
+                return w.broken is None  # the env's close raised, but the worker answered and is exiting
+            finally:
+                if w.transport is not None:
+                    await w.transport.aclose()
+
+        results = await asyncio.gather(*(one(w) for w in self.workers), return_exceptions=True)
+        return [r is True for r in results]
+
+    def __del__(self) -> None:
+        if not getattr(self, "_closed", True):
+            self.close()
+
+
+async def _aclose(transport: Any) -> None:
+    if transport is not None:
+        await transport.aclose()
+
+
+def _stop_process(process: multiprocessing.process.BaseProcess, timeout_s: float) -> None:
+    """join, terminate, kill: each bounded."""
+    if process.is_alive():
+        process.terminate()
+        process.join(timeout_s)
+    if process.is_alive():
+        process.kill()
+    process.join(1.0)
+
+
+async def _idle_main(started: Callable[[BaseException | None], None]) -> None:
+    started(None)
+    await asyncio.Event().wait()
+
+
+class ProxyEnv(gym.Env[Any, Any]):
+    """A gymnasium.Env whose env runs in a worker process (see ``make``)."""
+
+    def __init__(self, supervisor: Supervisor) -> None:
+        super().__init__()
+        self._sup = supervisor
+        self._worker = supervisor.workers[0]
+        info = self._worker.info
+        self.observation_space = space_from_plain(info["observation_space"])
+        self.action_space = space_from_plain(info["action_space"])
+        self.metadata = {**self.metadata, **info.get("metadata", {})}
+        self.env_id = self._worker.spec.env_id
+        self.pid = self._worker.process.pid
+        self._closed = False
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        """Reset the env in the worker. Raises WorkerError on any failure there."""
+        super().reset(seed=seed)
+        self._check_open()
+        obs, info = self._sup.call(
+            self._worker.request({"op": "reset", "seed": seed, "options": options}, self._sup.call_timeout_s)
+        )
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """Step the env in the worker. Raises WorkerError on any failure there (a bad action included)."""
+        self._check_open()
+        obs, reward, terminated, truncated, info = self._sup.call(
+            self._worker.request({"op": "step", "action": np.asarray(action)}, self._sup.call_timeout_s)
+        )
+        return obs, reward, terminated, truncated, info
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> Any:
+        """Call the env's method ``name`` (or read its attribute) in the worker; plain data in and out."""
+        self._check_open()
+        msg = {"op": "call", "name": name, "args": list(args), "kwargs": kwargs}
+        return self._sup.call(self._worker.request(msg, self._sup.call_timeout_s))
+
+    def close(self) -> None:
+        """Close the env and stop the worker; idempotent, bounded in time."""
+        if self._closed:
+            return
+        self._closed = True
+        self._sup.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise gym.error.ClosedEnvironmentError(f"the proxy of {self.env_id} is closed; make a new one")
+
+    def __repr__(self) -> str:
+        return f"<ProxyEnv {self.env_id} pid={self.pid}>"
+
+
+def make(
+    env_id: str,
+    *,
+    in_process: bool = False,
+    start_timeout_s: float = 60.0,
+    call_timeout_s: float = 60.0,
+    transport: str = "shm",
+    **kwargs: Any,
+) -> gym.Env[Any, Any]:
+    """Make ``env_id`` in its own worker process and return a gymnasium.Env proxy for it.
+
+    Args:
+        env_id: a registered id, e.g. ``"uniros/Rx200Reach-v0"``.
+        in_process: return the plain ``gymnasium.make`` env instead (for debugging).
+        start_timeout_s: bound on starting the worker and building the env.
+        call_timeout_s: bound on each reset/step.
+        transport: how the agent side talks to the worker: ``"shm"`` (default) or ``"tcp"`` (loopback).
+        **kwargs: passed to ``gymnasium.make`` in the worker (clock, robot, reward_type, ...).
+
+    Raises:
+        ConfigError: an unknown id or keyword argument (raised here, before any process starts).
+        WorkerError: the worker failed to start or to build the env (its traceback attached).
+    """
+    check_env_args(env_id, kwargs)
+    if in_process:
+        return gym.make(env_id, **kwargs)
+    sup = Supervisor(
+        [(env_id, kwargs)], start_timeout_s=start_timeout_s, call_timeout_s=call_timeout_s, transport=transport
+    )
+    try:
+        return ProxyEnv(sup)
+    except BaseException:
+        sup.close()
+        raise

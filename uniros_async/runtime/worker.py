@@ -1,0 +1,345 @@
+"""The env worker process: one environment, served to the agent side over the project's own transports.
+
+A worker is started by the supervisor (``multiprocessing.get_context("spawn")``, ``daemon=True``) with one frozen
+``WorkerSpec``. It listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through the
+start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then answers
+requests until told to close or until the supervisor goes away.
+
+Wire format (both directions): one frame per message, ``encode_plain`` (msgpack) of plain data in which every
+numpy array travels as ``{"__nd__": [dtype, shape, raw bytes]}``. A request is ``{"op": ..., ...}``; a reply is
+``{"ok": True, "result": ...}`` or ``{"ok": False, "error": "Type: message", "traceback": "..."}``. An exception
+while serving a request is sent back (the supervisor raises it as WorkerError) and the worker keeps serving;
+an exception while building the env is sent as the reply to the first request, and the worker exits.
+
+Lifetime (issue 5): the worker ignores SIGINT (the agent's Ctrl-C is the supervisor's business), stops on SIGTERM
+(the root task is cancelled, the env closed in ``finally``), and stops when the supervisor dies: the connection
+breaks (EOF on the shm socket) and, as a backstop for a worker blocked in a long env call, a watchdog thread sees
+the parent pid change, cancels the root task and, if that has not ended the process within ``exit_grace_s``,
+calls ``os._exit``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import threading
+import time
+import traceback
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from uniros_async.bus.codec import decode_plain, encode_plain
+from uniros_async.errors import CodecError, ConfigError, TransportError
+
+__all__ = [
+    "WorkerSpec",
+    "from_wire",
+    "pack",
+    "space_from_plain",
+    "space_to_plain",
+    "to_wire",
+    "unpack",
+    "worker_entry",
+    "worker_main",
+]
+
+logger = logging.getLogger(__name__)
+
+AUTORESET_MODES = (None, "next_step", "same_step")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class WorkerSpec:
+    """Everything a worker needs, fixed at start.
+
+    Attributes:
+        index: the sub-environment index (named in every WorkerError).
+        env_id: a registered gymnasium id.
+        kwargs: keyword arguments for ``gymnasium.make`` (plain, picklable data).
+        parent_pid: the supervisor's pid; the worker exits when its parent changes.
+        accept_timeout_s: how long the worker waits for the supervisor to connect.
+        exit_grace_s: after the supervisor died, how long a clean shutdown may take before ``os._exit``.
+        listen_uri: where the worker listens for the supervisor: ``shm://`` (a unique name; same machine) or
+            ``tcp://127.0.0.1:0`` (a free port).
+    """
+
+    index: int
+    env_id: str
+    kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
+    parent_pid: int = 0
+    accept_timeout_s: float = 60.0
+    exit_grace_s: float = 3.0
+    listen_uri: str = "shm://"
+
+
+# ---------------------------------------------------------------- wire format
+
+
+def to_wire(value: Any) -> Any:
+    """Plain data for msgpack: arrays as ``{"__nd__": [dtype, shape, bytes]}``, numpy scalars as Python ones,
+    tuples as lists; anything else msgpack cannot take becomes its ``repr`` (infos may hold odd objects)."""
+    if isinstance(value, np.ndarray):
+        a = np.ascontiguousarray(value)
+        if a.dtype == object:
+            return [to_wire(v) for v in a.tolist()]
+        return {"__nd__": [a.dtype.str, list(a.shape), a.tobytes()]}
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, bool | int | float | str | bytes):
+        return value
+    if isinstance(value, dict):
+        return {str(k): to_wire(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_wire(v) for v in value]
+    return repr(value)
+
+
+def from_wire(value: Any) -> Any:
+    """Inverse of ``to_wire`` (arrays come back writable)."""
+    if isinstance(value, dict):
+        nd = value.get("__nd__")
+        if nd is not None and len(value) == 1:
+            dtype, shape, data = nd
+            return np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape).copy()
+        return {k: from_wire(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [from_wire(v) for v in value]
+    return value
+
+
+def pack(message: dict[str, Any]) -> bytes:
+    """One frame for ``message``."""
+    return encode_plain(to_wire(message))
+
+
+def unpack(frame: bytes | memoryview) -> dict[str, Any]:
+    """The message in ``frame``.
+
+    Raises:
+        CodecError: the frame is not msgpack, or not a map.
+    """
+    msg = from_wire(decode_plain(frame))
+    if not isinstance(msg, dict):
+        raise CodecError(f"expected a map, got {type(msg).__name__}")
+    return msg
+
+
+def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
+    """Box, Discrete and Dict spaces as plain data (no pickles cross the wire).
+
+    Raises:
+        ConfigError: another kind of space.
+    """
+    if isinstance(space, gym.spaces.Box):
+        return {"type": "Box", "low": space.low, "high": space.high, "dtype": np.dtype(space.dtype).str}
+    if isinstance(space, gym.spaces.Discrete):
+        return {"type": "Discrete", "n": int(space.n), "start": int(space.start)}
+    if isinstance(space, gym.spaces.Dict):
+        return {"type": "Dict", "spaces": {k: space_to_plain(s) for k, s in space.spaces.items()}}
+    raise ConfigError(f"expected a Box, Discrete or Dict space, got {space}")
+
+
+def space_from_plain(plain: dict[str, Any]) -> gym.Space[Any]:
+    """Inverse of ``space_to_plain``."""
+    kind = plain["type"]
+    if kind == "Box":
+        return gym.spaces.Box(plain["low"], plain["high"], dtype=np.dtype(plain["dtype"]))
+    if kind == "Discrete":
+        return gym.spaces.Discrete(plain["n"], start=plain["start"])
+    if kind == "Dict":
+        return gym.spaces.Dict({k: space_from_plain(s) for k, s in plain["spaces"].items()})
+    raise ConfigError(f"unknown space type {kind!r}")
+
+
+# ---------------------------------------------------------------- the worker
+
+
+def worker_entry(spec: WorkerSpec, conn: multiprocessing.connection.Connection) -> None:
+    """Process target: run ``worker_main`` and exit."""
+    # The agent's Ctrl-C reaches every process of the group; the supervisor decides how workers stop.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # multiprocessing forbids children of daemon processes; an env with robot="sim-process" or "emulated-real"
+    # starts its own servo process (itself daemonic, and it exits with us). Clearing the flag in this process only
+    # changes what this process believes about itself; the supervisor still treats us as daemonic.
+    multiprocessing.current_process()._config["daemon"] = False  # type: ignore[attr-defined]
+    try:
+        asyncio.run(worker_main(spec, conn))
+    except (KeyboardInterrupt, asyncio.CancelledError):
+        pass
+    finally:
+        conn.close()
+
+
+def _start_watchdog(spec: WorkerSpec, loop: asyncio.AbstractEventLoop, task: asyncio.Task[Any]) -> None:
+    parent = spec.parent_pid or os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.1)
+        logger.warning("worker %d: supervisor %d is gone; stopping", spec.index, parent)
+        try:
+            loop.call_soon_threadsafe(task.cancel)
+        except RuntimeError:  # the loop already closed: we are exiting anyway
+            return
+        time.sleep(spec.exit_grace_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name=f"uniros-worker-{spec.index}-watchdog", daemon=True).start()
+
+
+async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connection) -> None:
+    """Listen, hand the URI over ``conn``, accept the supervisor, build the env, serve until closed."""
+    from uniros_async.transports.base import listen
+
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    loop.add_signal_handler(signal.SIGTERM, task.cancel)
+    _start_watchdog(spec, loop, task)
+    listener = await listen(spec.listen_uri)
+    transport = None
+    server = _Server(spec)
+    try:
+        conn.send(listener.uri)
+        async with asyncio.timeout(spec.accept_timeout_s):
+            transport = await listener.accept()
+        await listener.aclose()
+        server.build()
+        await server.serve(transport)
+    except TransportError:
+        logger.info("worker %d: the supervisor went away", spec.index)
+    finally:
+        server.close()
+        if transport is not None:
+            await transport.aclose()
+        await listener.aclose()
+
+
+class _Server:
+    """The env and the request handlers of one worker."""
+
+    def __init__(self, spec: WorkerSpec) -> None:
+        self.spec = spec
+        self.env: gym.Env[Any, Any] | None = None
+        self.build_error: dict[str, Any] | None = None
+        self.needs_autoreset = False
+
+    def build(self) -> None:
+        import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
+
+        try:
+            self.env = gym.make(self.spec.env_id, **self.spec.kwargs)
+        except Exception as exc:  # noqa: BLE001 - sent back to the supervisor
+            self.build_error = _error_reply(exc, f"could not make {self.spec.env_id}")
+
+    async def serve(self, transport: Any) -> None:
+        while True:
+            frame = await transport.receive()
+            try:
+                request = unpack(frame)
+            except Exception as exc:  # noqa: BLE001
+                await transport.send(pack(_error_reply(exc, "bad request")))
+                continue
+            op = request.get("op")
+            if self.build_error is not None:
+                await transport.send(pack(self.build_error))
+                return
+            try:
+                result = self.handle(op, request)
+            except Exception as exc:  # noqa: BLE001 - sent back; the env stays usable when it can
+                reply = _error_reply(exc, f"{op} failed")
+            else:
+                reply = {"ok": True, "result": result}
+            await transport.send(pack(reply))
+            if op == "close":
+                return
+
+    def handle(self, op: Any, request: dict[str, Any]) -> Any:
+        env = self.env
+        assert env is not None
+        if op == "spaces":
+            return self._spaces()
+        if op == "pad":
+            from uniros_async.envs.wrappers import PadSpaces
+
+            self.env = PadSpaces(env, int(request["obs_size"]), int(request["action_size"]))
+            return self._spaces()
+        if op == "reset":
+            self.needs_autoreset = False
+            obs, info = env.reset(seed=request.get("seed"), options=request.get("options"))
+            return [obs, self._info(info)]
+        if op == "step":
+            return self._step(request["action"], request.get("autoreset"))
+        if op == "call":
+            name = request["name"]
+            if name.startswith("_"):
+                raise AttributeError(f"refusing to call private attribute {name!r}")
+            attr = getattr(env, name) if hasattr(env, name) else getattr(env.unwrapped, name)
+            return attr(*request.get("args", []), **request.get("kwargs", {})) if callable(attr) else attr
+        if op == "get":
+            name = request["name"]
+            return getattr(env, name) if hasattr(env, name) else getattr(env.unwrapped, name)
+        if op == "set":
+            setattr(env.unwrapped, request["name"], request["value"])
+            return None
+        if op == "close":
+            self.close()
+            return None
+        raise ValueError(f"unknown op {op!r}; expected spaces, pad, reset, step, call, get, set or close")
+
+    def _spaces(self) -> dict[str, Any]:
+        env = self.env
+        assert env is not None
+        return {
+            "observation_space": space_to_plain(env.observation_space),
+            "action_space": space_to_plain(env.action_space),
+            "metadata": {k: v for k, v in env.metadata.items() if isinstance(v, int | float | str | list)},
+            "max_episode_steps": env.spec.max_episode_steps if env.spec is not None else None,
+            "pid": os.getpid(),
+        }
+
+    def _info(self, info: dict[str, Any]) -> dict[str, Any]:
+        return {**info, "env_id": self.spec.env_id}
+
+    def _step(self, action: Any, autoreset: str | None) -> list[Any]:
+        env = self.env
+        assert env is not None
+        if autoreset not in AUTORESET_MODES:
+            raise ValueError(f"autoreset must be one of {AUTORESET_MODES}, got {autoreset!r}")
+        if autoreset == "next_step" and self.needs_autoreset:
+            # gymnasium's NEXT_STEP mode: the step after an episode's end resets and ignores the action
+            self.needs_autoreset = False
+            obs, info = env.reset()
+            return [obs, 0.0, False, False, self._info(info)]
+        obs, reward, terminated, truncated, info = env.step(action)
+        done = bool(terminated or truncated)
+        info = self._info(info)
+        if autoreset == "next_step":
+            self.needs_autoreset = done
+        elif autoreset == "same_step" and done:
+            # SB3's convention: the reset observation replaces the final one, which goes in the info
+            final_obs = obs
+            obs, _ = env.reset()
+            info = {**info, "final_obs": final_obs}
+        return [obs, float(reward), bool(terminated), bool(truncated), info]
+
+    def close(self) -> None:
+        env, self.env = self.env, None
+        if env is not None:
+            env.close()
+
+
+def _error_reply(exc: BaseException, what: str) -> dict[str, Any]:
+    return {
+        "ok": False,
+        "error": f"{what}: {type(exc).__name__}: {exc}",
+        "type": type(exc).__name__,
+        "traceback": "".join(traceback.format_exception(exc)),
+    }
