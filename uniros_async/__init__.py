@@ -25,9 +25,21 @@ __all__ = [
     "UnirosError",
     "WorkerError",
     "__version__",
+    "make",
+    "make_vec",
 ]
 
 # Register the gymnasium ids ("uniros/Rx200Reach-v0", ...) on import, as gymnasium-robotics does.
 from uniros_async.tasks.registry import register_envs as _register  # noqa: E402
 
 _register()
+
+
+def __getattr__(name: str) -> object:
+    # make / make_vec load the runtime (worker processes) only when asked for: a transport-only process or a
+    # spawned worker does not import it.
+    if name in ("make", "make_vec"):
+        from uniros_async import runtime
+
+        return getattr(runtime, name)
+    raise AttributeError(f"module 'uniros_async' has no attribute {name!r}")

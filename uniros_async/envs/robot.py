@@ -261,7 +261,7 @@ class RobotEnv(BaseEnv):
             clock.resume()
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
         t0 = clock.now_ns()
-        if cfg.robot == "sim":
+        if cfg.robot in ("sim", "sim-process"):  # a nominal sim can be teleported home: exact and fast
             reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=cfg.reset_timeout_s)
             if not reply.success:
                 raise RobotError(f"{self.robot_spec.name}: reset refused: {reply.message}")
