@@ -57,6 +57,11 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     be.add_argument("--no-progress", action="store_true")
 
+    bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
+    bth.add_argument("--quick", action="store_true", help="N = 1, 2, 4 and fewer steps")
+    bth.add_argument("--steps", type=int, default=100)
+    bth.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0)
     bs.add_argument("--episodes", type=int, default=3)
@@ -244,6 +249,10 @@ def _run_bench(args: argparse.Namespace) -> int:
             payloads=tuple(args.payloads) if args.payloads else tuple(transport.PAYLOADS),
         )
         transport.main(cfg)
+    elif args.scenario == "throughput":
+        from uniros_async.bench import throughput
+
+        throughput.main(throughput.ThroughputBenchConfig(quick=args.quick, steps=args.steps, json_path=args.json_path))
     elif args.scenario == "simclock":
         from uniros_async.bench import simclock
 
