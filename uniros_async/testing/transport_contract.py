@@ -143,6 +143,25 @@ async def check_close_semantics(uri: str) -> None:
                 raise AssertionError("receive after the peer closed did not raise TransportBrokenError")
 
 
+async def check_close_with_a_full_backlog_loses_nothing(uri: str) -> None:
+    """Frames the peer accepted before closing are all delivered, even when the reader had fallen behind."""
+    n = 1024
+    async with open_pair(uri) as (a, b, _):
+        async with asyncio.timeout(T_S):
+            for i in range(n):
+                await a.send(i.to_bytes(4, "little"))
+            await a.aclose()
+            for i in range(n):
+                got = await b.receive()
+                assert int.from_bytes(got, "little") == i, f"frame {i} lost or reordered at close"
+            try:
+                await b.receive()
+            except TransportBrokenError:
+                pass
+            else:
+                raise AssertionError("receive after the backlog did not report the closed peer")
+
+
 async def check_close_wakes_blocked_receiver(uri: str) -> None:
     async with open_pair(uri) as (a, b, _):
         async with asyncio.timeout(T_S):
@@ -271,6 +290,7 @@ CHECKS: list[Callable[[str], Awaitable[None]]] = [
     check_large_frames,
     check_oversize_rejected_connection_survives,
     check_close_semantics,
+    check_close_with_a_full_backlog_loses_nothing,
     check_close_wakes_blocked_receiver,
     check_cancelled_receive_leaves_connection_usable,
     check_both_directions_at_once,

@@ -11,6 +11,7 @@ it exists so that every layer above transports can be tested without sockets, an
 from __future__ import annotations
 
 import asyncio
+import collections
 import itertools
 from collections.abc import Sequence
 
@@ -21,12 +22,14 @@ __all__ = ["MemoryListener", "MemoryTransport", "connect", "listen"]
 
 _LISTENERS: dict[str, MemoryListener] = {}
 _anon = itertools.count()
-_CLOSED = object()
-_BROKEN = object()
 
 
 class MemoryTransport(Transport):
-    """One end of an in-process pair."""
+    """One end of an in-process pair.
+
+    The inbox is a bounded deque; closing is a flag beside it, never an item in it, so a close can neither wait
+    for room nor push out a frame the peer already accepted.
+    """
 
     delivery = Delivery.RELIABLE
     scheme = "memory"
@@ -35,60 +38,65 @@ class MemoryTransport(Transport):
         super().__init__()
         self._name = name
         self._options = options
-        self._inbox: asyncio.Queue[object] = asyncio.Queue(maxsize=inbox_frames)
+        self._inbox: collections.deque[bytes] = collections.deque()
+        self._inbox_frames = inbox_frames
+        self._readable = asyncio.Event()  # set: a frame arrived, or this end / the peer closed
+        self._writable = asyncio.Event()  # set: the peer took a frame, or either end closed
         self._peer: MemoryTransport | None = None
         self._closed = False
-        self._broken = False
+        self._peer_closed = False
 
     @property
     def peer(self) -> str:
         return f"memory://{self._name}"
 
     async def send(self, frame: Buffer | Sequence[Buffer]) -> None:
-        if self._closed:
-            raise TransportClosedError(f"send on closed transport to {self.peer}")
         n = frame_nbytes(frame)
         if n > self._options.max_frame_bytes:
             raise FrameTooLargeError(f"frame of {n} bytes exceeds max_frame_bytes={self._options.max_frame_bytes}")
-        peer = self._peer
-        if peer is None or peer._closed or self._broken:
-            raise TransportBrokenError(f"peer {self.peer} closed the connection")
         data = bytes(frame) if isinstance(frame, bytes | bytearray | memoryview) else b"".join(frame)
-        await peer._inbox.put(data)
+        while True:
+            if self._closed:
+                raise TransportClosedError(f"send on closed transport to {self.peer}")
+            peer = self._peer
+            if peer is None or self._peer_closed:
+                raise TransportBrokenError(f"peer {self.peer} closed the connection")
+            if len(peer._inbox) < peer._inbox_frames:
+                break
+            self._writable.clear()
+            await self._writable.wait()  # backpressure: the peer has inbox_frames unread
+        peer._inbox.append(data)
+        peer._readable.set()
         self.stats.frames_sent += 1
         self.stats.bytes_sent += n
 
     async def receive(self) -> memoryview:
-        if self._closed:
-            raise TransportClosedError(f"receive on closed transport to {self.peer}")
-        item = await self._inbox.get()
-        if item is _CLOSED:
-            raise TransportClosedError(f"transport to {self.peer} was closed")
-        if item is _BROKEN:
-            self._broken = True
-            raise TransportBrokenError(f"peer {self.peer} closed the connection")
-        assert isinstance(item, bytes)
-        self.stats.frames_received += 1
-        self.stats.bytes_received += len(item)
-        return memoryview(item)
+        while True:
+            if self._closed:
+                raise TransportClosedError(f"transport to {self.peer} was closed")
+            if self._inbox:
+                data = self._inbox.popleft()
+                if self._peer is not None:
+                    self._peer._writable.set()
+                self.stats.frames_received += 1
+                self.stats.bytes_received += len(data)
+                return memoryview(data)
+            if self._peer_closed:  # only after every frame the peer sent was delivered
+                raise TransportBrokenError(f"peer {self.peer} closed the connection")
+            self._readable.clear()
+            await self._readable.wait()
 
     async def aclose(self) -> None:
         if self._closed:
             return
         self._closed = True
-        _force_put(self._inbox, _CLOSED)
-        if self._peer is not None and not self._peer._closed:
-            _force_put(self._peer._inbox, _BROKEN)
-
-
-def _force_put(q: asyncio.Queue[object], item: object) -> None:
-    """Put a control item even into a full queue (dropping nothing that matters: the end is going away)."""
-    while True:
-        try:
-            q.put_nowait(item)
-            return
-        except asyncio.QueueFull:
-            q.get_nowait()
+        self._readable.set()
+        self._writable.set()
+        peer = self._peer
+        if peer is not None:
+            peer._peer_closed = True
+            peer._readable.set()
+            peer._writable.set()
 
 
 class MemoryListener(Listener):
