@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import contextlib
 import ctypes
 import ctypes.util
 import logging
 import os
 import sys
 import time
+import weakref
 
 __all__ = ["Clock", "WallClock", "wall_clock"]
 
@@ -117,7 +119,9 @@ class WallClock(Clock):
 
     def __init__(self, *, spin_lead_ns: int = 500_000) -> None:
         self._tfd = _load_timerfd()
-        self._pools: dict[int, list[int]] = {}
+        # idle timer fds per event loop; a loop's fds are closed when the loop is collected (tests and
+        # asyncio.run() make many short-lived loops)
+        self._pools: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, list[int]] = weakref.WeakKeyDictionary()
         self.spin_lead_ns = spin_lead_ns
 
     def now_ns(self) -> int:
@@ -137,7 +141,10 @@ class WallClock(Clock):
             while time.monotonic_ns() < deadline_ns:  # asyncio may wake a hair early
                 await asyncio.sleep((deadline_ns - time.monotonic_ns()) / 1e9)
             return
-        pool = self._pools.setdefault(id(loop), [])
+        pool = self._pools.get(loop)
+        if pool is None:
+            pool = self._pools[loop] = []
+            weakref.finalize(loop, _close_fds, pool)
         fd = pool.pop() if pool else self._tfd.create()
         fut: asyncio.Future[None] = loop.create_future()
 
@@ -167,11 +174,15 @@ class WallClock(Clock):
             pass
 
     def close(self) -> None:
-        """Close pooled timer fds (they are also closed at process exit)."""
+        """Close pooled timer fds now (otherwise they close with their event loop)."""
         for pool in self._pools.values():
-            for fd in pool:
-                os.close(fd)
-        self._pools.clear()
+            _close_fds(pool)
+
+
+def _close_fds(fds: list[int]) -> None:
+    while fds:
+        with contextlib.suppress(OSError):
+            os.close(fds.pop())
 
 
 _WALL: WallClock | None = None

@@ -66,6 +66,7 @@ class Domain:
         self._services: dict[str, tuple[_Participant, dict[str, Any]]] = {}
         self.params: dict[str, Any] = dict(params or {})
         self.rejected_requests = 0
+        self._pending_notify: set[str] = set()  # topics whose subscribers must hear of publisher changes
 
     @property
     def uri(self) -> str:
@@ -123,8 +124,6 @@ class Domain:
                 await p.conn.send(encode_plain(msg))
 
     # ------------------------------------------------------------------------------------------- requests
-
-    _pending_notify: set[str]
 
     def _handle(self, p: _Participant, req: dict[str, Any]) -> Any:
         op = req["op"]
@@ -325,7 +324,6 @@ async def open_domain(
     for k, v in (params or {}).items():
         flat.update(_flatten(k if k.startswith("/") else "/" + k, v))
     domain = Domain(listener, flat)
-    domain._pending_notify = set()
     try:
         async with unwrap_task_group() as tg:
             server = tg.create_task(domain._serve(tg))

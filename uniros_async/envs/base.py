@@ -58,11 +58,7 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         rt = self._rt
         if rt is None or rt.alive:
             return None
-        try:
-            rt._done.result(0)
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller
-            return exc
-        return RuntimeError("the env loop stopped")
+        return rt.failure() or RuntimeError("the env loop stopped")
 
     def _check_open(self) -> None:
         if self._closed:

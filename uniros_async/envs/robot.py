@@ -16,6 +16,7 @@ emulated real arm over tcp, or a real arm behind an adapter.
 from __future__ import annotations
 
 import abc
+import asyncio
 import contextlib
 import logging
 import time
@@ -130,7 +131,7 @@ class RobotEnv(BaseEnv):
                     clock.pause()
                 node.create_timer(1.0 / self.env_loop_rate_hz, self._tick)
                 started(None)
-                await _forever()
+                await asyncio.Event().wait()  # until close() cancels main
         except BaseException as exc:
             started(exc)
             raise
@@ -314,8 +315,3 @@ class RobotEnv(BaseEnv):
             self._target = js.position[self._arm_idx].copy()
             self._send(self._target, self._clock.now_ns())
 
-
-async def _forever() -> None:
-    import asyncio
-
-    await asyncio.Event().wait()

@@ -86,6 +86,12 @@ class LoopThread:
             if not self._ready.done():
                 self._ready.set_exception(RuntimeError("closed before it started"))
 
+    def failure(self) -> BaseException | None:
+        """Why ``main`` stopped, once it has stopped (None while running or after a clean close)."""
+        if not self._done.done():
+            return None
+        return self._done.exception()
+
     @property
     def alive(self) -> bool:
         return self._thread.is_alive() and not self._done.done()
