@@ -69,6 +69,13 @@ class RobotEnv(BaseEnv):
         self.unsafe_actions = 0
         self.robot_process: Any = None  # the ServoSimProcess of robot="sim-process" / "emulated-real"
 
+    def timing_snapshot(self, clear: bool = False) -> dict[str, list[int] | int]:
+        """The env's timing records as plain lists (see ``Timing.snapshot``); ``clear=True`` starts afresh after."""
+        snap = self.timing.snapshot()
+        if clear:
+            self.timing.clear()
+        return snap
+
     # ------------------------------------------------------------------------------------------ task hooks
 
     @abc.abstractmethod

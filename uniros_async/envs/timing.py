@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import collections.abc
 import dataclasses
 
 __all__ = ["Timing"]
@@ -40,8 +41,15 @@ class Timing:
             getattr(self, f).clear()
         self.step_overruns = 0
 
+    def snapshot(self) -> dict[str, list[int] | int]:
+        """Plain copies of every series (lists of ints) and ``step_overruns``: msgpack-able, so a benchmark can
+        fetch it from a worker process with ``env.call("timing_snapshot")``."""
+        out: dict[str, list[int] | int] = {f: list(getattr(self, f)) for f in self._SERIES}  # list(deque) holds the GIL
+        out["step_overruns"] = self.step_overruns
+        return out
+
     @staticmethod
-    def periods_ms(stamps: collections.deque[int]) -> list[float]:
+    def periods_ms(stamps: collections.abc.Iterable[int]) -> list[float]:
         """Differences of consecutive stamps, in ms."""
         s = list(stamps)
         return [(b - a) / 1e6 for a, b in zip(s, s[1:], strict=False)]
