@@ -143,6 +143,23 @@ def test_same_task_on_the_emulated_real_arm_over_tcp() -> None:
         env.close()
 
 
+def test_accelerated_emulated_real_arm_differs_from_the_nominal_sim() -> None:
+    """robot="emulated-real" with clock="sim": the emulation model in sim time, in process (for training)."""
+    finals = {}
+    for robot in ("sim", "emulated-real"):
+        env = gym.make("uniros/Rx200Reach-v0", robot=robot, clock="sim", emulation_seed=3)
+        try:
+            _, info = drive_to_goal(env, seed=5, max_steps=12)
+            assert info["is_success"], (robot, info)
+            finals[robot] = info["distance"]
+        finally:
+            env.close()
+    # the same seed, goal and actions: the perturbed, noisy arm ends elsewhere than the nominal one
+    assert finals["sim"] != finals["emulated-real"], finals
+    with pytest.raises(ConfigError, match="clock='sim' needs robot='sim' or 'emulated-real'"):
+        gym.make("uniros/Rx200Reach-v0", robot="sim-process", clock="sim")
+
+
 def test_a_robot_that_stops_publishing_is_reported() -> None:
     env = gym.make("uniros/Ned2Reach-v0", robot="sim-process", action_cycle_s=0.2, robot_timeout_s=0.5)
     try:

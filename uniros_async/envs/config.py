@@ -22,7 +22,9 @@ class EnvConfig:
             ``"sim-process"`` (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as
             a tcp service in its own process), or ``"tcp://host:port"`` (the domain of an arm served elsewhere,
             e.g. by ``uniros robot serve``).
-        clock: ``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``).
+        clock: ``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``,
+            or ``robot="emulated-real"``, which then runs the same emulation model (perturbed dynamics, sensor
+            noise, command and state latency in sim time) in the env's process instead of behind tcp).
         env_loop_rate_hz: env loop rate; None: the robot's hardware rate.
         action_cycle_s: time between agent steps (an absolute deadline from the previous step).
         turn_based: the baseline: the world is paused while the agent thinks and ``step`` advances the sim in
@@ -60,8 +62,10 @@ class EnvConfig:
             raise ConfigError(f"clock must be one of {CLOCKS}, got {self.clock!r}")
         if self.turn_based and self.clock != "sim":
             object.__setattr__(self, "clock", "sim")
-        if self.clock == "sim" and self.robot != "sim":
-            raise ConfigError(f"clock='sim' needs robot='sim' (the sim in this process), got robot={self.robot!r}")
+        if self.clock == "sim" and self.robot not in ("sim", "emulated-real"):
+            raise ConfigError(
+                f"clock='sim' needs robot='sim' or 'emulated-real' (run in this process), got robot={self.robot!r}"
+            )
         if self.env_loop_rate_hz is not None and not 0 < self.env_loop_rate_hz <= 1000:
             raise ConfigError(f"env_loop_rate_hz must be in (0, 1000], got {self.env_loop_rate_hz}")
         if not 0 < self.action_cycle_s <= 60:

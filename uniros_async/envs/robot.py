@@ -103,11 +103,14 @@ class RobotEnv(BaseEnv):
                 clock: Clock = SimClock(time_scale=None) if cfg.clock == "sim" else wall_clock()
                 self._clock = clock
                 transport = "auto"
-                if cfg.robot == "sim":
+                if cfg.robot == "sim" or (cfg.robot == "emulated-real" and cfg.clock == "sim"):
+                    from uniros_async.sim.emulated import EmulationConfig
                     from uniros_async.sim.node import open_servo_sim
 
+                    # accelerated emulated real arm: the same emulation model, in sim time, in this process
+                    emulation = EmulationConfig(seed=cfg.emulation_seed) if cfg.robot == "emulated-real" else None
                     domain: Any = await stack.enter_async_context(open_domain("memory://"))
-                    await stack.enter_async_context(open_servo_sim(spec, domain=domain, clock=clock))
+                    await stack.enter_async_context(open_servo_sim(spec, domain=domain, clock=clock, emulation=emulation))
                 elif cfg.robot in ("sim-process", "emulated-real"):
                     from uniros_async.sim.emulated import EmulationConfig
                     from uniros_async.sim.serve import open_servo_sim_process
