@@ -23,9 +23,28 @@ import sys
 import time
 import weakref
 
-__all__ = ["Clock", "WallClock", "wall_clock"]
+__all__ = ["Clock", "WallClock", "grid_after", "grid_before", "wall_clock"]
 
 logger = logging.getLogger(__name__)
+
+
+def grid_after(t_ns: int, period_ns: int, offset_ns: int = 0) -> int:
+    """The first point of the grid ``offset_ns + k * period_ns`` (k any integer) at or after ``t_ns``.
+
+    Loops that start on a common grid of the clock keep a common phase across processes and envs: every 10 Hz and
+    25 Hz loop started this way ticks together at multiples of 200 ms, and action cycles that are multiples of both
+    periods end together (the vector env's members return fresh observations at the same time).
+    """
+    if period_ns <= 0:
+        raise ValueError(f"period_ns must be > 0, got {period_ns}")
+    return offset_ns + -((offset_ns - t_ns) // period_ns) * period_ns
+
+
+def grid_before(t_ns: int, period_ns: int, offset_ns: int = 0) -> int:
+    """The last point of the grid ``offset_ns + k * period_ns`` at or before ``t_ns``."""
+    if period_ns <= 0:
+        raise ValueError(f"period_ns must be > 0, got {period_ns}")
+    return offset_ns + ((t_ns - offset_ns) // period_ns) * period_ns
 
 
 class Clock(abc.ABC):

@@ -203,3 +203,41 @@ def test_modelled_agent_latency_in_sim_time(latency: float) -> None:
         assert all(b - a == 800_000_000 for a, b in zip(steps, steps[1:], strict=False))
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("env_id", ["uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"])
+def test_loops_and_deadlines_sit_on_the_clock_grid(env_id: str) -> None:
+    """Env-loop ticks fall TICK_OFFSET after the grid of their period (where the servo publishes), and steps
+    return TICK_ALIGN after a tick on the grid of the action cycle: the same instants for every arm and process."""
+    from uniros_async.envs.robot import TICK_ALIGN_NS, TICK_OFFSET_NS
+
+    env = gym.make(env_id, clock="sim")
+    try:
+        u = env.unwrapped
+        env.reset(seed=0)
+        for _ in range(3):
+            env.step(np.zeros(env.action_space.shape, np.float32))
+        period = round(1e9 / u.env_loop_rate_hz)
+        assert {t % period for t in u.timing.tick_ns} == {TICK_OFFSET_NS}
+        assert {s % 800_000_000 for s in u.timing.step_ns} == {TICK_OFFSET_NS + TICK_ALIGN_NS}
+        # the returns the agent gets were built at the tick just before: TICK_ALIGN old
+        assert set(u.timing.observation_age_ns) == {TICK_ALIGN_NS}
+    finally:
+        env.close()
+
+
+def test_wall_clock_turn_based_is_a_loopless_real_arm_baseline() -> None:
+    """turn_based=True with clock="wall": one command per step, no env loop, returns from the newest state."""
+    env = gym.make("uniros/Rx200Reach-v0", turn_based=True, clock="wall", action_cycle_s=0.4)
+    try:
+        u = env.unwrapped
+        assert u.config.clock == "wall"
+        _, info = drive_to_goal(env, seed=5, max_steps=12)
+        assert info["is_success"], info
+        t = u.timing_snapshot()
+        assert t["tick_ns"] == [], "no env loop"
+        assert len(t["command_ns"]) == len(t["step_ns"]), "one command per step, none repeated"
+        # the state used is whatever the 10 Hz servo published last: between 0 and one period (+ slack) old
+        assert all(0 <= a < 100_000_000 + 20_000_000 for a in t["observation_age_ns"])
+    finally:
+        env.close()

@@ -27,8 +27,11 @@ class EnvConfig:
             noise, command and state latency in sim time) in the env's process instead of behind tcp).
         env_loop_rate_hz: env loop rate; None: the robot's hardware rate.
         action_cycle_s: time between agent steps (an absolute deadline from the previous step).
-        turn_based: the baseline: the world is paused while the agent thinks and ``step`` advances the sim in
-            lockstep for one action cycle, returning a fresh observation (implies ``clock="sim"``).
+        turn_based: the baseline, without an env loop's real-time guarantees. With the sim clock (the default
+            when ``turn_based`` is set) the world is paused while the agent thinks and ``step`` advances the sim in
+            lockstep for one action cycle, returning a fresh observation. With ``clock="wall"`` given explicitly it
+            is the turn-based env of a real arm (openai_ros style): no env loop; ``step`` sends the command once,
+            waits one action cycle and builds the returns from the newest joint state received, however old.
         agent_latency_s: with ``clock="sim"``: sim time between the returns the agent was given and its action
             reaching the loop. A number (fixed), ``"measured"`` (the agent's measured wall time), or 0.
         agent_latency_jitter_s: standard deviation of a Gaussian added to a fixed latency (clipped at 0).
@@ -42,7 +45,7 @@ class EnvConfig:
     """
 
     robot: str = "sim"
-    clock: str = "wall"
+    clock: str | None = None  # None: "sim" when turn_based, else "wall"
     env_loop_rate_hz: float | None = None
     action_cycle_s: float = 0.8
     turn_based: bool = False
@@ -58,10 +61,10 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if self.robot not in ROBOT_PLACEMENTS and not self.robot.startswith("tcp://"):
             raise ConfigError(f"robot must be one of {ROBOT_PLACEMENTS} or a tcp://host:port URI, got {self.robot!r}")
+        if self.clock is None:
+            object.__setattr__(self, "clock", "sim" if self.turn_based else "wall")
         if self.clock not in CLOCKS:
             raise ConfigError(f"clock must be one of {CLOCKS}, got {self.clock!r}")
-        if self.turn_based and self.clock != "sim":
-            object.__setattr__(self, "clock", "sim")
         if self.clock == "sim" and self.robot not in ("sim", "emulated-real"):
             raise ConfigError(
                 f"clock='sim' needs robot='sim' or 'emulated-real' (run in this process), got robot={self.robot!r}"

@@ -26,7 +26,7 @@ import numpy as np
 
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Header, JointCommand, JointState, Trigger
-from uniros_async.clock import Clock, wall_clock
+from uniros_async.clock import Clock, grid_after, wall_clock
 from uniros_async.envs.base import BaseEnv
 from uniros_async.envs.config import EnvConfig
 from uniros_async.envs.safety import SafetyChecker, SafetyConfig
@@ -43,6 +43,11 @@ logger = logging.getLogger(__name__)
 Returns = tuple[Any, float, bool, dict[str, Any]]
 TICK_ALIGN_NS = 1_000_000
 """Step deadlines fall this long after an env-loop tick: time for the tick's own work (~0.2 ms here)."""
+TICK_OFFSET_NS = 2_000_000
+"""Env-loop ticks fall this long after the points of the clock's grid of their period (``clock.grid_after``), where
+the servo sims publish their joint states: the tick sees the state of the same instant, ~2 ms old, not one a
+period old. Every env starts on the same grid, so arms in one vector env (and action cycles that are multiples of
+their periods) keep one phase: the agent gets every member's returns equally fresh."""
 
 
 class RobotEnv(BaseEnv):
@@ -68,6 +73,14 @@ class RobotEnv(BaseEnv):
         self._cmd_seq = 0
         self.unsafe_actions = 0
         self.robot_process: Any = None  # the ServoSimProcess of robot="sim-process" / "emulated-real"
+
+    @property
+    def _period_ns(self) -> int:
+        return round(1e9 / self.env_loop_rate_hz)
+
+    @property
+    def _wall_turn_based(self) -> bool:
+        return self.config.turn_based and self.config.clock == "wall"
 
     def timing_snapshot(self, clear: bool = False) -> dict[str, list[int] | int]:
         """The env's timing records as plain lists (see ``Timing.snapshot``); ``clear=True`` starts afresh after."""
@@ -139,7 +152,9 @@ class RobotEnv(BaseEnv):
                 await self._wait_for_state(after_ns=None)
                 if isinstance(clock, SimClock):
                     clock.pause()
-                node.create_timer(1.0 / self.env_loop_rate_hz, self._tick)
+                if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
+                    start = grid_after(clock.now_ns(), self._period_ns, TICK_OFFSET_NS)
+                    node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
                 started(None)
                 await asyncio.Event().wait()  # until close() cancels main
         except BaseException as exc:
@@ -219,17 +234,25 @@ class RobotEnv(BaseEnv):
         self._set_action(action)
         self._on_action(action)
         now = clock.now_ns()
+        if self._wall_turn_based and self._target_unsafe is None:  # one command, no action repeat
+            assert self._target is not None
+            self._send(self._target, now)
+            self.timing.action_latency_ns.append(clock.now_ns() - now)
+            self._action_t_ns = None
         cycle_ns = round(cfg.action_cycle_s * 1e9)
         deadline = self._deadline_ns + cycle_ns
         if deadline <= now:  # the agent took longer than a cycle: start a new one rather than return at once
             self.timing.step_overruns += 1
-            deadline = now + cycle_ns
+            deadline = now + cycle_ns if cfg.turn_based else self._next_deadline(now)
         await clock.sleep_until(deadline)
         self._deadline_ns = deadline
-        if cfg.turn_based:  # the baseline: a fresh observation at the end of the lockstep cycle
+        if cfg.turn_based:  # the baseline: returns built now, from the newest joint state received
             js = self._js.latest()
             assert js is not None
-            self._cache = (clock.now_ns(), self._compute_returns(js, js.position[self._arm_idx]))
+            stamp = clock.now_ns()
+            if self._wall_turn_based:  # as old as that state is: no loop keeps it fresh
+                stamp = js.header.stamp_ns if cfg.robot == "sim" else self._js.latest_recv_ns
+            self._cache = (stamp, self._compute_returns(js, js.position[self._arm_idx]))
         age_s = self._state_age_s()
         if age_s > cfg.robot_timeout_s:
             await self._ahold()
@@ -279,6 +302,8 @@ class RobotEnv(BaseEnv):
             js = await self._wait_for_state(after_ns=t0)
         else:
             self._target = self.home_q.copy()  # the loop re-sends it every tick until settled
+            if self._wall_turn_based:  # no loop: one command home
+                self._send(self._target, clock.now_ns())
             js = await self._settle(cfg.reset_timeout_s)
         self._target = self.home_q.copy()  # hold home until the first action
         q_arm = js.position[self._arm_idx]
@@ -293,14 +318,21 @@ class RobotEnv(BaseEnv):
         return obs, dict(info)
 
     def _aligned_start(self, now: int) -> int:
-        """The first action cycle starts just after an env-loop tick (``TICK_ALIGN_NS`` later), so that when the
-        action cycle is a multiple of the loop period every step returns returns at most that old, instead of
-        up to a whole period (the phase of the deadlines is otherwise arbitrary)."""
-        if self.config.turn_based or not self.timing.tick_ns:
+        """Where the first action cycle starts: ``_next_deadline(now)`` minus one cycle (turn-based: ``now``)."""
+        if self.config.turn_based:
             return now
-        period = round(1e9 / self.env_loop_rate_hz)
-        last_tick = self.timing.tick_ns[-1]
-        return last_tick + TICK_ALIGN_NS - period * (1 if last_tick + TICK_ALIGN_NS > now else 0)
+        return self._next_deadline(now) - round(self.config.action_cycle_s * 1e9)
+
+    def _next_deadline(self, now: int) -> int:
+        """The first point, at least half an action cycle after ``now``, of the grid of action cycles that
+        starts ``TICK_ALIGN_NS`` after a scheduled env-loop tick (``TICK_OFFSET_NS`` after the clock's grid).
+
+        When the action cycle is a multiple of the loop period, every step returns just after a tick, so its
+        returns are ~1 ms old instead of up to a period; and every env on the same clock (the members of a vector
+        env, at 10 or 25 Hz) returns at the same instant, so the agent gets all of them that fresh.
+        """
+        cycle = round(self.config.action_cycle_s * 1e9)
+        return grid_after(now + cycle // 2, cycle, TICK_OFFSET_NS + TICK_ALIGN_NS)
 
     async def _settle(self, timeout_s: float) -> JointState:
         tol = self.config.settle_tol_rad

@@ -45,7 +45,7 @@ from uniros_async.bus.messages import (
 )
 from uniros_async.bus.qos import latest
 from uniros_async.bus.tasks import unwrap_task_group
-from uniros_async.clock import Clock
+from uniros_async.clock import Clock, grid_after
 from uniros_async.errors import ConfigError
 from uniros_async.robots import RobotSpec, get_robot_spec
 from uniros_async.sim.emulated import DelayLine, EmulationConfig, add_sensor_noise, perturb_model
@@ -139,7 +139,9 @@ class ServoSimNode:
             self._clock_listener = lambda t: clock_pub.publish(ClockTick(sim_time_ns=t))
             clock.add_listener(self._clock_listener)
             self._tasks.append(tg.create_task(clock.run(), name="SimClock driver"))
-        self.timer = node.create_timer(self.sim.period_ns / 1e9, self._on_tick, start_ns=node.now_ns())
+        # on the clock's common grid (multiples of the period), so that env loops can tick just after it
+        start = grid_after(node.now_ns(), self.sim.period_ns)
+        self.timer = node.create_timer(self.sim.period_ns / 1e9, self._on_tick, start_ns=start)
 
     # ------------------------------------------------------------------------------------------- the loop
 
