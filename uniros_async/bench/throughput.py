@@ -1,16 +1,38 @@
 """``uniros bench throughput``: vectorised stepping over worker processes, ours against gymnasium and SB3.
 
 In one run, for N = 1, 2, 4, 8 copies of the rx200 reach env in accelerated turn-based mode (``turn_based=True``:
-the sim advances in lockstep inside ``step``, as fast as the CPU allows), each implementation steps random
-actions: ``uniros_async.make_vec`` (workers over shared memory), gymnasium's ``AsyncVectorEnv`` and SB3's
-``SubprocVecEnv`` (both over pickled pipes, spawn). Reported: aggregate env steps per second, and the
-per-step overhead = time per vector step minus the bare env's step time measured in this process in the
-same run (meaningful at N = 1; above that the workers share 2 cores).
+the sim advances in lockstep inside ``step``, as fast as the CPU allows), each implementation steps the same
+sequence of random actions from the same reset seed: ``uniros_async.make_vec`` (workers over shared memory),
+gymnasium's ``AsyncVectorEnv`` and SB3's ``SubprocVecEnv`` (both over pickled pipes, spawn).
+
+The reference, "the bare env step", is the same env made with ``gymnasium.make`` in this process and stepped as a
+user would (``env.step``; its world runs on the env's own loop thread), on the same trajectory: the turn-based sim
+is deterministic, so step k costs the bare env and every sub-env the same physics. Each row first steps the two
+alternately (bare step k, then the vector env's step k: same state, same action, the same moment's machine load;
+the bare env's loop thread is let finish its step's trailing work, untimed, before the vector step is timed, and
+the workers theirs, ``TRAIL_S``, before the next bare step), then the vector env alone, back to back. Reported per row:
+
+- ``steps_per_s``: N / median time per vector step, back to back (aggregate env steps per second);
+- ``overhead_us``: median over k of (vector step k - bare step k) in the alternating phase, the per-step overhead
+  (meaningful at N = 1; above that the workers share the machine's cores);
+- ``bare_ms`` / ``step_ms``: the medians of both in the alternating phase;
+- at N = 1 also ``floor_ms``, the env's own step time with nothing around it (``_Floor``: the env attached to a
+  loop in this thread, its step coroutine timed from inside; the third member of the alternation), and
+  ``overhead_over_floor_us``: median over k of (vector step k - floor step k). The bare gymnasium step pays the
+  hand-over to its loop thread; a worker of ``make_vec`` runs the env attached to its own loop and does not, so
+  the first overhead can be negative; the second is what the runtime costs on top of the env's work.
+
+A second table does the same for a trivial env (gymnasium's ``CartPole-v1``, ~10 us a step), N = 1: what each
+runtime costs per step when the env costs nothing. The physics bound on aggregate steps/s is printed beside:
+min(N, cores) / bare step time.
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
+import functools
+import os
 import time
 from collections.abc import Callable
 from typing import Any
@@ -25,6 +47,10 @@ __all__ = ["IMPLS", "ThroughputBenchConfig", "main"]
 IMPLS = ("uniros", "gymnasium-async", "sb3-subproc")
 ENV_ID = "uniros/Rx200Reach-v0"
 ENV_KW: dict[str, Any] = {"turn_based": True, "max_episode_steps": 10**9}
+TRIVIAL_ID = "CartPole-v1"
+TRAIL_S = 0.005
+"""Untimed pause after each vector step of the alternating phase: a worker replies before the servo tick that its
+step's last sim event also woke (~1 ms of physics), which would otherwise run during the bare step timed next."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -39,88 +65,206 @@ class ThroughputBenchConfig:
             raise ConfigError(f"n_envs must be >= 1 and steps >= 5, got {self.n_envs}, {self.steps}")
 
 
-def _make_env() -> Any:
+def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
     import gymnasium as gym
 
-    import uniros_async  # noqa: F401
+    import uniros_async  # noqa: F401  (registers the uniros ids, also in a spawned process)
 
-    return gym.make(ENV_ID, **ENV_KW)
-
-
-def _bare_step_s(steps: int) -> float:
-    env = _make_env()
-    try:
-        env.reset(seed=0)
-        times = []
-        for _ in range(steps):
-            a = env.action_space.sample()
-            t0 = time.perf_counter()
-            env.step(a)
-            times.append(time.perf_counter() - t0)
-    finally:
-        env.close()
-    return float(np.median(times))
+    return gym.make(env_id, **kwargs)
 
 
-def _vector(impl: str, n: int) -> tuple[Any, Callable[[], Any], Callable[[Any], Any]]:
-    """(vec env, reset(), step(actions)) for one implementation."""
+def _vector(
+    impl: str, n: int, env_id: str, kwargs: dict[str, Any]
+) -> tuple[Any, Callable[[], Any], Callable[[Any], Any]]:
+    """(vec env, reset(): seeds 0..n-1, step(actions)) for one implementation."""
     if impl == "uniros":
-        from uniros_async import make_vec
+        from uniros_async.runtime import make_vec
 
-        venv = make_vec([ENV_ID] * n, **ENV_KW)
+        venv = make_vec([env_id] * n, pad=env_id == ENV_ID, **kwargs)
         return venv, lambda: venv.reset(seed=0), venv.step
+    factory = functools.partial(_make_env, env_id, kwargs)
     if impl == "gymnasium-async":
         from gymnasium.vector import AsyncVectorEnv
 
-        venv = AsyncVectorEnv([_make_env] * n, context="spawn")
-        return venv, lambda: venv.reset(seed=0), venv.step
+        avenv = AsyncVectorEnv([factory] * n, context="spawn")
+        return avenv, lambda: avenv.reset(seed=0), avenv.step
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    sb = SubprocVecEnv([_make_env] * n, start_method="spawn")
-    return sb, sb.reset, lambda a: (sb.step_async(a), sb.step_wait())
+    sb = SubprocVecEnv([factory] * n, start_method="spawn")
+
+    def reset() -> Any:
+        sb.seed(0)
+        return sb.reset()
+
+    def step(actions: Any) -> Any:
+        sb.step_async(actions)
+        return sb.step_wait()
+
+    return sb, reset, step
 
 
-def _run(impl: str, n: int, steps: int, bare_s: float) -> dict[str, Any]:
-    venv, reset, step = _vector(impl, n)
+def _actions(space: Any, steps: int) -> list[Any]:
+    """One action per step for a single env (seeded: every run steps the same trajectory)."""
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        return [int(rng.integers(space.n)) for _ in range(steps)]
+    return [rng.uniform(space.low, space.high).astype(np.float32) for _ in range(steps)]
+
+
+class _Floor:
+    """The env's own step time, nothing else: the same env attached to an event loop that this thread runs, each
+    step's coroutine (``astep_through``: the same wrappers) timed from inside the loop, so neither a thread
+    hand-over nor the loop's start and stop nor the servo tick that trails the step is counted."""
+
+    def __init__(self, env_id: str, kwargs: dict[str, Any]) -> None:
+        import gymnasium as gym
+
+        from uniros_async.envs.runtime import deferred_start
+
+        self.loop = asyncio.new_event_loop()
+        with deferred_start():
+            self.env: Any = gym.make(env_id, **kwargs)
+        base: Any = self.env.unwrapped
+        self.loop.run_until_complete(base.astart())
+
+    def reset(self, seed: int) -> None:
+        from uniros_async.runtime.worker import areset_through
+
+        self.loop.run_until_complete(areset_through(self.env, seed, None))
+
+    def step_s(self, action: Any) -> float:
+        from uniros_async.runtime.worker import astep_through
+
+        async def timed() -> float:
+            t0 = time.perf_counter()
+            await astep_through(self.env, action)
+            return time.perf_counter() - t0
+
+        return self.loop.run_until_complete(timed())
+
+    def close(self) -> None:
+        base: Any = self.env.unwrapped
+        self.loop.run_until_complete(base.aclose())
+        self.loop.close()
+
+
+def _quiesce(env: Any) -> None:
+    """Let the bare env's loop thread finish what its last step's sim event woke (the next tick's physics), so that
+    it does not run, holding the GIL, during the vector env's step that is timed next."""
+    rt = getattr(env.unwrapped, "_rt", None)
+    if rt is not None:
+        rt.call(asyncio.sleep(0), 5.0)
+
+
+def _run(
+    impl: str, n: int, bare: Any, env_id: str, kwargs: dict[str, Any], steps: int, floor: _Floor | None = None
+) -> dict[str, Any]:
+    actions = _actions(bare.action_space, 2 * steps + 1)
+    batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
+    venv, reset, step = _vector(impl, n, env_id, kwargs)
+    vec_t: list[float] = []
+    bare_t: list[float] = []
+    tight_t: list[float] = []
+    floor_t: list[float] = []
     try:
         reset()
-        space = venv.action_space
-        rng = np.random.default_rng(0)
-        shape = (n, *space.shape[-1:])
-        lo, hi = np.broadcast_to(space.low, shape), np.broadcast_to(space.high, shape)
-        step(rng.uniform(lo, hi).astype(np.float32))  # warm-up
-        per_step = []
-        for _ in range(steps):
-            a = rng.uniform(lo, hi).astype(np.float32)
+        bare.reset(seed=0)
+        if floor is not None:
+            floor.reset(0)
+        # paired: bare step k, then the vector env's step k (same state, same action, same moment's load)
+        for k in range(steps + 1):
             t0 = time.perf_counter()
-            step(a)
-            per_step.append(time.perf_counter() - t0)
+            _, _, terminated, truncated, _ = bare.step(actions[k])
+            t1 = time.perf_counter()
+            _quiesce(bare)
+            if floor is not None:
+                f = floor.step_s(actions[k])
+                if k > 0:
+                    floor_t.append(f)
+            t2 = time.perf_counter()
+            step(batch[k])
+            t3 = time.perf_counter()
+            time.sleep(TRAIL_S)  # the workers' trailing work (the next servo tick) must not overlap the bare step
+            if k > 0:  # step 0 is the warm-up
+                bare_t.append(t1 - t0)
+                vec_t.append(t3 - t2)
+            if terminated or truncated:  # the trivial env's episodes end; the vector envs reset themselves
+                bare.reset()
+        # throughput: the vector env alone, back to back
+        for k in range(steps + 1, 2 * steps + 1):
+            t0 = time.perf_counter()
+            step(batch[k])
+            tight_t.append(time.perf_counter() - t0)
     finally:
         venv.close()
-    med = float(np.median(per_step))
-    return {
+    med = float(np.median(tight_t))
+    record = {
+        "env": env_id,
         "impl": impl,
         "n_envs": n,
         "steps_per_s": round(n / med, 1),
-        "overhead_us": round((med - bare_s) * 1e6, 1),
+        "overhead_us": round(float(np.median(np.subtract(vec_t, bare_t))) * 1e6, 1),
+        "bare_ms": round(float(np.median(bare_t)) * 1e3, 3),
+        "step_ms": round(float(np.median(vec_t)) * 1e3, 3),
     }
+    if floor_t:
+        record["floor_ms"] = round(float(np.median(floor_t)) * 1e3, 3)
+        record["overhead_over_floor_us"] = round(float(np.median(np.subtract(vec_t, floor_t))) * 1e6, 1)
+    return record
 
 
 def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     ns = tuple(n for n in config.n_envs if n <= 4) if config.quick else config.n_envs
-    steps = min(config.steps, 30) if config.quick else config.steps
-    bare_s = _bare_step_s(steps)
+    steps = min(config.steps, 40) if config.quick else config.steps
+    cores = os.cpu_count() or 1
     records = []
-    for n in ns:
+    bare = _make_env(ENV_ID, ENV_KW)
+    try:
+        floor: _Floor | None = _Floor(ENV_ID, ENV_KW)
+    except ImportError:  # a tree without the attached mode (to compare an older runtime with the same benchmark)
+        floor = None
+    try:
+        for n in ns:
+            for impl in IMPLS:
+                records.append(_run(impl, n, bare, ENV_ID, ENV_KW, steps, floor if n == 1 else None))
+    finally:
+        if floor is not None:
+            floor.close()
+        bare.close()
+    trivial = _make_env(TRIVIAL_ID, {})
+    try:
         for impl in IMPLS:
-            records.append(_run(impl, n, steps, bare_s))
-    head = f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17}"
-    lines = [f"bare {ENV_ID} step (turn-based, accelerated): {bare_s * 1e3:.2f} ms median", head, "-" * len(head)]
+            records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, max(steps, 200)))
+    finally:
+        trivial.close()
+    bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
+    head = f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'step ms':>8} {'bare ms':>8}"
+    lines = [
+        f"{ENV_ID} (turn-based, accelerated), {steps} steps per row, bare step {bare_ms:.2f} ms median, {cores} cores",
+        head,
+        "-" * len(head),
+    ]
     for r in records:
-        lines.append(f"{r['n_envs']:>3} {r['impl']:<16} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}")
+        if r["env"] == TRIVIAL_ID and r["impl"] == IMPLS[0]:
+            lines += ["", f"{TRIVIAL_ID} (trivial env: the runtime's own cost per step)", head, "-" * len(head)]
+        lines.append(
+            f"{r['n_envs']:>3} {r['impl']:<16} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}"
+            f" {r['step_ms']:>8.3f} {r['bare_ms']:>8.3f}"
+        )
+    lines.append("")
+    for r in records:
+        if "floor_ms" in r:
+            lines.append(
+                f"N=1 {r['impl']}: the env's own step (floor) {r['floor_ms']:.3f} ms; overhead over it"
+                f" {r['overhead_over_floor_us']:.1f} us (over the bare gymnasium step: {r['overhead_us']:.1f} us)"
+            )
     for n in ns:
-        rows = {r["impl"]: r for r in records if r["n_envs"] == n}
+        rows = {r["impl"]: r for r in records if r["n_envs"] == n and r["env"] == ENV_ID}
         ratio = rows["uniros"]["steps_per_s"] / rows["gymnasium-async"]["steps_per_s"]
-        lines.append(f"N={n}: uniros / gymnasium-async steps/s = {ratio:.2f}x")
+        bound = min(n, cores) / (bare_ms / 1e3)
+        lines.append(
+            f"N={n}: uniros / gymnasium-async steps/s = {ratio:.2f}x; physics bound min(N, {cores} cores) / bare step"
+            f" = {bound:.0f} steps/s"
+        )
     report("\n".join(lines), records, config.json_path, log)
     return records

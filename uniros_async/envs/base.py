@@ -4,6 +4,11 @@ BaseEnv owns the protocol: it validates actions in the caller's thread (a bad ac
 arm is told to hold, a gymnasium-style error is raised, and the env stays usable), refuses ``step`` before
 ``reset`` and after ``close``, and hands ``_astep`` / ``_areset`` to the loop thread under timeouts. What the
 loop does is RobotEnv's business; what the numbers mean is TaskEnv's.
+
+Attached mode (envs/runtime.py): an env made inside ``deferred_start()`` starts no thread; its owner runs it on
+its own event loop with ``await astart()``, ``await astep(a)``, ``await areset(seed=..., options=...)`` and
+``await aclose()``, with the same checks, errors and timeouts as ``step`` / ``reset`` / ``close``. The worker
+processes of ``make_vec`` do this. The synchronous ``step`` / ``reset`` of an attached env raise RuntimeError.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import numpy as np
 from gymnasium import error as gym_error
 
 from uniros_async.envs.config import EnvConfig
-from uniros_async.envs.runtime import LoopThread
+from uniros_async.envs.runtime import LoopTask, LoopThread, start_is_deferred
 
 __all__ = ["BaseEnv", "GoalEnv"]
 
@@ -31,17 +36,55 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         super().__init__()
         self.config = config
         self._rt: LoopThread | None = None
+        self._task_rt: LoopTask | None = None  # the attached mode
+        self._deferred: tuple[Callable[..., Any], str, float] | None = None
         self._closed = False
         self._needs_reset = True
 
     # ---- lifecycle
 
     def _start_runtime(self, main: Callable[..., Any], name: str, timeout_s: float) -> None:
+        if start_is_deferred():
+            self._deferred = (main, name, timeout_s)  # started by astart() on the owner's loop
+            return
+        self._rt = LoopThread(main, name=name)
+        self._rt.start(timeout_s)
+
+    @property
+    def attached(self) -> bool:
+        """True when the env runs on its owner's event loop (made inside ``deferred_start()``)."""
+        return self._deferred is not None
+
+    async def astart(self) -> None:
+        """Start the env's world (bus, sim, env loop) on the running event loop (attached mode only).
+
+        Raises:
+            RuntimeError: the env was not made inside ``deferred_start()``, or was started already.
+            TimeoutError, Exception: as the synchronous start (the world failed to come up; it is closed again).
+        """
+        if self._deferred is None or self._task_rt is not None:
+            raise RuntimeError(f"{type(self).__name__}: astart() needs an env made inside deferred_start(), once")
+        main, name, timeout_s = self._deferred
+        self._task_rt = LoopTask(main, name=name)
+        await self._task_rt.start(timeout_s)
+
+    def start_thread(self) -> None:
+        """Start an env made inside ``deferred_start()`` on a loop thread after all (the synchronous API)."""
+        if self._deferred is None or self._task_rt is not None or self._rt is not None:
+            raise RuntimeError(f"{type(self).__name__}: start_thread() needs an env made inside deferred_start(), once")
+        main, name, timeout_s = self._deferred
+        self._deferred = None
         self._rt = LoopThread(main, name=name)
         self._rt.start(timeout_s)
 
     def _call(self, coro: Any, timeout_s: float) -> Any:
-        assert self._rt is not None
+        if self._rt is None:
+            coro.close()
+            if self._deferred is not None or self._task_rt is not None:
+                raise RuntimeError(
+                    f"{type(self).__name__} runs attached to an event loop: use await astep() / areset() / aclose()"
+                )
+            raise RuntimeError(f"{type(self).__name__}: its world was never started")
         failure = self._rt_failure()
         if failure is not None:
             coro.close()
@@ -54,8 +97,25 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
                 raise failure from None
             raise
 
+    async def _acall(self, coro: Any, timeout_s: float) -> Any:
+        rt = self._task_rt
+        if rt is None:
+            coro.close()
+            raise RuntimeError(f"{type(self).__name__}: call await astart() first")
+        failure = self._rt_failure()
+        if failure is not None:
+            coro.close()
+            raise failure
+        try:
+            return await rt.call(coro, timeout_s)
+        except RuntimeError:
+            failure = self._rt_failure()
+            if failure is not None:
+                raise failure from None
+            raise
+
     def _rt_failure(self) -> BaseException | None:
-        rt = self._rt
+        rt = self._rt or self._task_rt
         if rt is None or rt.alive:
             return None
         return rt.failure() or RuntimeError("the env loop stopped")
@@ -85,6 +145,18 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
             raise
         return self._call(self._astep(a), self.config.action_cycle_s + self.config.step_timeout_s)  # type: ignore[no-any-return]
 
+    async def astep(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """``step`` of an attached env, awaited on its owner's loop (same checks, errors and timeout)."""
+        self._check_open()
+        if self._needs_reset:
+            raise gym_error.ResetNeeded("call reset() before step()")
+        try:
+            a = self._validate_action(action)
+        except gym_error.InvalidAction:
+            await self._acall(self._ahold(), self.config.step_timeout_s)
+            raise
+        return await self._acall(self._astep(a), self.config.action_cycle_s + self.config.step_timeout_s)  # type: ignore[no-any-return]
+
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         """Stop the arm, move it home, sample a goal, wait until settled; return the first observation."""
         super().reset(seed=seed)
@@ -93,11 +165,34 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         self._needs_reset = False
         return obs, info
 
+    async def areset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """``reset`` of an attached env, awaited on its owner's loop (same seeding, checks and timeout)."""
+        gym.Env.reset(self, seed=seed)
+        self._check_open()
+        timeout_s = self.config.reset_timeout_s + self.config.step_timeout_s
+        obs, info = await self._acall(self._areset(options or {}), timeout_s)
+        self._needs_reset = False
+        return obs, info
+
     def close(self) -> None:
         """Stop the env loop and everything it started (sim, processes, connections); idempotent."""
         if self._closed:
             return
         self._closed = True
+        if self._rt is not None:
+            self._rt.close(15.0)
+        if self._task_rt is not None:
+            self._task_rt.close()  # cancels the world's task; aclose() also waits for it
+
+    async def aclose(self) -> None:
+        """``close`` of an attached env: stop its world and wait (bounded) until everything it opened is closed."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._task_rt is not None:
+            await self._task_rt.aclose(15.0)
         if self._rt is not None:
             self._rt.close(15.0)
 

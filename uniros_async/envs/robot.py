@@ -50,6 +50,18 @@ period old. Every env starts on the same grid, so arms in one vector env (and ac
 their periods) keep one phase: the agent gets every member's returns equally fresh."""
 
 
+async def _settle() -> None:
+    """Let the callbacks that are already runnable on this loop run first (one yield: this task goes to the back of
+    the ready queue).
+
+    A step's coroutine returns at its deadline before the other sleepers the same sim event woke (the servo's tick,
+    the env loop's tick: their wake-ups are queued, each runs its whole callback when woken); a caller on the same
+    loop (a worker) can start the next step at once, and that step must see the world after them, as it does when
+    the step comes through a loop thread. Deterministic trajectories in sim time depend on it. (Not the SimClock's
+    own settle, which yields until the queue is empty: two such loops would keep each other busy.)"""
+    await asyncio.sleep(0)
+
+
 class RobotEnv(BaseEnv):
     """A BaseEnv with one robot arm. Subclasses (TaskEnv) supply the task hooks and call ``_start()`` last."""
 
@@ -227,6 +239,7 @@ class RobotEnv(BaseEnv):
     async def _astep(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         clock, cfg = self._clock, self.config
         if isinstance(clock, SimClock):
+            await _settle()  # what the last step's sim event woke (the servo tick, the env tick) runs first
             clock.resume()
             latency = self._agent_latency_s()
             if latency > 0:
@@ -292,6 +305,7 @@ class RobotEnv(BaseEnv):
     async def _areset(self, options: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
         clock, cfg = self._clock, self.config
         if isinstance(clock, SimClock):
+            await _settle()
             clock.resume()
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
         t0 = clock.now_ns()

@@ -1,9 +1,15 @@
 """The supervisor: starts env workers, talks to them over shm, turns their failures into WorkerError.
 
-The agent side is synchronous (gymnasium), the transports are asyncio: the supervisor runs a private event loop
-on a daemon thread (``envs.runtime.LoopThread``) and hands it coroutines under timeouts. Every wait on a worker
-has a deadline; a worker that does not answer in time, whose connection breaks or whose process died is marked
-broken and every later request to it raises WorkerError naming its index (issue 5).
+The agent side is synchronous (gymnasium), the transports are asyncio: the supervisor has a private event loop
+that the calling thread runs itself, only for the duration of each call (``loop.run_until_complete``): nothing on
+the agent side needs to run between calls (replies wait in the shm rings, a dead worker's hang-up in its socket),
+and a call then costs no hand-over to another thread (~16 us of loop start/stop instead of ~300 us of thread
+wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_all`` sends requests
+and returns at once; the replies are collected by ``_Pending.result``. Every wait on a worker has a deadline; a
+worker that does not answer in time, whose connection breaks or whose process died is marked broken and every
+later request to it raises WorkerError naming its index (issue 5). A call interrupted by Ctrl-C while the loop
+waits is finished (its replies consumed) before the next call; one interrupted inside a request's own code marks
+that worker broken, since its next reply could no longer be matched to a request.
 
 Start-up: every process is started first (spawn, daemon), then each worker's listen URI (``shm://`` by default,
 ``tcp://127.0.0.1:0`` with ``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the
@@ -23,15 +29,15 @@ import importlib
 import logging
 import multiprocessing
 import os
+import threading
 import time
-from collections.abc import Callable, Coroutine, Sequence
-from typing import Any, TypeVar
+from collections.abc import Coroutine, Sequence
+from typing import Any, Generic, TypeVar
 
 import gymnasium as gym
 import numpy as np
 from gymnasium.envs.registration import registry
 
-from uniros_async.envs.runtime import LoopThread
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.runtime.worker import WorkerSpec, pack, space_from_plain, unpack, worker_entry
 
@@ -83,6 +89,16 @@ class WorkerHandle:
     transport: Any = None
     broken: str | None = None
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
+    in_flight: bool = False  # a request was sent and its reply not yet taken
+
+    def check_idle(self) -> None:
+        """Raise AlreadyPendingCallError if a reply is still outstanding (one request at a time per connection:
+        a second one would take the first one's reply)."""
+        if self.in_flight and self.broken is None:
+            raise gym.error.AlreadyPendingCallError(
+                f"worker {self.index} still owes the reply to an earlier request (step_async without step_wait?)",
+                "call",
+            )
 
     @property
     def index(self) -> int:
@@ -95,20 +111,56 @@ class WorkerHandle:
             WorkerError: the worker raised (its traceback attached; the worker stays usable), or it did not answer
                 within ``timeout_s``, its connection broke or its process died (the worker is then broken).
         """
+        await self.send_request(message, timeout_s)
+        return await self.receive_reply(message.get("op"), timeout_s)
+
+    async def send_request(self, message: dict[str, Any], timeout_s: float | None) -> None:
+        """The first half of ``request``: send ``message`` (``receive_reply`` must follow). Raises as ``request``;
+        ``timeout_s=None``: no deadline of its own (the caller's bounds the wait)."""
         if self.broken is not None:
             raise WorkerError(self.index, self.broken)
+        self.check_idle()
         op = message.get("op")
+        frame = pack(message)
         try:
-            async with asyncio.timeout(timeout_s):
-                await self.transport.send(pack(message))
+            if timeout_s is None:
+                await self.transport.send(frame)
+            else:
+                async with asyncio.timeout(timeout_s):
+                    await self.transport.send(frame)
+        except TimeoutError:
+            self.broken = f"could not send {op!r} within {timeout_s} s ({self.spec.env_id})"
+            raise WorkerError(self.index, self.broken) from None
+        except TransportError as exc:
+            self.broken = await self._death_reason()
+            raise WorkerError(self.index, self.broken) from exc
+        except BaseException:  # cancelled, or Ctrl-C inside this frame: the connection is out of step
+            self.broken = f"a {op!r} request was interrupted while being sent ({self.spec.env_id})"
+            raise
+        self.in_flight = True
+
+    async def receive_reply(self, op: Any, timeout_s: float | None) -> Any:
+        """The second half of ``request``: wait for the reply to the request of ``op`` sent last, at most
+        ``timeout_s`` (None: no deadline of its own; the caller's bounds the wait)."""
+        if self.broken is not None:
+            raise WorkerError(self.index, self.broken)
+        try:
+            if timeout_s is None:
                 frame = await self.transport.receive()
-                reply = unpack(frame)
+            else:
+                async with asyncio.timeout(timeout_s):
+                    frame = await self.transport.receive()
+            self.in_flight = False
+            reply = unpack(frame)
         except TimeoutError:
             self.broken = f"no reply to {op!r} within {timeout_s} s ({self.spec.env_id})"
             raise WorkerError(self.index, self.broken) from None
         except TransportError as exc:
             self.broken = await self._death_reason()
             raise WorkerError(self.index, self.broken) from exc
+        except BaseException:  # cancelled, Ctrl-C inside this frame, a malformed reply: replies out of step
+            self.broken = f"waiting for the reply to {op!r} was interrupted ({self.spec.env_id})"
+            raise
         if not reply.get("ok"):
             raise WorkerError(
                 self.index, f"{self.spec.env_id}: {reply.get('error')}", remote_traceback=reply.get("traceback", "")
@@ -157,8 +209,9 @@ class Supervisor:
         self.listen_uri = _LISTEN_URIS[transport]
         self.workers: list[WorkerHandle] = []
         self._closed = False
-        self._rt = LoopThread(_idle_main, name="uniros-supervisor")
-        self._rt.start(10.0)
+        self._loop = asyncio.new_event_loop()
+        self._lock = threading.Lock()
+        self._orphans: list[asyncio.Task[Any]] = []  # calls interrupted inside the loop (see _drive)
         try:
             self._start(specs, start_timeout_s)
         except BaseException:
@@ -259,30 +312,163 @@ class Supervisor:
     # ---- requests
 
     def call(self, coro: Coroutine[Any, Any, T], timeout_s: float | None = None) -> T:
-        """Run ``coro`` on the supervisor's loop; a timeout here means the loop itself is stuck."""
-        t = self.call_timeout_s + 5.0 if timeout_s is None else timeout_s
-        return self._rt.call(coro, t)
+        """Run ``coro`` on the supervisor's loop, in this thread, under ``timeout_s`` (default: the call timeout
+        plus 5 s; the requests inside have their own deadlines).
 
-    def submit(self, coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T]:
-        """Start ``coro`` on the supervisor's loop and return at once."""
-        assert self._rt.loop is not None
-        return asyncio.run_coroutine_threadsafe(coro, self._rt.loop)
+        Raises:
+            TimeoutError: no result within ``timeout_s``.
+            RuntimeError: the supervisor is closed.
+        """
+        t = self.call_timeout_s + 5.0 if timeout_s is None else timeout_s
+        return self._drive(_bounded(coro, t), t)
+
+    def _drive(self, coro: Coroutine[Any, Any, T], timeout_s: float, *, finish_orphans: bool = True) -> T:
+        """Run the loop in this thread until ``coro`` is done (one thread at a time).
+
+        A call interrupted inside the loop (Ctrl-C: KeyboardInterrupt raised in this thread) leaves its task
+        pending; the next call first lets it finish (under its own deadlines), so the replies it waited for are
+        consumed and the workers stay usable, as when the loop ran on a thread of its own. ``close`` cancels such
+        tasks instead (``finish_orphans=False``).
+        """
+        loop = self._loop
+        if loop.is_closed():
+            coro.close()
+            raise RuntimeError("the supervisor is closed")
+        if not self._lock.acquire(timeout=timeout_s):
+            coro.close()
+            raise TimeoutError(f"another thread kept the supervisor busy for {timeout_s} s")
+        try:
+            if self._orphans:
+                self._settle_orphans(finish_orphans)
+            task = loop.create_task(coro)
+            try:
+                return loop.run_until_complete(task)
+            except BaseException:
+                if not task.done():
+                    self._orphans.append(task)
+                raise
+        finally:
+            self._lock.release()
+
+    def _settle_orphans(self, finish: bool) -> None:
+        orphans, self._orphans = self._orphans, []
+        pending = [t for t in orphans if not t.done()]
+        if pending and not finish:
+            for t in pending:
+                t.cancel()
+        if pending:
+            try:
+                self._loop.run_until_complete(asyncio.wait(pending))
+            except BaseException:
+                self._orphans = [t for t in orphans if not t.done()]
+                raise
+        for t in orphans:
+            if not t.cancelled():
+                t.exception()  # retrieved: the interrupted caller is gone
+
+    def request_all_now(self, messages: Sequence[dict[str, Any] | None]) -> list[Any]:
+        """``request_all(messages, return_exceptions=True)`` run to the end in this thread (its waits have their own
+        deadlines, so no outer timeout is added: the cheapest round trip, used by ``UnirosVectorEnv.step``)."""
+        return self._drive(self.request_all(messages, return_exceptions=True), self.call_timeout_s + 5.0)
+
+    def submit(self, coro: Coroutine[Any, Any, T]) -> _Pending[T]:
+        """Start ``coro`` on the supervisor's loop, run it until it waits, and return; ``.result()`` finishes it."""
+
+        async def start() -> asyncio.Task[T]:
+            task = asyncio.get_running_loop().create_task(coro)
+            await asyncio.sleep(0)
+            return task
+
+        return _Pending(self, self._drive(start(), 5.0))
+
+    def submit_all(self, messages: Sequence[dict[str, Any] | None]) -> _Pending[list[Any]]:
+        """``request_all(messages, return_exceptions=True)``, returning once every request is sent."""
+
+        async def start() -> asyncio.Task[list[Any]]:
+            sent: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+            task = asyncio.get_running_loop().create_task(self.request_all(messages, return_exceptions=True, sent=sent))
+            either: set[asyncio.Future[Any]] = {sent, task}
+            await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
+            return task
+
+        return _Pending(self, self._drive(start(), self.call_timeout_s + 5.0))
 
     async def request_all(
-        self, messages: Sequence[dict[str, Any] | None], *, return_exceptions: bool = False
+        self,
+        messages: Sequence[dict[str, Any] | None],
+        *,
+        return_exceptions: bool = False,
+        sent: asyncio.Future[None] | None = None,
     ) -> list[Any]:
-        """Send ``messages[i]`` to worker i (None: skip), all before waiting for any. Once every reply is in,
-        raise the first failure (by index), or with ``return_exceptions`` put each WorkerError in its slot."""
-        jobs = [self.workers[i].request(m, self.call_timeout_s) for i, m in enumerate(messages) if m is not None]
-        results = await asyncio.gather(*jobs, return_exceptions=True)
+        """Send ``messages[i]`` to worker i (None: skip), all before waiting for any (then ``sent`` is set). Once
+        every reply is in, raise the first failure (by index), or with ``return_exceptions`` put each WorkerError
+        in its slot."""
+        for i, m in enumerate(messages):
+            if m is not None:
+                self.workers[i].check_idle()  # before anything is sent
+        t = self.call_timeout_s
+        results: list[Any] = [None] * len(messages)
+        waiting: list[int] = []
+        current: tuple[int, str] | None = None  # the worker and phase a timeout interrupts
+        # One deadline for the whole exchange (one timer, not two per worker). The replies are collected one after
+        # the other (each waits in its ring meanwhile): no task per worker, so a step costs the fewest event-loop
+        # rounds, and a hung worker is still found within the call timeout.
+        try:
+            async with asyncio.timeout(t):
+                for i, m in enumerate(messages):
+                    if m is None:
+                        continue
+                    current = (i, "send")
+                    try:
+                        await self.workers[i].send_request(m, None)
+                    except WorkerError as exc:
+                        results[i] = exc
+                    else:
+                        waiting.append(i)
+                if sent is not None and not sent.done():
+                    sent.set_result(None)
+                while waiting:
+                    i = waiting[0]
+                    current = (i, "reply")
+                    try:
+                        results[i] = await self.workers[i].receive_reply(messages[i].get("op"), None)  # type: ignore[union-attr]
+                    except Exception as exc:  # noqa: BLE001 - in its slot, raised below
+                        results[i] = exc
+                    waiting.pop(0)
+                current = None
+        except TimeoutError:
+            assert current is not None
+            i, phase = current
+            w = self.workers[i]
+            op = messages[i].get("op")  # type: ignore[union-attr]
+            what = "could not send" if phase == "send" else "no reply to"
+            w.broken = f"{what} {op!r} within {t} s ({w.spec.env_id})"
+            results[i] = WorkerError(i, w.broken)
+            if phase == "reply":
+                waiting.pop(0)
+            else:  # the requests after the one that could not be sent were not sent either
+                for j in range(i + 1, len(messages)):
+                    if messages[j] is not None:
+                        results[j] = WorkerError(j, f"not sent: worker {i} did not take its request within {t} s")
+            for j in waiting:  # same deadline, passed too: only a reply that is already there still counts
+                try:
+                    results[j] = await self.workers[j].receive_reply(messages[j].get("op"), 0.0)  # type: ignore[union-attr]
+                except Exception as exc:  # noqa: BLE001
+                    results[j] = exc
+                    wj = self.workers[j]
+                    if wj.broken is not None:
+                        wj.broken = f"no reply to {messages[j].get('op')!r} within {t} s ({wj.spec.env_id})"  # type: ignore[union-attr]
+                        results[j] = WorkerError(j, wj.broken)
+            waiting.clear()
+        finally:
+            for j in waiting:  # interrupted: their replies can no longer be matched to requests
+                w = self.workers[j]
+                if w.broken is None:
+                    w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
         for r in results:
             if isinstance(r, BaseException) and not (return_exceptions and isinstance(r, WorkerError)):
                 raise r
-        out: list[Any] = []
-        it = iter(results)
-        for m in messages:
-            out.append(next(it) if m is not None else None)
-        return out
+        return results
 
     def pids(self) -> list[int | None]:
         """The worker process ids, in index order."""
@@ -301,9 +487,9 @@ class Supervisor:
         self._closed = True
         t = self.close_timeout_s
         acked = [False] * len(self.workers)
-        if self._rt.alive:
+        if not self._loop.is_closed():
             try:
-                acked = self._rt.call(self._close_all(t), t + 2.0)
+                acked = self._drive(_bounded(self._close_all(t), t + 2.0), t + 2.0, finish_orphans=False)
             except Exception:  # noqa: BLE001 - shutting down whatever state they are in
                 logger.warning("asking the workers to close failed", exc_info=True)
         deadline = time.monotonic() + t
@@ -322,7 +508,24 @@ class Supervisor:
         for w in self.workers:
             if not w.conn.closed:
                 w.conn.close()
-        self._rt.close(5.0)
+        self._close_loop()
+
+    def _close_loop(self) -> None:
+        loop = self._loop
+        if loop.is_closed() or not self._lock.acquire(timeout=5.0):
+            return
+        try:
+            pending = [task for task in asyncio.all_tasks(loop) if not task.done()]
+            for task in pending:
+                task.cancel()
+            if pending:
+                with contextlib.suppress(BaseException):
+                    loop.run_until_complete(asyncio.wait(pending, timeout=2.0))
+            with contextlib.suppress(BaseException):
+                loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.close()
+        finally:
+            self._lock.release()
 
     async def _close_all(self, timeout_s: float) -> list[bool]:
         async def one(w: WorkerHandle) -> bool:
@@ -360,9 +563,44 @@ def _stop_process(process: multiprocessing.process.BaseProcess, timeout_s: float
     process.join(1.0)
 
 
-async def _idle_main(started: Callable[[BaseException | None], None]) -> None:
-    started(None)
-    await asyncio.Event().wait()
+async def _bounded(coro: Coroutine[Any, Any, T], timeout_s: float) -> T:
+    try:
+        async with asyncio.timeout(timeout_s):
+            return await coro
+    except TimeoutError:
+        raise TimeoutError(f"no result within {timeout_s} s") from None
+
+
+class _Pending(Generic[T]):
+    """Requests started by ``Supervisor.submit``/``submit_all``; like a concurrent.futures.Future, but ``result``
+    runs the supervisor's loop in the calling thread until they are done."""
+
+    def __init__(self, supervisor: Supervisor, task: asyncio.Task[T]) -> None:
+        self._sup = supervisor
+        self._task = task
+
+    def done(self) -> bool:
+        return self._task.done()
+
+    def result(self, timeout: float | None = None) -> T:
+        """The result (or exception) of the requests.
+
+        Raises:
+            concurrent.futures.TimeoutError: not done within ``timeout`` (they stay pending: call again).
+            concurrent.futures.CancelledError: the supervisor closed first.
+        """
+        task = self._task
+        if not task.done():
+            t = self._sup.call_timeout_s + 5.0 if timeout is None else timeout
+            try:
+                self._sup._drive(asyncio.wait({task}, timeout=t), t + 1.0)
+            except RuntimeError:  # closed meanwhile
+                pass
+        if not task.done():
+            raise concurrent.futures.TimeoutError()
+        if task.cancelled():
+            raise concurrent.futures.CancelledError()
+        return task.result()
 
 
 class ProxyEnv(gym.Env[Any, Any]):

@@ -107,7 +107,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         self._start_timeout_s = start_timeout_s
         self._pad_msg: dict[str, Any] | None = None
         self._closed_vec = False
-        self._pending: concurrent.futures.Future[list[Any]] | None = None
+        self._pending: Any = None  # the Supervisor._Pending of step_async
         workers = supervisor.workers
         self.num_envs = len(workers)
         self.env_ids = [w.spec.env_id for w in workers]
@@ -162,7 +162,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         if self._pending is not None:
             raise gym.error.AlreadyPendingCallError("step_async was called twice without step_wait", "step")
         msgs = self._step_messages(actions, "next_step")
-        self._pending = self._sup.submit(self._sup.request_all(msgs, return_exceptions=True))
+        self._pending = self._sup.submit_all(msgs)
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Collect the replies of ``step_async``.
@@ -170,7 +170,9 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         Raises:
             WorkerError: a worker raised, died or did not answer within the call timeout (its index named).
         """
-        replies = self._wait(timeout)
+        return self._step_returns(self._wait(timeout))
+
+    def _step_returns(self, replies: list[Any]) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         obs = self._stack_obs([r[0] for r in replies])
         rewards = np.array([r[1] for r in replies], dtype=np.float64)
         terminated = np.array([r[2] for r in replies], dtype=np.bool_)
@@ -178,9 +180,16 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         return obs, rewards, terminated, truncated, self._infos([r[4] for r in replies])
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """``step_async`` then ``step_wait``."""
-        self.step_async(actions)
-        return self.step_wait()
+        """``step_async`` then ``step_wait``, in one run of the supervisor's loop.
+
+        Raises:
+            WorkerError: as ``step_wait``.
+        """
+        self._check_open()
+        if self._pending is not None:
+            raise gym.error.AlreadyPendingCallError("step was called while a step_async is pending", "step")
+        msgs = self._step_messages(actions, "next_step")
+        return self._step_returns(self._collect(self._sup.request_all_now(msgs)))
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
         """Call method ``name`` (or read attribute ``name``) of every sub-env; plain data in and out."""
@@ -244,6 +253,10 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         finally:
             if fut.done():
                 self._pending = None
+        return self._collect(result)
+
+    def _collect(self, result: list[Any]) -> list[Any]:
+        """Replies in index order; a broken worker is restarted (``restart_on_failure``) or its error raised."""
         for i, r in enumerate(result):
             if isinstance(r, WorkerError):
                 if not self.restart_on_failure or self._sup.workers[i].broken is None:
@@ -272,6 +285,9 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
                 pass
 
     def _stack_obs(self, obs: list[Any]) -> Any:
+        space = self.single_observation_space
+        if isinstance(space, gym.spaces.Box):  # gymnasium's concatenate does this, after an allocation of its own
+            return np.stack(obs).astype(space.dtype, copy=False)
         out: Any = create_empty_array(self.single_observation_space, self.num_envs)
         return concatenate(self.single_observation_space, obs, out)
 
@@ -320,7 +336,7 @@ def _sb3_class() -> type:
             if v._pending is not None:
                 raise gym.error.AlreadyPendingCallError("step_async was called twice without step_wait", "step")
             msgs = v._step_messages(actions, "same_step")
-            v._pending = v._sup.submit(v._sup.request_all(msgs, return_exceptions=True))
+            v._pending = v._sup.submit_all(msgs)
 
         def step_wait(self) -> tuple[Any, np.ndarray, np.ndarray, list[dict[str, Any]]]:
             replies = self.venv._wait(None)

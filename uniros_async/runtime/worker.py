@@ -5,11 +5,23 @@ A worker is started by the supervisor (``multiprocessing.get_context("spawn")``,
 start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then answers
 requests until told to close or until the supervisor goes away.
 
-Wire format (both directions): one frame per message, ``encode_plain`` (msgpack) of plain data in which every
-numpy array travels as ``{"__nd__": [dtype, shape, raw bytes]}``. A request is ``{"op": ..., ...}``; a reply is
-``{"ok": True, "result": ...}`` or ``{"ok": False, "error": "Type: message", "traceback": "..."}``. An exception
-while serving a request is sent back (the supervisor raises it as WorkerError) and the worker keeps serving;
-an exception while building the env is sent as the reply to the first request, and the worker exits.
+One event loop per worker (design.md section 7): a uniros env is made inside ``envs.runtime.deferred_start()`` and
+started on the worker's own loop (``await env.astart()``), so its bus, servo sim and env loop run beside the
+request handler, and a step is ``await env.astep(action)`` in the handler's own task: no loop thread, no hand-over
+between threads, and the reply leaves as soon as the step's coroutine returns (before the rest of what the same
+sim event woke runs). The wrappers gymnasium and ``make_vec`` put around it (OrderEnforcing, TimeLimit, PadSpaces)
+are applied by ``astep_through`` / ``areset_through`` with the same semantics; an env with any other wrapper, or
+one that is not a uniros BaseEnv, runs on a loop thread and is stepped through its synchronous API as before.
+
+Wire format (both directions): one frame per message, msgpack of plain data in which every numpy array travels as
+an ExtType (code 42: dtype, shape, raw bytes) and numpy scalars as Python numbers, converted by msgpack's own
+``default`` / ``ext_hook`` hooks, so the C packer walks the message and Python sees only the arrays (a step
+reply: ~10 us of CPU each way instead of ~13-33 us for a recursive walk in Python; ``to_wire``/``from_wire``
+remain, for plain-data users). Anything else msgpack cannot take travels as its ``repr`` (infos may hold odd
+objects). A request is ``{"op": ..., ...}``; a reply is ``{"ok": True, "result": ...}`` or ``{"ok": False,
+"error": "Type: message", "traceback": "..."}``. An exception while serving a request is sent back (the
+supervisor raises it as WorkerError) and the worker keeps serving; an exception while building the env is sent as
+the reply to the first request, and the worker exits.
 
 Lifetime (issue 5): the worker ignores SIGINT (the agent's Ctrl-C is the supervisor's business), stops on SIGTERM
 (the root task is cancelled, the env closed in ``finally``), and stops when the supervisor dies: the connection
@@ -27,15 +39,17 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+import struct
 import threading
 import time
 import traceback
 from typing import Any
 
 import gymnasium as gym
+import msgpack
 import numpy as np
 
-from uniros_async.bus.codec import decode_plain, encode_plain
+from uniros_async.bus.codec import decode_plain, encode_plain  # noqa: F401  (decode_plain: compatibility)
 from uniros_async.errors import CodecError, ConfigError, TransportError
 
 __all__ = [
@@ -114,9 +128,52 @@ def from_wire(value: Any) -> Any:
     return value
 
 
+_ND_EXT = 42
+_SHAPE = struct.Struct("<q")
+
+
+def _default(value: Any) -> Any:
+    """msgpack's hook for what it cannot pack itself: arrays as ExtType, numpy scalars as Python ones."""
+    if isinstance(value, np.ndarray):
+        if value.dtype == object:
+            return value.tolist()
+        a = np.ascontiguousarray(value)
+        d = a.dtype.str.encode()
+        head = bytes((len(d),)) + d + bytes((a.ndim,)) + b"".join(_SHAPE.pack(n) for n in a.shape)
+        return msgpack.ExtType(_ND_EXT, head + a.tobytes())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, tuple | list):  # subclasses msgpack refuses (named tuples are packed as lists)
+        return list(value)
+    return repr(value)
+
+
+def _ext_hook(code: int, data: bytes) -> Any:
+    if code != _ND_EXT:
+        return msgpack.ExtType(code, data)
+    n = data[0]
+    dtype = np.dtype(data[1 : 1 + n].decode())
+    ndim = data[1 + n]
+    at = 2 + n
+    shape = tuple(_SHAPE.unpack_from(data, at + 8 * i)[0] for i in range(ndim))
+    return np.frombuffer(data, dtype=dtype, offset=at + 8 * ndim).reshape(shape).copy()  # writable
+
+
+def _str_list_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    return {str(tuple(k)) if isinstance(k, list) else k: v for k, v in pairs}
+
+
 def pack(message: dict[str, Any]) -> bytes:
-    """One frame for ``message``."""
-    return encode_plain(to_wire(message))
+    """One frame for ``message``.
+
+    Raises:
+        CodecError: ``message`` holds something that cannot be packed even as its repr.
+    """
+    try:
+        return msgpack.packb(message, default=_default, use_bin_type=True)  # type: ignore[no-any-return]
+    except (TypeError, ValueError, OverflowError):
+        # e.g. a dict key msgpack refuses: the slow, forgiving path, marked for unpack
+        return encode_plain({"__to_wire__": to_wire(message)})
 
 
 def unpack(frame: bytes | memoryview) -> dict[str, Any]:
@@ -125,9 +182,21 @@ def unpack(frame: bytes | memoryview) -> dict[str, Any]:
     Raises:
         CodecError: the frame is not msgpack, or not a map.
     """
-    msg = from_wire(decode_plain(frame))
+    try:
+        try:
+            msg = msgpack.unpackb(frame, raw=False, strict_map_key=False, ext_hook=_ext_hook)
+        except TypeError:  # a map key that came as a list (a tuple key): keys as their str, as to_wire does
+            msg = msgpack.unpackb(
+                frame, raw=False, strict_map_key=False, ext_hook=_ext_hook, object_pairs_hook=_str_list_keys
+            )
+    except (ValueError, TypeError, IndexError, msgpack.UnpackException) as exc:
+        raise CodecError(f"malformed worker frame: {exc}") from exc
     if not isinstance(msg, dict):
         raise CodecError(f"expected a map, got {type(msg).__name__}")
+    if "__to_wire__" in msg:
+        msg = from_wire(msg["__to_wire__"])
+        if not isinstance(msg, dict):
+            raise CodecError(f"expected a map, got {type(msg).__name__}")
     return msg
 
 
@@ -194,6 +263,71 @@ def _start_watchdog(spec: WorkerSpec, loop: asyncio.AbstractEventLoop, task: asy
     threading.Thread(target=watch, name=f"uniros-worker-{spec.index}-watchdog", daemon=True).start()
 
 
+# ---------------------------------------------------------------- async stepping through known wrappers
+
+
+def _async_wrappers() -> tuple[type, ...]:
+    from uniros_async.envs import wrappers as uw
+
+    return (gym.wrappers.OrderEnforcing, gym.wrappers.TimeLimit, uw.TimeLimit, uw.PadSpaces)
+
+
+def supports_async(env: gym.Env[Any, Any]) -> bool:
+    """Whether ``env`` is an attached uniros BaseEnv under wrappers that ``astep_through`` knows (exact types)."""
+    from uniros_async.envs.base import BaseEnv
+
+    known = _async_wrappers()
+    e: Any = env
+    while isinstance(e, gym.Wrapper):
+        if type(e) not in known:
+            return False
+        e = e.env
+    return isinstance(e, BaseEnv) and e.attached and type(e).step is BaseEnv.step and type(e).reset is BaseEnv.reset
+
+
+async def astep_through(env: Any, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
+    """``env.step(action)`` for a stack ``supports_async`` accepted, awaiting the base env's ``astep``."""
+    from uniros_async.envs import wrappers as uw
+
+    t = type(env)
+    if t is uw.PadSpaces:
+        a = np.asarray(action, dtype=np.float32)
+        if a.shape != env.action_space.shape:
+            raise gym.error.InvalidAction(f"action must have shape {env.action_space.shape}, got {a.shape}")
+        obs, reward, terminated, truncated, info = await astep_through(env.env, a[: env._n_act])
+        return env._pad(obs), reward, terminated, truncated, {**info, "padding": dict(env.padding)}
+    if t is gym.wrappers.OrderEnforcing:
+        if not env._has_reset:
+            raise gym.error.ResetNeeded("Cannot call env.step() before calling env.reset()")
+        return await astep_through(env.env, action)
+    if t is gym.wrappers.TimeLimit or t is uw.TimeLimit:
+        obs, reward, terminated, truncated, info = await astep_through(env.env, action)
+        env._elapsed_steps += 1
+        if env._elapsed_steps >= env._max_episode_steps:
+            truncated = True
+        if t is uw.TimeLimit and truncated and not terminated:
+            info = {**info, "is_success": False}
+        return obs, reward, terminated, truncated, info
+    return await env.astep(action)  # type: ignore[no-any-return]
+
+
+async def areset_through(env: Any, seed: int | None, options: dict[str, Any] | None) -> tuple[Any, dict[str, Any]]:
+    """``env.reset(seed=seed, options=options)`` for a stack ``supports_async`` accepted."""
+    from uniros_async.envs import wrappers as uw
+
+    t = type(env)
+    if t is uw.PadSpaces:
+        obs, info = await areset_through(env.env, seed, options)
+        return env._pad(obs), {**info, "padding": dict(env.padding)}
+    if t is gym.wrappers.OrderEnforcing:
+        env._has_reset = True
+        return await areset_through(env.env, seed, options)
+    if t is gym.wrappers.TimeLimit or t is uw.TimeLimit:
+        env._elapsed_steps = 0
+        return await areset_through(env.env, seed, options)
+    return await env.areset(seed=seed, options=options)  # type: ignore[no-any-return]
+
+
 async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connection) -> None:
     """Listen, hand the URI over ``conn``, accept the supervisor, build the env, serve until closed."""
     from uniros_async.transports.base import listen
@@ -211,15 +345,25 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         async with asyncio.timeout(spec.accept_timeout_s):
             transport = await listener.accept()
         await listener.aclose()
-        server.build()
+        await server.build()
+        if server.realtime:
+            _no_spin(transport)
         await server.serve(transport)
     except TransportError:
         logger.info("worker %d: the supervisor went away", spec.index)
     finally:
-        server.close()
+        await server.aclose()
         if transport is not None:
             await transport.aclose()
         await listener.aclose()
+
+
+def _no_spin(transport: Any) -> None:
+    """Stop an shm transport from polling for the next request: the poll holds the event loop (up to 50 us), and a
+    real-time env loop shares that loop now; its ticks matter more than the wake-up it would save."""
+    if hasattr(transport, "_spin_allowed") and hasattr(transport, "_spin_credit"):
+        transport._spin_allowed = False
+        transport._spin_credit = 0
 
 
 class _Server:
@@ -230,12 +374,25 @@ class _Server:
         self.env: gym.Env[Any, Any] | None = None
         self.build_error: dict[str, Any] | None = None
         self.needs_autoreset = False
+        self.attached = False  # the env runs on this process's event loop and is stepped with astep_through
+        self.realtime = False  # ... and its env loop follows the wall clock
 
-    def build(self) -> None:
+    async def build(self) -> None:
         import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
+        from uniros_async.envs.base import BaseEnv
+        from uniros_async.envs.runtime import deferred_start
 
         try:
-            self.env = gym.make(self.spec.env_id, **self.spec.kwargs)
+            with deferred_start():
+                self.env = env = gym.make(self.spec.env_id, **self.spec.kwargs)
+            base = env.unwrapped
+            if isinstance(base, BaseEnv) and base.attached:
+                if supports_async(env):
+                    await base.astart()
+                    self.attached = True
+                    self.realtime = getattr(getattr(base, "config", None), "clock", "sim") != "sim"
+                else:
+                    base.start_thread()  # unknown wrappers: the synchronous API over a loop thread, as in-process
         except Exception as exc:  # noqa: BLE001 - sent back to the supervisor
             self.build_error = _error_reply(exc, f"could not make {self.spec.env_id}")
 
@@ -252,7 +409,7 @@ class _Server:
                 await transport.send(pack(self.build_error))
                 return
             try:
-                result = self.handle(op, request)
+                result = await self.handle(op, request)
             except Exception as exc:  # noqa: BLE001 - sent back; the env stays usable when it can
                 reply = _error_reply(exc, f"{op} failed")
             else:
@@ -261,9 +418,11 @@ class _Server:
             if op == "close":
                 return
 
-    def handle(self, op: Any, request: dict[str, Any]) -> Any:
+    async def handle(self, op: Any, request: dict[str, Any]) -> Any:
         env = self.env
         assert env is not None
+        if op == "step":
+            return await self._step(request["action"], request.get("autoreset"))
         if op == "spaces":
             return self._spaces()
         if op == "pad":
@@ -273,10 +432,8 @@ class _Server:
             return self._spaces()
         if op == "reset":
             self.needs_autoreset = False
-            obs, info = env.reset(seed=request.get("seed"), options=request.get("options"))
+            obs, info = await self._reset(request.get("seed"), request.get("options"))
             return [obs, self._info(info)]
-        if op == "step":
-            return self._step(request["action"], request.get("autoreset"))
         if op == "call":
             name = request["name"]
             if name.startswith("_"):
@@ -290,7 +447,7 @@ class _Server:
             setattr(env.unwrapped, request["name"], request["value"])
             return None
         if op == "close":
-            self.close()
+            await self.aclose()
             return None
         raise ValueError(f"unknown op {op!r}; expected spaces, pad, reset, step, call, get, set or close")
 
@@ -308,7 +465,16 @@ class _Server:
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:
         return {**info, "env_id": self.spec.env_id}
 
-    def _step(self, action: Any, autoreset: str | None) -> list[Any]:
+    async def _reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        env = self.env
+        assert env is not None
+        if self.attached:
+            return await areset_through(env, seed, options)
+        return env.reset(seed=seed, options=options)
+
+    async def _step(self, action: Any, autoreset: str | None) -> list[Any]:
         env = self.env
         assert env is not None
         if autoreset not in AUTORESET_MODES:
@@ -316,9 +482,12 @@ class _Server:
         if autoreset == "next_step" and self.needs_autoreset:
             # gymnasium's NEXT_STEP mode: the step after an episode's end resets and ignores the action
             self.needs_autoreset = False
-            obs, info = env.reset()
+            obs, info = await self._reset()
             return [obs, 0.0, False, False, self._info(info)]
-        obs, reward, terminated, truncated, info = env.step(action)
+        if self.attached:
+            obs, reward, terminated, truncated, info = await astep_through(env, action)
+        else:
+            obs, reward, terminated, truncated, info = env.step(action)
         done = bool(terminated or truncated)
         info = self._info(info)
         if autoreset == "next_step":
@@ -326,13 +495,18 @@ class _Server:
         elif autoreset == "same_step" and done:
             # SB3's convention: the reset observation replaces the final one, which goes in the info
             final_obs = obs
-            obs, _ = env.reset()
+            obs, _ = await self._reset()
             info = {**info, "final_obs": final_obs}
         return [obs, float(reward), bool(terminated), bool(truncated), info]
 
-    def close(self) -> None:
+    async def aclose(self) -> None:
         env, self.env = self.env, None
-        if env is not None:
+        if env is None:
+            return
+        if self.attached:
+            base: Any = env.unwrapped
+            await base.aclose()  # the wrappers' close() only passes close on
+        else:
             env.close()
 
 
