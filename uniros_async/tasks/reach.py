@@ -22,12 +22,48 @@ from uniros_async.envs.base import GoalEnv
 from uniros_async.envs.task import TaskEnv, split_kwargs
 from uniros_async.errors import ConfigError
 
-__all__ = ["ReachEnv", "ReachGoalEnv"]
+__all__ = ["ReachEnv", "ReachGoalEnv", "reach_reward"]
 
 GOAL_MIN = (0.15, -0.40, 0.05)
 GOAL_MAX = (0.40, 0.40, 0.40)
 REWARD_TYPES = ("dense", "sparse")
 ACTION_MODES = ("absolute", "delta")
+
+
+def reach_reward(
+    achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Any, *, reward_type: str, reach_tolerance: float
+) -> np.ndarray:
+    """The reach reward per (achieved, desired) pair, a pure function of its arguments (``ReachEnv.batch_reward``
+    is this with the env's settings), so an agent can relabel HER goals without asking the env.
+
+    Sparse: +1 where ``|achieved - desired| <= reach_tolerance``, else -1. Dense: +20 there, else
+    ``-2 x distance - 0.5``, plus -2 per ``info["joint_limit_hit"]`` and -5 per ``info["not_executable"]``;
+    ``info`` is one dict for every pair or an array (or list) of dicts, one per pair; anything else (or an array of
+    the wrong size) adds no penalty.
+
+    Raises:
+        ConfigError: an unknown ``reward_type``.
+    """
+    d = np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1)
+    reached = d <= reach_tolerance
+    if reward_type == "sparse":
+        return np.where(reached, 1.0, -1.0)
+    if reward_type != "dense":
+        raise ConfigError(f"reward_type must be one of {REWARD_TYPES}, got {reward_type!r}")
+    r: np.ndarray = np.where(reached, 20.0, -2.0 * d - 0.5) + _penalties(info, d.shape)
+    return r
+
+
+def _penalties(info: Any, shape: tuple[int, ...]) -> np.ndarray:
+    def one(i: Any) -> float:
+        if not isinstance(i, dict):
+            return 0.0
+        return -2.0 * bool(i.get("joint_limit_hit")) - 5.0 * bool(i.get("not_executable"))
+
+    if isinstance(info, dict):
+        return np.full(shape, one(info))
+    flat = np.asarray([one(i) for i in np.ravel(np.asarray(info, dtype=object))], dtype=np.float64)
+    return flat.reshape(shape) if flat.size == int(np.prod(shape)) else np.zeros(shape)
 
 
 class ReachEnv(TaskEnv):
@@ -153,26 +189,11 @@ class ReachEnv(TaskEnv):
         """Reward per (achieved, desired) pair; penalties come from ``info`` (a dict or an array of dicts).
 
         (Named so on the standard env: SB3 takes any env with ``compute_reward`` for a GoalEnv. ReachGoalEnv
-        exposes it as ``compute_reward``.)
+        exposes it as ``compute_reward``.) The arithmetic is ``reach_reward``'s, with this env's settings.
         """
-        d = np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1)
-        reached = d <= self.reach_tolerance
-        if self.reward_type == "sparse":
-            return np.where(reached, 1.0, -1.0)
-        r = np.where(reached, 20.0, -2.0 * d - 0.5)
-        return r + self._penalties(info, d.shape)
-
-    @staticmethod
-    def _penalties(info: Any, shape: tuple[int, ...]) -> np.ndarray:
-        def one(i: Any) -> float:
-            if not isinstance(i, dict):
-                return 0.0
-            return -2.0 * bool(i.get("joint_limit_hit")) - 5.0 * bool(i.get("not_executable"))
-
-        if isinstance(info, dict):
-            return np.full(shape, one(info))
-        flat = np.asarray([one(i) for i in np.ravel(np.asarray(info, dtype=object))], dtype=np.float64)
-        return flat.reshape(shape) if flat.size == int(np.prod(shape)) else np.zeros(shape)
+        return reach_reward(
+            achieved_goal, desired_goal, info, reward_type=self.reward_type, reach_tolerance=self.reach_tolerance
+        )
 
     def render(self) -> np.ndarray | None:  # type: ignore[override]
         """An RGB image of the arm at its newest state with the goal marker (``render_mode="rgb_array"``)."""
