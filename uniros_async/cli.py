@@ -1,6 +1,6 @@
 """The one ``uniros`` entry point.
 
-    uniros bench transport|timers [...]   benchmarks (bench/)
+    uniros bench latency|transport|...    benchmarks (bench/)
     uniros topic list|echo|hz|pub         topics of a domain, as rostopic
     uniros node list                      nodes of a domain, as rosnode
     uniros param get|set|load|list        parameters of a domain, as rosparam
@@ -57,6 +57,21 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     be.add_argument("--no-progress", action="store_true")
 
+    bl = bench.add_parser("latency", help="the paper's timing figures (Fig 8-10): cycles, ages, latencies, learners")
+    scenarios = ["single", "concurrent", "turn-based", "sweep"]
+    bl.add_argument("--scenario", dest="scenario_name", default="concurrent", choices=scenarios, help="default concurrent")
+    bl.add_argument(
+        "--duration", type=float, default=None, help="wall seconds per learner/mode/sweep point (default: per scenario)"
+    )
+    bl.add_argument("--learner", dest="learners", nargs="+", default=None, help="sb3-td3 and/or async-td3")
+    bl.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
+    bl.add_argument("--think-ms", type=float, default=50.0, help="scripted agent's think time, 0 to this")
+    bl.add_argument("--learning-starts", type=int, default=10)
+    bl.add_argument("--seed", type=int, default=0)
+    bl.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+    bl.add_argument("--plot", dest="plot_path", default=None, metavar="PATH.png")
+    bl.add_argument("--no-progress", action="store_true")
+
     bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
     bth.add_argument("--quick", action="store_true", help="N = 1, 2, 4 and fewer steps")
     bth.add_argument("--steps", type=int, default=100)
@@ -111,6 +126,10 @@ def _build_parser() -> argparse.ArgumentParser:
     from uniros_async.sim import cli as robot_cli  # imports no MuJoCo until a robot command runs
 
     robot_cli.add_parser(sub)
+
+    from uniros_async.training import cli as training_cli  # imports no torch/SB3 until a training command runs
+
+    training_cli.add_parsers(sub)
     return parser
 
 
@@ -257,6 +276,17 @@ def _run_bench(args: argparse.Namespace) -> int:
         from uniros_async.bench import simclock
 
         simclock.main(simclock.SimClockBenchConfig(sim_seconds=args.sim_seconds, episodes=args.episodes, json_path=args.json_path))
+    elif args.scenario == "latency":
+        from uniros_async.bench import latency
+
+        latency.main(
+            latency.LatencyBenchConfig(
+                scenario=args.scenario_name, duration_s=args.duration,
+                learners=tuple(args.learners) if args.learners else None, action_cycle_s=args.action_cycle,
+                think_ms=args.think_ms, learning_starts=args.learning_starts, seed=args.seed,
+                json_path=args.json_path, plot_path=args.plot_path, progress=not args.no_progress,
+            )
+        )
     elif args.scenario == "envloop":
         from uniros_async.bench import envloop
 
@@ -286,6 +316,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run_param(args)
         if args.command == "node":
             return _run_node(args)
+        if args.command in ("train", "eval", "plot"):
+            from uniros_async.training import cli as training_cli
+
+            return training_cli.run(args)
         if args.command == "robot":
             from uniros_async.sim import cli as robot_cli
 

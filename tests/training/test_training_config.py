@@ -1,0 +1,100 @@
+"""TrainConfig: the paper's defaults, YAML loading, and bad input rejected before anything starts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from uniros_async.errors import ConfigError
+from uniros_async.training.config import (
+    EnvEntry,
+    TrainConfig,
+    config_to_dict,
+    load_train_config,
+    train_config_from_dict,
+)
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+RX = {"id": "uniros/Rx200Reach-v0"}
+
+
+def test_defaults_are_the_papers() -> None:
+    cfg = train_config_from_dict({"envs": [RX]})
+    t = cfg.td3
+    assert (t.learning_rate, t.buffer_size, t.batch_size, t.tau, t.gamma) == (3e-4, 1_000_000, 256, 0.005, 0.99)
+    assert t.net_arch == (400, 300) and t.policy_delay == 2
+    assert (t.target_policy_noise, t.target_noise_clip) == (0.2, 0.5)
+    assert (cfg.her.n_sampled_goal, cfg.her.goal_selection_strategy) == (4, "future")
+    assert cfg.torch_threads == 1 and cfg.learner == "sync" and cfg.env_defaults == {"clock": "sim"}
+    assert cfg.env_specs() == [("Rx200Reach", "uniros/Rx200Reach-v0", {"clock": "sim"})]
+
+
+def test_env_entries_labels_and_overrides(tmp_path: Path) -> None:
+    p = tmp_path / "c.yaml"
+    p.write_text(
+        "name: mt\nenvs:\n  - uniros/Rx200Reach-v0\n  - {id: uniros/Ned2Reach-v0, kwargs: {robot: emulated-real}}\n"
+        "td3: {learning_rate: 1e-3}\n"  # YAML 1.1 reads 1e-3 as a string: accepted as the number
+    )
+    cfg = load_train_config(p, {"td3.batch_size": 64, "eval.episodes": 3})
+    assert cfg.labels() == ["Rx200Reach", "Ned2Reach-emulated-real"]
+    assert cfg.td3.learning_rate == 1e-3 and cfg.td3.batch_size == 64 and cfg.eval.episodes == 3
+    assert isinstance(cfg.envs[0], EnvEntry)
+    again = train_config_from_dict(config_to_dict(cfg))
+    assert again == cfg
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        ({"envs": [RX], "bogus": 1}, r"unknown key\(s\) \['bogus'\]; valid keys are \[.*'total_steps'"),
+        ({"envs": [RX], "td3": {"lr": 1}}, r"td3: unknown key\(s\) \['lr'\].*'learning_rate'"),
+        ({"envs": [{"id": "uniros/Rx200Reach-v0", "kwarg": {}}]}, r"envs\[0\]: unknown key\(s\) \['kwarg'\]"),
+        ({"envs": []}, "at least one env"),
+        ({"envs": [RX], "td3": {"tau": 2}}, r"tau must be in \(0, 1\]"),
+        ({"envs": [RX], "td3": {"batch_size": 512, "buffer_size": 100}}, "batch_size=512 > td3.buffer_size=100"),
+        ({"envs": [RX], "td3": {"learning_rate": "fast"}}, "expected a number, got 'fast'"),
+        ({"envs": [RX], "td3": {"net_arch": []}}, "net_arch"),
+        ({"envs": [RX], "learner": "turbo"}, "learner must be one of"),
+        ({"envs": [RX], "total_steps": 0}, "total_steps must be >= 1"),
+        ({"envs": [RX], "her": {"goal_selection_strategy": "past"}}, "goal_selection_strategy"),
+        ({"envs": [RX, RX]}, "labels must be unique"),
+        ({"envs": [RX], "task_id_in_obs": True}, "two or more envs"),
+        ({"envs": "uniros/Rx200Reach-v0"}, "expected a list of envs"),
+    ],
+)
+def test_bad_config_is_a_clear_error(data: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        train_config_from_dict(data)
+
+
+def test_unknown_env_id_and_kwargs_are_found_before_anything_starts() -> None:
+    cfg = train_config_from_dict({"envs": [{"id": "uniros/Nope-v0"}]})
+    with pytest.raises(ConfigError, match=r"envs\[0\] .*unknown env id 'uniros/Nope-v0'"):
+        cfg.check_envs()
+    cfg = train_config_from_dict({"envs": [{"id": "uniros/Rx200Reach-v0", "kwargs": {"reward": "dense"}}]})
+    with pytest.raises(ConfigError, match=r"unknown keyword argument\(s\) \['reward'\]"):
+        cfg.check_envs()
+    cfg = train_config_from_dict({"envs": [{"id": "uniros/Rx200Reach-v0", "kwargs": {"action_cycle_s": -1}}]})
+    with pytest.raises(ConfigError, match="action_cycle_s must be in"):
+        cfg.check_envs()
+
+
+def test_missing_and_malformed_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        load_train_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("envs: [\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_train_config(bad)
+    listy = tmp_path / "list.yaml"
+    listy.write_text("- 1\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load_train_config(listy)
+
+
+@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_configs_load_and_check(path: Path) -> None:
+    cfg = load_train_config(path)
+    assert isinstance(cfg, TrainConfig)
+    cfg.check_envs()

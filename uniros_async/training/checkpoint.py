@@ -1,0 +1,315 @@
+"""Checkpoints of a run: the model, its replay buffer and what is needed to check and resume them, written atomically.
+
+Layout (under ``<run_dir>/checkpoints``)::
+
+    step_000010000/model.zip           SB3 zip (policy, optimisers, counters, action noise)
+    step_000010000/replay_buffer.pkl   the filled part of the replay buffer only (not 1e6 empty rows)
+    step_000010000/meta.json           step, sizes, padding, learner, replay kind, the run's config
+    latest                             the name of the newest complete checkpoint
+
+A checkpoint is written into a hidden temporary directory, flushed to disk, and renamed into place (a rename is
+atomic); ``latest`` is then replaced (write + ``os.replace``). An interruption at any point (Ctrl-C, SIGTERM, a
+dead worker, a full disk) leaves the previous checkpoint and ``latest`` intact. Old checkpoints beyond ``keep`` are
+removed only after ``latest`` names the new one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import pickle
+import shutil
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from uniros_async.errors import ConfigError, UnirosError
+
+__all__ = [
+    "CheckpointError",
+    "CheckpointMeta",
+    "check_sizes",
+    "find_checkpoint",
+    "latest_checkpoint",
+    "load_replay_buffer",
+    "read_meta",
+    "save_checkpoint",
+]
+
+logger = logging.getLogger(__name__)
+
+MODEL_FILE = "model.zip"
+BUFFER_FILE = "replay_buffer.pkl"
+META_FILE = "meta.json"
+LATEST_FILE = "latest"
+
+
+class CheckpointError(UnirosError):
+    """A checkpoint is missing, incomplete, or does not fit the env it is used with."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class CheckpointMeta:
+    """What a checkpoint holds besides the SB3 files.
+
+    Attributes:
+        step: env steps taken when it was written.
+        obs_size, action_size: the policy's observation (the ``observation`` key's, for goal envs) and action sizes.
+        goal_env: dict observations (HER).
+        pad_to: sizes every env was padded to (multi-task), or None.
+        task_id_size: length of the one-hot task index appended to observations (0: none).
+        algo: ``TD3`` or ``AsyncTD3`` (the class to load with).
+        labels: the training envs' labels.
+        config: the run's TrainConfig as plain data.
+    """
+
+    step: int
+    obs_size: int
+    action_size: int
+    goal_env: bool
+    pad_to: tuple[int, int] | None
+    task_id_size: int = 0
+    algo: str = "TD3"
+    labels: tuple[str, ...] = ()
+    config: dict[str, Any] = dataclasses.field(default_factory=dict)
+    wall_time: float = 0.0
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2, default=_json_default)
+
+    @classmethod
+    def from_json(cls, text: str, where: str) -> CheckpointMeta:
+        try:
+            data = json.loads(text)
+            if data.get("pad_to") is not None:
+                data["pad_to"] = tuple(data["pad_to"])
+            data["labels"] = tuple(data.get("labels", ()))
+            return cls(**data)
+        except (ValueError, TypeError) as exc:
+            raise CheckpointError(f"{where}: not a valid checkpoint meta.json: {exc}") from exc
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(f"cannot store {type(o).__name__} in meta.json")
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb+") as f:
+        os.fsync(f.fileno())
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _buffer_state(buffer: Any) -> dict[str, Any]:
+    """The replay buffer's filled rows and scalar state (SB3 ReplayBuffer, DictReplayBuffer, HerReplayBuffer)."""
+    size = int(buffer.buffer_size)
+    n = size if buffer.full else int(buffer.pos)
+    arrays: dict[str, Any] = {}
+    scalars: dict[str, Any] = {}
+    for key, value in vars(buffer).items():
+        if key in ("env", "device", "observation_space", "action_space"):
+            continue
+        if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == size:
+            arrays[key] = value[:n].copy()
+        elif isinstance(value, dict) and value and all(
+            isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == size for v in value.values()
+        ):
+            arrays[key] = {k: v[:n].copy() for k, v in value.items()}
+        elif isinstance(value, int | float | bool | np.ndarray | np.generic | str) or value is None:
+            scalars[key] = value
+    return {"class": type(buffer).__name__, "buffer_size": size, "rows": n, "arrays": arrays, "scalars": scalars}
+
+
+def save_checkpoint(
+    model: Any,
+    run_dir: str | Path,
+    meta: CheckpointMeta,
+    *,
+    keep: int = 2,
+    replay_buffer: bool = True,
+) -> Path:
+    """Write the model (and its replay buffer) as ``checkpoints/step_<step>`` atomically; returns its directory.
+
+    Raises:
+        OSError: the disk refused; the previous checkpoint and ``latest`` are untouched.
+    """
+    root = Path(run_dir) / "checkpoints"
+    root.mkdir(parents=True, exist_ok=True)
+    name = f"step_{meta.step:09d}"
+    final = root / name
+    tmp = root / f".tmp-{name}-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        model.save(tmp / MODEL_FILE)
+        if replay_buffer and getattr(model, "replay_buffer", None) is not None:
+            with open(tmp / BUFFER_FILE, "wb") as f:
+                pickle.dump(_buffer_state(model.replay_buffer), f, protocol=pickle.HIGHEST_PROTOCOL)
+        (tmp / META_FILE).write_text(dataclasses.replace(meta, wall_time=time.time()).to_json())
+        for p in tmp.iterdir():
+            _fsync_file(p)
+        _fsync_dir(tmp)
+        if final.exists():  # the same step written again (e.g. the end of a run that just checkpointed)
+            old = root / f".old-{name}-{os.getpid()}"
+            os.replace(final, old)
+            os.replace(tmp, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, final)
+        _fsync_dir(root)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    _write_atomic(root / LATEST_FILE, (name + "\n").encode())
+    complete = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("step_"))
+    for old in complete[:-keep]:
+        if old != final:
+            shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def _complete(path: Path) -> bool:
+    return (path / MODEL_FILE).is_file() and (path / META_FILE).is_file()
+
+
+def latest_checkpoint(run_dir: str | Path) -> Path | None:
+    """The newest complete checkpoint of a run (what ``latest`` names, else the highest step), or None."""
+    root = Path(run_dir) / "checkpoints"
+    if not root.is_dir():
+        return None
+    latest = root / LATEST_FILE
+    if latest.is_file():
+        cand = root / latest.read_text().strip()
+        if _complete(cand):
+            return cand
+    steps = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("step_") and _complete(p))
+    return steps[-1] if steps else None
+
+
+def clean_partial(run_dir: str | Path) -> None:
+    """Remove temporary directories an interrupted checkpoint left behind."""
+    root = Path(run_dir) / "checkpoints"
+    if root.is_dir():
+        for p in root.iterdir():
+            if p.name.startswith((".tmp-", ".old-")):
+                shutil.rmtree(p, ignore_errors=True)
+
+
+def find_checkpoint(path: str | Path) -> Path:
+    """Resolve a run directory, a checkpoint directory, or a ``model.zip`` to a checkpoint directory.
+
+    Raises:
+        CheckpointError: nothing usable there (what was looked for is named).
+    """
+    p = Path(path)
+    if p.is_file() and p.name == MODEL_FILE:
+        p = p.parent
+    if p.is_dir() and _complete(p):
+        return p
+    if p.is_dir():
+        found = latest_checkpoint(p)
+        if found is not None:
+            return found
+    raise CheckpointError(
+        f"no checkpoint at {str(path)!r}: expected a run directory with checkpoints/, a checkpoint directory "
+        f"with {MODEL_FILE} and {META_FILE}, or a {MODEL_FILE}"
+    )
+
+
+def read_meta(ckpt: Path) -> CheckpointMeta:
+    """The checkpoint's meta.json."""
+    f = ckpt / META_FILE
+    try:
+        text = f.read_text()
+    except OSError as exc:
+        raise CheckpointError(f"cannot read {f}: {exc.strerror}") from exc
+    return CheckpointMeta.from_json(text, str(f))
+
+
+def check_sizes(meta: CheckpointMeta, obs_size: int, action_size: int, goal_env: bool, where: str) -> None:
+    """Check that an env fits the checkpoint's policy.
+
+    Raises:
+        CheckpointError: the observation or action size (or kind) differs; both sizes are named.
+    """
+    if goal_env != meta.goal_env:
+        kind = {True: "a goal env (dict observation)", False: "a standard env (vector observation)"}
+        raise CheckpointError(
+            f"{where} is {kind[goal_env]}, but the checkpoint's policy was trained on {kind[meta.goal_env]}"
+        )
+    if (obs_size, action_size) != (meta.obs_size, meta.action_size):
+        raise CheckpointError(
+            f"{where} has observation size {obs_size} and action size {action_size}, but the checkpoint's policy "
+            f"takes observation size {meta.obs_size} and action size {meta.action_size}"
+        )
+
+
+def load_replay_buffer(model: Any, ckpt: Path) -> int:
+    """Fill ``model.replay_buffer`` (freshly built by SB3 ``load``) from the checkpoint; returns the rows restored.
+
+    An unfinished HER episode at the end is closed (SB3's ``truncate_last_trajectory``), as after
+    ``load_replay_buffer(truncate_last_traj=True)``.
+
+    Raises:
+        CheckpointError: no buffer file, a different buffer class, or rows that do not fit.
+    """
+    f = ckpt / BUFFER_FILE
+    if not f.is_file():
+        raise CheckpointError(f"{ckpt} has no {BUFFER_FILE} (written with checkpoint.replay_buffer: false?)")
+    with open(f, "rb") as fh:
+        state = pickle.load(fh)
+    buf = model.replay_buffer
+    if state["class"] != type(buf).__name__:
+        raise CheckpointError(f"{f} holds a {state['class']}, the model uses a {type(buf).__name__}")
+    n = int(state["rows"])
+    if n > buf.buffer_size:
+        raise ConfigError(f"{f} holds {n} rows, more than td3.buffer_size={buf.buffer_size}")
+    for key, value in state["arrays"].items():
+        target = getattr(buf, key)
+        if isinstance(value, dict):
+            for k, v in value.items():
+                target[k][:n] = v
+        else:
+            target[:n] = value
+    for key, value in state["scalars"].items():
+        if key in ("buffer_size", "n_envs", "obs_shape", "action_dim"):
+            continue
+        setattr(buf, key, value)
+    if state["buffer_size"] != buf.buffer_size and state["scalars"].get("full"):
+        raise CheckpointError(f"{f}: a full buffer of {state['buffer_size']} rows cannot go into {buf.buffer_size}")
+    if hasattr(buf, "truncate_last_trajectory") and n > 0:
+        with warnings.catch_warnings():  # expected: the run stopped mid-episode, and the env is reset on resume
+            warnings.simplefilter("ignore", UserWarning)
+            buf.truncate_last_trajectory()
+    return n

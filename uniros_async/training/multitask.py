@@ -1,0 +1,200 @@
+"""Multi-task training envs: the UniROS paper's Algorithm 1 as one gymnasium env that SB3 can train on.
+
+``TaskSamplerEnv`` holds several envs (rx200 and ned2, sim and emulated real) padded to common observation and
+action sizes (``envs.wrappers.PadSpaces``: zeros appended to observations, extra action entries ignored). Each
+``reset`` samples one of them uniformly (the episode's task); ``step`` steps that env only. So SB3 TD3 over it is
+Algorithm 1: sample an env per episode, collect its transitions into the one replay buffer, update the one
+policy after every step. Every info carries ``info["task"]`` (the env's label) and ``info["task_index"]``, so
+success can be reported per env.
+
+``build_env`` makes one env for training or evaluation, in the agent's process (``gymnasium.make``) or in a
+worker process (``uniros_async.make``, a proxy over shared memory), padded when asked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from uniros_async.envs.wrappers import PadSpaces
+from uniros_async.errors import ConfigError
+
+__all__ = ["TaskIdObservation", "TaskSamplerEnv", "build_env", "space_sizes"]
+
+
+def _vector_box(space: gym.Space[Any]) -> gym.spaces.Box:
+    if isinstance(space, gym.spaces.Dict):
+        space = space.spaces["observation"]
+    if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+        raise ConfigError(f"expected a 1-D Box observation (or a Dict with a 1-D 'observation'), got {space}")
+    return space
+
+
+def space_sizes(env: gym.Env[Any, Any]) -> tuple[int, int]:
+    """(observation size, action size) of an env (the ``observation`` key's size for a goal env)."""
+    act = env.action_space
+    if not isinstance(act, gym.spaces.Box) or len(act.shape) != 1:
+        raise ConfigError(f"expected a 1-D Box action space, got {act}")
+    return int(_vector_box(env.observation_space).shape[0]), int(act.shape[0])
+
+
+def build_env(
+    env_id: str,
+    kwargs: dict[str, Any],
+    *,
+    placement: str = "inprocess",
+    pad_to: tuple[int, int] | None = None,
+) -> gym.Env[Any, Any]:
+    """Make one env (with its registered time limit) and pad it to ``pad_to = (obs_size, action_size)``.
+
+    Args:
+        placement: ``inprocess`` (``gymnasium.make`` here) or ``workers`` (``uniros_async.make``: its own process).
+
+    Raises:
+        ConfigError: an unknown id or keyword argument, or an env larger than ``pad_to``.
+        WorkerError: the worker failed to start (``workers``).
+    """
+    from uniros_async.runtime.supervisor import check_env_args
+
+    check_env_args(env_id, kwargs)
+    if placement == "inprocess":
+        env: gym.Env[Any, Any] = gym.make(env_id, **kwargs)
+    elif placement == "workers":
+        from uniros_async.runtime import make
+
+        env = make(env_id, **kwargs)
+    else:
+        raise ConfigError(f"placement must be 'inprocess' or 'workers', got {placement!r}")
+    if pad_to is not None:
+        try:
+            if space_sizes(env) != tuple(pad_to):
+                env = PadSpaces(env, *pad_to)
+        except BaseException:
+            env.close()
+            raise
+    return env
+
+
+class TaskIdObservation(gym.ObservationWrapper[Any, Any, Any]):
+    """Append a one-hot task index (``index`` of ``n_tasks``) to the observation (the ``observation`` key)."""
+
+    def __init__(self, env: gym.Env[Any, Any], index: int, n_tasks: int) -> None:
+        super().__init__(env)
+        self._onehot = np.zeros(n_tasks, np.float32)
+        self._onehot[index] = 1.0
+        box = _vector_box(env.observation_space)
+        new = gym.spaces.Box(
+            np.concatenate([box.low, np.zeros(n_tasks, np.float32)]),
+            np.concatenate([box.high, np.ones(n_tasks, np.float32)]),
+            dtype=np.float32,
+        )
+        self._goal = isinstance(env.observation_space, gym.spaces.Dict)
+        if self._goal:
+            self.observation_space = gym.spaces.Dict({**env.observation_space.spaces, "observation": new})  # type: ignore[attr-defined]
+        else:
+            self.observation_space = new
+
+    def observation(self, observation: Any) -> Any:
+        if self._goal:
+            return {**observation, "observation": np.concatenate([observation["observation"], self._onehot])}
+        return np.concatenate([observation, self._onehot]).astype(np.float32)
+
+
+def _union(spaces: list[gym.spaces.Box]) -> gym.spaces.Box:
+    low = np.min(np.stack([s.low for s in spaces]), axis=0)
+    high = np.max(np.stack([s.high for s in spaces]), axis=0)
+    return gym.spaces.Box(low, high, dtype=np.float32)
+
+
+class TaskSamplerEnv(gym.Env[Any, Any]):
+    """One env per episode, sampled uniformly from ``envs`` (see the module docstring).
+
+    The envs must already share observation and action sizes (``build_env(..., pad_to=...)``); the observation
+    space is the union of their bounds and the action space their intersection ([-1, 1] for the reach envs).
+    A goal env's ``compute_reward`` is the first env's: the reach reward is the same function for every arm.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(self, envs: Sequence[gym.Env[Any, Any]], labels: Sequence[str], *, seed: int | None = None) -> None:
+        if not envs or len(envs) != len(labels):
+            raise ConfigError(f"TaskSamplerEnv needs one label per env, got {len(envs)} envs, {len(labels)} labels")
+        self.envs = list(envs)
+        self.labels = list(labels)
+        sizes = {space_sizes(e) for e in self.envs}
+        if len(sizes) != 1:
+            raise ConfigError(
+                "TaskSamplerEnv: envs differ in (observation, action) size: "
+                + ", ".join(f"{lab}: {space_sizes(e)}" for lab, e in zip(self.labels, self.envs, strict=True))
+                + " (pad them with build_env(..., pad_to=...))"
+            )
+        first = self.envs[0].observation_space
+        self._goal = isinstance(first, gym.spaces.Dict)
+        if any(isinstance(e.observation_space, gym.spaces.Dict) != self._goal for e in self.envs):
+            raise ConfigError(f"TaskSamplerEnv: mixing goal and standard envs: {self.labels}")
+        obs_box = _union([_vector_box(e.observation_space) for e in self.envs])
+        if self._goal:
+            self.observation_space = gym.spaces.Dict({**first.spaces, "observation": obs_box})  # type: ignore[attr-defined]
+        else:
+            self.observation_space = obs_box
+        acts = [e.action_space for e in self.envs]
+        self.action_space = gym.spaces.Box(
+            np.max(np.stack([a.low for a in acts]), axis=0),  # type: ignore[attr-defined]
+            np.min(np.stack([a.high for a in acts]), axis=0),  # type: ignore[attr-defined]
+            dtype=np.float32,
+        )
+        self._task_rng = np.random.default_rng(seed)
+        self.current = 0
+        self.episodes = [0] * len(self.envs)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        """Sample the episode's env and reset it; a seed reseeds the sampler and every env."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self._task_rng = np.random.default_rng(seed)
+            for i, env in enumerate(self.envs):
+                env.reset(seed=seed + 1000 * (i + 1))
+        self.current = int(self._task_rng.integers(len(self.envs)))
+        self.episodes[self.current] += 1
+        obs, info = self.envs[self.current].reset(options=options)
+        return obs, self._tag(info)
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """Step the current episode's env."""
+        obs, reward, terminated, truncated, info = self.envs[self.current].step(action)
+        return obs, float(reward), bool(terminated), bool(truncated), self._tag(info)
+
+    def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
+        """The goal envs' reward (HER relabelling)."""
+        env = self.envs[0]
+        fn = getattr(env.unwrapped, "compute_reward", None)
+        if fn is not None:
+            return fn(achieved_goal, desired_goal, info)
+        return env.unwrapped.call("compute_reward", achieved_goal, desired_goal, info)  # type: ignore[attr-defined]
+
+    def __getattr__(self, name: str) -> Any:
+        # task settings (reward_type, reach_tolerance, ...) of the first env, for SB3's get_attr and
+        # her.LocalGoalReward; a proxy env reads them from its worker
+        if name.startswith("_") or name in ("envs", "labels"):
+            raise AttributeError(name)
+        env = self.__dict__.get("envs", [None])[0]
+        if env is None:
+            raise AttributeError(name)
+        try:
+            return env.get_wrapper_attr(name)
+        except AttributeError:
+            inner = env.unwrapped
+            if hasattr(type(inner), "call") and hasattr(inner, "_worker"):
+                return inner.call(name)
+            raise
+
+    def close(self) -> None:
+        """Close every env."""
+        for env in self.envs:
+            env.close()
+
+    def _tag(self, info: dict[str, Any]) -> dict[str, Any]:
+        return {**info, "task": self.labels[self.current], "task_index": self.current}
