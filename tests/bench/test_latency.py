@@ -1,0 +1,194 @@
+"""``uniros bench latency``: the metrics, the scenarios (a few seconds each), the JSON schema and the errors.
+
+The scenarios run real worker processes and real wall-clock env loops; they check plausibility (an actuator
+cycle near the loop period), never performance: the figures are the benchmark's job (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from uniros_async.bench import latency
+from uniros_async.bench.looptiming import METRICS, Series, format_table, loop_metrics, since, to_records
+from uniros_async.cli import main as cli_main
+from uniros_async.errors import ConfigError
+
+KEYS = {"scenario", "env", "learner", "metric", "median_ms", "iqr_ms", "p99_ms", "max_ms", "count"}
+MS = 1_000_000
+
+
+# ---------------------------------------------------------------------------------------------- metrics
+
+
+def test_loop_metrics_skip_resets_silent_ticks_and_use_the_agents_receive_time() -> None:
+    ticks = [i * 100 * MS for i in range(12)]
+    commanded = [t for i, t in enumerate(ticks) if i not in (5,)]  # tick 5 sent nothing (e.g. an unsafe hold)
+    commanded.append(ticks[7] + 3 * MS)  # a hold sent outside a tick is no actuator cycle
+    snap: dict[str, Any] = {
+        "tick_ns": ticks,
+        "command_ns": sorted(commanded),
+        "action_ns": [50 * MS, 850 * MS, 1660 * MS, 2450 * MS],
+        "step_ns": [801 * MS, 1601 * MS, 2401 * MS, 3201 * MS],
+        "observation_age_ns": [1 * MS, 1 * MS, 1 * MS, 1 * MS],
+        "action_latency_ns": [50 * MS, 50 * MS],
+        "step_overruns": 0,
+    }
+    m = loop_metrics(snap, reset_after={1}, recv_ns=[802 * MS, 1603 * MS, 2401 * MS, 3210 * MS])
+    assert m["actuator_cycle"] == [100.0] * 9  # 11 periods, minus the two around the silent tick 5
+    assert m["action_cycle"] == [800.0, 790.0]  # the period after step 1 spans a reset
+    assert m["observation_age"] == [2.0, 1.0, 10.0]  # step 1 ended an episode
+    assert m["action_latency"] == [50.0, 50.0]
+    assert loop_metrics(snap)["observation_age"] == [1.0] * 4  # no receive times: the env-side age
+
+
+def test_since_cuts_an_earlier_snapshot_off() -> None:
+    earlier = {"tick_ns": [1, 2], "action_ns": [], "step_overruns": 1}
+    later = {"tick_ns": [1, 2, 3, 4], "action_ns": [5], "step_overruns": 3}
+    assert since(later, earlier) == {"tick_ns": [3, 4], "action_ns": [5], "step_overruns": 2}
+
+
+def test_records_and_table_name_every_metric_even_without_samples() -> None:
+    s = Series(env="rx200 sim", learner="x", samples={"actuator_cycle": [100.0, 100.2]}, period_ms=100.0)
+    records = to_records("single", [s])
+    assert [r["metric"] for r in records] == list(METRICS)
+    assert all(set(r) == KEYS for r in records)
+    assert records[1]["median_ms"] is None and records[1]["count"] == 0
+    json.dumps(records, allow_nan=False)  # valid JSON: no NaN
+    assert "100 +- 0.1" in format_table([s], records)
+
+
+# ---------------------------------------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        ({"scenario": "nope"}, ["'nope'", "concurrent", "turn-based"]),
+        ({"duration_s": 0.0}, ["duration_s", "0.0"]),
+        ({"duration_s": float("nan")}, ["duration_s", "nan"]),
+        ({"scenario": "sweep", "learners": ("sb3-td3",)}, ["'sweep'", "no learner"]),
+        ({"scenario": "single", "learners": ("ppo",)}, ["'ppo'", "sb3-td3", "async-td3"]),
+        ({"scenario": "single", "learners": ("sb3-td3", "sb3-td3")}, ["repeated"]),
+        ({"think_ms": 900.0}, ["think_ms=900", "800 ms"]),
+        ({"scenario": "sweep", "think_ms": 100.0}, ["think_ms=100", "100 ms"]),
+        ({"action_cycle_s": -1.0}, ["action_cycle_s", "-1.0"]),
+        ({"plot_path": "fig.bmp"}, ["fig.bmp", ".png"]),
+        ({"learning_starts": 0}, ["learning_starts", "0"]),
+    ],
+)
+def test_bad_settings_name_the_value_and_the_choices(kwargs: dict[str, Any], words: list[str]) -> None:
+    with pytest.raises(ConfigError) as info:
+        latency.LatencyBenchConfig(**kwargs)
+    for w in words:
+        assert w in str(info.value)
+
+
+def test_cli_reports_bad_arguments_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["bench", "latency", "--scenario", "single", "--learner", "ppo", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown learner(s) ['ppo']" in err and "async-td3" in err
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["bench", "latency", "--scenario", "nope"])
+    assert exit_info.value.code == 2
+    assert "invalid choice: 'nope'" in capsys.readouterr().err
+
+
+def test_a_missing_async_learner_is_refused_before_any_process_starts(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(latency, "async_td3_available", lambda: False)
+    with pytest.raises(ConfigError, match="--learner sb3-td3"):
+        latency.run(latency.LatencyBenchConfig(scenario="concurrent", duration_s=1.0, progress=False))
+
+
+# ---------------------------------------------------------------------------------------------- scenarios
+
+
+def _check(records: list[dict[str, Any]], path: Path, scenario: str, envs: set[str], learners: set[str]) -> None:
+    assert json.loads(path.read_text()) == records
+    assert all(set(r) == KEYS and r["scenario"] == scenario for r in records)
+    assert {r["env"] for r in records} == envs
+    assert {r["learner"] for r in records} == learners
+    assert {r["metric"] for r in records} == set(METRICS)
+    for r in records:
+        if r["metric"] == "action_cycle" or (r["metric"] == "actuator_cycle" and "turn-based" not in r["env"]):
+            assert r["count"] >= 1, r
+
+
+def _median(records: list[dict[str, Any]], env: str, metric: str, learner: str | None = None) -> float:
+    (r,) = [r for r in records if r["env"] == env and r["metric"] == metric and learner in (None, r["learner"])]
+    return float(r["median_ms"])
+
+
+@pytest.mark.slow
+def test_turn_based_scenario(tmp_path: Path) -> None:
+    out, plot = tmp_path / "tb.json", tmp_path / "tb.png"
+    cfg = latency.LatencyBenchConfig(
+        scenario="turn-based", duration_s=3.2, json_path=str(out), plot_path=str(plot), progress=False
+    )
+    records = latency.main(cfg, log=lambda _: None)
+    _check(records, out, "turn-based", {"rx200 sim real-time", "rx200 sim turn-based"}, {"scripted"})
+    assert plot.stat().st_size > 10_000
+    assert abs(_median(records, "rx200 sim real-time", "actuator_cycle") - 100.0) < 5.0
+    # the turn-based env of a real arm: no loop (no actuator cycle), one command at once (no wait for a tick)
+    tb = {r["metric"]: r for r in records if r["env"] == "rx200 sim turn-based"}
+    assert tb["actuator_cycle"]["count"] == 0
+    assert _median(records, "rx200 sim turn-based", "action_latency") < 5.0
+    assert 0.0 < _median(records, "rx200 sim real-time", "observation_age") < 50.0
+    assert 0.0 < _median(records, "rx200 sim turn-based", "observation_age") < 150.0
+
+
+@pytest.mark.slow
+def test_sweep_scenario(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(latency, "SWEEP_RATES_HZ", (20.0,))
+    monkeypatch.setattr(latency, "SWEEP_CYCLES_S", (0.2,))
+    out = tmp_path / "sweep.json"
+    cfg = latency.LatencyBenchConfig(
+        scenario="sweep", duration_s=2.0, think_ms=20.0, json_path=str(out), progress=False
+    )
+    records = latency.main(cfg, log=lambda _: None)
+    envs = {"rx200 sim 20 Hz 800 ms", "rx200 sim 10 Hz 200 ms"}
+    _check(records, out, "sweep", envs, {"scripted"})
+    assert abs(_median(records, "rx200 sim 20 Hz 800 ms", "actuator_cycle") - 50.0) < 5.0
+    assert abs(_median(records, "rx200 sim 10 Hz 200 ms", "actuator_cycle") - 100.0) < 5.0
+
+
+@pytest.mark.slow
+def test_single_scenario_runs_both_learners(tmp_path: Path) -> None:
+    out, plot = tmp_path / "single.json", tmp_path / "single.png"
+    cfg = latency.LatencyBenchConfig(
+        scenario="single", duration_s=4.0, learning_starts=2, json_path=str(out), plot_path=str(plot), progress=False
+    )
+    records = latency.main(cfg, log=lambda _: None)
+    _check(records, out, "single", {"rx200 sim"}, {"sb3-td3", "async-td3"})
+    assert plot.exists()
+    for learner in ("sb3-td3", "async-td3"):
+        assert abs(_median(records, "rx200 sim", "actuator_cycle", learner) - 100.0) < 5.0
+        assert abs(_median(records, "rx200 sim", "action_cycle", learner) - 800.0) < 50.0
+
+
+@pytest.mark.slow
+def test_concurrent_scenario_four_envs_one_learner(tmp_path: Path) -> None:
+    out = tmp_path / "conc.json"
+    cfg = latency.LatencyBenchConfig(
+        scenario="concurrent", duration_s=4.0, learning_starts=2, json_path=str(out), progress=False
+    )
+    records = latency.main(cfg, log=lambda _: None)
+    envs = {"rx200 sim", "rx200 emulated-real", "ned2 sim", "ned2 emulated-real"}
+    _check(records, out, "concurrent", envs, {"async-td3"})
+    for env in envs:
+        period = 100.0 if env.startswith("rx200") else 40.0
+        assert abs(_median(records, env, "actuator_cycle") - period) < 5.0, env
+
+
+@pytest.mark.slow
+def test_envloop_bench_uses_the_same_metrics(tmp_path: Path) -> None:
+    from uniros_async.bench import envloop
+
+    out = tmp_path / "envloop.json"
+    cfg = envloop.EnvLoopBenchConfig(duration_s=2.5, arms=("ned2",), think_ms=20.0, json_path=str(out), progress=False)
+    records = envloop.main(cfg, log=lambda _: None)
+    _check(records, out, "envloop", {"ned2 sim"}, {"scripted"})
+    assert abs(_median(records, "ned2 sim", "actuator_cycle") - 40.0) < 5.0

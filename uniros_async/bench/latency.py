@@ -1,0 +1,467 @@
+"""``uniros bench latency``: the paper's timing figures (UniROS Figures 8 to 10), with learners and worker processes.
+
+Real-time (wall-clock) scenarios; every env runs in its own worker process (``uniros_async.make`` /
+``make_vec``), so a learner's GIL never stalls an env loop. Per env (and learner) the benchmark reports the
+actuator cycle, the action cycle, the observation age and the action latency (defined in ``looptiming``): median,
+IQR, p99, max and count, as a table, ``--json`` records and ``--plot`` box plots.
+
+Scenarios:
+
+- ``single``: the rx200 sim (10 Hz), action cycle 0.8 s, learned by SB3's synchronous TD3 and then by the
+  asynchronous TD3 learner, one after the other in the same run (the paper's Figures 8 and 9).
+- ``concurrent`` (the default): rx200 sim, rx200 emulated real, ned2 sim (25 Hz), ned2 emulated real, at once,
+  under one learner (default the asynchronous one; the paper's Figure 10).
+- ``turn-based``: the rx200 task in real-time mode, then as the turn-based env of a real arm (``turn_based=True,
+  clock="wall"``: no env loop; each step sends one command, waits the action cycle and builds the returns from the
+  newest joint state received), the same number of steps of a scripted agent on the same wall clock.
+- ``sweep``: env-loop rates 1 to 100 Hz (action cycle 0.8 s), and action cycles 100 to 1400 ms (10 Hz), with a
+  scripted agent: timing only.
+
+``--duration`` is the wall time of each phase (each learner, mode or sweep point); learners get
+``learning_starts`` small so that they train during a short run. TD3 follows the paper's hyperparameters.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import importlib.util
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from uniros_async.bench.looptiming import (
+    ARM_OF_ENV_ID,
+    ScriptedReachAgent,
+    Series,
+    format_table,
+    loop_metrics,
+    since,
+    to_records,
+)
+from uniros_async.bench.stats import report
+from uniros_async.errors import ConfigError
+
+__all__ = ["LEARNERS", "SCENARIOS", "LatencyBenchConfig", "main"]
+
+logger = logging.getLogger(__name__)
+
+SCENARIOS = ("single", "concurrent", "turn-based", "sweep")
+LEARNERS = ("sb3-td3", "async-td3")
+# the default run (concurrent) needs 15-40 s beside its phase (torch, 4 workers, 2 emulated arms, the plot)
+DEFAULT_DURATION_S = {"single": 60.0, "concurrent": 80.0, "turn-based": 60.0, "sweep": 12.0}
+DEFAULT_LEARNERS = {"single": ("sb3-td3", "async-td3"), "concurrent": ("async-td3",)}
+SWEEP_RATES_HZ = (1.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+SWEEP_CYCLES_S = (0.1, 0.2, 0.4, 0.8, 1.4)
+RX200 = "uniros/Rx200Reach-v0"
+NED2 = "uniros/Ned2Reach-v0"
+CONCURRENT_ENVS: tuple[tuple[str, str], ...] = (
+    (RX200, "sim"),
+    (RX200, "emulated-real"),
+    (NED2, "sim"),
+    (NED2, "emulated-real"),
+)
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
+ASYNC_TD3_MODULE = "uniros_async.training.async_td3"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class LatencyBenchConfig:
+    """What ``uniros bench latency`` runs.
+
+    Attributes:
+        scenario: one of ``SCENARIOS``.
+        duration_s: wall seconds of each phase; None: the scenario's default (``DEFAULT_DURATION_S``).
+        learners: for ``single`` and ``concurrent``: which of ``LEARNERS`` to run; None: the scenario's default.
+        action_cycle_s: the action cycle of ``single``, ``concurrent`` and ``turn-based``.
+        think_ms: the scripted agent thinks a uniform 0 to this many ms before each step (``turn-based``, ``sweep``).
+        learning_starts: steps before a learner starts training.
+        seed: seeds the envs, the learners and the scripted agent.
+        json_path: write the records there as JSON.
+        plot_path: write box plots there (.png, .svg or .pdf; needs matplotlib).
+        progress: show a progress bar (tqdm, on stderr).
+    """
+
+    scenario: str = "concurrent"
+    duration_s: float | None = None
+    learners: tuple[str, ...] | None = None
+    action_cycle_s: float = 0.8
+    think_ms: float = 50.0
+    learning_starts: int = 10
+    seed: int = 0
+    json_path: str | None = None
+    plot_path: str | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.scenario not in SCENARIOS:
+            raise ConfigError(f"unknown scenario {self.scenario!r}; choose from {list(SCENARIOS)}")
+        if self.duration_s is not None and not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ConfigError(f"duration_s must be a number > 0, got {self.duration_s}")
+        if self.learners is not None:
+            if self.scenario not in DEFAULT_LEARNERS:
+                raise ConfigError(
+                    f"scenario {self.scenario!r} runs a scripted agent (timing only) and takes no learner; "
+                    f"learners go with {sorted(DEFAULT_LEARNERS)}"
+                )
+            bad = [x for x in self.learners if x not in LEARNERS]
+            if bad or not self.learners:
+                raise ConfigError(f"unknown learner(s) {bad or list(self.learners)}; choose from {list(LEARNERS)}")
+            if len(set(self.learners)) != len(self.learners):
+                raise ConfigError(f"learners repeated: {list(self.learners)}")
+        if not 0 < self.action_cycle_s <= 60:
+            raise ConfigError(f"action_cycle_s must be in (0, 60], got {self.action_cycle_s}")
+        if self.think_ms < 0:
+            raise ConfigError(f"think_ms must be >= 0, got {self.think_ms}")
+        shortest = min(SWEEP_CYCLES_S) if self.scenario == "sweep" else self.action_cycle_s
+        if self.think_ms / 1e3 >= shortest:
+            raise ConfigError(
+                f"think_ms={self.think_ms} must be below the shortest action cycle ({shortest * 1e3:g} ms)"
+            )
+        if self.learning_starts < 1:
+            raise ConfigError(f"learning_starts must be >= 1, got {self.learning_starts}")
+        if self.plot_path is not None and Path(self.plot_path).suffix.lower() not in PLOT_SUFFIXES:
+            raise ConfigError(f"plot path {self.plot_path!r} must end with one of {list(PLOT_SUFFIXES)}")
+
+    @property
+    def phase_s(self) -> float:
+        """Wall seconds of each phase."""
+        return self.duration_s if self.duration_s is not None else DEFAULT_DURATION_S[self.scenario]
+
+    @property
+    def run_learners(self) -> tuple[str, ...]:
+        """The learners this run trains (empty for the scripted scenarios)."""
+        if self.learners is not None:
+            return self.learners
+        return DEFAULT_LEARNERS.get(self.scenario, ())
+
+    def phases(self) -> int:
+        """How many timed phases the scenario has (for the progress bar)."""
+        if self.scenario == "sweep":
+            return len(_sweep_points())
+        if self.scenario == "turn-based":
+            return 2  # real-time, then turn-based, both on the wall clock
+        return max(1, len(self.run_learners))
+
+
+def _sweep_points() -> list[tuple[float, float]]:
+    """(env-loop rate Hz, action cycle s) of the sweep: the rates at 0.8 s, then the cycles at 10 Hz (no repeat)."""
+    points = [(r, 0.8) for r in SWEEP_RATES_HZ]
+    points += [(10.0, c) for c in SWEEP_CYCLES_S if (10.0, c) not in points]
+    return points
+
+
+def async_td3_available() -> bool:
+    """Whether the asynchronous TD3 learner (``uniros_async.training.async_td3``) is in this installation."""
+    try:
+        return importlib.util.find_spec(ASYNC_TD3_MODULE) is not None
+    except ModuleNotFoundError:  # pragma: no cover - uniros_async.training itself missing
+        return False
+
+
+# ------------------------------------------------------------------------------------------ progress
+
+
+class _Progress:
+    """A tqdm bar over the scenario's timed seconds, advanced by wall time from a thread (learners own the loop)."""
+
+    def __init__(self, total_s: float, enabled: bool, desc: str) -> None:
+        self._bar: Any = None
+        self._base = 0.0
+        self._t0: float | None = None
+        self._cap = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if enabled:
+            from tqdm import tqdm
+
+            self._bar = tqdm(
+                total=round(total_s), desc=desc, unit="s", leave=False, bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s"
+            )
+            self._thread = threading.Thread(target=self._run, name="latency bench progress", daemon=True)
+            self._thread.start()
+
+    @contextlib.contextmanager
+    def phase(self, seconds: float) -> Iterator[None]:
+        """Count the wall time of the block, up to ``seconds``, then move the bar past it."""
+        self._t0, self._cap = time.monotonic(), seconds
+        try:
+            yield
+        finally:
+            self._t0 = None
+            self._base += seconds
+            self._show(self._base)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.5):
+            t0 = self._t0
+            if t0 is not None:
+                self._show(self._base + min(self._cap, time.monotonic() - t0))
+
+    def _show(self, n: float) -> None:
+        if self._bar is not None:
+            self._bar.n = min(float(self._bar.total), n)
+            self._bar.refresh()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+        if self._bar is not None:
+            self._bar.close()
+
+
+# ------------------------------------------------------------------------------------------ learners
+
+
+def _td3_kwargs(n_actions: int, cfg: LatencyBenchConfig) -> dict[str, Any]:
+    """The paper's TD3 hyperparameters, with ``learning_starts`` small so a short run trains."""
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    return {
+        "learning_rate": 3e-4,
+        "buffer_size": 100_000,
+        "learning_starts": cfg.learning_starts,
+        "batch_size": 256,
+        "tau": 0.005,
+        "gamma": 0.99,
+        "train_freq": 1,
+        "gradient_steps": 1,
+        "policy_delay": 2,
+        "target_policy_noise": 0.2,
+        "target_noise_clip": 0.5,
+        "action_noise": NormalActionNoise(np.zeros(n_actions), 0.1 * np.ones(n_actions)),
+        "policy_kwargs": {"net_arch": [400, 300]},
+        "seed": cfg.seed,
+        "device": "cpu",
+        "verbose": 0,
+    }
+
+
+def _learner_class(name: str) -> type:
+    if name == "sb3-td3":
+        from stable_baselines3 import TD3
+
+        return TD3
+    if not async_td3_available():
+        raise ConfigError(
+            f"learner 'async-td3' needs {ASYNC_TD3_MODULE}, which this installation lacks; "
+            "run with --learner sb3-td3, or install a version with the asynchronous learner"
+        )
+    import importlib
+
+    cls: type = importlib.import_module(ASYNC_TD3_MODULE).AsyncTD3
+    return cls
+
+
+def _check_learners(cfg: LatencyBenchConfig) -> None:
+    """Fail before any process starts when a learner is unavailable."""
+    for name in cfg.run_learners:
+        if name == "async-td3" and not async_td3_available():
+            _learner_class(name)  # raises the ConfigError
+
+
+def _step_recorder(venv: Any) -> Any:
+    """An SB3 VecEnvWrapper that records, per step, when the agent got the returns and which envs were done."""
+    from stable_baselines3.common.vec_env import VecEnvWrapper
+
+    class StepRecorder(VecEnvWrapper):
+        def __init__(self, venv: Any) -> None:
+            super().__init__(venv)
+            self.recv_ns: list[int] = []
+            self.dones: list[np.ndarray] = []
+
+        def reset(self) -> Any:
+            return self.venv.reset()
+
+        def step_wait(self) -> Any:
+            obs, rewards, dones, infos = self.venv.step_wait()
+            self.recv_ns.append(time.monotonic_ns())
+            self.dones.append(np.asarray(dones, dtype=bool).copy())
+            return obs, rewards, dones, infos
+
+    return StepRecorder(venv)
+
+
+def _run_learner(
+    name: str, vec: Any, labels: Sequence[tuple[str, str]], cfg: LatencyBenchConfig, progress: _Progress
+) -> list[Series]:
+    """Train learner ``name`` on ``vec`` (a UnirosVectorEnv) for one phase; the timing of each of its envs."""
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    torch.set_num_threads(1)  # beside env loops on 2 cores, more threads stall updates (design.md section 9)
+    cls = _learner_class(name)
+    rec = _step_recorder(vec.as_sb3())
+    n_actions = int(np.prod(vec.single_action_space.shape))
+    model = cls("MlpPolicy", rec, **_td3_kwargs(n_actions, cfg))
+    steps = max(2, math.ceil(cfg.phase_s / cfg.action_cycle_s))
+
+    class _Deadline(BaseCallback):
+        """Stops learning at the phase's end even when steps overran their cycle."""
+
+        def __init__(self, end: float) -> None:
+            super().__init__()
+            self.end = end
+
+        def _on_step(self) -> bool:
+            return time.monotonic() < self.end
+
+    before = vec.call("timing_snapshot")  # not clear=True: see looptiming.since
+    with progress.phase(cfg.phase_s):
+        # + 30 s: learn()'s own start (its reset) must not cut the phase short; the step count ends it. The
+        # asynchronous learner joins its update thread before learn() returns or raises.
+        model.learn(total_timesteps=steps * vec.num_envs, callback=_Deadline(time.monotonic() + cfg.phase_s + 30.0))
+    snaps = [since(now, then) for now, then in zip(vec.call("timing_snapshot"), before, strict=True)]
+    rates = vec.get_attr("env_loop_rate_hz")
+    any_done = {k for k, d in enumerate(rec.dones) if bool(np.any(d))}
+    out = []
+    for (env, row), snap, rate in zip(labels, snaps, rates, strict=True):
+        out.append(
+            Series(
+                env=env,
+                learner=name,
+                samples=loop_metrics(snap, reset_after=any_done, recv_ns=rec.recv_ns),
+                period_ms=1e3 / float(rate),
+                action_cycle_ms=cfg.action_cycle_s * 1e3,
+                row=row,
+                step_overruns=int(snap.get("step_overruns", 0)),
+            )
+        )
+    return out
+
+
+def _env_label(env_id: str, robot: str) -> str:
+    return f"{ARM_OF_ENV_ID[env_id]} {robot}"
+
+
+def _run_learner_scenario(
+    specs: Sequence[tuple[str, str]], cfg: LatencyBenchConfig, progress: _Progress
+) -> list[Series]:
+    from uniros_async.runtime import make_vec
+
+    labels = [(_env_label(e, r), _env_label(e, r)) for e, r in specs]
+    vec = make_vec([(e, {"robot": r}) for e, r in specs], action_cycle_s=cfg.action_cycle_s, call_timeout_s=60.0)
+    try:
+        out: list[Series] = []
+        for name in cfg.run_learners:
+            out += _run_learner(name, vec, labels, cfg, progress)
+        return out
+    finally:
+        vec.close()
+
+
+# ------------------------------------------------------------------------------------------ scripted agents
+
+
+def _run_scripted(
+    env_kwargs: dict[str, Any], label: str, row: str, box: str, steps: int, cfg: LatencyBenchConfig, *, wall: bool
+) -> Series:
+    """``steps`` steps of the scripted agent on the rx200 reach env in a worker; its timing."""
+    from uniros_async.runtime import make
+
+    agent = ScriptedReachAgent("rx200", think_ms=cfg.think_ms, seed=cfg.seed)
+    env: Any = make(RX200, **env_kwargs)  # a ProxyEnv: its call() reaches the env in the worker
+    try:
+        env.reset(seed=cfg.seed)
+        env.call("timing_snapshot", clear=True)
+        recv_ns: list[int] = []
+        reset_after: set[int] = set()
+        for k in range(steps):
+            _, _, terminated, truncated, _ = env.step(agent.act())
+            recv_ns.append(time.monotonic_ns())
+            if terminated or truncated:
+                reset_after.add(k)
+                env.reset()
+        snap = env.call("timing_snapshot")
+        rate = float(env.call("env_loop_rate_hz"))
+    finally:
+        env.close()
+    return Series(
+        env=label,
+        learner="scripted",
+        samples=loop_metrics(snap, reset_after=reset_after, recv_ns=recv_ns if wall else None),
+        period_ms=1e3 / rate,
+        action_cycle_ms=float(env_kwargs.get("action_cycle_s", cfg.action_cycle_s)) * 1e3,
+        row=row,
+        box=box,
+        step_overruns=int(snap.get("step_overruns", 0)),
+    )
+
+
+def _run_turn_based(cfg: LatencyBenchConfig, progress: _Progress) -> list[Series]:
+    steps = max(2, math.ceil(cfg.phase_s / cfg.action_cycle_s))
+    kw = {"robot": "sim", "action_cycle_s": cfg.action_cycle_s}
+    with progress.phase(cfg.phase_s):
+        real_time = _run_scripted(kw, "rx200 sim real-time", "rx200 sim", "real-time", steps, cfg, wall=True)
+    # the turn-based env of a real arm (openai_ros style) on the same wall clock: no env loop, one command per
+    # step, returns built at the end of the cycle from the newest joint state received
+    with progress.phase(cfg.phase_s):
+        turn = _run_scripted(
+            {**kw, "turn_based": True, "clock": "wall"}, "rx200 sim turn-based", "rx200 sim", "turn-based", steps, cfg,
+            wall=True,
+        )
+    return [real_time, turn]
+
+
+def _run_sweep(cfg: LatencyBenchConfig, progress: _Progress) -> list[Series]:
+    out = []
+    for rate, cycle in _sweep_points():
+        steps = max(2, math.ceil(cfg.phase_s / cycle))
+        label = f"rx200 sim {rate:g} Hz {cycle * 1e3:g} ms"
+        kw = {"robot": "sim", "action_cycle_s": cycle, "env_loop_rate_hz": rate}
+        with progress.phase(cfg.phase_s):
+            out.append(_run_scripted(kw, label, label, "scripted", steps, cfg, wall=True))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ main
+
+
+def run(config: LatencyBenchConfig) -> list[Series]:
+    """Run the scenario and return its series (no printing); see ``main``.
+
+    Raises:
+        ConfigError: a learner that this installation lacks (before any process starts).
+        WorkerError: an env's worker failed (its traceback attached); every worker is stopped.
+    """
+    _check_learners(config)
+    progress = _Progress(config.phase_s * config.phases(), config.progress, f"latency bench ({config.scenario})")
+    try:
+        if config.scenario == "single":
+            return _run_learner_scenario([(RX200, "sim")], config, progress)
+        if config.scenario == "concurrent":
+            return _run_learner_scenario(CONCURRENT_ENVS, config, progress)
+        if config.scenario == "turn-based":
+            return _run_turn_based(config, progress)
+        return _run_sweep(config, progress)
+    finally:
+        progress.close()
+
+
+def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Run the scenario, print the table, write JSON and the plot when asked; returns the records.
+
+    Raises:
+        ConfigError: a learner this installation lacks, or a plot asked for without matplotlib (both before any
+            process starts).
+        WorkerError: an env's worker failed.
+    """
+    if config.plot_path is not None and importlib.util.find_spec("matplotlib") is None:
+        raise ConfigError("--plot needs matplotlib: pip install matplotlib (or the [bench] extra)")
+    series = run(config)
+    records = to_records(config.scenario, series)
+    title = f"uniros bench latency --scenario {config.scenario} --duration {config.phase_s:g}"
+    report(f"{title}\n{format_table(series, records)}", records, config.json_path, log)
+    if config.plot_path is not None:
+        from uniros_async.bench._plot import box_plots
+
+        box_plots(series, config.plot_path, title=title)
+        log(f"wrote {config.plot_path}")
+    return records
