@@ -3,9 +3,14 @@ gymnasium VectorEnv, and through ``.as_sb3()`` an SB3 VecEnv, over one worker pe
 
 See docs/architecture.md and issue 5: every env runs in its own spawned process with its own event loop; the agent
 side talks to it over ``shm://``; worker failures come back as WorkerError with the worker's index and traceback.
+A spec with ``worker="tcp://HOST:PORT"`` runs on a launcher on another host (``uniros worker serve``,
+``serve_launcher``), over tcp (runtime/remote.py).
 """
 
+from uniros_async.runtime.remote import Launcher, RemoteWorker, serve_launcher
 from uniros_async.runtime.supervisor import ProxyEnv, Supervisor, make
 from uniros_async.runtime.vector import UnirosVectorEnv, make_vec
 
-__all__ = ["ProxyEnv", "Supervisor", "UnirosVectorEnv", "make", "make_vec"]
+__all__ = [
+    "Launcher", "ProxyEnv", "RemoteWorker", "Supervisor", "UnirosVectorEnv", "make", "make_vec", "serve_launcher",
+]

@@ -16,6 +16,13 @@ Start-up: every process is started first (spawn, daemon), then each worker's lis
 supervisor connects to all of them and asks each for its spaces, in parallel.
 If any worker fails to start, all are closed and the error names the worker and why.
 
+Remote workers (issue 5): a spec whose kwargs hold ``worker="tcp://HOST:PORT"`` (or a ``remote.RemoteWorker``) is
+started by the launcher there (``uniros worker serve``, runtime/remote.py) instead of ``_spawn``; the launcher
+answers with the worker's tcp URI and the supervisor connects to it directly, as to a local one. Its ``process`` is
+a ``RemoteWorkerProcess`` (pid and exit code as the launcher reports them); a broken connection is reported with
+the exit code the launcher saw, ``restart`` starts the new worker through the same launcher, and ``close`` has the
+launcher terminate and kill what does not exit by itself. Local and remote workers mix freely.
+
 ``make(env_id, **kwargs)`` returns ``ProxyEnv``, a gymnasium.Env over one worker.
 """
 
@@ -39,6 +46,7 @@ import numpy as np
 from gymnasium.envs.registration import registry
 
 from uniros_async.errors import ConfigError, TransportError, WorkerError
+from uniros_async.runtime.remote import RemoteWorker, RemoteWorkerProcess, check_plain, parse_placement
 from uniros_async.runtime.worker import WorkerSpec, pack, space_from_plain, unpack, worker_entry
 
 __all__ = ["ProxyEnv", "Supervisor", "WorkerHandle", "check_env_args", "make"]
@@ -52,18 +60,41 @@ _LISTEN_URIS = {"shm": "shm://", "tcp": "tcp://127.0.0.1:0"}
 
 # gymnasium.make's own keyword arguments (not passed to the env constructor)
 _MAKE_KWARGS = {"max_episode_steps", "disable_env_checker", "autoreset", "apply_api_compatibility"}
+# where the worker runs (runtime/remote.py); taken out of the kwargs before they reach the env
+_PLACEMENT_KWARG = "worker"
+
+
+def split_placement(kwargs: dict[str, Any]) -> tuple[RemoteWorker | None, dict[str, Any]]:
+    """The placement of a spec (None: a local worker) and the kwargs without it.
+
+    Raises:
+        ConfigError: a malformed ``worker`` value.
+    """
+    if _PLACEMENT_KWARG not in kwargs:
+        return None, kwargs
+    rest = {k: v for k, v in kwargs.items() if k != _PLACEMENT_KWARG}
+    return parse_placement(kwargs[_PLACEMENT_KWARG]), rest
 
 
 def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
     """Check, in the caller, that ``env_id`` is registered and (for uniros envs) that ``kwargs`` are known.
 
+    ``worker`` (where the worker runs, see runtime/remote.py) is accepted and checked, never passed to the env. For
+    a spec placed on a launcher, an id unknown here is left to the launcher's registry to judge.
+
     Raises:
         ConfigError: an unknown id (the registered uniros ids are listed) or unknown keyword arguments (the
-            valid ones are listed), or an invalid run-time setting (EnvConfig's own checks).
+            valid ones are listed), or an invalid run-time setting (EnvConfig's own checks), or a malformed
+            ``worker``, or (remote) kwargs that are not plain data.
     """
     from uniros_async.tasks.registry import ENV_IDS, register_envs
 
+    placement, kwargs = split_placement(kwargs)
+    if placement is not None:
+        check_plain(kwargs, str(env_id))
     register_envs()
+    if placement is not None and isinstance(env_id, str) and env_id not in registry:
+        return
     if not isinstance(env_id, str) or env_id not in registry:
         raise ConfigError(f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}")
     entry = registry[env_id].entry_point
@@ -84,8 +115,8 @@ class WorkerHandle:
     """The supervisor's side of one worker."""
 
     spec: WorkerSpec
-    process: multiprocessing.process.BaseProcess
-    conn: Any  # the start-up pipe end
+    process: multiprocessing.process.BaseProcess | RemoteWorkerProcess
+    conn: Any = None  # the start-up pipe end (None for a remote worker)
     transport: Any = None
     broken: str | None = None
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -104,6 +135,11 @@ class WorkerHandle:
     def index(self) -> int:
         return self.spec.index
 
+    @property
+    def remote(self) -> RemoteWorkerProcess | None:
+        """The launcher's handle of a remote worker, or None for a local one."""
+        return self.process if isinstance(self.process, RemoteWorkerProcess) else None
+
     async def request(self, message: dict[str, Any], timeout_s: float) -> Any:
         """Send ``message`` and wait for the reply's result.
 
@@ -120,6 +156,10 @@ class WorkerHandle:
         if self.broken is not None:
             raise WorkerError(self.index, self.broken)
         self.check_idle()
+        remote = self.remote
+        if remote is not None and remote.lifeline_has_news():  # its launcher reported the exit, or died
+            self.broken = await self._death_reason()
+            raise WorkerError(self.index, self.broken)
         op = message.get("op")
         frame = pack(message)
         try:
@@ -168,6 +208,14 @@ class WorkerHandle:
         return reply.get("result")
 
     async def _death_reason(self) -> str:
+        remote = self.remote
+        if remote is not None:
+            code = await remote.poll_exit(0.5)  # the launcher reports the exit a moment after the connection broke
+            if code is not None:
+                return f"the remote worker process ({self.spec.env_id}, {remote.where()}) died with exit code {code}"
+            if remote.launcher_lost:
+                return f"the remote worker ({self.spec.env_id}, {remote.where()}) is lost: {remote.launcher_lost}"
+            return f"the connection to the remote worker ({self.spec.env_id}, {remote.where()}) broke"
         for _ in range(20):  # the connection usually breaks a moment before the process is reaped
             if self.process.exitcode is not None:
                 break
@@ -186,7 +234,8 @@ class Supervisor:
         start_timeout_s: bound on starting every worker and building its env.
         call_timeout_s: bound on any one request (reset, step, ...).
         close_timeout_s: bound on ``close`` per stage (ask, join, terminate).
-        transport: ``"shm"`` (same machine, the default) or ``"tcp"`` (loopback).
+        transport: ``"shm"`` (same machine, the default) or ``"tcp"`` (loopback), for local workers; a spec with
+            ``worker="tcp://HOST:PORT"`` in its kwargs runs on that launcher, over tcp.
     """
 
     def __init__(
@@ -223,10 +272,40 @@ class Supervisor:
     def _start(self, specs: Sequence[tuple[str, dict[str, Any]]], timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         for index, (env_id, kwargs) in enumerate(specs):
-            self.workers.append(self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri))
-        uris = [self._wait_uri(w, deadline) for w in self.workers]
+            placement, env_kwargs = split_placement(kwargs)
+            self.workers.append(self._new_handle(index, env_id, env_kwargs, placement, timeout_s))
+        uris = self._launch(self.workers, deadline)
         remaining = max(0.1, deadline - time.monotonic())
         self.call(self._connect_all(self.workers, uris, remaining), remaining + 1.0)
+
+    def _new_handle(
+        self, index: int, env_id: str, kwargs: dict[str, Any], placement: RemoteWorker | None, timeout_s: float
+    ) -> WorkerHandle:
+        """A local worker, started now, or a remote one, to be started by ``_launch``."""
+        if placement is None:
+            return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri)
+        spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s,
+                          listen_uri=placement.uri)
+        return WorkerHandle(spec=spec, process=RemoteWorkerProcess(placement))
+
+    def _launch(self, workers: list[WorkerHandle], deadline: float) -> list[str]:
+        """Ask the launchers of the remote ``workers`` to start them (in parallel, while the local ones start), then
+        read the local ones' URIs; the workers' URIs in order."""
+        remote = [w for w in workers if w.remote is not None]
+        if remote:
+            remaining = max(0.1, deadline - time.monotonic())
+
+            async def start_all() -> None:
+                results = await asyncio.gather(
+                    *(w.remote.start(w.index, w.spec.env_id, w.spec.kwargs, remaining) for w in remote),  # type: ignore[union-attr]
+                    return_exceptions=True,
+                )
+                for r in results:
+                    if isinstance(r, BaseException):
+                        raise r
+
+            self.call(start_all(), remaining + 2.0)
+        return [w.remote.worker_uri if w.remote is not None else self._wait_uri(w, deadline) for w in workers]
 
     @staticmethod
     def _spawn(index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str) -> WorkerHandle:
@@ -256,23 +335,41 @@ class Supervisor:
             WorkerError: the new worker failed to start (it is stopped again).
         """
         old = self.workers[index]
-        with contextlib.suppress(Exception):
-            self.call(_aclose(old.transport), 5.0)
-        _stop_process(old.process, self.close_timeout_s)
-        new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri)
-        self.workers[index] = new
+        self._discard(old)
+        old_remote = old.remote
         deadline = time.monotonic() + timeout_s
+        if old_remote is None:
+            new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri)
+        else:  # through the same launcher
+            new = self._new_handle(index, old.spec.env_id, old.spec.kwargs, old_remote.placement, timeout_s)
+        self.workers[index] = new
         try:
-            uri = self._wait_uri(new, deadline)
+            uris = self._launch([new], deadline)
             remaining = max(0.1, deadline - time.monotonic())
-            self.call(self._connect_all([new], [uri], remaining), remaining + 1.0)
-        except BaseException:
+            self.call(self._connect_all([new], uris, remaining), remaining + 1.0)
+        except BaseException as exc:
             new.broken = "restart failed"
-            with contextlib.suppress(Exception):
-                self.call(_aclose(new.transport), 5.0)
-            _stop_process(new.process, self.close_timeout_s)
+            self._discard(new)
+            if old_remote is not None and isinstance(exc, WorkerError | ConfigError):
+                where = old_remote.placement.uri
+                raise WorkerError(
+                    index, f"could not restart the remote worker through its launcher {where}: {exc}",
+                    remote_traceback=getattr(exc, "remote_traceback", ""),
+                ) from exc
             raise
         return new
+
+    def _discard(self, w: WorkerHandle) -> None:
+        """Close ``w``'s connection and stop its process, whatever its state (bounded)."""
+        with contextlib.suppress(Exception):
+            self.call(_aclose(w.transport), 5.0)
+        remote = w.remote
+        if remote is None:
+            _stop_process(w.process, self.close_timeout_s)  # type: ignore[arg-type]
+        else:
+            t = self.close_timeout_s
+            with contextlib.suppress(Exception):
+                self.call(remote.stop(t, asked=False), 2 * t + 4.0)
 
     @staticmethod
     def _wait_uri(w: WorkerHandle, deadline: float) -> str:
@@ -287,7 +384,8 @@ class Supervisor:
         try:
             uri = w.conn.recv()
         except EOFError:
-            w.process.join(1.0)
+            if isinstance(w.process, multiprocessing.process.BaseProcess):
+                w.process.join(1.0)
             raise WorkerError(
                 w.index, f"{w.spec.env_id}: the worker exited with code {w.process.exitcode} at start; {hint}"
             ) from None
@@ -298,8 +396,9 @@ class Supervisor:
         from uniros_async.transports.base import TransportOptions, connect
 
         async def one(w: WorkerHandle, uri: str) -> None:
+            key = w.remote.placement.auth_key if w.remote is not None else None
             try:
-                w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s))
+                w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s, auth_key=key))
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
             w.info = await w.request({"op": "spaces"}, timeout_s)
@@ -492,21 +591,36 @@ class Supervisor:
                 acked = self._drive(_bounded(self._close_all(t), t + 2.0), t + 2.0, finish_orphans=False)
             except Exception:  # noqa: BLE001 - shutting down whatever state they are in
                 logger.warning("asking the workers to close failed", exc_info=True)
+        remote = [(w.remote, ok) for w, ok in zip(self.workers, acked, strict=True) if w.remote is not None]
+        if remote and not self._loop.is_closed():  # the launchers join, terminate and kill them (bounded)
+
+            async def stop_remote() -> None:
+                await asyncio.gather(*(r.stop(t, asked=ok) for r, ok in remote), return_exceptions=True)
+
+            try:
+                self._drive(_bounded(stop_remote(), 2 * t + 3.0), 2 * t + 3.0, finish_orphans=False)
+            except Exception:  # noqa: BLE001
+                logger.warning("stopping the remote workers failed", exc_info=True)
+        local = [
+            (w, w.process, ok)
+            for w, ok in zip(self.workers, acked, strict=True)
+            if isinstance(w.process, multiprocessing.process.BaseProcess)
+        ]
         deadline = time.monotonic() + t
-        for w, ok in zip(self.workers, acked, strict=True):
+        for _, p, ok in local:
             if ok:
-                w.process.join(max(0.0, deadline - time.monotonic()))
-        for w in self.workers:
-            if w.process.is_alive():
-                w.process.terminate()
+                p.join(max(0.0, deadline - time.monotonic()))
+        for _, p, _ in local:
+            if p.is_alive():
+                p.terminate()
         deadline = time.monotonic() + t
+        for _, p, _ in local:
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
         for w in self.workers:
-            w.process.join(max(0.0, deadline - time.monotonic()))
-            if w.process.is_alive():
-                w.process.kill()
-                w.process.join(1.0)
-        for w in self.workers:
-            if not w.conn.closed:
+            if w.conn is not None and not w.conn.closed:
                 w.conn.close()
         self._close_loop()
 
@@ -673,14 +787,21 @@ def make(
         start_timeout_s: bound on starting the worker and building the env.
         call_timeout_s: bound on each reset/step.
         transport: how the agent side talks to the worker: ``"shm"`` (default) or ``"tcp"`` (loopback).
-        **kwargs: passed to ``gymnasium.make`` in the worker (clock, robot, reward_type, ...).
+        **kwargs: passed to ``gymnasium.make`` in the worker (clock, robot, reward_type, ...), except ``worker``:
+            where the worker runs, None (here) or a launcher on another host, ``"tcp://HOST:PORT"`` or a
+            ``RemoteWorker`` (see runtime/remote.py; the key defaults to ``$UNIROS_WORKER_AUTH_KEY``).
 
     Raises:
-        ConfigError: an unknown id or keyword argument (raised here, before any process starts).
-        WorkerError: the worker failed to start or to build the env (its traceback attached).
+        ConfigError: an unknown id or keyword argument (raised here, before any process starts; for a remote
+            worker, by the launcher's registry).
+        WorkerError: the worker failed to start or to build the env (its traceback attached), or its launcher
+            is unreachable or refused it.
     """
     check_env_args(env_id, kwargs)
     if in_process:
+        if kwargs.get(_PLACEMENT_KWARG) is not None:
+            raise ConfigError("in_process=True and worker=... exclude each other")
+        kwargs = {k: v for k, v in kwargs.items() if k != _PLACEMENT_KWARG}
         return gym.make(env_id, **kwargs)
     sup = Supervisor(
         [(env_id, kwargs)], start_timeout_s=start_timeout_s, call_timeout_s=call_timeout_s, transport=transport

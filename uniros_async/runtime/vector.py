@@ -411,7 +411,9 @@ def make_vec(
 
     Args:
         specs: env ids or ``(env_id, kwargs)`` pairs, e.g. ``["uniros/Rx200Reach-v0", ("uniros/Ned2Reach-v0",
-            {"robot": "emulated-real"})]``.
+            {"robot": "emulated-real"})]``. ``{"worker": "tcp://HOST:PORT"}`` (or a ``RemoteWorker``) runs that
+            spec's worker on a launcher on another host (``uniros worker serve``, runtime/remote.py; its pid in
+            ``pids`` is on that host); ``"worker": None`` keeps it here.
         pad: pad observations and actions to the largest sizes (required when the envs differ); without it the
             spaces must match.
         start_timeout_s: bound on starting all workers and building their envs.
@@ -423,9 +425,11 @@ def make_vec(
         **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
 
     Raises:
-        ConfigError: a malformed spec, an unknown id or keyword argument (before any process starts), or spaces
-            that cannot be padded or combined (naming the envs; the workers are closed).
-        WorkerError: a worker failed to start or to build its env (its index and traceback; the others are closed).
+        ConfigError: a malformed spec, an unknown id or keyword argument (before any process starts; for a remote
+            spec, by its launcher), or spaces that cannot be padded or combined (naming the envs; the workers are
+            closed).
+        WorkerError: a worker failed to start or to build its env, or its launcher is unreachable or refused it
+            (its index and traceback; the others are closed).
     """
     norm = [(env_id, {**common_kwargs, **kw}) for env_id, kw in _normalize_specs(specs)]
     sup = Supervisor(norm, start_timeout_s=start_timeout_s, call_timeout_s=call_timeout_s, transport=transport)

@@ -82,6 +82,8 @@ class WorkerSpec:
         exit_grace_s: after the supervisor died, how long a clean shutdown may take before ``os._exit``.
         listen_uri: where the worker listens for the supervisor: ``shm://`` (a unique name; same machine) or
             ``tcp://127.0.0.1:0`` (a free port).
+        auth_key: shared key the supervisor must prove (HMAC handshake) before the worker serves it; a worker
+            started by a remote launcher listens on tcp with the launcher's key.
     """
 
     index: int
@@ -91,6 +93,7 @@ class WorkerSpec:
     accept_timeout_s: float = 60.0
     exit_grace_s: float = 3.0
     listen_uri: str = "shm://"
+    auth_key: bytes | None = None
 
 
 # ---------------------------------------------------------------- wire format
@@ -337,7 +340,9 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
     assert task is not None
     loop.add_signal_handler(signal.SIGTERM, task.cancel)
     _start_watchdog(spec, loop, task)
-    listener = await listen(spec.listen_uri)
+    from uniros_async.transports.base import TransportOptions
+
+    listener = await listen(spec.listen_uri, TransportOptions(auth_key=spec.auth_key))
     transport = None
     server = _Server(spec)
     try:
