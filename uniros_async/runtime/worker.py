@@ -233,6 +233,14 @@ def space_from_plain(plain: dict[str, Any]) -> gym.Space[Any]:
 # ---------------------------------------------------------------- the worker
 
 
+def _real_time(kwargs: dict[str, Any]) -> bool:
+    """Whether an env made with ``kwargs`` runs an env loop on the wall clock (the default)."""
+    clock = kwargs.get("clock")
+    if clock is None:
+        clock = "sim" if kwargs.get("turn_based") else "wall"
+    return clock == "wall"
+
+
 def worker_entry(spec: WorkerSpec, conn: multiprocessing.connection.Connection) -> None:
     """Process target: run ``worker_main`` and exit."""
     # The agent's Ctrl-C reaches every process of the group; the supervisor decides how workers stop.
@@ -241,6 +249,10 @@ def worker_entry(spec: WorkerSpec, conn: multiprocessing.connection.Connection) 
     # starts its own servo process (itself daemonic, and it exits with us). Clearing the flag in this process only
     # changes what this process believes about itself; the supervisor still treats us as daemonic.
     multiprocessing.current_process()._config["daemon"] = False  # type: ignore[attr-defined]
+    if _real_time(spec.kwargs):  # its env loop must wake on time beside learners and other loops
+        from uniros_async.priority import raise_loop_priority
+
+        raise_loop_priority()
     try:
         asyncio.run(worker_main(spec, conn))
     except (KeyboardInterrupt, asyncio.CancelledError):
