@@ -1,4 +1,4 @@
-"""Real-time loop processes ask for a lower nice value (when permitted), configurable by UNIROS_LOOP_NICE."""
+"""Real-time loop processes ask for SCHED_RR (else a lower nice value) when permitted: UNIROS_LOOP_PRIORITY."""
 
 from __future__ import annotations
 
@@ -8,12 +8,13 @@ import sys
 
 import pytest
 
-from uniros_async.priority import DEFAULT_LOOP_NICE, loop_nice
+from uniros_async.priority import DEFAULT_LOOP_NICE, LOOP_RT_PRIORITY, loop_nice, loop_priority_mode
 
 
-def test_loop_nice_parsing(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_settings_parsing(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("UNIROS_LOOP_NICE", raising=False)
-    assert loop_nice() == DEFAULT_LOOP_NICE
+    monkeypatch.delenv("UNIROS_LOOP_PRIORITY", raising=False)
+    assert (loop_priority_mode(), loop_nice()) == ("rt", DEFAULT_LOOP_NICE)
     monkeypatch.setenv("UNIROS_LOOP_NICE", "-5")
     assert loop_nice() == -5
     monkeypatch.setenv("UNIROS_LOOP_NICE", "off")
@@ -22,19 +23,41 @@ def test_loop_nice_parsing(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.setenv("UNIROS_LOOP_NICE", bad)
         with pytest.raises(ValueError, match="UNIROS_LOOP_NICE must be an integer in \\[-20, 19\\] or 'off'"):
             loop_nice()
+    monkeypatch.setenv("UNIROS_LOOP_PRIORITY", "fifo")
+    with pytest.raises(ValueError, match="UNIROS_LOOP_PRIORITY must be one of \\('rt', 'nice', 'off'\\)"):
+        loop_priority_mode()
 
 
-@pytest.mark.parametrize("setting", ["-3", "off"])
-def test_raise_loop_priority_in_a_child(setting: str) -> None:
-    """In a fresh process: nice is lowered to the setting when permitted, left alone when 'off' or not permitted."""
-    code = "import os; from uniros_async.priority import raise_loop_priority as r; print(r(), os.getpriority(0, 0))"
-    env = {**os.environ, "UNIROS_LOOP_NICE": setting}
+@pytest.mark.parametrize("mode", ["rt", "nice", "off"])
+def test_raise_loop_priority_in_a_child(mode: str) -> None:
+    """In a fresh process: the policy asked for when permitted (root here), nothing when 'off' or not permitted."""
+    code = (
+        "import os; from uniros_async.priority import raise_loop_priority as r; got = r(); "
+        "print(got, os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(0, 0))"
+    )
+    env = {**os.environ, "UNIROS_LOOP_PRIORITY": mode, "UNIROS_LOOP_NICE": "-3"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60, check=True)
-    changed, nice = out.stdout.split()
+    got, policy, prio, nice = out.stdout.split()
     base = os.getpriority(os.PRIO_PROCESS, 0)
-    if setting == "off":
-        assert (changed, int(nice)) == ("False", base)
-    elif os.geteuid() == 0:  # root may lower nice
-        assert (changed, int(nice)) == (str(base > -3), min(base, -3))
-    else:  # not permitted: keeps its priority, no error
-        assert int(nice) == base
+    if mode == "off":
+        assert (got, int(policy), int(nice)) == ("None", os.SCHED_OTHER, base)
+    elif os.geteuid() != 0:  # not permitted: keeps its priority, no error
+        assert (int(policy), int(nice)) == (os.SCHED_OTHER, base)
+    elif mode == "rt":
+        assert (got, int(policy), int(prio)) == ("rt", os.SCHED_RR, LOOP_RT_PRIORITY)
+    else:
+        assert (got, int(policy), int(nice)) == ("nice" if base > -3 else "None", os.SCHED_OTHER, min(base, -3))
+
+
+def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -> None:
+    import uniros_async
+
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
+    envs = [uniros_async.make("uniros/Rx200Reach-v0"), uniros_async.make("uniros/Rx200Reach-v0", clock="sim")]
+    try:
+        policies = [os.sched_getscheduler(e._sup.pids()[0]) for e in envs]  # type: ignore[attr-defined]
+        assert policies == [os.SCHED_RR, os.SCHED_OTHER]
+    finally:
+        for e in envs:
+            e.close()

@@ -1,13 +1,16 @@
 """Scheduling priority of real-time loop processes (env workers on the wall clock, servo sim processes).
 
 On a shared 2-core machine the env loop's timer fires on time only if its process gets a core when it wakes; a
-learner, a test suite or another env loop beside it delays that by a scheduler slice (milliseconds). A lower nice
-value gives a process more of the CPU and makes the kernel preempt ordinary processes when it wakes, the cheap,
-unprivileged-safe cousin of the real-time scheduling classes that ros2_control uses for its control loops.
-(SCHED_FIFO is not used: a bug that kept such a loop runnable would freeze the machine.)
+learner, a test suite or another env loop beside it delays that by a scheduler slice (1-3 ms measured here, even
+at nice -10). As ros2_control does for its control loops, such a process asks for a real-time scheduling class,
+``SCHED_RR`` at a low priority (10): it then preempts every ordinary process when its timer fires. These loops
+sleep between ticks (a tick is well under a millisecond of work, physics included), and the kernel's real-time
+throttling (``sched_rt_runtime_us``) keeps 5 % of every core for ordinary processes even if one misbehaved.
+Accelerated (sim clock) workers, which compute flat out, never ask.
 
-Lowering nice needs root or CAP_SYS_NICE; without it the process keeps its priority and says so in a debug log.
-``UNIROS_LOOP_NICE`` sets the value (default -10; ``0`` or ``off`` leaves priorities alone).
+Both need root or CAP_SYS_NICE: without it the process falls back to a lower nice value, and without that keeps
+its priority (a debug log says so). ``UNIROS_LOOP_PRIORITY`` chooses: ``rt`` (default: SCHED_RR, else nice),
+``nice`` (nice -10 only), ``off``.
 """
 
 from __future__ import annotations
@@ -15,11 +18,25 @@ from __future__ import annotations
 import logging
 import os
 
-__all__ = ["DEFAULT_LOOP_NICE", "loop_nice", "raise_loop_priority"]
+__all__ = ["DEFAULT_LOOP_NICE", "LOOP_RT_PRIORITY", "loop_nice", "loop_priority_mode", "raise_loop_priority"]
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_LOOP_NICE = -10
+LOOP_RT_PRIORITY = 10
+MODES = ("rt", "nice", "off")
+
+
+def loop_priority_mode() -> str:
+    """``UNIROS_LOOP_PRIORITY`` (default ``rt``).
+
+    Raises:
+        ValueError: not one of ``rt``, ``nice``, ``off``.
+    """
+    raw = os.environ.get("UNIROS_LOOP_PRIORITY", "rt").strip().lower() or "rt"
+    if raw not in MODES:
+        raise ValueError(f"UNIROS_LOOP_PRIORITY must be one of {MODES}, got {raw!r}")
+    return raw
 
 
 def loop_nice() -> int | None:
@@ -42,16 +59,29 @@ def loop_nice() -> int | None:
     return value
 
 
-def raise_loop_priority() -> bool:
-    """Set this process's nice value to ``loop_nice()`` if that is lower than its own. True if it was set."""
+def raise_loop_priority() -> str | None:
+    """Raise this process's scheduling priority for a real-time loop (see the module docstring).
+
+    Returns:
+        ``"rt"`` (SCHED_RR), ``"nice"`` (a lower nice value) or None (unchanged: disabled or not permitted).
+    """
+    mode = loop_priority_mode()
+    if mode == "off":
+        return None
+    if mode == "rt" and hasattr(os, "sched_setscheduler"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(LOOP_RT_PRIORITY))
+            return "rt"
+        except PermissionError:
+            logger.debug("not permitted to use SCHED_RR (needs root or CAP_SYS_NICE); trying nice")
     want = loop_nice()
     if want is None or not hasattr(os, "setpriority"):
-        return False
+        return None
     try:
         if os.getpriority(os.PRIO_PROCESS, 0) <= want:
-            return False
+            return None
         os.setpriority(os.PRIO_PROCESS, 0, want)
     except PermissionError:
         logger.debug("not permitted to set nice %d (needs root or CAP_SYS_NICE); the loop keeps its priority", want)
-        return False
-    return True
+        return None
+    return "nice"

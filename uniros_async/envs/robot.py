@@ -43,10 +43,11 @@ logger = logging.getLogger(__name__)
 Returns = tuple[Any, float, bool, dict[str, Any]]
 TICK_ALIGN_NS = 1_000_000
 """Step deadlines fall this long after an env-loop tick: time for the tick's own work (~0.2 ms here)."""
-TICK_OFFSET_NS = 2_000_000
+TICK_OFFSET_NS = 5_000_000
 """Env-loop ticks fall this long after the points of the clock's grid of their period (``clock.grid_after``), where
-the servo sims publish their joint states: the tick sees the state of the same instant, ~2 ms old, not one a
-period old. Every env starts on the same grid, so arms in one vector env (and action cycles that are multiples of
+the servo sims publish their joint states: the tick sees the state of the same instant, 5 ms old, not one a
+period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the grid point in the same loop and
+must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and action cycles that are multiples of
 their periods) keep one phase: the agent gets every member's returns equally fresh."""
 
 
