@@ -15,10 +15,19 @@ its priority (a debug log says so). ``UNIROS_LOOP_PRIORITY`` chooses: ``rt`` (de
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+from collections.abc import Iterator
 
-__all__ = ["DEFAULT_LOOP_NICE", "LOOP_RT_PRIORITY", "loop_nice", "loop_priority_mode", "raise_loop_priority"]
+__all__ = [
+    "DEFAULT_LOOP_NICE",
+    "LOOP_RT_PRIORITY",
+    "loop_nice",
+    "loop_priority_mode",
+    "raise_loop_priority",
+    "real_time_thread",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -85,3 +94,27 @@ def raise_loop_priority() -> str | None:
         logger.debug("not permitted to set nice %d (needs root or CAP_SYS_NICE); the loop keeps its priority", want)
         return None
     return "nice"
+
+
+@contextlib.contextmanager
+def real_time_thread() -> Iterator[bool]:
+    """Run the calling thread (an agent's acting loop) under SCHED_RR for the block, when permitted and
+    ``UNIROS_LOOP_PRIORITY`` is ``rt``; restores its scheduling after. Yields whether it is real-time.
+
+    Threads started inside the block inherit the class: a thread that computes flat out (a learner) must put
+    itself back (``AsyncTD3``'s learner does).
+    """
+    if loop_priority_mode() != "rt" or not hasattr(os, "sched_setscheduler"):
+        yield False
+        return
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(LOOP_RT_PRIORITY))
+    except PermissionError:
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, policy, param)

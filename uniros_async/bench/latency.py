@@ -47,6 +47,7 @@ from uniros_async.bench.looptiming import (
 )
 from uniros_async.bench.stats import report
 from uniros_async.errors import ConfigError
+from uniros_async.priority import real_time_thread
 
 __all__ = ["LEARNERS", "SCENARIOS", "LatencyBenchConfig", "main"]
 
@@ -317,7 +318,9 @@ def _run_learner(
     with progress.phase(cfg.phase_s):
         # + 30 s: learn()'s own start (its reset) must not cut the phase short; the step count ends it. The
         # asynchronous learner joins its update thread before learn() returns or raises.
-        model.learn(total_timesteps=steps * vec.num_envs, callback=_Deadline(time.monotonic() + cfg.phase_s + 30.0))
+        # the agent's acting thread runs real-time when permitted, like the env loops (uniros_async.priority)
+        with real_time_thread():
+            model.learn(total_timesteps=steps * vec.num_envs, callback=_Deadline(time.monotonic() + cfg.phase_s + 30.0))
     snaps = [since(now, then) for now, then in zip(vec.call("timing_snapshot"), before, strict=True)]
     rates = vec.get_attr("env_loop_rate_hz")
     any_done = {k for k, d in enumerate(rec.dones) if bool(np.any(d))}

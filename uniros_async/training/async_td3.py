@@ -38,6 +38,7 @@ import collections
 import contextlib
 import io
 import math
+import os
 import pathlib
 import threading
 import time
@@ -442,6 +443,7 @@ class AsyncTD3(TD3):
     def _learner_main(self) -> None:
         rt = self._rt
         rt.learner_ident = threading.get_ident()
+        _ordinary_scheduling()  # an actor thread may run real-time (SCHED_RR); its learner, computing flat out, not
         try:
             if self.torch_threads is not None:
                 th.set_num_threads(self.torch_threads)
@@ -597,3 +599,11 @@ class AsyncTD3(TD3):
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_rt"]
+
+
+def _ordinary_scheduling() -> None:
+    """Put the calling thread in the ordinary scheduling class (threads inherit their creator's: an actor thread
+    that asked for SCHED_RR, as real-time agents do, must not hand it to a learner that never sleeps)."""
+    if hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) != os.SCHED_OTHER:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
