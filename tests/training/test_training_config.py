@@ -61,6 +61,8 @@ def test_env_entries_labels_and_overrides(tmp_path: Path) -> None:
         ({"envs": [RX, RX]}, "labels must be unique"),
         ({"envs": [RX], "task_id_in_obs": True}, "two or more envs"),
         ({"envs": "uniros/Rx200Reach-v0"}, "expected a list of envs"),
+        ({"envs": [RX], "drop_observation": [3, 3]}, "distinct indices"),
+        ({"envs": [RX], "drop_observation": [-1]}, "distinct indices >= 0"),
     ],
 )
 def test_bad_config_is_a_clear_error(data: dict, match: str) -> None:
@@ -98,3 +100,23 @@ def test_shipped_configs_load_and_check(path: Path) -> None:
     cfg = load_train_config(path)
     assert isinstance(cfg, TrainConfig)
     cfg.check_envs()
+
+
+def test_drop_observation_removes_goal_dependent_entries() -> None:
+    import gymnasium as gym
+    import numpy as np
+
+    from uniros_async.training.multitask import DropObservation
+
+    env = gym.make("uniros/Rx200ReachGoal-v0", clock="sim")
+    try:
+        full, _ = env.reset(seed=0)
+        wrapped = DropObservation(env, (3, 4, 5, 6))
+        obs, _ = wrapped.reset(seed=0)
+        assert wrapped.observation_space["observation"].shape == (16,)
+        assert np.array_equal(obs["observation"], np.delete(full["observation"], [3, 4, 5, 6]))
+        assert np.array_equal(obs["desired_goal"], full["desired_goal"])
+        with pytest.raises(ConfigError, match=r"drop_observation \[20\] outside the observation of size 20"):
+            DropObservation(env, (20,))
+    finally:
+        env.close()

@@ -65,6 +65,7 @@ class CheckpointMeta:
         task_id_size: length of the one-hot task index appended to observations (0: none).
         algo: ``TD3`` or ``AsyncTD3`` (the class to load with).
         labels: the training envs' labels.
+        drop_observation: observation entries removed before the policy (``DropObservation``).
         config: the run's TrainConfig as plain data.
     """
 
@@ -76,6 +77,7 @@ class CheckpointMeta:
     task_id_size: int = 0
     algo: str = "TD3"
     labels: tuple[str, ...] = ()
+    drop_observation: tuple[int, ...] = ()
     config: dict[str, Any] = dataclasses.field(default_factory=dict)
     wall_time: float = 0.0
 
@@ -89,6 +91,7 @@ class CheckpointMeta:
             if data.get("pad_to") is not None:
                 data["pad_to"] = tuple(data["pad_to"])
             data["labels"] = tuple(data.get("labels", ()))
+            data["drop_observation"] = tuple(data.get("drop_observation", ()))
             return cls(**data)
         except (ValueError, TypeError) as exc:
             raise CheckpointError(f"{where}: not a valid checkpoint meta.json: {exc}") from exc

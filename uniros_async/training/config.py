@@ -195,6 +195,9 @@ class TrainConfig:
         learner: ``sync`` (SB3 TD3: collect, then update) or ``async`` (AsyncTD3: updates beside collection).
         replay_buffer: ``auto`` (HER for goal envs, plain replay otherwise), ``standard`` or ``her``.
         task_id_in_obs: append a one-hot env index to observations (multi-task only; off as in the paper).
+        drop_observation: indices of the vector observation (the ``observation`` key of a goal env) to remove
+            before the policy sees it. For HER on the reach goal envs use ``[3, 4, 5, 6]``: their ``observation``
+            holds goal - EE and the distance to the *original* goal, which HER's relabelled goals contradict.
         torch_threads: torch intra-op threads (1: envs share the machine; design.md section 9).
         run_dir: where logs and checkpoints go (default ``runs/<name>``).
     """
@@ -208,6 +211,7 @@ class TrainConfig:
     learner: str = "sync"
     replay_buffer: str = "auto"
     task_id_in_obs: bool = False
+    drop_observation: tuple[int, ...] = ()
     td3: TD3Config = dataclasses.field(default_factory=TD3Config)
     her: HerConfig = dataclasses.field(default_factory=HerConfig)
     async_learner: AsyncLearnerConfig = dataclasses.field(default_factory=AsyncLearnerConfig)
@@ -236,6 +240,10 @@ class TrainConfig:
         labels = self.labels()
         if len(set(labels)) != len(labels):
             raise ConfigError(f"env labels must be unique (give envs a name:), got {labels}")
+        drop = self.drop_observation
+        valid = all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in drop)
+        if not valid or len(set(drop)) != len(drop):
+            raise ConfigError(f"drop_observation must be distinct indices >= 0, got {list(drop)}")
         if self.task_id_in_obs and len(self.envs) < 2:
             raise ConfigError("task_id_in_obs needs two or more envs")
 

@@ -168,7 +168,7 @@ def make_eval_env(
             named), or a task-indexed policy gets an env it was not trained on.
         ConfigError: an unknown id or keyword argument.
     """
-    env = build_env(env_id, kwargs, placement=placement)
+    env = build_env(env_id, kwargs, placement=placement, drop_observation=meta.drop_observation)
     try:
         goal = isinstance(env.observation_space, gym.spaces.Dict)
         obs_size, act_size = space_sizes(env)

@@ -22,7 +22,7 @@ import numpy as np
 from uniros_async.envs.wrappers import PadSpaces
 from uniros_async.errors import ConfigError
 
-__all__ = ["TaskIdObservation", "TaskSamplerEnv", "build_env", "space_sizes"]
+__all__ = ["DropObservation", "TaskIdObservation", "TaskSamplerEnv", "build_env", "space_sizes"]
 
 
 def _vector_box(space: gym.Space[Any]) -> gym.spaces.Box:
@@ -47,11 +47,14 @@ def build_env(
     *,
     placement: str = "inprocess",
     pad_to: tuple[int, int] | None = None,
+    drop_observation: tuple[int, ...] = (),
 ) -> gym.Env[Any, Any]:
-    """Make one env (with its registered time limit) and pad it to ``pad_to = (obs_size, action_size)``.
+    """Make one env (with its registered time limit), drop observation entries, and pad it to
+    ``pad_to = (obs_size, action_size)``.
 
     Args:
         placement: ``inprocess`` (``gymnasium.make`` here) or ``workers`` (``uniros_async.make``: its own process).
+        drop_observation: see ``DropObservation``.
 
     Raises:
         ConfigError: an unknown id or keyword argument, or an env larger than ``pad_to``.
@@ -68,14 +71,46 @@ def build_env(
         env = make(env_id, **kwargs)
     else:
         raise ConfigError(f"placement must be 'inprocess' or 'workers', got {placement!r}")
-    if pad_to is not None:
-        try:
-            if space_sizes(env) != tuple(pad_to):
-                env = PadSpaces(env, *pad_to)
-        except BaseException:
-            env.close()
-            raise
+    try:
+        if drop_observation:
+            env = DropObservation(env, tuple(drop_observation))
+        if pad_to is not None and space_sizes(env) != tuple(pad_to):
+            env = PadSpaces(env, *pad_to)
+    except BaseException:
+        env.close()
+        raise
     return env
+
+
+class DropObservation(gym.ObservationWrapper[Any, Any, Any]):
+    """Remove entries ``indices`` from the vector observation (the ``observation`` key of a goal env).
+
+    For HER the policy's ``observation`` must not depend on the goal: relabelling replaces ``desired_goal`` only,
+    so goal-dependent entries (the reach envs' goal - EE and distance, indices 3..6) would contradict it.
+
+    Raises:
+        ConfigError: an index outside the observation.
+    """
+
+    def __init__(self, env: gym.Env[Any, Any], indices: tuple[int, ...]) -> None:
+        super().__init__(env)
+        box = _vector_box(env.observation_space)
+        n = box.shape[0]
+        bad = [i for i in indices if not 0 <= i < n]
+        if bad:
+            raise ConfigError(f"drop_observation {bad} outside the observation of size {n}")
+        self._keep = np.array([i for i in range(n) if i not in set(indices)], dtype=np.intp)
+        new = gym.spaces.Box(box.low[self._keep], box.high[self._keep], dtype=np.float32)
+        self._goal = isinstance(env.observation_space, gym.spaces.Dict)
+        if self._goal:
+            self.observation_space = gym.spaces.Dict({**env.observation_space.spaces, "observation": new})  # type: ignore[attr-defined]
+        else:
+            self.observation_space = new
+
+    def observation(self, observation: Any) -> Any:
+        if self._goal:
+            return {**observation, "observation": np.asarray(observation["observation"])[self._keep]}
+        return np.asarray(observation)[self._keep]
 
 
 class TaskIdObservation(gym.ObservationWrapper[Any, Any, Any]):

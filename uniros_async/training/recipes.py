@@ -109,7 +109,7 @@ def build_train_env(cfg: TrainConfig) -> tuple[TaskSamplerEnv, EnvLayout]:
     envs: list[gym.Env[Any, Any]] = []
     try:
         for _, env_id, kwargs in specs:
-            envs.append(build_env(env_id, kwargs, placement=cfg.placement))
+            envs.append(build_env(env_id, kwargs, placement=cfg.placement, drop_observation=cfg.drop_observation))
         sizes = [space_sizes(e) for e in envs]
         kinds = {isinstance(e.observation_space, gym.spaces.Dict) for e in envs}
         if len(kinds) != 1:
@@ -143,7 +143,7 @@ def build_eval_envs(cfg: TrainConfig, layout: EnvLayout) -> list[tuple[str, str,
     out: list[tuple[str, str, gym.Env[Any, Any]]] = []
     try:
         for label, env_id, kwargs in cfg.eval_specs():
-            env = build_env(env_id, kwargs, placement=cfg.placement)
+            env = build_env(env_id, kwargs, placement=cfg.placement, drop_observation=cfg.drop_observation)
             out.append((label, env_id, env))
             if layout.pad_to is not None and space_sizes(env) != layout.pad_to:
                 env = PadSpaces(env, *layout.pad_to)
@@ -389,7 +389,7 @@ def _save(model: Any, cfg: TrainConfig, run_dir: Path, layout: EnvLayout, step: 
     meta = CheckpointMeta(
         step=step, obs_size=layout.obs_size, action_size=layout.action_size, goal_env=layout.goal_env,
         pad_to=layout.pad_to, task_id_size=layout.task_id_size, algo=type(model).__name__, labels=layout.labels,
-        config=config_to_dict(cfg),
+        config=config_to_dict(cfg), drop_observation=tuple(cfg.drop_observation),
     )
     return save_checkpoint(model, run_dir, meta, keep=cfg.checkpoint.keep, replay_buffer=cfg.checkpoint.replay_buffer)
 
