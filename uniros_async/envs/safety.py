@@ -56,25 +56,24 @@ class SafetyChecker:
         arm = [i for i in range(m.ngeom) if m.geom_bodyid[i] != 0 and i not in self._table_geoms and m.geom_contype[i]]
         for i in arm:
             m.geom_conaffinity[i] |= m.geom_contype[i]
-        self._near = {(a, b) for a in range(m.nbody) for b in range(m.nbody) if _hops(m, a, b) <= 2}
+        self._near_mat = np.array([[_hops(m, a, b) <= 2 for b in range(m.nbody)] for a in range(m.nbody)])
+        self._table_mask = np.isin(np.arange(m.ngeom), table)
         # pairs that touch at home by construction (e.g. fingers on the gripper bar) are not collisions
         self._allowed = self._contact_pairs(np.asarray(spec.home_q_rad))
 
     def _contact_pairs(self, q: np.ndarray) -> set[tuple[int, int]]:
-        d = self._data
-        d.qpos[:] = self._model.qpos0
+        d, m = self._data, self._model
+        d.qpos[:] = m.qpos0
         d.qpos[self._qadr] = q
-        mujoco.mj_kinematics(self._model, d)
-        mujoco.mj_collision(self._model, d)
-        pairs = set()
-        for c in d.contact[: d.ncon]:
-            g1, g2 = int(c.geom1), int(c.geom2)
-            if g1 in self._table_geoms or g2 in self._table_geoms:
-                continue
-            if (int(self._model.geom_bodyid[g1]), int(self._model.geom_bodyid[g2])) in self._near:
-                continue
-            pairs.add((min(g1, g2), max(g1, g2)))
-        return pairs
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_collision(m, d)
+        if d.ncon == 0:
+            return set()
+        # vectorised: a Python loop over MjContact objects cost ~0.2 ms per check (40x the collision itself)
+        g = np.sort(np.asarray(d.contact.geom[: d.ncon]).reshape(-1, 2), axis=1)
+        b = m.geom_bodyid[g]
+        keep = ~self._table_mask[g].any(axis=1) & ~self._near_mat[b[:, 0], b[:, 1]]
+        return {(int(a), int(c)) for a, c in g[keep]}
 
     def check(self, q_target: np.ndarray) -> str | None:
         """None if ``q_target`` is safe to command, else why not (for ``info["unsafe_reason"]``)."""
