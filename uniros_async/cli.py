@@ -5,6 +5,7 @@
     uniros node list                      nodes of a domain, as rosnode
     uniros param get|set|load|list        parameters of a domain, as rosparam
     uniros robot ...                      simulated and emulated arms (sim/cli.py)
+    uniros train|eval|plot                TD3 / TD3+HER training, checkpoint evaluation, curves (training/cli.py)
     uniros worker serve                   a launcher of env workers for agents on other hosts (runtime/remote.py)
 
 Every introspection command takes ``--domain URI`` or reads ``UNIROS_DOMAIN``. Errors print one line and exit 2;

@@ -241,3 +241,22 @@ def test_wall_clock_turn_based_is_a_loopless_real_arm_baseline() -> None:
         assert all(0 <= a < 100_000_000 + 20_000_000 for a in t["observation_age_ns"])
     finally:
         env.close()
+
+
+def test_goal_env_observation_holds_no_goal() -> None:
+    """HER relabels desired_goal only: the observation vector must not carry the goal (goal - EE, distance)."""
+    env = gym.make("uniros/Rx200ReachGoal-v0", clock="sim")
+    std = gym.make("uniros/Rx200Reach-v0", clock="sim")
+    try:
+        obs, _ = env.reset(seed=4)
+        vec, _ = std.reset(seed=4)
+        assert obs["observation"].shape == (vec.shape[0] - 4,)
+        np.testing.assert_array_equal(obs["observation"], np.delete(vec, [3, 4, 5, 6]))
+        np.testing.assert_array_equal(obs["observation"][:3], obs["achieved_goal"])
+        env.unwrapped.goal = env.unwrapped.goal + 0.05  # another goal: the observation vector does not change
+        obs2, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
+        std_obs, *_ = std.step(np.zeros(std.action_space.shape, np.float32))
+        np.testing.assert_allclose(obs2["observation"], np.delete(std_obs, [3, 4, 5, 6]), atol=1e-6)
+    finally:
+        env.close()
+        std.close()

@@ -70,9 +70,10 @@ def test_goal_envs_pad_the_observation_key() -> None:
     try:
         space = venv.single_observation_space
         assert isinstance(space, gym.spaces.Dict)
-        assert space["observation"].shape == (20,) and space["desired_goal"].shape == (3,)
+        # rx200 16, ned2 15: the standard vector without goal - EE and distance (HER relabels desired_goal only)
+        assert space["observation"].shape == (16,) and space["desired_goal"].shape == (3,)
         obs, info = venv.reset(seed=2)
-        assert obs["observation"].shape == (2, 20) and obs["achieved_goal"].shape == (2, 3)
+        assert obs["observation"].shape == (2, 16) and obs["achieved_goal"].shape == (2, 3)
         obs, *_ = venv.step(venv.action_space.sample())
         assert obs["observation"][1, -1] == 0.0
     finally:

@@ -3,8 +3,9 @@
 Action: target positions of the arm joints normalised to [-1, 1] over their limits (``action_mode="absolute"``),
 or joint deltas of at most ``delta_coeff`` rad per step (``"delta"``). Observation (standard env): EE position
 (3), goal minus EE (3), distance (1), the joint_states positions (rx200: 8, with gripper and fingers; ned2: 6),
-and the previous action; the goal env gives that vector as ``observation``, the EE position as
-``achieved_goal`` and the goal as ``desired_goal``. Goals are uniform in a box, keeping only points the arm can
+and the previous action; the goal env gives that vector without the goal-dependent entries (goal minus EE,
+distance: HER relabels ``desired_goal`` only) as ``observation``, the EE position as ``achieved_goal`` and the
+goal as ``desired_goal``. Goals are uniform in a box, keeping only points the arm can
 reach (IK succeeds). Rewards follow UniROS: sparse +1 on reaching (distance <= tolerance) else -1; dense +20 on
 reaching, else -2 x distance - 0.5, plus -2 when the action hits a joint limit and -5 when it could not be
 executed (unsafe). Reaching terminates the episode with ``info["is_success"] = True``.
@@ -217,9 +218,14 @@ class ReachGoalEnv(ReachEnv, GoalEnv):
         """Reaching ends the episode."""
         return np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1) <= self.reach_tolerance
 
+    # The goal env's ``observation`` leaves out the goal-dependent entries of the standard vector (goal minus EE,
+    # distance): the goal is ``desired_goal`` alone, so HER, which relabels ``desired_goal``, never pairs a
+    # transition with two different goals.
+    _GOAL_ENTRIES = slice(3, 7)
+
     def _make_observation_space(self) -> gym.Space[Any]:
         box3 = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
-        lo, hi = self._vector_bounds()
+        lo, hi = (np.delete(b, np.r_[self._GOAL_ENTRIES]) for b in self._vector_bounds())
         return gym.spaces.Dict(
             {
                 "observation": gym.spaces.Box(lo, hi, dtype=np.float32),
@@ -230,7 +236,7 @@ class ReachGoalEnv(ReachEnv, GoalEnv):
 
     def _observation(self, state: JointState, ee: np.ndarray) -> Any:
         return {
-            "observation": self._vector_obs(state, ee),
+            "observation": np.delete(self._vector_obs(state, ee), np.r_[self._GOAL_ENTRIES]),
             "achieved_goal": ee.astype(np.float32),
             "desired_goal": self.goal.astype(np.float32),
         }
