@@ -143,11 +143,11 @@ def test_multitask_pads_samples_and_reports_per_env(tmp_path: Path) -> None:
 def test_her_on_the_goal_env_and_its_resume(tmp_path: Path) -> None:
     run = tmp_path / "her"
     over = {"envs": [RX_GOAL], "td3": {"learning_starts": 100}, "eval": {"every_steps": 0},
-            "drop_observation": [3, 4, 5, 6]}
+            "drop_observation": [13, 14, 15]}
     result = train(_cfg(run, total_steps=150, **over))
     meta = read_meta(result.checkpoint)
     assert meta.goal_env and meta.config["replay_buffer"] == "auto"  # auto: HER on goal envs
-    assert meta.drop_observation == (3, 4, 5, 6) and meta.obs_size == 16  # goal - EE and distance removed
+    assert meta.drop_observation == (13, 14, 15) and meta.obs_size == 13  # 16 goal-free entries, 3 dropped
     r = evaluate_checkpoint(run, RX_GOAL["id"], {"clock": "sim", "reward_type": "sparse"}, episodes=1)
     assert r.episodes == 1
     assert train(_cfg(run, total_steps=250, **over), resume=True).steps == 250  # an unfinished episode is closed
