@@ -464,6 +464,25 @@ def run(config: LatencyBenchConfig) -> list[Series]:
         progress.close()
 
 
+def _cpu_times() -> list[int] | None:
+    """The aggregate ``cpu`` line of /proc/stat (jiffies: user nice system idle iowait irq softirq steal), or None."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    return [int(x) for x in fields[1:9]] if fields and fields[0] == "cpu" and len(fields) >= 9 else None
+
+
+def _steal_percent(before: list[int] | None, after: list[int] | None) -> float | None:
+    """Share of CPU time the hypervisor stole between two ``_cpu_times`` readings, in %."""
+    if before is None or after is None:
+        return None
+    delta = [b - a for a, b in zip(before, after, strict=True)]
+    total = sum(delta)
+    return 100.0 * delta[7] / total if total > 0 else None
+
+
 def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Run the scenario, print the table, write JSON and the plot when asked; returns the records.
 
@@ -474,10 +493,16 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
     """
     if config.plot_path is not None and importlib.util.find_spec("matplotlib") is None:
         raise ConfigError("--plot needs matplotlib: pip install matplotlib (or the [bench] extra)")
+    cpu0 = _cpu_times()
     series = run(config)
+    steal = _steal_percent(cpu0, _cpu_times())
     records = to_records(config.scenario, series)
     title = f"uniros bench latency --scenario {config.scenario} --duration {config.phase_s:g}"
-    report(f"{title}\n{format_table(series, records)}", records, config.json_path, log)
+    machine = "" if steal is None else (
+        f"\nhypervisor steal during the run: {steal:.1f} % of CPU time (the VM's cores were taken away that long; "
+        "above ~1 % expect late ticks no scheduling class can prevent)"
+    )
+    report(f"{title}\n{format_table(series, records)}{machine}", records, config.json_path, log)
     if config.plot_path is not None:
         from uniros_async.bench._plot import box_plots
 
