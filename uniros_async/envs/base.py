@@ -85,33 +85,34 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
                     f"{type(self).__name__} runs attached to an event loop: use await astep() / areset() / aclose()"
                 )
             raise RuntimeError(f"{type(self).__name__}: its world was never started")
-        failure = self._rt_failure()
-        if failure is not None:
-            coro.close()
-            raise failure
+        self._raise_failure(coro)
         try:
             return self._rt.call(coro, timeout_s)
         except RuntimeError:
-            failure = self._rt_failure()
-            if failure is not None:
-                raise failure from None
+            self._raise_failure()
             raise
+
+    def _raise_failure(self, coro: Any = None) -> None:
+        """Raise what stopped the env's world, if it stopped (closing ``coro``, which will never run); a loop
+        that died with an exception is reported as that exception, not as the RuntimeError of a dead loop."""
+        failure = self._rt_failure()
+        if failure is None:
+            return
+        if coro is None:  # called while handling the dead loop's RuntimeError: report the cause alone
+            raise failure from None
+        coro.close()
+        raise failure
 
     async def _acall(self, coro: Any, timeout_s: float) -> Any:
         rt = self._task_rt
         if rt is None:
             coro.close()
             raise RuntimeError(f"{type(self).__name__}: call await astart() first")
-        failure = self._rt_failure()
-        if failure is not None:
-            coro.close()
-            raise failure
+        self._raise_failure(coro)
         try:
             return await rt.call(coro, timeout_s)
         except RuntimeError:
-            failure = self._rt_failure()
-            if failure is not None:
-                raise failure from None
+            self._raise_failure()
             raise
 
     def _rt_failure(self) -> BaseException | None:
