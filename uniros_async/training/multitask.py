@@ -82,7 +82,27 @@ def build_env(
     return env
 
 
-class DropObservation(gym.ObservationWrapper[Any, Any, Any]):
+class _VectorObservationWrapper(gym.ObservationWrapper[Any, Any, Any]):
+    """An observation wrapper that changes the vector observation (the ``observation`` key of a goal env) with
+    ``_vector(vec)`` and leaves a goal env's goals alone; subclasses call ``_set_vector_space(box)``."""
+
+    def _set_vector_space(self, new: gym.spaces.Box) -> None:
+        self._goal = isinstance(self.env.observation_space, gym.spaces.Dict)
+        if self._goal:
+            self.observation_space = gym.spaces.Dict({**self.env.observation_space.spaces, "observation": new})  # type: ignore[attr-defined]
+        else:
+            self.observation_space = new
+
+    def _vector(self, vec: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def observation(self, observation: Any) -> Any:
+        if self._goal:
+            return {**observation, "observation": self._vector(np.asarray(observation["observation"]))}
+        return self._vector(np.asarray(observation))
+
+
+class DropObservation(_VectorObservationWrapper):
     """Remove entries ``indices`` from the vector observation (the ``observation`` key of a goal env).
 
     For HER the policy's ``observation`` must not depend on the goal: relabelling replaces ``desired_goal`` only,
@@ -100,20 +120,13 @@ class DropObservation(gym.ObservationWrapper[Any, Any, Any]):
         if bad:
             raise ConfigError(f"drop_observation {bad} outside the observation of size {n}")
         self._keep = np.array([i for i in range(n) if i not in set(indices)], dtype=np.intp)
-        new = gym.spaces.Box(box.low[self._keep], box.high[self._keep], dtype=np.float32)
-        self._goal = isinstance(env.observation_space, gym.spaces.Dict)
-        if self._goal:
-            self.observation_space = gym.spaces.Dict({**env.observation_space.spaces, "observation": new})  # type: ignore[attr-defined]
-        else:
-            self.observation_space = new
+        self._set_vector_space(gym.spaces.Box(box.low[self._keep], box.high[self._keep], dtype=np.float32))
 
-    def observation(self, observation: Any) -> Any:
-        if self._goal:
-            return {**observation, "observation": np.asarray(observation["observation"])[self._keep]}
-        return np.asarray(observation)[self._keep]
+    def _vector(self, vec: np.ndarray) -> np.ndarray:
+        return vec[self._keep]
 
 
-class TaskIdObservation(gym.ObservationWrapper[Any, Any, Any]):
+class TaskIdObservation(_VectorObservationWrapper):
     """Append a one-hot task index (``index`` of ``n_tasks``) to the observation (the ``observation`` key)."""
 
     def __init__(self, env: gym.Env[Any, Any], index: int, n_tasks: int) -> None:
@@ -126,16 +139,10 @@ class TaskIdObservation(gym.ObservationWrapper[Any, Any, Any]):
             np.concatenate([box.high, np.ones(n_tasks, np.float32)]),
             dtype=np.float32,
         )
-        self._goal = isinstance(env.observation_space, gym.spaces.Dict)
-        if self._goal:
-            self.observation_space = gym.spaces.Dict({**env.observation_space.spaces, "observation": new})  # type: ignore[attr-defined]
-        else:
-            self.observation_space = new
+        self._set_vector_space(new)
 
-    def observation(self, observation: Any) -> Any:
-        if self._goal:
-            return {**observation, "observation": np.concatenate([observation["observation"], self._onehot])}
-        return np.concatenate([observation, self._onehot]).astype(np.float32)
+    def _vector(self, vec: np.ndarray) -> np.ndarray:
+        return np.concatenate([vec, self._onehot]).astype(np.float32)
 
 
 def _union(spaces: list[gym.spaces.Box]) -> gym.spaces.Box:
