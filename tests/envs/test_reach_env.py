@@ -260,3 +260,44 @@ def test_goal_env_observation_holds_no_goal() -> None:
     finally:
         env.close()
         std.close()
+
+
+def test_goal_reached_mid_cycle_ends_the_episode_at_that_tick() -> None:
+    # a long action cycle: the IK target is reached well before the step's deadline; the tick that finds the EE
+    # within tolerance ends the episode there (UniROS's real-time envs), not the end of the cycle
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim", action_cycle_s=3.0)
+    u = env.unwrapped
+    try:
+        env.reset(seed=3)
+        _, reward, terminated, _, info = env.step(ik_action(env))
+        assert terminated and info["is_success"] and reward == 20.0
+        end_tick_ns = u._cache[0]
+        assert u.timing.step_ns[-1] - end_tick_ns > 0.5e9, "the success tick came long before the deadline"
+        assert u.timing.command_ns[-1] == end_tick_ns, "the arm was told to hold at that tick, nothing sent after"
+        ticks_after = [t for t in u.timing.tick_ns if t > end_tick_ns]
+        assert len(ticks_after) >= 5, "the loop kept ticking (and sending nothing) until the deadline"
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("turn_based", [False, True])
+def test_delta_action_is_applied_on_every_tick_in_real_time(turn_based: bool) -> None:
+    # delta mode: real time applies the delta again on each of the cycle's 8 ticks (a joint velocity);
+    # the turn-based baseline applies it once per step
+    env = gym.make(
+        "uniros/Rx200Reach-v0", clock="sim", action_mode="delta", delta_coeff=0.05, turn_based=turn_based
+    )
+    u = env.unwrapped
+    try:
+        obs, _ = env.reset(seed=0)
+        q0 = obs[7:12].copy()
+        a = np.array([0.1, 0, 0, 0, 0], np.float32)  # waist: 0.1 x 0.05 x pi = 0.0157 rad per application
+        for _ in range(2):
+            obs, *_ = env.step(a)
+        moved = float(obs[7] - q0[0])
+    finally:
+        env.close()
+    if turn_based:
+        assert 0.025 < moved < 0.04, moved  # two applications
+    else:
+        assert 0.2 < moved < 0.3, moved  # ~16 applications (the servo lags the first ticks)

@@ -3,10 +3,17 @@
 The env loop is a bus timer at ``env_loop_rate_hz`` (default: the arm's hardware rate). Each tick it reads the
 newest joint state (never waits for one), builds observation, reward, terminated and info through the task's
 hooks and caches them with the tick's stamp, and sends the current action's joint target to the arm again
-(action repeat), limited to ``max_joint_step_rad`` per tick. An action whose target fails a safety check (joint
-limits, a link near the table, the EE outside the workspace box, self-collision) is never sent: the arm is told
-to hold and ``info["unsafe_reason"]`` says why. ``step`` hands the action over at once and returns the cached
-returns at the end of the action cycle, an absolute deadline from the previous step.
+(action repeat), limited to ``max_joint_step_rad`` per tick. A task whose actions are relative to where the arm is
+(``_relative_action``: joint deltas) gets its action applied again from the newest state on every tick, as
+UniROS's env loop does, so a delta acts as a joint velocity for the whole action cycle. An action whose target
+fails a safety check (joint limits, a link near the table, the EE outside the workspace box, self-collision) is
+never sent: the arm is told to hold and ``info["unsafe_reason"]`` says why. ``step`` hands the action over at once
+and returns the cached returns at the end of the action cycle, an absolute deadline from the previous step.
+
+Termination is checked at the loop's rate: the first tick whose returns say ``terminated`` (the goal reached
+mid-cycle, say) ends the episode there, as on UniROS's real-time envs: the arm is told to hold, and the returns of
+that tick are kept and handed to the agent at the end of the cycle. (Turn-based mode, the baseline, judges and
+applies everything once per step instead.)
 
 The arm is reached only through its topics (``joint_states``, ``command``) and services (``hold``, ``reset``)
 in namespace ``/<robot>``, so the same code drives the sim in this process, a sim in another process, the
@@ -79,6 +86,8 @@ class RobotEnv(BaseEnv):
         self._clock: Clock = wall_clock()
         self._target: np.ndarray | None = None
         self._target_unsafe: str | None = None
+        self._action: np.ndarray | None = None
+        self._ended = False  # a tick found the episode terminated: returns kept, arm holding, until reset
         self._action_t_ns: int | None = None
         self._cache: tuple[int, Returns] | None = None
         self._deadline_ns = 0
@@ -110,7 +119,9 @@ class RobotEnv(BaseEnv):
 
     @abc.abstractmethod
     def _action_to_target(self, action: np.ndarray, q_arm: np.ndarray) -> tuple[np.ndarray, bool]:
-        """The joint target of ``action`` and whether it hit a joint limit."""
+        """The joint target of ``action`` and whether it hit a joint limit. ``q_arm``: the arm's joint positions;
+        for a relative action (``_relative_action``), where the arm was last told to be (the loop's target, kept
+        within ``max_joint_step_rad`` of the measured positions)."""
 
     @abc.abstractmethod
     def _on_reset(self, q_arm: np.ndarray) -> None:
@@ -174,14 +185,30 @@ class RobotEnv(BaseEnv):
             started(exc)
             raise
 
+    @property
+    def _relative_action(self) -> bool:
+        """Hook: True when ``_action_to_target`` depends on where the arm is (joint deltas): the loop then applies
+        the action again from the newest state on every tick. Absolute targets are computed once per step."""
+        return False
+
     def _tick(self) -> None:
         now = self._clock.now_ns()
         self.timing.tick_ns.append(now)
         js = self._js.latest()
-        if js is None:
+        if js is None or self._ended:
             return
         q_arm = js.position[self._arm_idx]
-        self._cache = (now, self._compute_returns(js, q_arm))
+        returns = self._compute_returns(js, q_arm)
+        self._cache = (now, returns)
+        if returns[2] and not self.config.turn_based:  # terminated at this tick: the episode ends here, arm holds
+            self._ended = True
+            self._target, self._target_unsafe, self._action_t_ns = q_arm.copy(), None, None
+            self._send(q_arm, now)
+            return
+        if self._relative_action and self._action is not None and not self.config.turn_based:
+            self._apply_action(self._action, q_arm, now, first=False)
+            if self._target_unsafe is not None:
+                return
         target = self._target
         if target is None or self._target_unsafe is not None:
             return
@@ -224,17 +251,34 @@ class RobotEnv(BaseEnv):
     def _set_action(self, action: np.ndarray) -> None:
         js = self._js.latest()
         assert js is not None
-        q_arm = js.position[self._arm_idx]
-        target, limit_hit = self._action_to_target(action, q_arm)
-        self._limit_hit = limit_hit
+        now = self._clock.now_ns()
+        self.timing.action_ns.append(now)
+        if self._ended:  # the episode already ended at a tick: the arm keeps holding
+            return
+        self._action = action
+        self._action_t_ns = now
+        self._apply_action(action, js.position[self._arm_idx], now, first=True)
+
+    def _apply_action(self, action: np.ndarray, q_arm: np.ndarray, now: int, *, first: bool) -> None:
+        """Make ``action`` the loop's target from ``q_arm``; an unsafe target is not sent: the arm holds instead
+        (once per step for absolute actions, on every tick where a relative action's target is unsafe)."""
+        ref = q_arm
+        if self._relative_action and self._target is not None:
+            # deltas add up from where the arm was told to be, not from where the lagging servos are yet, so a
+            # delta per tick is a joint velocity; never more than max_joint_step_rad ahead of the arm
+            lag = self.safety.config.max_joint_step_rad
+            ref = np.clip(self._target, q_arm - lag, q_arm + lag)
+        target, limit_hit = self._action_to_target(action, ref)
         why = self.safety.check(target)
+        self._limit_hit = limit_hit
         self._target_unsafe = why
         self._target = target
-        self._action_t_ns = self._clock.now_ns()
-        self.timing.action_ns.append(self._action_t_ns)
         if why is not None:
-            self.unsafe_actions += 1
-            self._send(q_arm, self._action_t_ns)  # hold where it is
+            if first:
+                self.unsafe_actions += 1
+            if self._relative_action:
+                self._target = q_arm.copy()  # the next delta starts from where the arm holds
+            self._send(q_arm, now)  # hold where it is
             self._action_t_ns = None
 
     async def _astep(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
@@ -309,6 +353,7 @@ class RobotEnv(BaseEnv):
             await _settle()
             clock.resume()
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
+        self._action, self._ended = None, False
         t0 = clock.now_ns()
         if cfg.robot in ("sim", "sim-process"):  # a nominal sim can be teleported home: exact and fast
             reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=cfg.reset_timeout_s)
@@ -366,8 +411,7 @@ class RobotEnv(BaseEnv):
 
     async def _ahold(self) -> None:
         js = self._js.latest()
-        self._target_unsafe = None
-        self._action_t_ns = None
+        self._target_unsafe, self._action_t_ns, self._action = None, None, None
         if js is not None:  # hold = keep commanding where it is (action repeat of the current position)
             self._target = js.position[self._arm_idx].copy()
             self._send(self._target, self._clock.now_ns())

@@ -1,14 +1,19 @@
 """Reach: move the end effector to a goal point, for the ReactorX-200 and the Ned2, standard and goal-conditioned.
 
 Action: target positions of the arm joints normalised to [-1, 1] over their limits (``action_mode="absolute"``),
-or joint deltas of at most ``delta_coeff`` rad per step (``"delta"``). Observation (standard env): EE position
+or joint deltas (``"delta"``): ``a x delta_coeff`` times half the joint's range (UniROS's actions are radians over
+the joint range times ``delta_coeff``; this is the same step for a normalised action), applied again on every
+env-loop tick of the action cycle from where the arm was last told to be, as UniROS's env loop does (a joint
+velocity; turn-based mode applies a delta once per step). Observation (standard env): EE position
 (3), goal minus EE (3), distance (1), the joint_states positions (rx200: 8, with gripper and fingers; ned2: 6),
 and the previous action; the goal env gives that vector without the goal-dependent entries (goal minus EE,
 distance: HER relabels ``desired_goal`` only) as ``observation``, the EE position as ``achieved_goal`` and the
 goal as ``desired_goal``. Goals are uniform in a box, keeping only points the arm can
-reach (IK succeeds). Rewards follow UniROS: sparse +1 on reaching (distance <= tolerance) else -1; dense +20 on
+reach (IK succeeds); the default box is the UniROS task config's goal space for the arm (rx200: x 0.15-0.25,
+y +-0.15, z 0.05-0.25 m; ned2: z 0.15-0.25). Rewards follow UniROS: sparse +1 on reaching (distance <= tolerance) else -1; dense +20 on
 reaching, else -2 x distance - 0.5, plus -2 when the action hits a joint limit and -5 when it could not be
-executed (unsafe). Reaching terminates the episode with ``info["is_success"] = True``.
+executed (unsafe). Reaching terminates the episode with ``info["is_success"] = True``, at the first env-loop
+tick that finds the EE within the tolerance (real-time mode; turn-based: at the end of the step).
 """
 
 from __future__ import annotations
@@ -25,8 +30,10 @@ from uniros_async.errors import ConfigError
 
 __all__ = ["ReachEnv", "ReachGoalEnv", "reach_reward"]
 
-GOAL_MIN = (0.15, -0.40, 0.05)
-GOAL_MAX = (0.40, 0.40, 0.40)
+GOAL_BOXES = {  # the goal spaces of UniROS's reach task configs (position_goal_min / _max)
+    "rx200": ((0.15, -0.15, 0.05), (0.25, 0.15, 0.25)),
+    "ned2": ((0.15, -0.15, 0.15), (0.25, 0.15, 0.25)),
+}
 REWARD_TYPES = ("dense", "sparse")
 ACTION_MODES = ("absolute", "delta")
 
@@ -78,8 +85,9 @@ class ReachEnv(TaskEnv):
         self.reward_type = task.get("reward_type", "dense")
         self.action_mode = task.get("action_mode", "absolute")
         self.reach_tolerance = float(task.get("reach_tolerance", 0.02))
-        self.goal_min = np.asarray(task.get("goal_min", GOAL_MIN), dtype=np.float64)
-        self.goal_max = np.asarray(task.get("goal_max", GOAL_MAX), dtype=np.float64)
+        box_min, box_max = GOAL_BOXES.get(arm, GOAL_BOXES["rx200"])
+        self.goal_min = np.asarray(task.get("goal_min", box_min), dtype=np.float64)
+        self.goal_max = np.asarray(task.get("goal_max", box_max), dtype=np.float64)
         self.delta_coeff = float(task.get("delta_coeff", 0.05))
         self.render_mode = task.get("render_mode")
         if self.reward_type not in REWARD_TYPES:
@@ -97,6 +105,7 @@ class ReachEnv(TaskEnv):
         n = spec.n_arm_joints
         self._lower = np.asarray(spec.joint_lower_rad)
         self._upper = np.asarray(spec.joint_upper_rad)
+        self._half_range = (self._upper - self._lower) / 2
         self.action_space = gym.spaces.Box(-1.0, 1.0, (n,), np.float32)
         self._obs_dim = 3 + 3 + 1 + len(spec.joint_state_names) + n
         self.observation_space = self._make_observation_space()
@@ -126,10 +135,14 @@ class ReachEnv(TaskEnv):
             target = self._lower + (a + 1.0) * 0.5 * (self._upper - self._lower)
             hit = bool(np.any(np.abs(a) >= 0.999))
         else:
-            raw = q_arm + a * self.delta_coeff
+            raw = q_arm + a * self.delta_coeff * self._half_range
             target = np.clip(raw, self._lower, self._upper)
             hit = bool(np.any(raw != target))
         return target, hit
+
+    @property
+    def _relative_action(self) -> bool:
+        return self.action_mode == "delta"
 
     def _on_action(self, action: np.ndarray) -> None:
         self._prev_action = action.astype(np.float32)
