@@ -56,6 +56,10 @@ class SafetyChecker:
         arm = [i for i in range(m.ngeom) if m.geom_bodyid[i] != 0 and i not in self._table_geoms and m.geom_contype[i]]
         for i in arm:
             m.geom_conaffinity[i] |= m.geom_contype[i]
+            # the broad phase filters body pairs by the compiled per-body masks (OR of their geoms'), so those
+            # must learn the new affinity too, or no arm-arm pair ever reaches the narrow phase
+            b = m.geom_bodyid[i]
+            m.body_conaffinity[b] |= m.geom_conaffinity[i]
         self._near_mat = np.array([[_hops(m, a, b) <= 2 for b in range(m.nbody)] for a in range(m.nbody)])
         self._table_mask = np.isin(np.arange(m.ngeom), table)
         # pairs that touch at home by construction (e.g. fingers on the gripper bar) are not collisions
