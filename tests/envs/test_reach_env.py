@@ -287,7 +287,6 @@ def test_delta_action_is_applied_on_every_tick_in_real_time(turn_based: bool) ->
     env = gym.make(
         "uniros/Rx200Reach-v0", clock="sim", action_mode="delta", delta_coeff=0.05, turn_based=turn_based
     )
-    u = env.unwrapped
     try:
         obs, _ = env.reset(seed=0)
         q0 = obs[7:12].copy()

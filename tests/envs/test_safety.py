@@ -32,8 +32,12 @@ def test_self_collision_is_refused(arm: str) -> None:
     d.qpos[checker._qadr] = q
     mujoco.mj_kinematics(m, d)
     arm_geoms = [i for i in range(m.ngeom) if m.geom_bodyid[i] != 0 and m.geom(i).name != "table"]
-    deepest = min(mujoco.mj_geomDistance(m, d, a, b, 0.5, None) for a in arm_geoms for b in arm_geoms if a < b
-                  and not checker._near_mat[m.geom_bodyid[a], m.geom_bodyid[b]])
+    deepest = min(
+        mujoco.mj_geomDistance(m, d, a, b, 0.5, None)
+        for a in arm_geoms
+        for b in arm_geoms
+        if a < b and not checker._near_mat[m.geom_bodyid[a], m.geom_bodyid[b]]
+    )
     assert deepest < -0.01, "the fixture must really interpenetrate"
     why = checker.check(q)
     assert why is not None and why.startswith("self-collision between"), why
@@ -47,7 +51,10 @@ def test_home_and_random_safe_targets_pass(arm: str) -> None:
     spec = checker.spec
     assert checker.check(np.asarray(spec.home_q_rad)) is None
     rng = np.random.default_rng(0)
-    reasons = {(checker.check(q) or "ok").split(" ")[0] for q in rng.uniform(checker.lower, checker.upper, (400, len(checker.lower)))}
+    reasons = {
+        (checker.check(q) or "ok").split(" ")[0]
+        for q in rng.uniform(checker.lower, checker.upper, (400, len(checker.lower)))
+    }
     assert {"ok", "self-collision", "a", "the"} <= reasons, reasons  # safe, self-collision, table, workspace
 
 
