@@ -18,11 +18,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 from collections.abc import Iterator
 
 __all__ = [
+    "ACTOR_GIL_SWITCH_S",
     "DEFAULT_LOOP_NICE",
     "LOOP_RT_PRIORITY",
+    "gil_switch_interval",
     "loop_nice",
     "loop_priority_mode",
     "raise_loop_priority",
@@ -32,6 +35,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 DEFAULT_LOOP_NICE = -10
+ACTOR_GIL_SWITCH_S = 0.0005
+"""The GIL switch interval while a real-time acting thread shares its process with a learner thread (Python's
+default: 5 ms): a learner that holds the GIL when the acting thread wakes for the next step keeps it this long."""
 LOOP_RT_PRIORITY = 10
 MODES = ("rt", "nice", "off")
 
@@ -118,3 +124,14 @@ def real_time_thread() -> Iterator[bool]:
     finally:
         with contextlib.suppress(OSError):
             os.sched_setscheduler(0, policy, param)
+
+
+@contextlib.contextmanager
+def gil_switch_interval(seconds: float = ACTOR_GIL_SWITCH_S) -> Iterator[None]:
+    """``sys.setswitchinterval(seconds)`` for the block (process-wide), restored after."""
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(seconds)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(old)

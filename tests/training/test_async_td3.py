@@ -268,3 +268,46 @@ def test_learn_twice_at_once_is_refused(env: gym.Env[Any, Any]) -> None:
 
     AsyncTD3("MlpPolicy", env, **SMALL).learn(10, callback=Reenter())
     assert len(errors) == 1 and "already running" in str(errors[0])
+
+
+@pytest.mark.parametrize("real_time_actor", [False, True])
+def test_real_time_actor_raises_the_acting_thread_only_during_learn(
+    env: gym.Env[Any, Any], real_time_actor: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+    import sys
+
+    monkeypatch.setenv("UNIROS_LOOP_PRIORITY", "rt")
+    seen: list[tuple[float, int]] = []
+    learner_policy: list[int] = []
+
+    class _Probe(BaseCallback):
+        def _on_step(self) -> bool:
+            seen.append((sys.getswitchinterval(), os.sched_getscheduler(0)))
+            return True
+
+    before = (sys.getswitchinterval(), os.sched_getscheduler(0))
+    model = AsyncTD3("MlpPolicy", env, real_time_actor=real_time_actor, **SMALL)  # type: ignore[arg-type]
+    original = model.train
+
+    def train(*args: Any, **kwargs: Any) -> None:
+        learner_policy.append(os.sched_getscheduler(0))
+        original(*args, **kwargs)
+
+    monkeypatch.setattr(model, "train", train)
+    model.learn(80, callback=_Probe())
+    assert (sys.getswitchinterval(), os.sched_getscheduler(0)) == before, "restored after learn"
+    switch = {s for s, _ in seen}
+    if not real_time_actor:
+        assert switch == {before[0]} and {p for _, p in seen} == {before[1]}
+        return
+    assert switch == {0.0005}
+    try:  # SCHED_RR needs root or CAP_SYS_NICE: where refused, the actor keeps its class (and says nothing)
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(10))
+        os.sched_setscheduler(0, *before[1:], os.sched_param(0))
+        permitted = True
+    except PermissionError:
+        permitted = False
+    if permitted:
+        assert {p for _, p in seen} == {os.SCHED_RR}
+    assert learner_policy and set(learner_policy) == {os.SCHED_OTHER}, "the learner computes at ordinary priority"

@@ -120,3 +120,27 @@ def test_drop_observation_removes_entries() -> None:
             DropObservation(env, (16,))
     finally:
         env.close()
+
+
+@pytest.mark.parametrize(
+    ("env_defaults", "setting", "expected"),
+    [
+        ({"clock": "sim"}, None, False),  # accelerated training: the actor computes flat out
+        ({"clock": "wall"}, None, True),  # real-time envs: a real-time acting thread
+        ({}, None, True),  # an env's own default clock is the wall clock
+        ({"turn_based": True}, None, False),  # ... and the sim clock when turn-based
+        ({"clock": "wall"}, False, False),  # an explicit setting wins
+        ({"clock": "sim"}, True, True),
+    ],
+)
+def test_async_learner_real_time_actor_follows_the_envs_clock(
+    env_defaults: dict, setting: bool | None, expected: bool, tmp_path: Path
+) -> None:
+    from uniros_async.training.recipes import EnvLayout, model_kwargs
+
+    data: dict = {"envs": [RX], "learner": "async", "env_defaults": env_defaults}
+    if setting is not None:
+        data["async_learner"] = {"real_time_actor": setting}
+    cfg = train_config_from_dict(data)
+    layout = EnvLayout(pad_to=None, task_id_size=0, goal_env=False, obs_size=20, action_size=5, labels=("Rx200Reach",))
+    assert model_kwargs(cfg, layout, tmp_path)["real_time_actor"] is expected

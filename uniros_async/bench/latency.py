@@ -28,7 +28,6 @@ import dataclasses
 import importlib.util
 import logging
 import math
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -48,7 +47,7 @@ from uniros_async.bench.looptiming import (
 )
 from uniros_async.bench.stats import report
 from uniros_async.errors import ConfigError
-from uniros_async.priority import real_time_thread
+from uniros_async.priority import gil_switch_interval, real_time_thread
 
 __all__ = ["LEARNERS", "SCENARIOS", "LatencyBenchConfig", "main"]
 
@@ -320,7 +319,7 @@ def _run_learner(
         # + 30 s: learn()'s own start (its reset) must not cut the phase short; the step count ends it. The
         # asynchronous learner joins its update thread before learn() returns or raises.
         # the agent's acting thread runs real-time when permitted, like the env loops (uniros_async.priority)
-        with real_time_thread(), _switch_interval(GIL_SWITCH_S):
+        with real_time_thread(), gil_switch_interval():
             model.learn(total_timesteps=steps * vec.num_envs, callback=_Deadline(time.monotonic() + cfg.phase_s + 30.0))
     snaps = [since(now, then) for now, then in zip(vec.call("timing_snapshot"), before, strict=True)]
     rates = vec.get_attr("env_loop_rate_hz")
@@ -339,21 +338,6 @@ def _run_learner(
             )
         )
     return out
-
-
-GIL_SWITCH_S = 0.0005
-"""The agent process's GIL switch interval during a learner phase (Python's default: 5 ms). A learner thread that
-holds the GIL when the acting thread wakes for the next step keeps it up to this long."""
-
-
-@contextlib.contextmanager
-def _switch_interval(seconds: float) -> Iterator[None]:
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(seconds)
-    try:
-        yield
-    finally:
-        sys.setswitchinterval(old)
 
 
 def _env_label(env_id: str, robot: str) -> str:

@@ -58,6 +58,7 @@ from stable_baselines3.td3.policies import Actor, TD3Policy
 from torch.nn import functional as F
 
 from uniros_async.errors import ConfigError
+from uniros_async.priority import gil_switch_interval, real_time_thread
 
 __all__ = ["AsyncTD3"]
 
@@ -187,6 +188,11 @@ class AsyncTD3(TD3):
             env (its loop thread, or the supervisor's, in this process) does not compete with it for the GIL.
         torch_threads: ``torch.set_num_threads`` for the caller and the learner during ``learn`` (process-wide;
             one thread beside env loops, see design.md section 9); None leaves torch's setting alone.
+        real_time_actor: for envs on the wall clock: during ``learn`` the acting thread runs under SCHED_RR when
+            permitted (``priority.real_time_thread``; the learner thread puts itself back to ordinary scheduling)
+            and the process's GIL switch interval drops to 0.5 ms (``priority.gil_switch_interval``), so a learner
+            update in progress delays the next action by at most that much. Keep False for accelerated (sim clock)
+            training: there the actor computes flat out and must not starve other processes.
 
     Raises:
         ConfigError: (a ValueError) an async setting out of range; the message names the value and the range.
@@ -225,6 +231,7 @@ class AsyncTD3(TD3):
         yield_to_actor: bool = True,
         step_grace_s: float = 0.01,
         torch_threads: int | None = 1,
+        real_time_actor: bool = False,
     ) -> None:
         if not (isinstance(updates_per_step, int | float) and math.isfinite(updates_per_step) and updates_per_step > 0):
             raise ConfigError(f"updates_per_step must be a finite number > 0, got {updates_per_step!r}")
@@ -243,6 +250,7 @@ class AsyncTD3(TD3):
         self.yield_to_actor = bool(yield_to_actor)
         self.step_grace_s = float(step_grace_s)
         self.torch_threads = torch_threads
+        self.real_time_actor = bool(real_time_actor)
         self._rt = _Runtime()
         super().__init__(
             policy,
@@ -344,7 +352,11 @@ class AsyncTD3(TD3):
         learner = threading.Thread(target=self._learner_main, name="uniros-async-td3-learner", daemon=True)
         learner.start()
         try:
-            self._actor_loop(total_timesteps, callback, log_interval)
+            with contextlib.ExitStack() as stack:
+                if self.real_time_actor:
+                    stack.enter_context(real_time_thread())
+                    stack.enter_context(gil_switch_interval())
+                self._actor_loop(total_timesteps, callback, log_interval)
         finally:
             self._stop_learner(learner)
         if rt.error is not None:

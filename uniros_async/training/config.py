@@ -143,6 +143,8 @@ class AsyncLearnerConfig:
 
     updates_per_step: float = 1.0
     sync_every: int = 2
+    real_time_actor: bool | None = None
+    """AsyncTD3's ``real_time_actor``; None: on when any training env runs on the wall clock."""
 
     def __post_init__(self) -> None:
         if self.updates_per_step <= 0:
