@@ -98,7 +98,7 @@ def test_bad_actions_and_call_order() -> None:
                 env.step(bad)
         # still usable after bad input
         obs, *_ = env.step(np.zeros(5, np.float32))
-        assert obs.shape == (20,)
+        assert obs.shape == (28,)
     finally:
         env.close()
     env.close()  # idempotent

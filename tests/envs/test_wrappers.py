@@ -14,17 +14,17 @@ pytestmark = pytest.mark.slow
 
 
 def test_padding_lets_both_arms_share_one_policy() -> None:
-    rx = PadSpaces(gym.make("uniros/Rx200Reach-v0", clock="sim"), obs_size=24, action_size=6)
-    ned = PadSpaces(gym.make("uniros/Ned2Reach-v0", clock="sim"), obs_size=24, action_size=6)
+    rx = PadSpaces(gym.make("uniros/Rx200Reach-v0", clock="sim"), obs_size=32, action_size=6)
+    ned = PadSpaces(gym.make("uniros/Ned2Reach-v0", clock="sim"), obs_size=32, action_size=6)
     try:
-        assert rx.observation_space.shape == ned.observation_space.shape == (24,)
+        assert rx.observation_space.shape == ned.observation_space.shape == (32,)
         assert rx.action_space.shape == ned.action_space.shape == (6,)
         obs, info = rx.reset(seed=0)
-        assert obs.shape == (24,) and np.all(obs[20:] == 0) and info["padding"] == {"observation": 4, "action": 1}
+        assert obs.shape == (32,) and np.all(obs[28:] == 0) and info["padding"] == {"observation": 4, "action": 1}
         obs, _, _, _, info = rx.step(np.full(6, 0.1, np.float32))  # the 6th entry is ignored
         assert rx.observation_space.contains(obs) and info["padding"]["action"] == 1
         obs, info = ned.reset(seed=0)
-        assert info["padding"] == {"observation": 5, "action": 0}
+        assert info["padding"] == {"observation": 7, "action": 0}
         with pytest.raises(gym.error.InvalidAction, match=r"\(6,\)"):
             ned.step(np.zeros(5, np.float32))
         with pytest.raises(ConfigError, match="cannot pad"):

@@ -84,6 +84,6 @@ def test_unknown_wrappers_fall_back_to_the_loop_thread() -> None:
         env.unwrapped.start_thread()
         env.reset(seed=0)
         obs, *_ = env.step(np.zeros(5, np.float32))
-        assert obs.shape == (20,)
+        assert obs.shape == (28,)
     finally:
         env.close()

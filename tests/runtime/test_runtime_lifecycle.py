@@ -88,10 +88,10 @@ def test_restart_on_failure_replaces_the_worker_and_truncates_its_episode() -> N
         assert restarted is not None, "the dead worker was not restarted"
         obs, rewards, terminated, truncated, info = restarted
         assert truncated[0] and not terminated[0] and rewards[0] == 0.0
-        assert obs.shape == (2, 20) and "died" in info["worker_error"][0]
+        assert obs.shape == (2, 28) and "died" in info["worker_error"][0]
         assert venv.restarts == [1, 0] and venv.pids[0] != old and not _alive(old)
         obs, *_ = venv.step(np.zeros((2, 6), np.float32))  # both usable again, padding restored
-        assert obs.shape == (2, 20)
+        assert obs.shape == (2, 28)
     finally:
         venv.close()
     assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
@@ -106,7 +106,7 @@ def test_workers_ignore_sigint() -> None:
         os.kill(pid, signal.SIGINT)
         time.sleep(0.2)
         obs, *_ = venv.step(np.zeros((1, 5), np.float32))
-        assert obs.shape == (1, 20)
+        assert obs.shape == (1, 28)
     finally:
         venv.close()
 
@@ -168,7 +168,7 @@ def test_tcp_transport_works_and_reports_a_killed_worker() -> None:
     venv = make_vec([RX, NED], clock="sim", transport="tcp")
     try:
         obs, info = venv.reset(seed=0)
-        assert obs.shape == (2, 20) and list(info["env_id"]) == [RX, NED]
+        assert obs.shape == (2, 28) and list(info["env_id"]) == [RX, NED]
         venv.step(np.zeros((2, 6), np.float32))
         victim = venv.pids[0]
         assert victim is not None

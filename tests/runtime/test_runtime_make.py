@@ -87,6 +87,6 @@ def test_step_error_comes_back_and_the_env_stays_usable() -> None:
         assert "InvalidAction" in str(e.value)
         assert "Traceback" in e.value.remote_traceback and "_validate_action" in e.value.remote_traceback
         obs, *_ = env.step(np.zeros(5, dtype=np.float32))
-        assert obs.shape == (20,)
+        assert obs.shape == (28,)
     finally:
         env.close()

@@ -120,9 +120,9 @@ def test_make_and_make_vec_mix_remote_and_local_workers(launcher: LauncherProces
     try:
         assert launcher.workers() == [env.pid]
         obs, info = env.reset(seed=0)
-        assert obs.shape == (20,) and info["env_id"] == RX
+        assert obs.shape == (28,) and info["env_id"] == RX
         obs, reward, terminated, truncated, _ = env.step(np.zeros(5, np.float32))
-        assert obs.shape == (20,) and isinstance(reward, float)
+        assert obs.shape == (28,) and isinstance(reward, float)
         # the worker stops by itself when its tcp connection to the agent goes away (EOF), the launcher's
         # connection still open: it exits cleanly (code 0) and the launcher reports it
         sup, w = env._sup, env._worker  # type: ignore[attr-defined]
@@ -138,10 +138,10 @@ def test_make_and_make_vec_mix_remote_and_local_workers(launcher: LauncherProces
         assert launcher.workers() == [remote_pid]
         assert local_pid in [p.pid for p in multiprocessing.active_children()]
         obs, info = venv.reset(seed=0)
-        assert obs.shape == (2, 20) and list(info["env_id"]) == [RX, NED]
+        assert obs.shape == (2, 28) and list(info["env_id"]) == [RX, NED]
         for _ in range(3):
             obs, rewards, terminated, truncated, info = venv.step(np.zeros((2, 6), np.float32))
-        assert obs.shape == (2, 20) and rewards.shape == (2,)
+        assert obs.shape == (2, 28) and rewards.shape == (2,)
     finally:
         t0 = time.monotonic()
         venv.close()
@@ -224,7 +224,7 @@ def test_remote_worker_is_restarted_through_its_launcher(launcher: LauncherProce
         assert venv.restarts == [1, 0] and venv.pids[0] != old
         assert launcher.workers() == [venv.pids[0]]
         obs, *_ = venv.step(np.zeros((2, 6), np.float32))
-        assert obs.shape == (2, 20)
+        assert obs.shape == (2, 28)
     finally:
         venv.close()
     assert launcher.wait_no_workers(5.0) == []

@@ -22,25 +22,25 @@ def test_mixed_rx200_ned2_are_padded_and_say_so_in_infos() -> None:
     try:
         assert isinstance(venv, UnirosVectorEnv) and isinstance(venv, gym.vector.VectorEnv)
         assert venv.num_envs == 2
-        assert venv.single_observation_space.shape == (20,)  # rx200 20, ned2 19
+        assert venv.single_observation_space.shape == (28,)  # rx200 28, ned2 25
         assert venv.single_action_space.shape == (6,)  # rx200 5, ned2 6
-        assert venv.observation_space.shape == (2, 20) and venv.action_space.shape == (2, 6)
+        assert venv.observation_space.shape == (2, 28) and venv.action_space.shape == (2, 6)
         obs, info = venv.reset(seed=0)
-        assert obs.shape == (2, 20) and obs.dtype == np.float32
+        assert obs.shape == (2, 28) and obs.dtype == np.float32
         assert obs[1, -1] == 0.0  # ned2's padding
         assert list(info["env_id"]) == [RX, NED]
         assert list(info["padding"]["observation"]) == [0, 1]
         assert list(info["padding"]["action"]) == [1, 0]
         for _ in range(5):
             obs, rewards, terminated, truncated, info = venv.step(venv.action_space.sample())
-            assert obs.shape == (2, 20) and rewards.shape == (2,) and terminated.dtype == np.bool_
+            assert obs.shape == (2, 28) and rewards.shape == (2,) and terminated.dtype == np.bool_
             assert obs[1, -1] == 0.0
             assert rewards[1] in (-1.0, 1.0)  # sparse reward reached the ned2 worker
             assert list(info["env_id"]) == [RX, NED]
         # step_async / step_wait are plain methods
         venv.step_async(np.zeros((2, 6), np.float32))
         obs, *_ = venv.step_wait()
-        assert obs.shape == (2, 20)
+        assert obs.shape == (2, 28)
         with pytest.raises(gym.error.InvalidAction):
             venv.step(np.zeros((2, 5), np.float32))
     finally:
@@ -70,10 +70,10 @@ def test_goal_envs_pad_the_observation_key() -> None:
     try:
         space = venv.single_observation_space
         assert isinstance(space, gym.spaces.Dict)
-        # rx200 16, ned2 15: the standard vector without goal - EE and distance (HER relabels desired_goal only)
-        assert space["observation"].shape == (16,) and space["desired_goal"].shape == (3,)
+        # rx200 24, ned2 21: the standard vector without the direction to the goal and distance (HER relabels desired_goal only)
+        assert space["observation"].shape == (24,) and space["desired_goal"].shape == (3,)
         obs, info = venv.reset(seed=2)
-        assert obs["observation"].shape == (2, 16) and obs["achieved_goal"].shape == (2, 3)
+        assert obs["observation"].shape == (2, 24) and obs["achieved_goal"].shape == (2, 3)
         obs, *_ = venv.step(venv.action_space.sample())
         assert obs["observation"][1, -1] == 0.0
     finally:
@@ -107,7 +107,7 @@ def test_sb3_td3_trains_on_mixed_rx200_ned2() -> None:
     try:
         sb3_env = venv.as_sb3()
         assert isinstance(sb3_env, VecEnv)
-        assert sb3_env.num_envs == 2 and sb3_env.observation_space.shape == (20,)
+        assert sb3_env.num_envs == 2 and sb3_env.observation_space.shape == (28,)
         model = TD3(
             "MlpPolicy",
             sb3_env,
@@ -147,7 +147,7 @@ def test_real_time_mixed_placements() -> None:
         for _ in range(3):
             obs, rewards, *_ = venv.step(np.zeros((2, 6), np.float32))
         elapsed = time.monotonic() - t0
-        assert obs.shape == (2, 20) and np.all(np.isfinite(rewards))
+        assert obs.shape == (2, 28) and np.all(np.isfinite(rewards))
         assert 0.3 < elapsed < 3.0, elapsed  # three 0.2 s action cycles, stepped in parallel
     finally:
         venv.close()

@@ -108,16 +108,16 @@ def test_drop_observation_removes_entries() -> None:
 
     from uniros_async.training.multitask import DropObservation
 
-    env = gym.make("uniros/Rx200ReachGoal-v0", clock="sim")  # its observation: 16 goal-independent entries
+    env = gym.make("uniros/Rx200ReachGoal-v0", clock="sim")  # its observation: 24 goal-independent entries
     try:
         full, _ = env.reset(seed=0)
         wrapped = DropObservation(env, (13, 14, 15))  # e.g. the previous action's last entries
         obs, _ = wrapped.reset(seed=0)
-        assert wrapped.observation_space["observation"].shape == (13,)
+        assert wrapped.observation_space["observation"].shape == (21,)
         assert np.array_equal(obs["observation"], np.delete(full["observation"], [13, 14, 15]))
         assert np.array_equal(obs["desired_goal"], full["desired_goal"])
-        with pytest.raises(ConfigError, match=r"drop_observation \[16\] outside the observation of size 16"):
-            DropObservation(env, (16,))
+        with pytest.raises(ConfigError, match=r"drop_observation \[24\] outside the observation of size 24"):
+            DropObservation(env, (24,))
     finally:
         env.close()
 

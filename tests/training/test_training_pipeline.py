@@ -65,7 +65,7 @@ def test_a_run_writes_curves_tensorboard_and_checkpoints(dense_run: tuple[Path, 
     assert result.steps == 200 and result.checkpoint.name == "step_000000200"
     assert {p.name for p in (run / "checkpoints").iterdir()} == {"latest", "step_000000100", "step_000000200"}
     meta = read_meta(result.checkpoint)
-    assert (meta.step, meta.obs_size, meta.action_size, meta.goal_env, meta.pad_to) == (200, 20, 5, False, None)
+    assert (meta.step, meta.obs_size, meta.action_size, meta.goal_env, meta.pad_to) == (200, 28, 5, False, None)
     assert [(r["step"], r["task"]) for r in _rows(run / "eval.csv")] == [("100", "Rx200Reach"), ("200", "Rx200Reach")]
     episodes = _rows(run / "episodes.csv")
     assert len(episodes) == 2 and all(r["length"] == "100" for r in episodes)  # 100-step limit, no success yet
@@ -94,12 +94,12 @@ def test_the_replay_buffer_comes_back_compact(dense_run: tuple[Path, TrainResult
 
 def test_a_checkpoint_of_another_size_is_a_clear_error(dense_run: tuple[Path, TrainResult]) -> None:
     run, _ = dense_run
-    with pytest.raises(CheckpointError, match=r"observation size 19 and action size 6, but the checkpoint's policy "
-                                              r"takes observation size 20 and action size 5"):
+    with pytest.raises(CheckpointError, match=r"observation size 25 and action size 6, but the checkpoint's policy "
+                                              r"takes observation size 28 and action size 5"):
         evaluate_checkpoint(run, NED, {"clock": "sim"}, episodes=1)
     with pytest.raises(CheckpointError, match="is a goal env"):
         evaluate_checkpoint(run, "uniros/Rx200ReachGoal-v0", {"clock": "sim"}, episodes=1)
-    with pytest.raises(CheckpointError, match="observation size 19 and action size 6"):
+    with pytest.raises(CheckpointError, match="observation size 25 and action size 6"):
         train(dataclasses.replace(_cfg(run, total_steps=300, envs=[NED])), resume=True)
     with pytest.raises(CheckpointError, match="no checkpoint at"):
         evaluate_checkpoint(run / "nothing", RX, {"clock": "sim"}, episodes=1)
@@ -133,7 +133,7 @@ def test_multitask_pads_samples_and_reports_per_env(tmp_path: Path) -> None:
     envs = [{"id": RX, "name": "rx_sim"}, {"id": NED, "name": "ned_real", "kwargs": {"robot": "emulated-real"}}]
     result = train(_cfg(run, envs=envs, total_steps=200, eval={"every_steps": 0}, checkpoint={"every_steps": 0}))
     meta = read_meta(result.checkpoint)
-    assert meta.pad_to == (20, 6) and (meta.obs_size, meta.action_size) == (20, 6)
+    assert meta.pad_to == (28, 6) and (meta.obs_size, meta.action_size) == (28, 6)
     assert {r.label for r in result.final_eval} == {"rx_sim", "ned_real"}
     assert {r["task"] for r in _rows(run / "episodes.csv")} <= {"rx_sim", "ned_real"}
     r = evaluate_checkpoint(run, NED, {"clock": "sim"}, episodes=1)  # padded as in training

@@ -4,16 +4,21 @@ Action: target positions of the arm joints normalised to [-1, 1] over their limi
 or joint deltas (``"delta"``): ``a x delta_coeff`` times half the joint's range (UniROS's actions are radians over
 the joint range times ``delta_coeff``; this is the same step for a normalised action), applied again on every
 env-loop tick of the action cycle from where the arm was last told to be, as UniROS's env loop does (a joint
-velocity; turn-based mode applies a delta once per step). Observation (standard env): EE position
-(3), goal minus EE (3), distance (1), the joint_states positions (rx200: 8, with gripper and fingers; ned2: 6),
-and the previous action; the goal env gives that vector without the goal-dependent entries (goal minus EE,
-distance: HER relabels ``desired_goal`` only) as ``observation``, the EE position as ``achieved_goal`` and the
-goal as ``desired_goal``. Goals are uniform in a box, keeping only points the arm can
-reach (IK succeeds); the default box is the UniROS task config's goal space for the arm (rx200: x 0.15-0.25,
-y +-0.15, z 0.05-0.25 m; ned2: z 0.15-0.25). Rewards follow UniROS: sparse +1 on reaching (distance <= tolerance) else -1; dense +20 on
-reaching, else -2 x distance - 0.5, plus -2 when the action hits a joint limit and -5 when it could not be
-executed (unsafe). Reaching terminates the episode with ``info["is_success"] = True``, at the first env-loop
-tick that finds the EE within the tolerance (real-time mode; turn-based: at the end of the step).
+velocity; turn-based mode applies a delta once per step).
+
+Observation (standard env), UniROS's: EE position (3), unit vector from the EE to the goal (3), distance (1), the
+joint_states positions (rx200: 8, with gripper and fingers; ned2: 6), the previous action, and the joint_states
+velocities (rx200 28 entries, ned2 25). The goal env gives that vector without the goal-dependent entries
+(direction, distance: HER relabels ``desired_goal`` only) as ``observation`` (rx200 24, ned2 21), the EE position
+as ``achieved_goal`` and the goal as ``desired_goal``.
+
+Goals are uniform in a box, keeping only points the arm can reach (IK succeeds); the default box is the UniROS
+task config's goal space for the arm (rx200: x 0.15-0.25, y +-0.15, z 0.05-0.25 m; ned2: z 0.15-0.25).
+
+Rewards follow UniROS: sparse +1 on reaching (distance <= tolerance) else -1; dense +20 on reaching, else
+-2 x distance - 0.5, plus -2 when the action hits a joint limit and -5 when it could not be executed (unsafe).
+Reaching terminates the episode with ``info["is_success"] = True``, at the first env-loop tick that finds the EE
+within the tolerance (real-time mode; turn-based: at the end of the step).
 """
 
 from __future__ import annotations
@@ -95,7 +100,9 @@ class ReachEnv(TaskEnv):
         if self.action_mode not in ACTION_MODES:
             raise ConfigError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
         if self.goal_min.shape != (3,) or self.goal_max.shape != (3,) or np.any(self.goal_min > self.goal_max):
-            raise ConfigError(f"goal_min/goal_max must be 3 numbers with min <= max, got {self.goal_min}, {self.goal_max}")
+            raise ConfigError(
+                f"goal_min/goal_max must be 3 numbers with min <= max, got {self.goal_min}, {self.goal_max}"
+            )
         if self.reach_tolerance <= 0:
             raise ConfigError(f"reach_tolerance must be > 0, got {self.reach_tolerance}")
         if self.render_mode not in (None, "rgb_array"):
@@ -107,7 +114,7 @@ class ReachEnv(TaskEnv):
         self._upper = np.asarray(spec.joint_upper_rad)
         self._half_range = (self._upper - self._lower) / 2
         self.action_space = gym.spaces.Box(-1.0, 1.0, (n,), np.float32)
-        self._obs_dim = 3 + 3 + 1 + len(spec.joint_state_names) + n
+        self._obs_dim = 3 + 3 + 1 + 2 * len(spec.joint_state_names) + n
         self.observation_space = self._make_observation_space()
         self.goal = np.zeros(3)
         self._prev_action = np.zeros(n, dtype=np.float32)
@@ -115,10 +122,13 @@ class ReachEnv(TaskEnv):
         self._start()
 
     def _vector_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Physical bounds of the vector observation: EE within 1 m of the base, goal offsets within 2 m,
-        joint_states positions within +-(pi + 0.1) (fingers in metres fall inside), actions within [-1, 1]."""
+        """Physical bounds of the vector observation: EE within 1 m of the base, a unit direction, distance within
+        3.5 m, joint_states positions within +-(pi + 0.1) (fingers in metres fall inside), actions within [-1, 1],
+        velocities within +-50 rad/s (loose: the servos' limits are a few rad/s, a contact transient is not)."""
         n_js, n = len(self.robot_spec.joint_state_names), self.robot_spec.n_arm_joints
-        hi = np.concatenate([np.full(3, 1.0), np.full(3, 2.0), [3.5], np.full(n_js, np.pi + 0.1), np.ones(n)])
+        hi = np.concatenate(
+            [np.full(3, 1.0), np.ones(3), [3.5], np.full(n_js, np.pi + 0.1), np.ones(n), np.full(n_js, 50.0)]
+        )
         lo = -hi
         lo[6] = 0.0
         return lo.astype(np.float32), hi.astype(np.float32)
@@ -170,7 +180,11 @@ class ReachEnv(TaskEnv):
 
     def _vector_obs(self, state: JointState, ee: np.ndarray) -> np.ndarray:
         d = self.goal - ee
-        return np.concatenate([ee, d, [np.linalg.norm(d)], state.position, self._prev_action]).astype(np.float32)
+        dist = np.linalg.norm(d)
+        direction = d / dist if dist > 1e-9 else np.zeros(3)
+        return np.concatenate([ee, direction, [dist], state.position, self._prev_action, state.velocity]).astype(
+            np.float32
+        )
 
     def _compute_returns(self, state: JointState, q_arm: np.ndarray) -> tuple[Any, float, bool, dict[str, Any]]:
         ee = self.kin.ee_position(q_arm)
@@ -231,8 +245,8 @@ class ReachGoalEnv(ReachEnv, GoalEnv):
         """Reaching ends the episode."""
         return np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1) <= self.reach_tolerance
 
-    # The goal env's ``observation`` leaves out the goal-dependent entries of the standard vector (goal minus EE,
-    # distance): the goal is ``desired_goal`` alone, so HER, which relabels ``desired_goal``, never pairs a
+    # The goal env's ``observation`` leaves out the goal-dependent entries of the standard vector (direction to
+    # the goal, distance): the goal is ``desired_goal`` alone, so HER, which relabels ``desired_goal``, never pairs a
     # transition with two different goals.
     _GOAL_ENTRIES = slice(3, 7)
 
