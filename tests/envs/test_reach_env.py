@@ -300,3 +300,19 @@ def test_delta_action_is_applied_on_every_tick_in_real_time(turn_based: bool) ->
         assert 0.025 < moved < 0.04, moved  # two applications
     else:
         assert 0.2 < moved < 0.3, moved  # ~16 applications (the servo lags the first ticks)
+
+
+def test_reset_after_success_moves_an_arm_home_that_cannot_be_teleported() -> None:
+    # the emulated arm walks home; while it does, the old goal is still set and may be passed again: that must not
+    # end an episode (the arm would hold where it is and never settle home)
+    env = gym.make("uniros/Rx200Reach-v0", robot="emulated-real", clock="sim", action_cycle_s=0.8)
+    u = env.unwrapped
+    try:
+        for seed in (3, 4):
+            _, info = drive_to_goal(env, seed=seed, max_steps=12)
+            assert info["is_success"] and u._ended
+            obs, _ = env.reset(seed=seed + 10)
+            assert not u._ended
+            assert np.max(np.abs(obs[7:12] - u.home_q)) < u.config.settle_tol_rad
+    finally:
+        env.close()

@@ -88,6 +88,7 @@ class RobotEnv(BaseEnv):
         self._target_unsafe: str | None = None
         self._action: np.ndarray | None = None
         self._ended = False  # a tick found the episode terminated: returns kept, arm holding, until reset
+        self._resetting = False  # reset moves the arm home: no episode to end (the old goal may still be reached)
         self._action_t_ns: int | None = None
         self._cache: tuple[int, Returns] | None = None
         self._deadline_ns = 0
@@ -200,7 +201,7 @@ class RobotEnv(BaseEnv):
         q_arm = js.position[self._arm_idx]
         returns = self._compute_returns(js, q_arm)
         self._cache = (now, returns)
-        if returns[2] and not self.config.turn_based:  # terminated at this tick: the episode ends here, arm holds
+        if returns[2] and not self.config.turn_based and not self._resetting:  # the episode ends here, arm holds
             self._ended = True
             self._target, self._target_unsafe, self._action_t_ns = q_arm.copy(), None, None
             self._send(q_arm, now)
@@ -353,7 +354,14 @@ class RobotEnv(BaseEnv):
             await _settle()
             clock.resume()
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
-        self._action, self._ended = None, False
+        self._action, self._ended, self._resetting = None, False, True
+        try:
+            return await self._areset_home(options)
+        finally:
+            self._resetting = False
+
+    async def _areset_home(self, options: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+        clock, cfg = self._clock, self.config
         t0 = clock.now_ns()
         if cfg.robot in ("sim", "sim-process"):  # a nominal sim can be teleported home: exact and fast
             reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=cfg.reset_timeout_s)
