@@ -284,9 +284,7 @@ def test_goal_reached_mid_cycle_ends_the_episode_at_that_tick() -> None:
 def test_delta_action_is_applied_on_every_tick_in_real_time(turn_based: bool) -> None:
     # delta mode: real time applies the delta again on each of the cycle's 8 ticks (a joint velocity);
     # the turn-based baseline applies it once per step
-    env = gym.make(
-        "uniros/Rx200Reach-v0", clock="sim", action_mode="delta", delta_coeff=0.05, turn_based=turn_based
-    )
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim", action_mode="delta", delta_coeff=0.05, turn_based=turn_based)
     try:
         obs, _ = env.reset(seed=0)
         q0 = obs[7:12].copy()
@@ -316,3 +314,40 @@ def test_reset_after_success_moves_an_arm_home_that_cannot_be_teleported() -> No
             assert np.max(np.abs(obs[7:12] - u.home_q)) < u.config.settle_tol_rad
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("action_mode", ["absolute", "delta"])
+def test_unsafe_action_projected_sends_its_safe_part(action_mode: str) -> None:
+    # unsafe_action="project": a target through the table is not refused whole; the joints that can move safely
+    # do (here the waist and wrist), the arm never goes below the margin, and the step says so
+    env = gym.make(
+        "uniros/Rx200Reach-v0", clock="sim", action_cycle_s=0.8, action_mode=action_mode, unsafe_action="project"
+    )
+    u = env.unwrapped
+    try:
+        obs, _ = env.reset(seed=0)
+        q0 = obs[7:12].copy()
+        if action_mode == "absolute":
+            q = np.array([0.5, 1.9, 1.5, 1.5, 0.8])  # shoulder and elbow through the table, waist and wrist fine
+            assert u.safety.check(q) is not None
+            a = (2 * (q - u._lower) / (u._upper - u._lower) - 1).astype(np.float32)
+        else:
+            a = np.array([0.5, 1.0, 1.0, 1.0, 0.5], np.float32)  # forward and down, every tick
+        moved = []
+        for _ in range(6):
+            obs, reward, terminated, _, info = env.step(a)
+            q_now = obs[7:12].astype(np.float64)
+            assert u.kin.table_clearance_m(q_now) > 0, "never below the table"
+            moved.append(float(np.max(np.abs(q_now - q0))))
+            if info.get("action_projected"):
+                break
+        assert info["action_projected"] and info["not_executable"] and "unsafe_reason" not in info
+        assert reward <= -5.0  # the dense reward still charges an action that could not be executed as given
+        assert abs(obs[7] - q0[0]) > 0.2, "the waist (a safe joint) moved although the whole target was unsafe"
+    finally:
+        env.close()
+
+
+def test_unsafe_action_setting_is_checked() -> None:
+    with pytest.raises(ConfigError, match=r"unsafe_action must be one of \('hold', 'project'\)"):
+        gym.make("uniros/Rx200Reach-v0", unsafe_action="clip")

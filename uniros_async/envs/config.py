@@ -7,9 +7,10 @@ from typing import Any
 
 from uniros_async.errors import ConfigError
 
-__all__ = ["CLOCKS", "EnvConfig"]
+__all__ = ["CLOCKS", "UNSAFE_ACTIONS", "EnvConfig"]
 
 CLOCKS = ("wall", "sim")
+UNSAFE_ACTIONS = ("hold", "project")
 ROBOT_PLACEMENTS = ("sim", "sim-process", "emulated-real")
 
 
@@ -42,6 +43,12 @@ class EnvConfig:
         settle_tol_rad: an arm that moves home (emulated or real) is settled when every joint is within this of
             home and slower than 10x it per s (0.02: the servos' steady-state error under gravity is ~0.011 rad).
         emulation_seed: seed of the emulated real arm's perturbations and noise.
+        unsafe_action: what the loop does with an action whose target fails a safety check: ``"hold"`` (UniROS:
+            nothing of it is sent, the arm holds) or ``"project"`` (the safe part of it is sent: joint by joint,
+            from the base, each joint takes its target value if the configuration stays safe, so the arm slides
+            along the table or a joint limit instead of freezing; ``SafetyChecker.project``). Either way
+            ``info["not_executable"]`` is set (the reach task's -5 applies); projected actions also set
+            ``info["action_projected"]``.
     """
 
     robot: str = "sim"
@@ -57,6 +64,7 @@ class EnvConfig:
     reset_move_s: float = 1.5
     settle_tol_rad: float = 0.02
     emulation_seed: int = 0
+    unsafe_action: str = "hold"
 
     def __post_init__(self) -> None:
         if self.robot not in ROBOT_PLACEMENTS and not self.robot.startswith("tcp://"):
@@ -78,6 +86,8 @@ class EnvConfig:
                 raise ConfigError(f"agent_latency_s must be a number or 'measured', got {self.agent_latency_s!r}")
         elif self.agent_latency_s < 0:
             raise ConfigError(f"agent_latency_s must be >= 0, got {self.agent_latency_s}")
+        if self.unsafe_action not in UNSAFE_ACTIONS:
+            raise ConfigError(f"unsafe_action must be one of {UNSAFE_ACTIONS}, got {self.unsafe_action!r}")
         for name in ("robot_timeout_s", "step_timeout_s", "reset_timeout_s", "reset_move_s", "settle_tol_rad"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")

@@ -87,6 +87,7 @@ class RobotEnv(BaseEnv):
         self._target: np.ndarray | None = None
         self._target_unsafe: str | None = None
         self._action: np.ndarray | None = None
+        self._projected = False  # the current action's target was unsafe; its safe part is sent (unsafe_action)
         self._ended = False  # a tick found the episode terminated: returns kept, arm holding, until reset
         self._resetting = False  # reset moves the arm home: no episode to end (the old goal may still be reached)
         self._action_t_ns: int | None = None
@@ -272,6 +273,14 @@ class RobotEnv(BaseEnv):
         target, limit_hit = self._action_to_target(action, ref)
         why = self.safety.check(target)
         self._limit_hit = limit_hit
+        self._projected = False
+        if why is not None and self.config.unsafe_action == "project":
+            safe = self.safety.project(ref if self.safety.check(ref) is None else q_arm, target)
+            if safe is not None:  # send the safe part; the action still counts as not executable as given
+                self._projected, self._target, self._target_unsafe = True, safe, None
+                if first:
+                    self.unsafe_actions += 1
+                return
         self._target_unsafe = why
         self._target = target
         if why is not None:
@@ -330,6 +339,8 @@ class RobotEnv(BaseEnv):
         info = dict(info)
         if self._target_unsafe is not None:
             info["unsafe_reason"] = self._target_unsafe
+        if self._projected:
+            info["action_projected"] = True
         return obs, float(reward), bool(terminated), False, info
 
     def _on_action(self, action: np.ndarray) -> None:
@@ -354,7 +365,7 @@ class RobotEnv(BaseEnv):
             await _settle()
             clock.resume()
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
-        self._action, self._ended, self._resetting = None, False, True
+        self._action, self._ended, self._resetting, self._projected = None, False, True, False
         try:
             return await self._areset_home(options)
         finally:
@@ -419,7 +430,7 @@ class RobotEnv(BaseEnv):
 
     async def _ahold(self) -> None:
         js = self._js.latest()
-        self._target_unsafe, self._action_t_ns, self._action = None, None, None
+        self._target_unsafe, self._action_t_ns, self._action, self._projected = None, None, None, False
         if js is not None:  # hold = keep commanding where it is (action repeat of the current position)
             self._target = js.position[self._arm_idx].copy()
             self._send(self._target, self._clock.now_ns())

@@ -98,6 +98,21 @@ class SafetyChecker:
                 return f"self-collision between {self._model.geom(g1).name or g1} and {self._model.geom(g2).name or g2}"
         return None
 
+    def project(self, q_from: np.ndarray, q_target: np.ndarray) -> np.ndarray | None:
+        """The safe part of a move from ``q_from`` (safe) toward an unsafe ``q_target``: joint by joint from the
+        base, each joint takes its target value if the configuration stays safe. None when no joint can move.
+        At most one check per joint (~0.2 ms each)."""
+        q = np.array(q_from, dtype=np.float64)
+        moved = False
+        for j in range(len(q)):
+            if q[j] == q_target[j]:
+                continue
+            trial = q.copy()
+            trial[j] = q_target[j]
+            if self.check(trial) is None:
+                q, moved = trial, True
+        return q if moved else None
+
     def limit_step(self, q_now: np.ndarray, q_target: np.ndarray) -> np.ndarray:
         """The command for this tick: ``q_target``, moved at most ``max_joint_step_rad`` per joint from ``q_now``."""
         step = self.config.max_joint_step_rad

@@ -193,7 +193,7 @@ class ReachEnv(TaskEnv):
         ee32, goal32 = ee.astype(np.float32), self.goal.astype(np.float32)
         d32 = np.linalg.norm(ee32 - goal32, axis=-1)  # float32, the same reduction batch_reward uses
         success = bool(d32 <= self.reach_tolerance)
-        limit_hit, not_executable = bool(self._limit_hit), self._target_unsafe is not None
+        limit_hit, not_executable = bool(self._limit_hit), self._target_unsafe is not None or self._projected
         info = {
             "is_success": success,
             "distance": float(d32),
