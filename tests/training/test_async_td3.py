@@ -246,6 +246,7 @@ def test_train_is_td3s_update(env: gym.Env[Any, Any]) -> None:
         ({"updates_per_step": float("nan")}, r"updates_per_step .* got nan"),
         ({"sync_every": 0}, r"sync_every must be an integer >= 1 .*got 0"),
         ({"torch_threads": 0}, r"torch_threads must be None or an integer >= 1, got 0"),
+        ({"action_l2": -1.0}, r"action_l2 must be a finite number >= 0, got -1.0"),
     ],
 )
 def test_bad_async_settings_are_clear_errors(env: gym.Env[Any, Any], kwargs: dict[str, Any], match: str) -> None:
@@ -311,3 +312,30 @@ def test_real_time_actor_raises_the_acting_thread_only_during_learn(
     if permitted:
         assert {p for _, p in seen} == {os.SCHED_RR}
     assert learner_policy and set(learner_policy) == {os.SCHED_OTHER}, "the learner computes at ordinary priority"
+
+
+def test_action_l2_keeps_the_actor_out_of_saturation(env: gym.Env[Any, Any]) -> None:
+    """The HER paper's action penalty: from the same weights and batches, the penalised actor's actions are smaller
+    (the critic is fitted to rewards that grow with |action|, so without it the actor is pushed to the bounds)."""
+    kw = dict(SMALL, learning_starts=0, policy_delay=1)
+    rng = np.random.default_rng(0)
+    data = []
+    for _ in range(200):
+        o, o2 = env.observation_space.sample()[None], env.observation_space.sample()[None]
+        act = rng.uniform(-1, 1, (1, 5))
+        data.append((o, o2, act, np.abs(act).sum(axis=1), np.zeros(1, bool)))
+    mean_abs = {}
+    for l2 in (0.0, 10.0):
+        m = AsyncTD3("MlpPolicy", env, action_l2=l2, **kw)
+        m.set_logger(configure(folder=None, format_strings=[]))
+        for o, o2, act, r, d in data:
+            m.replay_buffer.add(o, o2, act, r, d, [{}])
+        m._current_progress_remaining = 0.5
+        torch.manual_seed(1)
+        np.random.seed(1)
+        m.train(gradient_steps=150, batch_size=64)
+        obs = torch.as_tensor(np.concatenate([o for o, *_ in data]))
+        with torch.no_grad():
+            mean_abs[l2] = float(m.actor(obs).abs().mean())
+    assert mean_abs[0.0] > 0.5, mean_abs  # drawn toward the bounds by a reward that grows with |a|
+    assert mean_abs[10.0] < 0.5 * mean_abs[0.0], mean_abs

@@ -144,3 +144,12 @@ def test_async_learner_real_time_actor_follows_the_envs_clock(
     cfg = train_config_from_dict(data)
     layout = EnvLayout(pad_to=None, task_id_size=0, goal_env=False, obs_size=20, action_size=5, labels=("Rx200Reach",))
     assert model_kwargs(cfg, layout, tmp_path)["real_time_actor"] is expected
+
+
+def test_action_l2_needs_the_async_learner() -> None:
+    with pytest.raises(ConfigError, match=r"async_learner.action_l2=1.0 needs learner: async"):
+        train_config_from_dict({"envs": [RX], "async_learner": {"action_l2": 1.0}})
+    with pytest.raises(ConfigError, match=r"async_learner.action_l2 must be >= 0, got -1"):
+        train_config_from_dict({"envs": [RX], "learner": "async", "async_learner": {"action_l2": -1}})
+    cfg = train_config_from_dict({"envs": [RX], "learner": "async", "async_learner": {"action_l2": 1.0}})
+    assert cfg.async_learner.action_l2 == 1.0

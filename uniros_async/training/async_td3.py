@@ -193,6 +193,9 @@ class AsyncTD3(TD3):
             and the process's GIL switch interval drops to 0.5 ms (``priority.gil_switch_interval``), so a learner
             update in progress delays the next action by at most that much. Keep False for accelerated (sim clock)
             training: there the actor computes flat out and must not starve other processes.
+        action_l2: weight of the mean squared (normalised) action in the actor's loss, as in the HER paper
+            (Andrychowicz et al. 2017 use 1.0): under a sparse reward the critic's gradient otherwise drives the
+            actor's tanh into saturation, pinning every joint at a limit. 0 (the default) is TD3's update exactly.
 
     Raises:
         ConfigError: (a ValueError) an async setting out of range; the message names the value and the range.
@@ -232,6 +235,7 @@ class AsyncTD3(TD3):
         step_grace_s: float = 0.01,
         torch_threads: int | None = 1,
         real_time_actor: bool = False,
+        action_l2: float = 0.0,
     ) -> None:
         if not (isinstance(updates_per_step, int | float) and math.isfinite(updates_per_step) and updates_per_step > 0):
             raise ConfigError(f"updates_per_step must be a finite number > 0, got {updates_per_step!r}")
@@ -250,7 +254,10 @@ class AsyncTD3(TD3):
         self.yield_to_actor = bool(yield_to_actor)
         self.step_grace_s = float(step_grace_s)
         self.torch_threads = torch_threads
+        if not (isinstance(action_l2, int | float) and math.isfinite(action_l2) and action_l2 >= 0):
+            raise ConfigError(f"action_l2 must be a finite number >= 0, got {action_l2!r}")
         self.real_time_actor = bool(real_time_actor)
+        self.action_l2 = float(action_l2)
         self._rt = _Runtime()
         super().__init__(
             policy,
@@ -477,7 +484,8 @@ class AsyncTD3(TD3):
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         """TD3's update, line for line, except that the batch is sampled under the replay lock and logger records
-        are taken under the log lock (so the actor may add transitions and dump logs meanwhile)."""
+        are taken under the log lock (so the actor may add transitions and dump logs meanwhile), and the optional
+        ``action_l2`` term of the actor's loss."""
         rt = self._rt
         self.policy.set_training_mode(True)
         with rt.log_lock:
@@ -508,7 +516,10 @@ class AsyncTD3(TD3):
 
             if self._n_updates % self.policy_delay == 0:
                 obs = replay_data.observations
-                actor_loss = -self.critic.q1_forward(obs, self.actor(obs)).mean()
+                actions = self.actor(obs)
+                actor_loss = -self.critic.q1_forward(obs, actions).mean()
+                if self.action_l2:  # HER's action penalty (Andrychowicz et al. 2017): keeps tanh out of saturation
+                    actor_loss = actor_loss + self.action_l2 * actions.pow(2).mean()
                 actor_losses.append(actor_loss.item())
                 self.actor.optimizer.zero_grad()
                 actor_loss.backward()  # type: ignore[no-untyped-call]

@@ -145,8 +145,12 @@ class AsyncLearnerConfig:
     sync_every: int = 2
     real_time_actor: bool | None = None
     """AsyncTD3's ``real_time_actor``; None: on when any training env runs on the wall clock."""
+    action_l2: float = 0.0
+    """AsyncTD3's ``action_l2``: the HER paper's action penalty in the actor's loss (1.0 there)."""
 
     def __post_init__(self) -> None:
+        if not self.action_l2 >= 0:
+            raise ConfigError(f"async_learner.action_l2 must be >= 0, got {self.action_l2}")
         if self.updates_per_step <= 0:
             raise ConfigError(f"async_learner.updates_per_step must be > 0, got {self.updates_per_step}")
         if self.sync_every < 1:
@@ -248,6 +252,11 @@ class TrainConfig:
             raise ConfigError(f"drop_observation must be distinct indices >= 0, got {list(drop)}")
         if self.task_id_in_obs and len(self.envs) < 2:
             raise ConfigError("task_id_in_obs needs two or more envs")
+        if self.async_learner.action_l2 and self.learner != "async":
+            raise ConfigError(
+                f"async_learner.action_l2={self.async_learner.action_l2} needs learner: async (AsyncTD3's update; "
+                "SB3's TD3 has no such term)"
+            )
 
     def labels(self) -> list[str]:
         """Label of every training env."""

@@ -231,6 +231,7 @@ def model_kwargs(cfg: TrainConfig, layout: EnvLayout, run_dir: Path) -> dict[str
         if rt_actor is None:  # real-time envs get a real-time acting thread; accelerated ones compute flat out
             rt_actor = any(_clock_of({**cfg.env_defaults, **e.kwargs}) == "wall" for e in cfg.envs)
         kw["real_time_actor"] = rt_actor
+        kw["action_l2"] = cfg.async_learner.action_l2
         kw["torch_threads"] = cfg.torch_threads
     return kw
 
