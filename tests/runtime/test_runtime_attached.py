@@ -40,7 +40,7 @@ def _same(a: Any, b: Any) -> None:
 
 def test_attached_env_steps_exactly_like_the_synchronous_one() -> None:
     actions = _actions(6)  # 4 steps to the time limit, then two more (gymnasium's TimeLimit does not stop them)
-    sync = PadSpaces(gym.make("uniros/Rx200Reach-v0", **KW), 25, 6)
+    sync = PadSpaces(gym.make("uniros/Rx200Reach-v0", **KW), 32, 6)
     try:
         expected: list[Any] = [sync.reset(seed=3)]
         expected += [sync.step(a) for a in actions]
@@ -49,7 +49,7 @@ def test_attached_env_steps_exactly_like_the_synchronous_one() -> None:
 
     async def attached() -> list[Any]:
         with deferred_start():
-            env = PadSpaces(gym.make("uniros/Rx200Reach-v0", **KW), 25, 6)
+            env = PadSpaces(gym.make("uniros/Rx200Reach-v0", **KW), 32, 6)
         assert supports_async(env) and env.unwrapped.attached
         await env.unwrapped.astart()
         try:

@@ -29,7 +29,7 @@ def test_mixed_rx200_ned2_are_padded_and_say_so_in_infos() -> None:
         assert obs.shape == (2, 28) and obs.dtype == np.float32
         assert obs[1, -1] == 0.0  # ned2's padding
         assert list(info["env_id"]) == [RX, NED]
-        assert list(info["padding"]["observation"]) == [0, 1]
+        assert list(info["padding"]["observation"]) == [0, 3]
         assert list(info["padding"]["action"]) == [1, 0]
         for _ in range(5):
             obs, rewards, terminated, truncated, info = venv.step(venv.action_space.sample())

@@ -147,7 +147,7 @@ def test_her_on_the_goal_env_and_its_resume(tmp_path: Path) -> None:
     result = train(_cfg(run, total_steps=150, **over))
     meta = read_meta(result.checkpoint)
     assert meta.goal_env and meta.config["replay_buffer"] == "auto"  # auto: HER on goal envs
-    assert meta.drop_observation == (13, 14, 15) and meta.obs_size == 13  # 16 goal-free entries, 3 dropped
+    assert meta.drop_observation == (13, 14, 15) and meta.obs_size == 21  # 24 goal-free entries, 3 dropped
     r = evaluate_checkpoint(run, RX_GOAL["id"], {"clock": "sim", "reward_type": "sparse"}, episodes=1)
     assert r.episodes == 1
     assert train(_cfg(run, total_steps=250, **over), resume=True).steps == 250  # an unfinished episode is closed
