@@ -4,10 +4,11 @@ The env loop is a bus timer at ``env_loop_rate_hz`` (default: the arm's hardware
 newest joint state (never waits for one), builds observation, reward, terminated and info through the task's
 hooks and caches them with the tick's stamp, and sends the current action's joint target to the arm again
 (action repeat), limited to ``max_joint_step_rad`` per tick. A task whose actions are relative to where the arm is
-(``_relative_action``: joint deltas) gets its action applied again from the newest state on every tick, as
-UniROS's env loop does, so a delta acts as a joint velocity for the whole action cycle. An action whose target
-fails a safety check (joint limits, a link near the table, the EE outside the workspace box, self-collision) is
-never sent: the arm is told to hold and ``info["unsafe_reason"]`` says why. ``step`` hands the action over at once
+(``_relative_action``: joint deltas) gets its action applied again on every tick from where the arm was last told
+to be, as UniROS's env loop does, so a delta acts as a joint velocity for the whole action cycle. An action whose
+target fails a safety check (joint limits, a link near the table, the EE outside the workspace box,
+self-collision) is never sent: the arm is told to hold and ``info["unsafe_reason"]`` says why (or, with
+``unsafe_action="project"``, the safe part of it is sent and ``info["action_projected"]`` says so). ``step`` hands the action over at once
 and returns the cached returns at the end of the action cycle, an absolute deadline from the previous step.
 
 Termination is checked at the loop's rate: the first tick whose returns say ``terminated`` (the goal reached
@@ -262,8 +263,10 @@ class RobotEnv(BaseEnv):
         self._apply_action(action, js.position[self._arm_idx], now, first=True)
 
     def _apply_action(self, action: np.ndarray, q_arm: np.ndarray, now: int, *, first: bool) -> None:
-        """Make ``action`` the loop's target from ``q_arm``; an unsafe target is not sent: the arm holds instead
-        (once per step for absolute actions, on every tick where a relative action's target is unsafe)."""
+        """Make ``action`` the loop's target from ``q_arm``. An unsafe target is not sent: with
+        ``unsafe_action="project"`` its safe part is (``SafetyChecker.project``), otherwise (or when no joint can
+        move safely) the arm holds (once per step for absolute actions, on every tick where a relative action's
+        target is unsafe)."""
         ref = q_arm
         if self._relative_action and self._target is not None:
             # deltas add up from where the arm was told to be, not from where the lagging servos are yet, so a
