@@ -12,8 +12,7 @@ Names are imported lazily, so ``import uniros_async.sim`` (and the ``uniros`` CL
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from uniros_async._lazy import lazy_exports
 
 __all__ = [
     "EmulationConfig",
@@ -46,12 +45,4 @@ _WHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'uniros_async.sim' has no attribute {name!r}")
-    return getattr(importlib.import_module(f"uniros_async.sim.{module}"), name)
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports(__name__, _WHERE)

@@ -7,8 +7,7 @@ Exports load lazily: importing this package imports neither torch nor SB3, and n
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from uniros_async._lazy import lazy_exports
 
 __all__ = [
     "AsyncTD3",
@@ -45,12 +44,4 @@ _WHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'uniros_async.training' has no attribute {name!r}")
-    return getattr(importlib.import_module(f"uniros_async.training.{module}"), name)
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports(__name__, _WHERE)
