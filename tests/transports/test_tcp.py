@@ -416,3 +416,27 @@ def test_contract_under_uvloop() -> None:
 
     with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
         runner.run(main())
+
+
+async def test_has_news_and_fileno_tell_a_caller_outside_the_loop_what_waits() -> None:
+    import select
+
+    async with _listening() as lst:
+        acc = asyncio.ensure_future(lst.accept())
+        c = await connect(lst.uri, TransportOptions())
+        s = await acc
+        assert isinstance(c, tcp.TcpTransport) and isinstance(s, tcp.TcpTransport)
+        fd = c.fileno()
+        assert fd >= 0 and not c.has_news()
+        assert select.select([fd], [], [], 0)[0] == []
+        await s.send(b"news")
+        async with asyncio.timeout(5):
+            while not c.has_news():  # the loop has read the frame: the socket says nothing any more, has_news does
+                await asyncio.sleep(0.001)
+        assert bytes(await c.receive()) == b"news" and not c.has_news()
+        await s.aclose()
+        async with asyncio.timeout(5):
+            while not c.has_news():  # the peer's EOF: receive would raise at once
+                await asyncio.sleep(0.001)
+        await c.aclose()
+        assert c.fileno() == -1

@@ -48,6 +48,7 @@ import numpy as np
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.runtime.worker import WorkerSpec, _error_reply, pack, unpack, worker_entry
 from uniros_async.transports.base import Transport, TransportOptions
+from uniros_async.transports.tcp import TcpTransport
 
 __all__ = [
     "AUTH_KEY_ENV",
@@ -224,9 +225,7 @@ class RemoteWorkerProcess:
                 raise ConfigError(f"worker {index}: {message}")
             raise WorkerError(index, message, remote_traceback=str(reply.get("traceback", "")))
         result = reply["result"]
-        tr = getattr(self._control, "_tr", None)  # the asyncio transport under TcpTransport
-        sock = tr.get_extra_info("socket") if tr is not None else None
-        self._fd = sock.fileno() if sock is not None else -1
+        self._fd = self._control.fileno() if isinstance(self._control, TcpTransport) else -1
         self.pid = int(result["pid"])
         host, port = _tcp_host_port(str(result["uri"]), "worker URI")
         self.worker_uri = _format_uri(p.host if host in _WILDCARD_HOSTS else host, port)
@@ -241,7 +240,7 @@ class RemoteWorkerProcess:
         control = self._control
         if control is None:
             return self.exitcode is not None or self.launcher_lost is not None
-        if getattr(control, "_error", None) is not None or getattr(control, "_frames", None):
+        if isinstance(control, TcpTransport) and control.has_news():
             return True
         if self._fd < 0:
             return False

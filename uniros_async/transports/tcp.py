@@ -239,6 +239,16 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         name = self._tr.get_extra_info("sockname")
         return name[0], name[1]
 
+    def has_news(self) -> bool:
+        """Whether ``receive`` would return at once: a frame is buffered, or the connection has ended."""
+        return self._error is not None or bool(self._frames)
+
+    def fileno(self) -> int:
+        """The connection's socket descriptor (-1 before connecting or once closed): a caller outside the event
+        loop can ``select`` on it to learn, without reading, whether the peer sent data the loop has not taken."""
+        sock = self._tr.get_extra_info("socket") if self._tr is not None else None
+        return sock.fileno() if sock is not None else -1
+
     async def send(self, frame: Buffer | Sequence[Buffer]) -> None:
         """Send one frame. If cancelled while waiting for the peer to catch up, nothing was sent; once the frame
         was handed to the event loop it goes out whole (the connection never carries half a frame). Returns
