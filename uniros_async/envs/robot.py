@@ -11,8 +11,8 @@ self-collision) is never sent: the arm is told to hold and ``info["unsafe_reason
 ``unsafe_action="project"``, the safe part of it is sent and ``info["action_projected"]`` says so). ``step`` hands the action over at once
 and returns the cached returns at the end of the action cycle, an absolute deadline from the previous step.
 
-Termination is checked at the loop's rate: the first tick whose returns say ``terminated`` (the goal reached
-mid-cycle, say) ends the episode there, as on UniROS's real-time envs: the arm is told to hold, and the returns of
+Termination is checked at the loop's rate: once an action came, the first tick whose returns say ``terminated``
+(the goal reached mid-cycle, say) ends the episode there, as on UniROS's real-time envs: the arm is told to hold, and the returns of
 that tick are kept and handed to the agent at the end of the cycle. (Turn-based mode, the baseline, judges and
 applies everything once per step instead.)
 
@@ -87,10 +87,9 @@ class RobotEnv(BaseEnv):
         self._clock: Clock = wall_clock()
         self._target: np.ndarray | None = None
         self._target_unsafe: str | None = None
-        self._action: np.ndarray | None = None
+        self._action: np.ndarray | None = None  # the episode's current action (None: none yet, or reset/hold)
         self._projected = False  # the current action's target was unsafe; its safe part is sent (unsafe_action)
         self._ended = False  # a tick found the episode terminated: returns kept, arm holding, until reset
-        self._resetting = False  # reset moves the arm home: no episode to end (the old goal may still be reached)
         self._action_t_ns: int | None = None
         self._cache: tuple[int, Returns] | None = None
         self._deadline_ns = 0
@@ -191,7 +190,8 @@ class RobotEnv(BaseEnv):
     @property
     def _relative_action(self) -> bool:
         """Hook: True when ``_action_to_target`` depends on where the arm is (joint deltas): the loop then applies
-        the action again from the newest state on every tick. Absolute targets are computed once per step."""
+        the action again on every tick, from where the arm was last told to be. Absolute targets are computed once
+        per step."""
         return False
 
     def _tick(self) -> None:
@@ -203,15 +203,15 @@ class RobotEnv(BaseEnv):
         q_arm = js.position[self._arm_idx]
         returns = self._compute_returns(js, q_arm)
         self._cache = (now, returns)
-        if returns[2] and not self.config.turn_based and not self._resetting:  # the episode ends here, arm holds
+        # the episode ends at this tick, the arm holds. Only once an action came: while reset walks the arm home
+        # (no action yet) the old goal may still be passed
+        if returns[2] and self._action is not None and not self.config.turn_based:
             self._ended = True
             self._target, self._target_unsafe, self._action_t_ns = q_arm.copy(), None, None
             self._send(q_arm, now)
             return
         if self._relative_action and self._action is not None and not self.config.turn_based:
             self._apply_action(self._action, q_arm, now, first=False)
-            if self._target_unsafe is not None:
-                return
         target = self._target
         if target is None or self._target_unsafe is not None:
             return
@@ -368,14 +368,7 @@ class RobotEnv(BaseEnv):
             await _settle()
             clock.resume()
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
-        self._action, self._ended, self._resetting, self._projected = None, False, True, False
-        try:
-            return await self._areset_home(options)
-        finally:
-            self._resetting = False
-
-    async def _areset_home(self, options: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
-        clock, cfg = self._clock, self.config
+        self._action, self._ended, self._projected = None, False, False
         t0 = clock.now_ns()
         if cfg.robot in ("sim", "sim-process"):  # a nominal sim can be teleported home: exact and fast
             reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=cfg.reset_timeout_s)

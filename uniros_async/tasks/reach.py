@@ -114,7 +114,6 @@ class ReachEnv(TaskEnv):
         self._upper = np.asarray(spec.joint_upper_rad)
         self._half_range = (self._upper - self._lower) / 2
         self.action_space = gym.spaces.Box(-1.0, 1.0, (n,), np.float32)
-        self._obs_dim = 3 + 3 + 1 + 2 * len(spec.joint_state_names) + n
         self.observation_space = self._make_observation_space()
         self.goal = np.zeros(3)
         self._prev_action = np.zeros(n, dtype=np.float32)
