@@ -202,8 +202,8 @@ class TrainConfig:
         replay_buffer: ``auto`` (HER for goal envs, plain replay otherwise), ``standard`` or ``her``.
         task_id_in_obs: append a one-hot env index to observations (multi-task only; off as in the paper).
         drop_observation: indices of the vector observation (the ``observation`` key of a goal env) to remove
-            before the policy sees it. For HER on the reach goal envs use ``[3, 4, 5, 6]``: their ``observation``
-            holds goal - EE and the distance to the *original* goal, which HER's relabelled goals contradict.
+            before the policy sees it (the reach goal envs' ``observation`` is already goal-free; this is for
+            envs whose is not: HER's relabelled goals would contradict goal-dependent entries).
         torch_threads: torch intra-op threads (1: envs share the machine; design.md section 9).
         run_dir: where logs and checkpoints go (default ``runs/<name>``).
     """

@@ -106,7 +106,7 @@ class DropObservation(_VectorObservationWrapper):
     """Remove entries ``indices`` from the vector observation (the ``observation`` key of a goal env).
 
     For HER the policy's ``observation`` must not depend on the goal: relabelling replaces ``desired_goal`` only,
-    so goal-dependent entries (the reach envs' goal - EE and distance, indices 3..6) would contradict it.
+    so goal-dependent entries would contradict it (the reach goal envs leave them out themselves).
 
     Raises:
         ConfigError: an index outside the observation.

@@ -35,6 +35,7 @@ import gymnasium as gym
 import numpy as np
 import yaml
 
+from uniros_async.envs.config import EnvConfig
 from uniros_async.errors import ConfigError, UnirosError
 from uniros_async.training.checkpoint import (
     CheckpointError,
@@ -229,16 +230,11 @@ def model_kwargs(cfg: TrainConfig, layout: EnvLayout, run_dir: Path) -> dict[str
         kw["sync_every"] = cfg.async_learner.sync_every
         rt_actor = cfg.async_learner.real_time_actor
         if rt_actor is None:  # real-time envs get a real-time acting thread; accelerated ones compute flat out
-            rt_actor = any(_clock_of({**cfg.env_defaults, **e.kwargs}) == "wall" for e in cfg.envs)
+            rt_actor = any(EnvConfig.split({**cfg.env_defaults, **e.kwargs})[0].clock == "wall" for e in cfg.envs)
         kw["real_time_actor"] = rt_actor
         kw["action_l2"] = cfg.async_learner.action_l2
         kw["torch_threads"] = cfg.torch_threads
     return kw
-
-
-def _clock_of(env_kwargs: dict[str, Any]) -> str:
-    """The clock an env with these kwargs runs on (EnvConfig's default: sim when turn-based, else wall)."""
-    return str(env_kwargs.get("clock") or ("sim" if env_kwargs.get("turn_based") else "wall"))
 
 
 def _vec_env(cfg: TrainConfig, env: gym.Env[Any, Any], layout: EnvLayout) -> Any:
