@@ -45,6 +45,7 @@ from urllib.parse import urlsplit
 import msgpack
 import numpy as np
 
+from uniros_async._signals import cancel_on_signals
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.runtime.worker import WorkerSpec, _error_reply, pack, unpack, worker_entry
 from uniros_async.transports.base import Transport, TransportOptions
@@ -579,11 +580,7 @@ def run_launcher(
     """Run a launcher until SIGTERM or SIGINT (``uniros worker serve``); ``ready`` is called once it listens."""
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        task = asyncio.current_task()
-        assert task is not None
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, task.cancel)
+        cancel_on_signals(signal.SIGTERM, signal.SIGINT)
         launcher = Launcher(uri, auth_key=auth_key, max_workers=max_workers)
         await launcher.start()
         if ready is not None:

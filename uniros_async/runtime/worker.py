@@ -49,6 +49,7 @@ import gymnasium as gym
 import msgpack
 import numpy as np
 
+from uniros_async._signals import cancel_on_signals
 from uniros_async.bus.codec import decode_plain, encode_plain  # noqa: F401  (decode_plain: compatibility)
 from uniros_async.errors import CodecError, ConfigError, TransportError
 
@@ -348,9 +349,7 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
     from uniros_async.transports.base import listen
 
     loop = asyncio.get_running_loop()
-    task = asyncio.current_task()
-    assert task is not None
-    loop.add_signal_handler(signal.SIGTERM, task.cancel)
+    task = cancel_on_signals(signal.SIGTERM)
     _start_watchdog(spec, loop, task)
     from uniros_async.transports.base import TransportOptions
 

@@ -17,6 +17,8 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from uniros_async._signals import cancel_on_signals
+
 __all__ = ["add_parser", "main", "run"]
 
 logger = logging.getLogger(__name__)
@@ -104,11 +106,7 @@ def _serve(args: argparse.Namespace) -> int:
         sys.stdout.flush()
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        task = asyncio.current_task()
-        assert task is not None
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, task.cancel)
+        cancel_on_signals(signal.SIGINT, signal.SIGTERM)
         await serve_servo_sim(cfg, on_ready=ready)
 
     try:

@@ -28,6 +28,7 @@ from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Any
 
+from uniros_async._signals import cancel_on_signals
 from uniros_async.bus.domain import Domain, open_domain
 from uniros_async.clock import Clock
 from uniros_async.errors import ConfigError, RobotError
@@ -156,9 +157,7 @@ def _child_main(config: ServeConfig, conn: multiprocessing.connection.Connection
 
 async def _child_async(config: ServeConfig, conn: multiprocessing.connection.Connection) -> None:
     loop = asyncio.get_running_loop()
-    main = asyncio.current_task()
-    assert main is not None
-    loop.add_signal_handler(signal.SIGTERM, main.cancel)
+    main = cancel_on_signals(signal.SIGTERM)
 
     def on_pipe() -> None:  # "stop", or EOF when the parent died
         loop.remove_reader(conn.fileno())
