@@ -5,10 +5,17 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
-from uniros_async.priority import DEFAULT_LOOP_NICE, LOOP_RT_PRIORITY, loop_nice, loop_priority_mode
+from uniros_async.priority import (
+    DEFAULT_LOOP_NICE,
+    LOOP_RT_PRIORITY,
+    cores_kept_awake,
+    loop_nice,
+    loop_priority_mode,
+)
 
 
 def test_settings_parsing(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -61,3 +68,51 @@ def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -
     finally:
         for e in envs:
             e.close()
+
+
+def _stat(pid: int) -> list[str]:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().split(") ")[1].split()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return _stat(pid)[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_cores_kept_awake_runs_one_idle_class_poller_per_core_and_stops_them() -> None:
+    cpus = sorted(os.sched_getaffinity(0))
+    with cores_kept_awake() as pids:
+        assert len(pids) == len(cpus)
+        assert all(os.sched_getscheduler(p) == os.SCHED_IDLE for p in pids)
+        assert sorted(min(os.sched_getaffinity(p)) for p in pids) == cpus  # one per core, pinned
+        t0 = [int(_stat(p)[11]) for p in pids]  # utime, in clock ticks
+        deadline = time.monotonic() + 5.0  # within 5 s even when other work keeps the cores busy
+        while time.monotonic() < deadline and not all(int(_stat(p)[11]) > t for p, t in zip(pids, t0, strict=True)):
+            time.sleep(0.1)
+        assert all(int(_stat(p)[11]) > t for p, t in zip(pids, t0, strict=True)), "the pollers should burn idle CPU"
+    assert not any(_alive(p) for p in pids)
+
+
+def test_cores_kept_awake_pollers_die_with_a_sigkilled_parent() -> None:
+    code = (
+        "import sys, time; from uniros_async.priority import cores_kept_awake\n"
+        "with cores_kept_awake() as pids:\n"
+        "    print(*pids, flush=True); time.sleep(60)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        pids = [int(x) for x in parent.stdout.readline().split()]
+        assert pids and all(_alive(p) for p in pids)
+    finally:
+        parent.kill()
+        parent.wait(timeout=10)
+        if parent.stdout is not None:
+            parent.stdout.close()
+    deadline = time.monotonic() + 5.0
+    while any(_alive(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(_alive(p) for p in pids), "a poller outlived its SIGKILLed parent"

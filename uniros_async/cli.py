@@ -72,6 +72,11 @@ def _build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--seed", type=int, default=0)
     bl.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     bl.add_argument("--plot", dest="plot_path", default=None, metavar="PATH.png")
+    bl.add_argument(
+        "--allow-idle",
+        action="store_true",
+        help="let idle cores halt (default: a SCHED_IDLE busy-poll process per core keeps them awake, like cyclictest)",
+    )
     bl.add_argument("--no-progress", action="store_true")
 
     bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
@@ -298,6 +303,7 @@ def _run_bench(args: argparse.Namespace) -> int:
                 learners=tuple(args.learners) if args.learners else None, action_cycle_s=args.action_cycle,
                 think_ms=args.think_ms, learning_starts=args.learning_starts, seed=args.seed,
                 json_path=args.json_path, plot_path=args.plot_path, progress=not args.no_progress,
+                keep_cores_awake=not args.allow_idle,
             )
         )
     elif args.scenario == "envloop":

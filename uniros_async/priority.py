@@ -18,11 +18,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import subprocess
 import sys
+import time
 from collections.abc import Iterator
 
 __all__ = [
     "ACTOR_GIL_SWITCH_S",
+    "cores_kept_awake",
     "DEFAULT_LOOP_NICE",
     "LOOP_RT_PRIORITY",
     "gil_switch_interval",
@@ -135,3 +138,79 @@ def gil_switch_interval(seconds: float = ACTOR_GIL_SWITCH_S) -> Iterator[None]:
         yield
     finally:
         sys.setswitchinterval(old)
+
+
+_POLLER = """
+import ctypes, os, signal, sys
+parent, cpu = int(sys.argv[1]), int(sys.argv[2])
+try:
+    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG: die with the parent
+except (OSError, AttributeError):
+    pass
+os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+if cpu >= 0:
+    os.sched_setaffinity(0, {cpu})
+sys.stdout.write("up\\n"); sys.stdout.flush()
+while os.getppid() == parent:
+    for _ in range(100_000):
+        pass
+"""
+
+
+@contextlib.contextmanager
+def cores_kept_awake(cpus: set[int] | None = None) -> Iterator[list[int]]:
+    """Keep the machine's cores from halting while the block runs: one busy-polling process per core, in the
+    ``SCHED_IDLE`` class, so it runs only when nothing else wants that core. Yields the pollers' pids (empty where
+    ``SCHED_IDLE`` does not exist).
+
+    What ``idle=poll`` (or cyclictest's hold on ``/dev/cpu_dma_latency``) does for real-time Linux, without a reboot
+    or privileges. On a virtual machine a halted core is handed back to the host, and waking it again for a timer
+    or a message costs the hypervisor's scheduling delay: on this project's machines that showed up as 1-4 % CPU
+    steal and ticks 5-35 ms late during the latency benchmark, and as 0.1-0.7 % steal with pollers (docs/
+    performance.md). Any ordinary or real-time thread preempts a poller at once; the cost is power (the cores stay
+    at 100 %) and, on SMT siblings, some of the sibling's throughput. The pollers die with this process (parent-
+    death signal, and they check their parent), so none outlives even a SIGKILL.
+    """
+    if not hasattr(os, "SCHED_IDLE") or not hasattr(os, "sched_getaffinity"):
+        yield []
+        return
+    targets = sorted(os.sched_getaffinity(0) if cpus is None else cpus)
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        for cpu in targets:
+            procs.append(
+                subprocess.Popen(
+                    [sys.executable, "-c", _POLLER, str(os.getpid()), str(cpu)],
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        deadline = time.monotonic() + 10.0
+        for p in procs:  # each has lowered itself before the block starts
+            assert p.stdout is not None
+            ready = _readline_until(p, deadline)
+            if ready != b"up\n":
+                raise RuntimeError(f"a core poller (pid {p.pid}) did not start: exit code {p.poll()}")
+        yield [p.pid for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+        for p in procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=5.0)
+            if p.stdout is not None:
+                p.stdout.close()
+
+
+def _readline_until(p: subprocess.Popen[bytes], deadline: float) -> bytes:
+    """The poller's first line, or b"" if it exits or stays silent until ``deadline``."""
+    import selectors
+
+    assert p.stdout is not None
+    with selectors.DefaultSelector() as sel:
+        sel.register(p.stdout, selectors.EVENT_READ)
+        if not sel.select(max(0.0, deadline - time.monotonic())):
+            return b""
+    return p.stdout.readline()

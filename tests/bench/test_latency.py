@@ -7,6 +7,7 @@ cycle near the loop period), never performance: the figures are the benchmark's 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -126,9 +127,12 @@ def _median(records: list[dict[str, Any]], env: str, metric: str, learner: str |
 def test_turn_based_scenario(tmp_path: Path) -> None:
     out, plot = tmp_path / "tb.json", tmp_path / "tb.png"
     cfg = latency.LatencyBenchConfig(
-        scenario="turn-based", duration_s=3.2, json_path=str(out), plot_path=str(plot), progress=False
+        scenario="turn-based", duration_s=3.2, json_path=str(out), plot_path=str(plot), progress=False,
+        keep_cores_awake=False,
     )
-    records = latency.main(cfg, log=lambda _: None)
+    lines: list[str] = []
+    records = latency.main(cfg, log=lines.append)
+    assert "idle cores: allowed to halt (--allow-idle)" in "\n".join(lines)
     _check(records, out, "turn-based", {"rx200 sim real-time", "rx200 sim turn-based"}, {"scripted"})
     assert plot.stat().st_size > 10_000
     assert abs(_median(records, "rx200 sim real-time", "actuator_cycle") - 100.0) < 5.0
@@ -175,7 +179,10 @@ def test_concurrent_scenario_four_envs_one_learner(tmp_path: Path) -> None:
     cfg = latency.LatencyBenchConfig(
         scenario="concurrent", duration_s=4.0, learning_starts=2, json_path=str(out), progress=False
     )
-    records = latency.main(cfg, log=lambda _: None)
+    lines: list[str] = []
+    records = latency.main(cfg, log=lines.append)
+    n_cpus = len(os.sched_getaffinity(0))
+    assert f"idle cores: kept awake by {n_cpus} SCHED_IDLE poller(s)" in "\n".join(lines)
     envs = {"rx200 sim", "rx200 emulated-real", "ned2 sim", "ned2 emulated-real"}
     _check(records, out, "concurrent", envs, {"async-td3"})
     for env in envs:

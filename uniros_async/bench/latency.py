@@ -19,6 +19,11 @@ Scenarios:
 
 ``--duration`` is the wall time of each phase (each learner, mode or sweep point); learners get
 ``learning_starts`` small so that they train during a short run. TD3 follows the paper's hyperparameters.
+
+Idle cores are kept awake during a run (``priority.cores_kept_awake``: one SCHED_IDLE busy-poll process per core,
+which any other thread preempts), as cyclictest keeps cores out of idle states: on a virtual machine a halted core
+goes back to the host, and waking it for a tick costs the host's scheduling delay (hypervisor steal; the table's
+footer prints its share). ``--allow-idle`` measures the machine as it idles by default.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ from uniros_async.bench.looptiming import (
 )
 from uniros_async.bench.stats import report
 from uniros_async.errors import ConfigError
-from uniros_async.priority import gil_switch_interval, real_time_thread
+from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread
 
 __all__ = ["LEARNERS", "SCENARIOS", "LatencyBenchConfig", "main"]
 
@@ -87,6 +92,8 @@ class LatencyBenchConfig:
         json_path: write the records there as JSON.
         plot_path: write box plots there (.png, .svg or .pdf; needs matplotlib).
         progress: show a progress bar (tqdm, on stderr).
+        keep_cores_awake: run ``priority.cores_kept_awake`` (one SCHED_IDLE busy-poll process per core) during the
+            scenario, as cyclictest keeps cores out of idle states; False lets idle cores halt (``--allow-idle``).
     """
 
     scenario: str = "concurrent"
@@ -99,6 +106,7 @@ class LatencyBenchConfig:
     json_path: str | None = None
     plot_path: str | None = None
     progress: bool = True
+    keep_cores_awake: bool = True
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
@@ -477,14 +485,21 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
     """
     if config.plot_path is not None and importlib.util.find_spec("matplotlib") is None:
         raise ConfigError("--plot needs matplotlib: pip install matplotlib (or the [bench] extra)")
-    cpu0 = _cpu_times()
-    series = run(config)
-    steal = _steal_percent(cpu0, _cpu_times())
+    with cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([]) as pollers:
+        cpu0 = _cpu_times()
+        series = run(config)
+        steal = _steal_percent(cpu0, _cpu_times())
     records = to_records(config.scenario, series)
     title = f"uniros bench latency --scenario {config.scenario} --duration {config.phase_s:g}"
     machine = "" if steal is None else (
         f"\nhypervisor steal during the run: {steal:.1f} % of CPU time (the VM's cores were taken away that long; "
         "above ~1 % expect late ticks no scheduling class can prevent)"
+    )
+    machine += (
+        f"\nidle cores: kept awake by {len(pollers)} SCHED_IDLE poller(s) (--allow-idle lets them halt)"
+        if pollers
+        else "\nidle cores: allowed to halt"
+        + (" (--allow-idle)" if not config.keep_cores_awake else " (no SCHED_IDLE here)")
     )
     report(f"{title}\n{format_table(series, records)}{machine}", records, config.json_path, log)
     if config.plot_path is not None:
