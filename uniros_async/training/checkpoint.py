@@ -5,6 +5,7 @@ Layout (under ``<run_dir>/checkpoints``)::
     step_000010000/model.zip           SB3 zip (policy, optimisers, counters, action noise)
     step_000010000/replay_buffer.pkl   the filled part of the replay buffer only (not 1e6 empty rows)
     step_000010000/meta.json           step, sizes, padding, learner, replay kind, the run's config
+    step_000010000/vec_normalize.pkl   with ``normalize_obs``: the observation statistics (SB3 ``VecNormalize.save``)
     latest                             the name of the newest complete checkpoint
 
 A checkpoint is written into a hidden temporary directory, flushed to disk, and renamed into place (a rename is
@@ -33,9 +34,11 @@ from uniros_async.errors import ConfigError, UnirosError
 __all__ = [
     "CheckpointError",
     "CheckpointMeta",
+    "check_obs_stats",
     "check_sizes",
     "find_checkpoint",
     "latest_checkpoint",
+    "load_obs_stats",
     "load_replay_buffer",
     "read_meta",
     "save_checkpoint",
@@ -46,6 +49,7 @@ logger = logging.getLogger(__name__)
 MODEL_FILE = "model.zip"
 BUFFER_FILE = "replay_buffer.pkl"
 META_FILE = "meta.json"
+OBS_STATS_FILE = "vec_normalize.pkl"
 LATEST_FILE = "latest"
 
 
@@ -66,6 +70,8 @@ class CheckpointMeta:
         algo: ``TD3`` or ``AsyncTD3`` (the class to load with).
         labels: the training envs' labels.
         drop_observation: observation entries removed before the policy (``DropObservation``).
+        normalize_obs: the policy takes observations normalised with the statistics in ``vec_normalize.pkl``
+            (set by ``save_checkpoint`` from the model's VecNormalize).
         config: the run's TrainConfig as plain data.
     """
 
@@ -78,6 +84,7 @@ class CheckpointMeta:
     algo: str = "TD3"
     labels: tuple[str, ...] = ()
     drop_observation: tuple[int, ...] = ()
+    normalize_obs: bool = False
     config: dict[str, Any] = dataclasses.field(default_factory=dict)
     wall_time: float = 0.0
 
@@ -161,7 +168,8 @@ def save_checkpoint(
     keep: int = 2,
     replay_buffer: bool = True,
 ) -> Path:
-    """Write the model (and its replay buffer) as ``checkpoints/step_<step>`` atomically; returns its directory.
+    """Write the model (and its replay buffer, and the observation statistics of its VecNormalize if it trains on
+    one) as ``checkpoints/step_<step>`` atomically; returns its directory.
 
     Raises:
         OSError: the disk refused; the previous checkpoint and ``latest`` are untouched.
@@ -174,12 +182,17 @@ def save_checkpoint(
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir()
+    get_vec_normalize = getattr(model, "get_vec_normalize_env", None)
+    vec_normalize = get_vec_normalize() if get_vec_normalize is not None else None
     try:
         model.save(tmp / MODEL_FILE)
         if replay_buffer and getattr(model, "replay_buffer", None) is not None:
             with open(tmp / BUFFER_FILE, "wb") as f:
                 pickle.dump(_buffer_state(model.replay_buffer), f, protocol=pickle.HIGHEST_PROTOCOL)
-        (tmp / META_FILE).write_text(dataclasses.replace(meta, wall_time=time.time()).to_json())
+        if vec_normalize is not None:
+            vec_normalize.save(tmp / OBS_STATS_FILE)  # pickles the statistics and settings, not the envs
+        meta = dataclasses.replace(meta, wall_time=time.time(), normalize_obs=vec_normalize is not None)
+        (tmp / META_FILE).write_text(meta.to_json())
         for p in tmp.iterdir():
             _fsync_file(p)
         _fsync_dir(tmp)
@@ -316,3 +329,63 @@ def load_replay_buffer(model: Any, ckpt: Path) -> int:
             warnings.simplefilter("ignore", UserWarning)
             buf.truncate_last_trajectory()
     return n
+
+
+def load_obs_stats(ckpt: Path, venv: Any = None) -> Any:
+    """The checkpoint's observation statistics (an SB3 ``VecNormalize``), or None if it was trained without.
+
+    With ``venv`` (resuming): ``VecNormalize.load`` over it, collecting statistics (``training=True``). Without
+    (evaluation): the statistics alone, frozen (``training=False``) and with no env: use ``normalize_obs`` only.
+    Rewards are never normalised (``norm_reward=False``).
+
+    Raises:
+        CheckpointError: meta.json says the policy takes normalised observations and the file is missing or
+            unreadable, or the file does not hold a VecNormalize.
+    """
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    f = ckpt / OBS_STATS_FILE
+    if not read_meta(ckpt).normalize_obs:
+        return None
+    if not f.is_file():
+        raise CheckpointError(
+            f"{ckpt}'s policy was trained on normalised observations (normalize_obs) but {OBS_STATS_FILE} is "
+            "missing: without its statistics the policy would see raw observations"
+        )
+    try:
+        if venv is not None:
+            stats = VecNormalize.load(str(f), venv)
+        else:
+            with open(f, "rb") as fh:
+                stats = pickle.load(fh)
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ValueError) as exc:
+        raise CheckpointError(f"cannot load the observation statistics {f}: {exc}") from exc
+    if not isinstance(stats, VecNormalize):
+        raise CheckpointError(f"{f} holds a {type(stats).__name__}, not a VecNormalize")
+    stats.training = venv is not None
+    stats.norm_reward = False
+    return stats
+
+
+def check_obs_stats(stats: Any, observation_space: Any, where: str) -> None:
+    """Check that observation statistics (a VecNormalize) fit an env's observation space.
+
+    Raises:
+        CheckpointError: a normalised key is missing or an entry's shape differs (both shapes named).
+    """
+    import gymnasium as gym
+
+    rms = stats.obs_rms
+    if isinstance(rms, dict):
+        if not isinstance(observation_space, gym.spaces.Dict):
+            raise CheckpointError(f"{where}: the observation statistics are per key of a dict observation")
+        pairs = [(k, v, observation_space.spaces.get(k)) for k, v in rms.items()]
+    else:
+        pairs = [("observation", rms, observation_space)]
+    for key, r, space in pairs:
+        shape = getattr(space, "shape", None)
+        if shape is None or tuple(shape) != tuple(r.mean.shape):
+            raise CheckpointError(
+                f"{where}: the checkpoint's observation statistics of {key!r} have shape {tuple(r.mean.shape)}, "
+                f"the env's {key!r} has shape {shape}"
+            )

@@ -12,6 +12,7 @@ values, unknown env ids and env keyword arguments all raise ConfigError::
       - {id: uniros/Rx200Reach-v0, kwargs: {reward_type: dense}}
     td3: {learning_starts: 1000, action_noise_std: 0.1}
     eval: {every_steps: 1000, episodes: 20}
+    normalize_obs: false   # true: running mean/std of observations (SB3 VecNormalize), rewards untouched
 """
 
 from __future__ import annotations
@@ -204,6 +205,11 @@ class TrainConfig:
         drop_observation: indices of the vector observation (the ``observation`` key of a goal env) to remove
             before the policy sees it (the reach goal envs' ``observation`` is already goal-free; this is for
             envs whose is not: HER's relabelled goals would contradict goal-dependent entries).
+        normalize_obs: normalise observations with running mean/std statistics (SB3 ``VecNormalize``, as the HER
+            paper and rl-baselines3-zoo's ``normalize: true``; for goal envs the ``observation``,
+            ``achieved_goal`` and ``desired_goal`` keys), clipped to +-10 std; rewards are not normalised. The
+            replay buffer keeps raw observations (normalised when sampled); the statistics are saved with every
+            checkpoint, restored on resume and used, frozen, by every evaluation. Off by default.
         torch_threads: torch intra-op threads (1: envs share the machine; design.md section 9).
         run_dir: where logs and checkpoints go (default ``runs/<name>``).
     """
@@ -218,6 +224,7 @@ class TrainConfig:
     replay_buffer: str = "auto"
     task_id_in_obs: bool = False
     drop_observation: tuple[int, ...] = ()
+    normalize_obs: bool = False
     td3: TD3Config = dataclasses.field(default_factory=TD3Config)
     her: HerConfig = dataclasses.field(default_factory=HerConfig)
     async_learner: AsyncLearnerConfig = dataclasses.field(default_factory=AsyncLearnerConfig)
@@ -250,6 +257,8 @@ class TrainConfig:
         valid = all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in drop)
         if not valid or len(set(drop)) != len(drop):
             raise ConfigError(f"drop_observation must be distinct indices >= 0, got {list(drop)}")
+        if not isinstance(self.normalize_obs, bool):
+            raise ConfigError(f"normalize_obs must be true or false, got {self.normalize_obs!r}")
         if self.task_id_in_obs and len(self.envs) < 2:
             raise ConfigError("task_id_in_obs needs two or more envs")
         if self.async_learner.action_l2 and self.learner != "async":

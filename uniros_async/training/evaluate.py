@@ -3,6 +3,10 @@
 ``evaluate_policy`` runs a loaded model on a gymnasium env; ``evaluate_checkpoint`` does what ``uniros eval``
 does: load a checkpoint, make the env (padded and tagged as the checkpoint's training envs were), check that its
 observation and action sizes fit the policy (a clear error naming both sizes if not), and evaluate.
+
+A policy trained with ``normalize_obs`` sees every evaluation observation normalised with the run's statistics,
+frozen: ``evaluate_policy`` takes them from the model's VecNormalize (the training env's current statistics during
+training), ``load_policy`` attaches the checkpoint's; a checkpoint whose statistics are missing is an error.
 """
 
 from __future__ import annotations
@@ -22,13 +26,22 @@ from uniros_async.training.checkpoint import (
     MODEL_FILE,
     CheckpointError,
     CheckpointMeta,
+    check_obs_stats,
     check_sizes,
     find_checkpoint,
+    load_obs_stats,
     read_meta,
 )
 from uniros_async.training.multitask import TaskIdObservation, build_env, space_sizes
 
-__all__ = ["EvalResult", "evaluate_checkpoint", "evaluate_policy", "load_policy", "make_eval_env"]
+__all__ = [
+    "EvalResult",
+    "evaluate_checkpoint",
+    "evaluate_policy",
+    "frozen_obs_stats",
+    "load_policy",
+    "make_eval_env",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -80,9 +93,15 @@ def evaluate_policy(
 
     The first reset gets ``seed`` (the env's goal sequence is then fixed), later ones continue its generator.
     ``on_episode(index, success, return, length)`` is called after each episode (progress bars).
+    If the model has a VecNormalize (``model.get_vec_normalize_env()``: training with ``normalize_obs``, or
+    attached by ``load_policy``), the policy sees the env's observations normalised with a frozen copy of its
+    statistics taken at the start.
     """
     if episodes < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
+    get_stats = getattr(model, "get_vec_normalize_env", None)
+    live = get_stats() if get_stats is not None else None
+    stats = frozen_obs_stats(live) if live is not None else None
     returns: list[float] = []
     lengths: list[int] = []
     successes = 0
@@ -90,7 +109,7 @@ def evaluate_policy(
         obs, info = env.reset(seed=seed if ep == 0 else None)
         done, ret, length = False, 0.0, 0
         while not done:
-            action, _ = model.predict(obs, deterministic=deterministic)
+            action, _ = model.predict(obs if stats is None else stats.normalize_obs(obs), deterministic=deterministic)
             obs, reward, terminated, truncated, info = env.step(action)
             ret += float(reward)
             length += 1
@@ -113,6 +132,22 @@ def evaluate_policy(
     )
 
 
+def frozen_obs_stats(vec_normalize: Any) -> Any:
+    """A copy of a VecNormalize's observation statistics and settings, without its env, that no longer updates
+    (``training=False``, ``norm_reward=False``): for ``normalize_obs`` only. (The pickle round trip of SB3's own
+    ``VecNormalize.save``/``load``, which leaves the env out; statistics already without an env, as
+    ``load_policy`` attaches them, are returned as they are: nothing steps them.)"""
+    import pickle
+
+    if vec_normalize.venv is None:  # unpickled and never given an env (SB3 cannot pickle those again)
+        frozen = vec_normalize
+    else:
+        frozen = pickle.loads(pickle.dumps(vec_normalize, protocol=pickle.HIGHEST_PROTOCOL))
+    frozen.training = False
+    frozen.norm_reward = False
+    return frozen
+
+
 def _algo_class(name: str) -> type:
     if name == "AsyncTD3":
         from uniros_async.training.async_td3 import AsyncTD3  # lazy: written beside this package (issue 6 item 2)
@@ -128,11 +163,16 @@ def _algo_class(name: str) -> type:
 def load_policy(checkpoint: str | Path) -> tuple[Any, CheckpointMeta, Path]:
     """Load a checkpoint's model for prediction only (a one-row replay buffer, no env attached).
 
+    A checkpoint trained with ``normalize_obs`` gets its observation statistics attached, frozen (the model's
+    ``get_vec_normalize_env()``): ``evaluate_policy`` normalises with them; call ``model.predict`` yourself with
+    ``model.get_vec_normalize_env().normalize_obs(obs)``.
+
     Returns:
         (model, meta, checkpoint directory).
 
     Raises:
-        CheckpointError: no checkpoint at ``checkpoint`` or an unreadable one.
+        CheckpointError: no checkpoint at ``checkpoint``, an unreadable one, or one trained on normalised
+            observations whose statistics are missing.
     """
     from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 
@@ -150,6 +190,9 @@ def load_policy(checkpoint: str | Path) -> tuple[Any, CheckpointMeta, Path]:
         model = cls.load(ckpt / MODEL_FILE, device="cpu", custom_objects=custom)  # type: ignore[attr-defined]
     except (OSError, ValueError, KeyError, RuntimeError) as exc:
         raise CheckpointError(f"cannot load {ckpt / MODEL_FILE}: {exc}") from exc
+    stats = load_obs_stats(ckpt)
+    if stats is not None:
+        model._vec_normalize_env = stats  # SB3's own slot (what get_vec_normalize_env returns); never saved
     return model, meta, ckpt
 
 
@@ -210,6 +253,9 @@ def evaluate_checkpoint(
     model, meta, _ = load_policy(checkpoint)
     env = make_eval_env(meta, env_id, kwargs, label=label, placement=placement)
     try:
+        stats = model.get_vec_normalize_env()
+        if stats is not None:
+            check_obs_stats(stats, env.observation_space, f"{env_id} {kwargs}" if kwargs else env_id)
         result = evaluate_policy(
             model, env, episodes, seed=seed, label=label or env_id, env_id=env_id, on_episode=on_episode
         )

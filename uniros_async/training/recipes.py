@@ -14,6 +14,11 @@ Every env goes through ``TaskSamplerEnv`` (multitask.py): with one env it only t
 paper's Algorithm 1 (an env sampled per episode, one replay buffer, one policy). Interruption (Ctrl-C, SIGTERM,
 a dead worker) stops the run and leaves the last checkpoint intact; ``train(cfg, resume=True)`` continues from it
 (model, optimisers, step counter, action noise and replay buffer; the env starts a fresh episode).
+
+With ``normalize_obs`` the training VecEnv is wrapped in SB3's ``VecNormalize`` (observations only, statistics
+updated as it steps): SB3 stores raw observations in the replay buffer and normalises them when it samples a batch
+(HER relabels raw goals first), so relabelling and rewards never see normalised values. The statistics go into
+every checkpoint (checkpoint.py), come back on resume, and every evaluation normalises with a frozen copy.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from uniros_async.training.checkpoint import (
     check_sizes,
     clean_partial,
     latest_checkpoint,
+    load_obs_stats,
     load_replay_buffer,
     read_meta,
     save_checkpoint,
@@ -237,9 +243,15 @@ def model_kwargs(cfg: TrainConfig, layout: EnvLayout, run_dir: Path) -> dict[str
     return kw
 
 
-def _vec_env(cfg: TrainConfig, env: gym.Env[Any, Any], layout: EnvLayout) -> Any:
+GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
+OBS_CLIP = 10.0  # VecNormalize's default, rl-baselines3-zoo's with ``normalize: true``
+
+
+def _vec_env(cfg: TrainConfig, env: gym.Env[Any, Any], layout: EnvLayout, resume_from: Path | None = None) -> Any:
+    """The training VecEnv: Monitor, DummyVecEnv, local HER rewards for workers, and with ``normalize_obs`` a
+    VecNormalize on top (fresh, or the statistics of the checkpoint ``resume_from``)."""
     from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     vec: Any = DummyVecEnv([lambda: Monitor(env, info_keywords=("is_success",))])
     if cfg.placement == "workers" and _use_her(cfg, layout):
@@ -250,6 +262,16 @@ def _vec_env(cfg: TrainConfig, env: gym.Env[Any, Any], layout: EnvLayout) -> Any
             pass  # TaskSamplerEnv.compute_reward asks the first worker instead (slower, same result)
         else:
             vec = LocalGoalReward(vec)
+    if cfg.normalize_obs:
+        if resume_from is not None:
+            vec = load_obs_stats(resume_from, vec)  # training=True: the statistics go on from the checkpoint's
+        else:
+            space = vec.observation_space
+            keys = [k for k in GOAL_KEYS if k in space.spaces] if isinstance(space, gym.spaces.Dict) else None
+            vec = VecNormalize(
+                vec, training=True, norm_obs=True, norm_reward=False, clip_obs=OBS_CLIP, gamma=cfg.td3.gamma,
+                norm_obs_keys=keys,
+            )
     return vec
 
 
@@ -462,19 +484,25 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
     model: Any = None
     try:
         eval_envs = build_eval_envs(cfg, layout)
-        vec = _vec_env(cfg, env, layout)
         if ckpt is not None:
             meta = read_meta(ckpt)
             check_sizes(meta, layout.obs_size, layout.action_size, layout.goal_env, f"the envs of {cfg.name}")
             cls = _algo_class(cfg)
             if meta.algo != cls.__name__:
                 raise CheckpointError(f"{ckpt} was written by {meta.algo}; the config asks for {cls.__name__}")
+            if meta.normalize_obs != cfg.normalize_obs:
+                raise CheckpointError(
+                    f"{ckpt} was trained with normalize_obs: {str(meta.normalize_obs).lower()}; the config says "
+                    f"normalize_obs: {str(cfg.normalize_obs).lower()} (the policy's inputs would change meaning)"
+                )
+            vec = _vec_env(cfg, env, layout, resume_from=ckpt)
             model = cls.load(ckpt / "model.zip", env=vec, device="cpu", tensorboard_log=str(run_dir / "tb"))  # type: ignore[attr-defined]
             rows = load_replay_buffer(model, ckpt) if cfg.checkpoint.replay_buffer else 0
             model._last_obs = None  # the env is new: start a fresh episode instead of continuing a stale one
             start = int(model.num_timesteps)
             logger.info("resuming %s from %s (step %d, %d replay rows)", cfg.name, ckpt, start, rows)
         else:
+            vec = _vec_env(cfg, env, layout)
             model = build_model(cfg, vec, layout, run_dir)
             start = 0
         (run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
