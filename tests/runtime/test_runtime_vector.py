@@ -49,6 +49,55 @@ def test_mixed_rx200_ned2_are_padded_and_say_so_in_infos() -> None:
     assert multiprocessing.active_children() == []
 
 
+def test_step_async_sends_without_running_the_loop_and_falls_back_when_it_cannot(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """step_async writes every request into the workers' shm rings from the caller's thread (the supervisor's loop
+    does not run until step_wait); with a ring that refuses (try_send False) the loop path sends, same results."""
+    from uniros_async.transports import shm
+
+    def run(venv: UnirosVectorEnv, fast: bool) -> list[np.ndarray]:
+        venv.reset(seed=0)
+        rng = np.random.default_rng(3)
+        out = []
+        drives = []
+        sup = venv._sup
+        real_drive = sup._drive
+        monkeypatch.setattr(sup, "_drive", lambda *a, **k: drives.append(1) or real_drive(*a, **k))
+        for _ in range(4):
+            drives.clear()
+            venv.step_async(rng.uniform(-1, 1, (2, 6)).astype(np.float32))
+            pending = venv._pending
+            assert pending is not None
+            workers = sup.workers
+            assert len(drives) == (0 if fast else 1)  # fast: sent from this thread, the loop did not run
+            if fast:  # (the loop path may already have taken a quick reply)
+                assert all(w.in_flight for w in workers)
+                deadline = time.monotonic() + 10.0  # accelerated workers answer on their own
+                while time.monotonic() < deadline and not all(
+                    w.transport._rx_ctl[shm.W_POS] != w.transport._rpos for w in workers
+                ):
+                    time.sleep(0.01)
+                assert all(w.transport._rx_ctl[shm.W_POS] != w.transport._rpos for w in workers), "replies due"
+            out.append(venv.step_wait()[0])
+        return out
+
+    specs = [(RX, {"turn_based": True}), (NED, {"turn_based": True})]
+    venv = make_vec(specs, clock="sim")
+    try:
+        fast = run(venv, True)
+    finally:
+        venv.close()
+    monkeypatch.setattr(shm.ShmTransport, "try_send", lambda self, frame: False)
+    venv = make_vec(specs, clock="sim")
+    try:
+        slow = run(venv, False)
+    finally:
+        venv.close()
+    for a, b in zip(fast, slow, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_next_step_autoreset_after_truncation() -> None:
     venv = make_vec([(RX, {"max_episode_steps": 3})], clock="sim")
     try:

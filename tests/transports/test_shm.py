@@ -308,6 +308,26 @@ async def test_cancelled_streamed_receive_resumes() -> None:
             assert bytes(await b.receive()) == big
 
 
+async def test_try_send_sends_at_once_or_sends_nothing() -> None:
+    """``try_send`` (the supervisor's send outside the event loop) writes a frame when the ring has room and
+    returns False, having written nothing, when it would have to wait or stream, or the connection is closed."""
+    async with open_pair("shm://", SMALL_RING) as (a, b, _):
+        async with asyncio.timeout(T_S):
+            assert a.try_send(b"first")
+            assert a.try_send(bytes(3000))  # room for it beside the first
+            assert not a.try_send(bytes(3000))  # the ring is full: nothing written
+            assert not a.try_send(bytes(20000))  # larger than the ring: send() streams it
+            assert a.stats.frames_sent == 2
+            assert bytes(await b.receive()) == b"first"
+            assert bytes(await b.receive()) == bytes(3000)
+            await a.send(b"after")  # the ring is consistent: the next frames follow in order
+            assert a.try_send(b"last")
+            assert bytes(await b.receive()) == b"after"
+            assert bytes(await b.receive()) == b"last"
+            await a.aclose()
+            assert not a.try_send(b"closed")
+
+
 async def test_aclose_wakes_a_sender_blocked_on_a_full_ring() -> None:
     async with open_pair("shm://", SMALL_RING) as (a, b, _):
         async with asyncio.timeout(T_S):

@@ -369,30 +369,51 @@ class ShmTransport(Transport):
         if rec > cap:
             await self._send_streamed(parts if one is None else (one,), n)
             return
+        while (place := self._place(rec)) is None:
+            await self._wait_writable(rec)
+            if not self._tx_fast:
+                await self._send_checks()
+        self._write(one, parts, n, rec, *place)
+
+    def try_send(self, frame: bytes) -> bool:
+        """Send ``frame`` at once if that needs no waiting (the common case: room in the ring, an open and healthy
+        connection, a frame that fits the ring); True if it was sent. False: nothing was sent, ``send`` must do it
+        (it waits for room, or raises what is wrong). Lets a caller outside the event loop send without running it.
+        """
+        n = len(frame)
+        if not self._tx_fast or n > self._max_frame:
+            return False
+        rec = 8 + ((n + 7) & ~7)
+        if rec > self._cap or (place := self._place(rec)) is None:
+            return False
+        self._write(frame, (), n, rec, *place)
+        return True
+
+    def _place(self, rec: int) -> tuple[int, int] | None:
+        """Where a record of ``rec`` bytes goes: (ring offset, bytes skipped to the end of the ring first), or None
+        while the ring lacks room."""
+        cap = self._cap
+        wpos = self._wpos
+        used = wpos - self._tx_ctl[R_POS]
+        free = cap - used
+        off = wpos % cap
+        tail = cap - off
+        if rec >= _RESTART_BYTES and tail + rec <= free and used <= self._quarter:
+            # A large frame, little in flight, and room before the reader's position: restart at offset 0, so
+            # the ring reuses the same pages, still in cache (a 900 KiB copy costs 45 us hot, 70 us cold here).
+            return off, tail
+        if rec <= tail and rec <= free:
+            return off, 0
+        if tail + rec <= free:
+            return off, tail  # keep the frame contiguous (zero-copy for the reader)
+        if rec <= free:
+            return off, 0  # wrap around the end; the reader copies it
+        return None
+
+    def _write(self, one: Buffer | None, parts: Sequence[Buffer], n: int, rec: int, off: int, skip: int) -> None:
+        """Copy the frame (``one`` buffer, or ``parts``) to its place, publish it, and ring the reader if it sleeps."""
+        cap = self._cap
         ctl = self._tx_ctl
-        off = skip = 0
-        while True:
-            wpos = self._wpos
-            used = wpos - ctl[R_POS]
-            free = cap - used
-            off = wpos % cap
-            tail = cap - off
-            if rec >= _RESTART_BYTES and tail + rec <= free and used <= self._quarter:
-                # A large frame, little in flight, and room before the reader's position: restart at offset 0, so
-                # the ring reuses the same pages, still in cache (a 900 KiB copy costs 45 us hot, 70 us cold here).
-                skip = tail
-            elif rec <= tail and rec <= free:
-                skip = 0
-            elif tail + rec <= free:
-                skip = tail  # keep the frame contiguous (zero-copy for the reader)
-            elif rec <= free:
-                skip = 0  # wrap around the end; the reader copies it
-            else:
-                await self._wait_writable(rec)
-                if not self._tx_fast:
-                    await self._send_checks()
-                continue
-            break
         data_q = self._tx_q
         if skip:
             data_q[off >> 3] = SKIP
@@ -417,7 +438,7 @@ class ShmTransport(Transport):
                     data[pos:] = view[:first]
                     data[: k - first] = view[first:]
                     pos = k - first
-        wpos += skip + rec
+        wpos = self._wpos + skip + rec
         ctl[W_POS] = self._wpos = wpos  # publish, then (after the fence) see whether the reader sleeps
         _fence_acquire()
         _fence_release()
