@@ -90,6 +90,7 @@ class LoopThread:
                 self._done.set_exception(exc)
         finally:
             try:
+                _cancel_leftovers(loop)  # calls whose caller left (interrupted), as asyncio.run cancels its tasks
                 loop.run_until_complete(loop.shutdown_asyncgens())
             finally:
                 loop.close()
@@ -142,6 +143,9 @@ class LoopThread:
         except concurrent.futures.TimeoutError:
             task.cancel()
             raise TimeoutError(f"no result within {timeout_s} s") from None
+        except BaseException:  # the caller was interrupted (Ctrl-C, a signal): the call goes with it
+            task.cancel()
+            raise
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Cancel ``main`` and join the thread; idempotent, bounded by ``timeout_s``."""
@@ -152,6 +156,15 @@ class LoopThread:
         if loop is not None and task is not None and not loop.is_closed():
             loop.call_soon_threadsafe(task.cancel)
         self._thread.join(timeout_s)
+
+
+def _cancel_leftovers(loop: asyncio.AbstractEventLoop) -> None:
+    """Cancel the tasks still pending on ``loop`` and let them finish (before it closes)."""
+    pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+    for t in pending:
+        t.cancel()
+    if pending:
+        loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
 
 
 async def _handing_over(coro: Coroutine[Any, Any, T], out: concurrent.futures.Future[T]) -> None:
