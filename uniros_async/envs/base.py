@@ -40,6 +40,7 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         self._deferred: tuple[Callable[..., Any], str, float] | None = None
         self._closed = False
         self._needs_reset = True
+        self._action_bounds: tuple[Any, np.ndarray, np.ndarray, bool] | None = None  # (space, low, high, finite)
 
     # ---- lifecycle
 
@@ -213,9 +214,15 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
             raise gym_error.InvalidAction(f"action must be numbers of shape {space.shape}, got {action!r:.80}") from exc
         if a.shape != space.shape:
             raise gym_error.InvalidAction(f"action must have shape {space.shape}, got {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise gym_error.InvalidAction(f"action contains NaN or inf: {a.tolist()}")
-        if np.any(a < space.low - 1e-6) or np.any(a > space.high + 1e-6):
+        bounds = self._action_bounds
+        if bounds is None or bounds[0] is not space:
+            finite = bool(np.isfinite(space.low).all() and np.isfinite(space.high).all())
+            bounds = self._action_bounds = (space, space.low - 1e-6, space.high + 1e-6, finite)
+        _, low, high, finite = bounds
+        inside = (a >= low).all() and (a <= high).all()  # NaN fails these, and inf too when the bounds are finite
+        if not (inside and (finite or np.isfinite(a).all())):
+            if not np.isfinite(a).all():
+                raise gym_error.InvalidAction(f"action contains NaN or inf: {a.tolist()}")
             raise gym_error.InvalidAction(
                 f"action {np.round(a, 4).tolist()} is outside the action space [{space.low.min()}, {space.high.max()}]"
             )

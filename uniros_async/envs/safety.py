@@ -42,6 +42,7 @@ class SafetyChecker:
         self.config = config or SafetyConfig()
         self.lower = np.asarray(spec.joint_lower_rad)
         self.upper = np.asarray(spec.joint_upper_rad)
+        self._lower_tol, self._upper_tol = self.lower - 1e-9, self.upper + 1e-9  # finite: NaN and inf fail these
         self._lo = np.asarray(self.config.workspace_min_m)
         self._hi = np.asarray(self.config.workspace_max_m)
         self._model = mujoco.MjModel.from_xml_path(str(spec.mjcf_path))
@@ -81,9 +82,11 @@ class SafetyChecker:
 
     def check(self, q_target: np.ndarray) -> str | None:
         """None if ``q_target`` is safe to command, else why not (for ``info["unsafe_reason"]``)."""
-        if q_target.shape != self.lower.shape or not np.all(np.isfinite(q_target)):
+        if q_target.shape != self.lower.shape:
             return f"target of shape {q_target.shape} is not {self.lower.shape} finite values"
-        if np.any(q_target < self.lower - 1e-9) or np.any(q_target > self.upper + 1e-9):
+        if not ((q_target >= self._lower_tol).all() and (q_target <= self._upper_tol).all()):  # one pass when safe
+            if not np.isfinite(q_target).all():
+                return f"target of shape {q_target.shape} is not {self.lower.shape} finite values"
             return "target outside the joint limits"
         clearance = self.kin.table_clearance_m(q_target)
         if clearance < self.config.table_margin_m:
