@@ -10,8 +10,10 @@ import time
 import pytest
 
 from uniros_async.priority import (
+    ACTOR_RT_PRIORITY,
     DEFAULT_LOOP_NICE,
     LOOP_RT_PRIORITY,
+    MAX_LOOP_RANK,
     cores_kept_awake,
     loop_nice,
     loop_priority_mode,
@@ -40,11 +42,13 @@ def test_raise_loop_priority_in_a_child(mode: str) -> None:
     """In a fresh process: the policy asked for when permitted (root here), nothing when 'off' or not permitted."""
     code = (
         "import os; from uniros_async.priority import raise_loop_priority as r; got = r(); "
-        "print(got, os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(0, 0))"
+        "print(got, os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(0, 0)); "
+        "r(3); a = os.sched_getparam(0).sched_priority; r(99); b = os.sched_getparam(0).sched_priority; "
+        "print(a, b)"
     )
     env = {**os.environ, "UNIROS_LOOP_PRIORITY": mode, "UNIROS_LOOP_NICE": "-3"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60, check=True)
-    got, policy, prio, nice = out.stdout.split()
+    got, policy, prio, nice, ranked3, ranked99 = out.stdout.split()
     base = os.getpriority(os.PRIO_PROCESS, 0)
     if mode == "off":
         assert (got, int(policy), int(nice)) == ("None", os.SCHED_OTHER, base)
@@ -52,6 +56,7 @@ def test_raise_loop_priority_in_a_child(mode: str) -> None:
         assert (int(policy), int(nice)) == (os.SCHED_OTHER, base)
     elif mode == "rt":
         assert (got, int(policy), int(prio)) == ("rt", os.SCHED_RR, LOOP_RT_PRIORITY)
+        assert (int(ranked3), int(ranked99)) == (LOOP_RT_PRIORITY + 3, LOOP_RT_PRIORITY + MAX_LOOP_RANK)
     else:
         assert (got, int(policy), int(nice)) == ("nice" if base > -3 else "None", os.SCHED_OTHER, min(base, -3))
 
@@ -65,9 +70,32 @@ def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -
     try:
         policies = [os.sched_getscheduler(e._sup.pids()[0]) for e in envs]  # type: ignore[attr-defined]
         assert policies == [os.SCHED_RR, os.SCHED_OTHER]
+        assert os.sched_getparam(envs[0]._sup.pids()[0]).sched_priority == LOOP_RT_PRIORITY  # type: ignore[attr-defined]
     finally:
         for e in envs:
             e.close()
+
+
+def test_the_workers_of_a_vector_env_run_in_the_order_their_actions_are_sent() -> None:
+    """Ranked real-time priorities, the first worker highest (one step's actions wake them in index order, and with
+    fewer cores than workers they then run in that order every time); the acting thread above them all."""
+    import threading
+
+    from uniros_async import make_vec
+    from uniros_async.priority import real_time_thread
+
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
+    venv = make_vec(["uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0", "uniros/Rx200Reach-v0"])
+    try:
+        prios = [os.sched_getparam(p).sched_priority for p in venv._sup.pids()]
+        assert prios == [LOOP_RT_PRIORITY + 2, LOOP_RT_PRIORITY + 1, LOOP_RT_PRIORITY]
+    finally:
+        venv.close()
+    tid = threading.get_native_id()
+    with real_time_thread() as rt:
+        assert rt and os.sched_getparam(tid).sched_priority == ACTOR_RT_PRIORITY > LOOP_RT_PRIORITY + MAX_LOOP_RANK
+    assert os.sched_getscheduler(tid) == os.SCHED_OTHER
 
 
 def _stat(pid: int) -> list[str]:

@@ -8,6 +8,15 @@ sleep between ticks (a tick is well under a millisecond of work, physics include
 throttling (``sched_rt_runtime_us``) keeps 5 % of every core for ordinary processes even if one misbehaved.
 Accelerated (sim clock) workers, which compute flat out, never ask.
 
+The workers of one vector env get distinct priorities (``raise_loop_priority(rank)``: the first the highest, up to
+``MAX_LOOP_RANK`` above the base), and an agent's acting thread (``real_time_thread``) one above them all. A step's
+actions wake every worker at once; with fewer cores than workers they then run one after the other, and at equal
+priority in whatever order the scheduler picks, so each env got its action at a different point of each action
+cycle. Ranked, they run in a fixed order and each env's action arrives at the same point every cycle: for the four
+envs of ``uniros bench latency`` on 2 cores, the IQR of when the action reached each env loop went from 0.62-1.17
+ms to 0.23-0.68 ms (docs/performance.md). The acting thread above them hands out all actions before the first
+woken worker can take its core.
+
 Both need root or CAP_SYS_NICE: without it the process falls back to a lower nice value, and without that keeps
 its priority (a debug log says so). ``UNIROS_LOOP_PRIORITY`` chooses: ``rt`` (default: SCHED_RR, else nice),
 ``nice`` (nice -10 only), ``off``.
@@ -25,9 +34,11 @@ from collections.abc import Iterator
 
 __all__ = [
     "ACTOR_GIL_SWITCH_S",
+    "ACTOR_RT_PRIORITY",
     "cores_kept_awake",
     "DEFAULT_LOOP_NICE",
     "LOOP_RT_PRIORITY",
+    "MAX_LOOP_RANK",
     "gil_switch_interval",
     "loop_nice",
     "loop_priority_mode",
@@ -42,6 +53,10 @@ ACTOR_GIL_SWITCH_S = 0.0005
 """The GIL switch interval while a real-time acting thread shares its process with a learner thread (Python's
 default: 5 ms): a learner that holds the GIL when the acting thread wakes for the next step keeps it this long."""
 LOOP_RT_PRIORITY = 10
+MAX_LOOP_RANK = 15
+"""Ranks above ``LOOP_RT_PRIORITY`` that loop processes may take (``raise_loop_priority(rank)``)."""
+ACTOR_RT_PRIORITY = LOOP_RT_PRIORITY + MAX_LOOP_RANK + 1
+"""The acting thread's SCHED_RR priority (``real_time_thread``): above every loop process."""
 MODES = ("rt", "nice", "off")
 
 
@@ -77,8 +92,9 @@ def loop_nice() -> int | None:
     return value
 
 
-def raise_loop_priority() -> str | None:
-    """Raise this process's scheduling priority for a real-time loop (see the module docstring).
+def raise_loop_priority(rank: int = 0) -> str | None:
+    """Raise this process's scheduling priority for a real-time loop (see the module docstring): SCHED_RR at
+    ``LOOP_RT_PRIORITY + rank`` (``rank`` clipped to [0, ``MAX_LOOP_RANK``]; a nice value ignores it).
 
     Returns:
         ``"rt"`` (SCHED_RR), ``"nice"`` (a lower nice value) or None (unchanged: disabled or not permitted).
@@ -88,7 +104,7 @@ def raise_loop_priority() -> str | None:
         return None
     if mode == "rt" and hasattr(os, "sched_setscheduler"):
         try:
-            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(LOOP_RT_PRIORITY))
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(LOOP_RT_PRIORITY + min(max(rank, 0), MAX_LOOP_RANK)))
             return "rt"
         except PermissionError:
             logger.debug("not permitted to use SCHED_RR (needs root or CAP_SYS_NICE); trying nice")
@@ -107,8 +123,9 @@ def raise_loop_priority() -> str | None:
 
 @contextlib.contextmanager
 def real_time_thread() -> Iterator[bool]:
-    """Run the calling thread (an agent's acting loop) under SCHED_RR for the block, when permitted and
-    ``UNIROS_LOOP_PRIORITY`` is ``rt``; restores its scheduling after. Yields whether it is real-time.
+    """Run the calling thread (an agent's acting loop) under SCHED_RR at ``ACTOR_RT_PRIORITY`` (above every loop
+    process) for the block, when permitted and ``UNIROS_LOOP_PRIORITY`` is ``rt``; restores its scheduling after.
+    Yields whether it is real-time.
 
     Threads started inside the block inherit the class: a thread that computes flat out (a learner) must put
     itself back (``AsyncTD3``'s learner does).
@@ -118,7 +135,7 @@ def real_time_thread() -> Iterator[bool]:
         return
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(LOOP_RT_PRIORITY))
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(ACTOR_RT_PRIORITY))
     except PermissionError:
         yield False
         return

@@ -46,6 +46,7 @@ import numpy as np
 from gymnasium.envs.registration import registry
 
 from uniros_async.errors import ConfigError, TransportError, WorkerError
+from uniros_async.priority import MAX_LOOP_RANK
 from uniros_async.runtime.remote import RemoteWorker, RemoteWorkerProcess, check_plain, parse_placement
 from uniros_async.runtime.worker import WorkerSpec, pack, space_from_plain, unpack, worker_entry
 
@@ -285,17 +286,25 @@ class Supervisor:
         deadline = time.monotonic() + timeout_s
         for index, (env_id, kwargs) in enumerate(specs):
             placement, env_kwargs = split_placement(kwargs)
-            self.workers.append(self._new_handle(index, env_id, env_kwargs, placement, timeout_s))
+            # the first worker the highest real-time priority: the order in which a step's requests are sent
+            rank = min(len(specs) - 1 - index, MAX_LOOP_RANK)
+            self.workers.append(self._new_handle(index, env_id, env_kwargs, placement, timeout_s, rank))
         uris = self._launch(self.workers, deadline)
         remaining = max(0.1, deadline - time.monotonic())
         self.call(self._connect_all(self.workers, uris, remaining), remaining + 1.0)
 
     def _new_handle(
-        self, index: int, env_id: str, kwargs: dict[str, Any], placement: RemoteWorker | None, timeout_s: float
+        self,
+        index: int,
+        env_id: str,
+        kwargs: dict[str, Any],
+        placement: RemoteWorker | None,
+        timeout_s: float,
+        rt_rank: int = 0,
     ) -> WorkerHandle:
         """A local worker, started now, or a remote one, to be started by ``_launch``."""
         if placement is None:
-            return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri)
+            return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri, rt_rank)
         spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s,
                           listen_uri=placement.uri)
         return WorkerHandle(spec=spec, process=RemoteWorkerProcess(placement))
@@ -320,7 +329,9 @@ class Supervisor:
         return [w.remote.worker_uri if w.remote is not None else self._wait_uri(w, deadline) for w in workers]
 
     @staticmethod
-    def _spawn(index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str) -> WorkerHandle:
+    def _spawn(
+        index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
+    ) -> WorkerHandle:
         ctx = multiprocessing.get_context("spawn")
         spec = WorkerSpec(
             index=index,
@@ -329,6 +340,7 @@ class Supervisor:
             parent_pid=os.getpid(),
             accept_timeout_s=timeout_s,
             listen_uri=listen_uri,
+            rt_rank=rt_rank,
         )
         parent_conn, child_conn = ctx.Pipe(duplex=False)
         # daemon=True: if the supervisor's process exits, multiprocessing terminates the workers (and a
@@ -351,7 +363,9 @@ class Supervisor:
         old_remote = old.remote
         deadline = time.monotonic() + timeout_s
         if old_remote is None:
-            new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri)
+            new = self._spawn(
+                index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri, old.spec.rt_rank
+            )
         else:  # through the same launcher
             new = self._new_handle(index, old.spec.env_id, old.spec.kwargs, old_remote.placement, timeout_s)
         self.workers[index] = new

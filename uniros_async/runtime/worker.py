@@ -85,6 +85,8 @@ class WorkerSpec:
             ``tcp://127.0.0.1:0`` (a free port).
         auth_key: shared key the supervisor must prove (HMAC handshake) before the worker serves it; a worker
             started by a remote launcher listens on tcp with the launcher's key.
+        rt_rank: for a real-time env, the rank of its SCHED_RR priority among the workers of its vector env
+            (``priority.raise_loop_priority``; the supervisor gives the first worker the highest).
     """
 
     index: int
@@ -95,6 +97,7 @@ class WorkerSpec:
     exit_grace_s: float = 3.0
     listen_uri: str = "shm://"
     auth_key: bytes | None = None
+    rt_rank: int = 0
 
 
 # ---------------------------------------------------------------- wire format
@@ -253,7 +256,7 @@ def worker_entry(spec: WorkerSpec, conn: multiprocessing.connection.Connection) 
     if _real_time(spec.kwargs):  # its env loop must wake on time beside learners and other loops
         from uniros_async.priority import raise_loop_priority
 
-        raise_loop_priority()
+        raise_loop_priority(spec.rt_rank)
     try:
         asyncio.run(worker_main(spec, conn))
     except (KeyboardInterrupt, asyncio.CancelledError):
