@@ -27,20 +27,11 @@ GOAL_KEYS = {"observation", "achieved_goal", "desired_goal"}
 
 
 def _cfg(run_dir: Path, **over: Any) -> Any:
-    base: dict[str, Any] = {
-        "name": run_dir.name,
-        "run_dir": str(run_dir),
-        "total_steps": 200,
-        "envs": [RX],
-        "normalize_obs": True,
-        "td3": {"learning_starts": 50, "buffer_size": 5000, "batch_size": 32, "net_arch": [32, 32]},
-        "eval": {"every_steps": 0, "episodes": 1},
-        "checkpoint": {"every_steps": 0, "keep": 3},
-        "progress_bar": False,
-    }
-    for key, value in over.items():
-        base[key] = {**base[key], **value} if isinstance(value, dict) and isinstance(base.get(key), dict) else value
-    return train_config_from_dict(base)
+    """test_training_pipeline's small config (same directory), with normalisation and without periodic work."""
+    from test_training_pipeline import _cfg as pipeline_cfg
+
+    defaults = {"normalize_obs": True, "eval": {"every_steps": 0}, "checkpoint": {"every_steps": 0, "keep": 3}}
+    return pipeline_cfg(run_dir, **{**defaults, **over})
 
 
 # ---------------------------------------------------------------- config
