@@ -495,12 +495,11 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
         f"\nhypervisor steal during the run: {steal:.1f} % of CPU time (the VM's cores were taken away that long; "
         "above ~1 % expect late ticks no scheduling class can prevent)"
     )
-    machine += (
-        f"\nidle cores: kept awake by {len(pollers)} SCHED_IDLE poller(s) (--allow-idle lets them halt)"
-        if pollers
-        else "\nidle cores: allowed to halt"
-        + (" (--allow-idle)" if not config.keep_cores_awake else " (no SCHED_IDLE here)")
-    )
+    if pollers:
+        machine += f"\nidle cores: kept awake by {len(pollers)} SCHED_IDLE poller(s) (--allow-idle lets them halt)"
+    else:
+        why = "no SCHED_IDLE here" if config.keep_cores_awake else "--allow-idle"
+        machine += f"\nidle cores: allowed to halt ({why})"
     report(f"{title}\n{format_table(series, records)}{machine}", records, config.json_path, log)
     if config.plot_path is not None:
         from uniros_async.bench._plot import box_plots
