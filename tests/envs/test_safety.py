@@ -64,3 +64,39 @@ def test_table_joint_limit_and_bad_shape() -> None:
     assert "joint limits" in (checker.check(np.array([0.0, 0.0, 0.0, 0.0, 3.5])) or "")
     assert "shape" in (checker.check(np.zeros(4)) or "")
     assert "finite" in (checker.check(np.full(5, np.nan)) or "")
+
+
+def _reference_reason(checker: SafetyChecker, q: np.ndarray) -> str | None:
+    """The check spelled out with the pinocchio kinematics (link points, EE frame) and the contact filter of
+    ``_contact_pairs``: what ``check``'s single MuJoCo pass must agree with."""
+    if not ((q >= checker.lower - 1e-9).all() and (q <= checker.upper + 1e-9).all()):
+        return "limits"
+    if checker.kin.table_clearance_m(q) < checker.config.table_margin_m:
+        return "table"
+    ee = checker.kin.ee_position(q)
+    if np.any(ee < checker._lo) or np.any(ee > checker._hi):
+        return "workspace"
+    if checker._contact_pairs(q) - checker._allowed:
+        return "self-collision"
+    return None
+
+
+@pytest.mark.parametrize("arm", sorted(FOLDED))
+def test_check_agrees_with_the_pinocchio_reference(arm: str) -> None:
+    checker = _checker(arm)
+    rng = np.random.default_rng(1)
+    seen = set()
+    for q in rng.uniform(checker.lower - 0.1, checker.upper + 0.1, (1500, len(checker.lower))):
+        why = checker.check(q)
+        kind = None
+        if why is not None:
+            kind = next(k for k in ("limits", "table", "workspace", "self-collision") if k in why)
+        assert kind == _reference_reason(checker, q), (q.tolist(), why)
+        seen.add(kind)
+    assert seen == {None, "limits", "table", "workspace", "self-collision"}, seen
+    # the closed-form clearance and the site position equal the pinocchio link points and EE frame
+    for q in rng.uniform(checker.lower, checker.upper, (100, len(checker.lower))):
+        checker._data.qpos[checker._qadr] = q
+        mujoco.mj_kinematics(checker._model, checker._data)
+        assert checker._clearance() == pytest.approx(checker.kin.table_clearance_m(q), abs=1e-9)
+        np.testing.assert_allclose(checker._data.site_xpos[checker._ee_site], checker.kin.ee_position(q), atol=1e-9)

@@ -45,7 +45,7 @@ class SafetyChecker:
         self._lower_tol, self._upper_tol = self.lower - 1e-9, self.upper + 1e-9  # finite: NaN and inf fail these
         self._lo = np.asarray(self.config.workspace_min_m)
         self._hi = np.asarray(self.config.workspace_max_m)
-        self._model = mujoco.MjModel.from_xml_path(str(spec.mjcf_path))
+        self._model = _model_without_near_pairs(str(spec.mjcf_path))
         self._data = mujoco.MjData(self._model)
         self._qadr = np.array([self._model.joint(n).qposadr[0] for n in spec.arm_joint_names])
         m = self._model
@@ -63,8 +63,79 @@ class SafetyChecker:
             m.body_conaffinity[b] |= m.geom_conaffinity[i]
         self._near_mat = np.array([[_hops(m, a, b) <= 2 for b in range(m.nbody)] for a in range(m.nbody)])
         self._table_mask = np.isin(np.arange(m.ngeom), table)
+        for i in table:  # the table check reads the link poses; contacts with the table are never self-collisions
+            m.geom_contype[i] = m.geom_conaffinity[i] = 0
         # pairs that touch at home by construction (e.g. fingers on the gripper bar) are not collisions
         self._allowed = self._contact_pairs(np.asarray(spec.home_q_rad))
+        # geom pairs that are never a self-collision (the table, bodies within two hops, allowed at home): the
+        # check looks each contact up in this set instead of filtering arrays
+        self._ignored = {(a, b) for a in range(m.ngeom) for b in range(a, m.ngeom) if not self._counts(a, b)}
+        self._init_clearance(m)
+        self._ee_site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, spec.ee_site)
+        self._lower_list: list[float] = self._lower_tol.tolist()
+        self._upper_list: list[float] = self._upper_tol.tolist()
+        self._ws = (*self.config.workspace_min_m, *self.config.workspace_max_m)
+        # views into the private MjData, taken once: every attribute access of MjData builds a new array object
+        d = self._data
+        self._xpos, self._geom_xpos, self._geom_xmat, self._site_xpos = d.xpos, d.geom_xpos, d.geom_xmat, d.site_xpos
+        adr = self._qadr.tolist()
+        contiguous = adr == list(range(adr[0], adr[0] + len(adr)))
+        self._arm_qpos = d.qpos[adr[0] : adr[0] + len(adr)] if contiguous else None
+
+    def _counts(self, a: int, b: int) -> bool:
+        """Whether a contact between geoms ``a`` and ``b`` (a <= b) is a self-collision."""
+        m = self._model
+        if self._table_mask[a] or self._table_mask[b] or (a, b) in self._allowed:
+            return False
+        return not self._near_mat[m.geom_bodyid[a], m.geom_bodyid[b]]
+
+    def _init_clearance(self, m: mujoco.MjModel) -> None:
+        """What the table check reads from MuJoCo's kinematics: the moving bodies' origins and, per collision
+        geom of a moving body, how far its surface reaches below its centre along the world z axis.
+
+        The same points as ``Kinematics.link_positions`` (body origins, capsule and cylinder end points with
+        their radius, box corners, sphere centres with their radius, other geoms' centres with their bounding
+        radius), in closed form: a capsule's lowest end lies ``|R[2, 2]| * half_length`` below its centre, a
+        box's lowest corner ``sum_j |R[2, j]| * size_j``, so the check needs no loop over points.
+        """
+        moving = [b for b in range(1, m.nbody) if int(m.body_weldid[b]) != 0]
+        geoms, ext, rad = [], [], []
+        for g in range(m.ngeom):
+            if int(m.geom_bodyid[g]) not in moving or (m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0):
+                continue
+            t, size = int(m.geom_type[g]), m.geom_size[g]
+            if t in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+                e, r = (0.0, 0.0, float(size[1])), float(size[0])
+            elif t == int(mujoco.mjtGeom.mjGEOM_BOX):
+                e, r = (float(size[0]), float(size[1]), float(size[2])), 0.0
+            elif t == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+                e, r = (0.0, 0.0, 0.0), float(size[0])
+            else:
+                e, r = (0.0, 0.0, 0.0), float(m.geom_rbound[g])
+            geoms.append(g)
+            ext.append(e)
+            rad.append(r)
+        self._moving_bodies: list[int] = moving
+        self._clear_geoms: list[tuple[int, float, float, float, float]] = [
+            (g, *e, r) for g, e, r in zip(geoms, ext, rad, strict=True)
+        ]
+
+    def _clearance(self) -> float:
+        """The table clearance (m) of the configuration in ``self._data`` (after ``mj_kinematics``).
+
+        On Python floats from one ``tolist`` per array: a handful of floats, and a worker that wakes cold after
+        an action cycle pays tens of microseconds for every numpy call (fancy indexing most), little for
+        arithmetic in the interpreter loop that every Python process on the machine keeps in cache."""
+        body_z = self._xpos.tolist()
+        lowest = min(body_z[b][2] for b in self._moving_bodies)
+        if self._clear_geoms:
+            pos, mat = self._geom_xpos.tolist(), self._geom_xmat.tolist()
+            for g, e0, e1, e2, r in self._clear_geoms:
+                m = mat[g]
+                z = pos[g][2] - abs(m[6]) * e0 - abs(m[7]) * e1 - abs(m[8]) * e2 - r
+                if z < lowest:
+                    lowest = z
+        return lowest
 
     def _contact_pairs(self, q: np.ndarray) -> set[tuple[int, int]]:
         d, m = self._data, self._model
@@ -81,24 +152,43 @@ class SafetyChecker:
         return {(int(a), int(c)) for a, c in g[keep]}
 
     def check(self, q_target: np.ndarray) -> str | None:
-        """None if ``q_target`` is safe to command, else why not (for ``info["unsafe_reason"]``)."""
+        """None if ``q_target`` is safe to command, else why not (for ``info["unsafe_reason"]``).
+
+        One ``mj_kinematics`` of the checker's own model serves every test (the table clearance from the collision
+        geoms' poses, the EE from its site, then ``mj_collision``): the env loop runs this on every action, and in
+        a worker woken cold after an action cycle each numpy or pinocchio call costs several times its warm time.
+        """
         if q_target.shape != self.lower.shape:
             return f"target of shape {q_target.shape} is not {self.lower.shape} finite values"
-        if not ((q_target >= self._lower_tol).all() and (q_target <= self._upper_tol).all()):  # one pass when safe
+        q = q_target.tolist()
+        # NaN fails these comparisons, and so does inf (the limits are finite)
+        if not all(lo <= x <= hi for lo, x, hi in zip(self._lower_list, q, self._upper_list, strict=True)):
             if not np.isfinite(q_target).all():
                 return f"target of shape {q_target.shape} is not {self.lower.shape} finite values"
             return "target outside the joint limits"
-        clearance = self.kin.table_clearance_m(q_target)
+        m, d = self._model, self._data
+        # the other joints stay at qpos0 (set by _contact_pairs, the only other writer)
+        if self._arm_qpos is not None:
+            self._arm_qpos[:] = q_target
+        else:
+            d.qpos[self._qadr] = q_target
+        mujoco.mj_kinematics(m, d)
+        clearance = self._clearance()  # the table top is the plane z = 0
         if clearance < self.config.table_margin_m:
             return f"a link would be {clearance * 100:.1f} cm above the table (margin {self.config.table_margin_m * 100:.1f} cm)"
-        ee = self.kin.ee_position(q_target)
-        if np.any(ee < self._lo) or np.any(ee > self._hi):
-            return f"the end effector would leave the workspace box at {np.round(ee, 3).tolist()}"
+        x, y, z = self._site_xpos[self._ee_site].tolist()
+        x0, y0, z0, x1, y1, z1 = self._ws
+        if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):
+            return f"the end effector would leave the workspace box at {[round(x, 3), round(y, 3), round(z, 3)]}"
         if self.config.check_self_collision:
-            extra = self._contact_pairs(q_target) - self._allowed
-            if extra:
-                g1, g2 = next(iter(extra))
-                return f"self-collision between {self._model.geom(g1).name or g1} and {self._model.geom(g2).name or g2}"
+            mujoco.mj_collision(m, d)
+            n = d.ncon
+            if n:
+                ignored = self._ignored
+                for a, b in d.contact.geom[:n].tolist():
+                    pair = (a, b) if a <= b else (b, a)
+                    if pair not in ignored:
+                        return f"self-collision between {m.geom(a).name or a} and {m.geom(b).name or b}"
         return None
 
     def project(self, q_from: np.ndarray, q_target: np.ndarray) -> np.ndarray | None:
@@ -120,6 +210,21 @@ class SafetyChecker:
         """The command for this tick: ``q_target``, moved at most ``max_joint_step_rad`` per joint from ``q_now``."""
         step = self.config.max_joint_step_rad
         return np.clip(q_target, q_now - step, q_now + step)
+
+
+def _model_without_near_pairs(path: str) -> mujoco.MjModel:
+    """The MJCF at ``path`` compiled with a contact exclusion for every pair of bodies within two kinematic hops.
+
+    Those pairs always overlap at their joints, so the check ignores their contacts; excluding them in the model
+    spares ``mj_collision`` their narrow phase and leaves no contacts to filter in the usual, safe case."""
+    spec = mujoco.MjSpec.from_file(path)
+    m = spec.compile()
+    for a in range(m.nbody):
+        for b in range(a + 1, m.nbody):
+            if _hops(m, a, b) <= 2:
+                ex = spec.add_exclude()
+                ex.bodyname1, ex.bodyname2 = m.body(a).name, m.body(b).name
+    return spec.compile()
 
 
 def _hops(m: mujoco.MjModel, a: int, b: int) -> int:
