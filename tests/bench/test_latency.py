@@ -32,15 +32,18 @@ def test_loop_metrics_skip_resets_silent_ticks_and_use_the_agents_receive_time()
     snap: dict[str, Any] = {
         "tick_ns": ticks,
         "command_ns": sorted(commanded),
-        "action_ns": [50 * MS, 850 * MS, 1660 * MS, 2450 * MS],
-        "step_ns": [801 * MS, 1601 * MS, 2401 * MS, 3201 * MS],
+        # step 0 (after the initial reset) and step 2 (after the reset at step 1) end on the aligned grid
+        "action_ns": [50 * MS, 1250 * MS, 1660 * MS, 2450 * MS, 3251 * MS],
+        "step_ns": [1201 * MS, 1601 * MS, 2401 * MS, 3201 * MS],
         "observation_age_ns": [1 * MS, 1 * MS, 1 * MS, 1 * MS],
         "action_latency_ns": [50 * MS, 50 * MS],
         "step_overruns": 0,
     }
-    m = loop_metrics(snap, reset_after={1}, recv_ns=[802 * MS, 1603 * MS, 2401 * MS, 3210 * MS])
+    m = loop_metrics(snap, reset_after={1}, recv_ns=[1202 * MS, 1603 * MS, 2401 * MS, 3210 * MS])
     assert m["actuator_cycle"] == [100.0] * 9  # 11 periods, minus the two around the silent tick 5
-    assert m["action_cycle"] == [800.0, 790.0]  # the period after step 1 spans a reset
+    # periods 0 -> 1 and 2 -> 3 are first steps (aligned), 1 -> 2 spans the reset: only 3 -> 4 is an action cycle
+    assert m["action_cycle"] == [801.0]
+    assert loop_metrics(snap)["action_cycle"] == [410.0, 790.0, 801.0]  # no resets after step 0
     assert m["observation_age"] == [2.0, 1.0, 10.0]  # step 1 ended an episode
     assert m["action_latency"] == [50.0, 50.0]
     assert loop_metrics(snap)["observation_age"] == [1.0] * 4  # no receive times: the env-side age

@@ -11,7 +11,10 @@ four series, in ms:
 - **action cycle**: the period between the agent's actions reaching the env loop (``action_ns``). ``step``
   returns on an absolute deadline, so the agent's compute time (inference, a synchronous learner's updates, a
   vector env waiting for its slowest member) shows here and not in the step returns. Periods spanning a reset
-  (an episode boundary; in a vector env, any member's) are left out.
+  (an episode boundary; in a vector env, any member's) are left out, and so is the period of the first step
+  after each reset: that step ends on the action-cycle grid the reset aligned it to (``RobotEnv._aligned_start``),
+  0.5 to 1.5 cycles after the reset, so its length says nothing about the agent (every recording here starts
+  with a reset).
 - **observation age**: how old the returns were when the agent got them: the time the agent received them
   minus the tick that built them, both on the machine's monotonic clock (wall-clock envs; the agent's receive
   time is recorded by the benchmark). In a vector env this includes the wait for the member whose step returns
@@ -45,7 +48,8 @@ ARM_OF_ENV_ID = {"uniros/Rx200Reach-v0": "rx200", "uniros/Ned2Reach-v0": "ned2"}
 LEGEND = """\
 actuator cycle: period between consecutive env-loop ticks that sent a command
 action cycle: period between the agent's actions reaching the env loop (a learner's compute shows here; step
-  returns on an absolute deadline); periods spanning a reset (episode boundary) are left out
+  returns on an absolute deadline); periods spanning a reset (episode boundary), and the first step's after it
+  (aligned to the action-cycle grid: 0.5-1.5 cycles), are left out
 observation age: how old the returns were when the agent received them (in a vector env: when the member whose
   step returns last returned; steps at a reset left out)
 action latency: from an action reaching the env loop to the first command sent with it (unsafe actions, never sent,
@@ -106,7 +110,8 @@ def loop_metrics(
         snapshot: the env's ``Timing.snapshot()`` since just before the first step (cleared after a reset, or cut
             with ``since``), so that ``action_ns[k]`` and ``step_ns[k]`` belong to step k.
         reset_after: indices of the steps after which a reset happened (the period from step k's action to step
-            k + 1's is then not an action cycle).
+            k + 1's is then not an action cycle, nor is the aligned first step's, k + 1 to k + 2). The snapshot
+            must start with the first step after a reset (its period, 0 to 1, is left out too).
         recv_ns: ``time.monotonic_ns()`` when the agent received step k's returns, for wall-clock envs; None:
             use the env-side age.
 
@@ -120,7 +125,11 @@ def loop_metrics(
     actuator = [(b - a) / 1e6 for a, b in zip(ticks, ticks[1:], strict=False) if a in commanded and b in commanded]
     actions = _as_int_list(snapshot.get("action_ns", []))
     skip = set(reset_after)
-    action_cycle = [(actions[k + 1] - actions[k]) / 1e6 for k in range(len(actions) - 1) if k not in skip]
+    # the recording starts after a reset: step 0, and the step after each later reset, ends on the aligned grid
+    first_steps = {0} | {k + 1 for k in skip}
+    action_cycle = [
+        (actions[k + 1] - actions[k]) / 1e6 for k in range(len(actions) - 1) if k not in skip and k not in first_steps
+    ]
     steps = _as_int_list(snapshot.get("step_ns", []))
     env_age = _as_int_list(snapshot.get("observation_age_ns", []))
     if recv_ns is not None and len(steps) == len(env_age) and len(recv_ns) >= len(steps):
