@@ -55,8 +55,12 @@ class Clock(abc.ABC):
         """The current time of this clock in ns."""
 
     @abc.abstractmethod
-    async def sleep_until(self, deadline_ns: int) -> None:
-        """Return at (not before) ``deadline_ns`` of this clock. Cancellation leaves nothing behind."""
+    async def sleep_until(self, deadline_ns: int, *, spin: bool = True) -> None:
+        """Return at (not before) ``deadline_ns`` of this clock. Cancellation leaves nothing behind.
+
+        ``spin=False``: the caller needs no microsecond precision (a clock may then return a little later rather
+        than hold a core to hit the deadline exactly; ``WallClock`` skips its bounded spin).
+        """
 
     async def sleep(self, duration_s: float) -> None:
         """Sleep ``duration_s`` of this clock's time."""
@@ -133,7 +137,9 @@ class WallClock(Clock):
     at 200 Hz). So the timerfd is armed ``spin_lead_ns`` early and the last stretch is a bounded spin on
     ``monotonic_ns``: median error ~3 us, p99 ~6 us (500 us lead; 300 us gave a 24 us median inside asyncio) for
     ~0.5 ms of CPU per sleep (0.5 % at 10 Hz). The spin is bounded by
-    the lead and waits on nobody, so it cannot stall behind a descheduled peer. ``spin_lead_ns=0`` disables it.
+    the lead and waits on nobody, so it cannot stall behind a descheduled peer. ``spin_lead_ns=0`` disables it,
+    ``sleep_until(..., spin=False)`` skips it for one sleep: a spinning real-time process holds its core, and
+    with more processes than cores the lower-priority ones wait for it.
     """
 
     def __init__(self, *, spin_lead_ns: int = 500_000) -> None:
@@ -150,7 +156,7 @@ class WallClock(Clock):
     def is_wall(self) -> bool:
         return True
 
-    async def sleep_until(self, deadline_ns: int) -> None:
+    async def sleep_until(self, deadline_ns: int, *, spin: bool = True) -> None:
         loop = asyncio.get_running_loop()
         if deadline_ns <= time.monotonic_ns():
             await asyncio.sleep(0)
@@ -175,7 +181,7 @@ class WallClock(Clock):
             if not fut.done():
                 fut.set_result(None)
 
-        wake_ns = deadline_ns - self.spin_lead_ns
+        wake_ns = deadline_ns - self.spin_lead_ns if spin else deadline_ns
         if wake_ns > time.monotonic_ns():
             self._tfd.arm_abs(fd, wake_ns)
             loop.add_reader(fd, _ready)

@@ -150,8 +150,9 @@ class SimClock(Clock):
             interp = min(interp, nxt)
         return max(self._now, interp)
 
-    async def sleep_until(self, deadline_ns: int) -> None:
-        """Return once this clock reaches ``deadline_ns``; cancellation removes the sleeper."""
+    async def sleep_until(self, deadline_ns: int, *, spin: bool = True) -> None:
+        """Return once this clock reaches ``deadline_ns``; cancellation removes the sleeper (``spin``: ignored,
+        a simulated deadline is exact)."""
         if deadline_ns <= self._now:
             await asyncio.sleep(0)
             return

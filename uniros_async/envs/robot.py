@@ -315,7 +315,10 @@ class RobotEnv(BaseEnv):
         if deadline <= now:  # the agent took longer than a cycle: start a new one rather than return at once
             self.timing.step_overruns += 1
             deadline = now + cycle_ns if cfg.turn_based else self._next_deadline(now)
-        await clock.sleep_until(deadline)
+        # no spin: the returns were built by the tick just before, and a few tens of microseconds later matter
+        # less than a core held: ranked workers spinning for their deadlines kept lower-ranked ones from their
+        # ticks (with 4 workers on 2 cores the ned2 ticks before a deadline started 1.4-1.7 ms late)
+        await clock.sleep_until(deadline, spin=False)
         self._deadline_ns = deadline
         if cfg.turn_based:  # the baseline: returns built now, from the newest joint state received
             js = self._js.latest()
