@@ -226,6 +226,39 @@ def test_loops_and_deadlines_sit_on_the_clock_grid(env_id: str) -> None:
         env.close()
 
 
+def test_wall_clock_members_meet_on_one_deadline_after_a_reset() -> None:
+    """On a wall clock, the first step after a reset and a late step take the same rule at the moment the
+    action arrives, so a vector env's member that just reset returns with the ones that waited for it."""
+    from uniros_async.envs.robot import TICK_ALIGN_NS, TICK_OFFSET_NS
+
+    env = gym.make("uniros/Rx200Reach-v0", clock="wall")
+    try:
+        u = env.unwrapped
+        env.reset(seed=0)
+        cycle = 800_000_000
+        grid = 100 * cycle + TICK_OFFSET_NS + TICK_ALIGN_NS  # a point of the action-cycle grid
+        overruns = u.timing.step_overruns
+
+        def deadline(now: int, *, first: bool, previous: int = grid - cycle) -> int:
+            u._first_step, u._deadline_ns = first, previous
+            return int(u._step_deadline(now))
+
+        # the action came 300 ms before the grid point: the member that kept its deadline and the one that just
+        # reset (its deadline from the reset is ignored) both return there
+        assert deadline(grid - 300_000_000, first=False) == grid
+        assert deadline(grid - 300_000_000, first=True, previous=0) == grid
+        assert u.timing.step_overruns == overruns
+        # 50 ms before it (the reset took 750 ms of the cycle): less than cycle / 8 to act, both take the next one
+        assert deadline(grid - 50_000_000, first=False) == grid + cycle
+        assert deadline(grid - 50_000_000, first=True, previous=0) == grid + cycle
+        assert u.timing.step_overruns == overruns + 1  # the member whose cycle it was overran; the first step not
+        # a reset that took longer than a cycle: past the regular deadline, the same rule again
+        assert deadline(grid + 20_000_000, first=False) == grid + cycle
+        assert deadline(grid + 20_000_000, first=True, previous=0) == grid + cycle
+    finally:
+        env.close()
+
+
 def test_wall_clock_turn_based_is_a_loopless_real_arm_baseline() -> None:
     """turn_based=True with clock="wall": one command per step, no env loop, returns from the newest state."""
     env = gym.make("uniros/Rx200Reach-v0", turn_based=True, clock="wall", action_cycle_s=0.4)

@@ -93,6 +93,7 @@ class RobotEnv(BaseEnv):
         self._action_t_ns: int | None = None
         self._cache: tuple[int, Returns] | None = None
         self._deadline_ns = 0
+        self._first_step = True  # the next step is the first after a reset (see _step_deadline)
         self._last_return_wall_ns: int | None = None
         self._cmd_seq = 0
         self.unsafe_actions = 0
@@ -310,11 +311,7 @@ class RobotEnv(BaseEnv):
             self._send(self._target, now)
             self.timing.action_latency_ns.append(clock.now_ns() - now)
             self._action_t_ns = None
-        cycle_ns = round(cfg.action_cycle_s * 1e9)
-        deadline = self._deadline_ns + cycle_ns
-        if deadline <= now:  # the agent took longer than a cycle: start a new one rather than return at once
-            self.timing.step_overruns += 1
-            deadline = now + cycle_ns if cfg.turn_based else self._next_deadline(now)
+        deadline = self._step_deadline(now)
         # no spin: the returns were built by the tick just before, and a few tens of microseconds later matter
         # less than a core held: ranked workers spinning for their deadlines kept lower-ranked ones from their
         # ticks (with 4 workers on 2 cores the ned2 ticks before a deadline started 1.4-1.7 ms late)
@@ -390,10 +387,42 @@ class RobotEnv(BaseEnv):
         obs, _, _, info = self._compute_returns(js, q_arm)
         self._cache = (now, (obs, 0.0, False, info))
         self._deadline_ns = self._aligned_start(now)
+        self._first_step = True
         if isinstance(clock, SimClock):
             clock.pause()
         self._last_return_wall_ns = time.monotonic_ns()
         return obs, dict(info)
+
+    def _step_deadline(self, now: int) -> int:
+        """When the step whose action arrived at ``now`` returns: one action cycle after the previous deadline.
+
+        When the agent took longer than that (an overrun, counted), a new cycle starts: turn-based, a cycle from
+        ``now``; otherwise at a point of the action-cycle grid (``_next_deadline``), and the first step after a
+        reset ends on that grid too (``_aligned_start``).
+
+        On a wall clock the members of a vector env must return together, also when one of them has just
+        reset while the others waited for it. So there the first step after a reset and every late step take
+        the same rule, at the moment the action arrives (which is the same moment for every member): the first
+        grid point at least ``cycle / 8`` away (an action acts at least that long, e.g. 100 ms of 800, before its
+        returns). A step whose regular deadline is nearer than that is late too. A reset that ended half a cycle
+        or more before the next grid point used to align its first step one cycle later than the members that
+        kept their deadline: they then returned a cycle early and the agent got their returns 800 ms old.
+        """
+        cfg = self.config
+        cycle_ns = round(cfg.action_cycle_s * 1e9)
+        first, self._first_step = self._first_step, False
+        deadline = self._deadline_ns + cycle_ns
+        if cfg.turn_based or isinstance(self._clock, SimClock):  # each sim env has its own clock: no peers to meet
+            if deadline <= now:
+                self.timing.step_overruns += 1
+                deadline = now + cycle_ns if cfg.turn_based else self._next_deadline(now)
+            return deadline
+        lead = cycle_ns // 8
+        if first or deadline - now < lead:
+            if not first:
+                self.timing.step_overruns += 1
+            deadline = self._next_deadline(now, lead)
+        return deadline
 
     def _aligned_start(self, now: int) -> int:
         """Where the first action cycle starts: ``_next_deadline(now)`` minus one cycle (turn-based: ``now``)."""
@@ -401,16 +430,17 @@ class RobotEnv(BaseEnv):
             return now
         return self._next_deadline(now) - round(self.config.action_cycle_s * 1e9)
 
-    def _next_deadline(self, now: int) -> int:
-        """The first point, at least half an action cycle after ``now``, of the grid of action cycles that
-        starts ``TICK_ALIGN_NS`` after a scheduled env-loop tick (``TICK_OFFSET_NS`` after the clock's grid).
+    def _next_deadline(self, now: int, lead_ns: int | None = None) -> int:
+        """The first point, at least ``lead_ns`` (None: half an action cycle) after ``now``, of the grid of action
+        cycles that starts ``TICK_ALIGN_NS`` after a scheduled env-loop tick (``TICK_OFFSET_NS`` after the clock's
+        grid).
 
         When the action cycle is a multiple of the loop period, every step returns just after a tick, so its
         returns are ~1 ms old instead of up to a period; and every env on the same clock (the members of a vector
         env, at 10 or 25 Hz) returns at the same instant, so the agent gets all of them that fresh.
         """
         cycle = round(self.config.action_cycle_s * 1e9)
-        return grid_after(now + cycle // 2, cycle, TICK_OFFSET_NS + TICK_ALIGN_NS)
+        return grid_after(now + (cycle // 2 if lead_ns is None else lead_ns), cycle, TICK_OFFSET_NS + TICK_ALIGN_NS)
 
     async def _settle(self, timeout_s: float) -> JointState:
         tol = self.config.settle_tol_rad
