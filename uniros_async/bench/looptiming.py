@@ -12,9 +12,9 @@ four series, in ms:
   returns on an absolute deadline, so the agent's compute time (inference, a synchronous learner's updates, a
   vector env waiting for its slowest member) shows here and not in the step returns. Periods spanning a reset
   (an episode boundary; in a vector env, any member's) are left out, and so is the period of the first step
-  after each reset: that step ends on the action-cycle grid the reset aligned it to (``RobotEnv._aligned_start``),
-  0.5 to 1.5 cycles after the reset, so its length says nothing about the agent (every recording here starts
-  with a reset).
+  after each reset: that step ends on the first point of the action-cycle grid far enough away
+  (``RobotEnv._step_deadline``: 1/8 to 9/8 of a cycle on a wall clock, 1/2 to 3/2 on a sim clock), so its length
+  says nothing about the agent (every recording here starts with a reset).
 - **observation age**: how old the returns were when the agent got them: the time the agent received them
   minus the tick that built them, both on the machine's monotonic clock (wall-clock envs; the agent's receive
   time is recorded by the benchmark). In a vector env this includes the wait for the member whose step returns
@@ -49,7 +49,7 @@ LEGEND = """\
 actuator cycle: period between consecutive env-loop ticks that sent a command
 action cycle: period between the agent's actions reaching the env loop (a learner's compute shows here; step
   returns on an absolute deadline); periods spanning a reset (episode boundary), and the first step's after it
-  (aligned to the action-cycle grid: 0.5-1.5 cycles), are left out
+  (which ends on the action-cycle grid: 1/8 to 9/8 of a cycle later), are left out
 observation age: how old the returns were when the agent received them (in a vector env: when the member whose
   step returns last returned; steps at a reset left out)
 action latency: from an action reaching the env loop to the first command sent with it (unsafe actions, never sent,
@@ -214,7 +214,10 @@ def format_table(series: collections.abc.Sequence[Series], records: collections.
         lines += textwrap.wrap(text, width=max(len(head), 80), subsequent_indent="  ")
     overruns = [f"{s.env} / {s.learner}: {s.step_overruns}" for s in series if s.step_overruns]
     if overruns:
-        lines.append("steps that missed their deadline (the agent took longer than a cycle): " + ", ".join(overruns))
+        lines.append(
+            "steps that missed their deadline (the action came too late for its cycle, after the agent's compute or,"
+            " in a vector env, a member's reset): " + ", ".join(overruns)
+        )
     lines.append(LEGEND)
     return "\n".join(lines)
 
