@@ -58,9 +58,37 @@ def test_ik_action_reaches_the_goal_in_real_time(env_id: str) -> None:
         assert info["is_success"], info
         u = env.unwrapped
         assert reward == (20.0 if u.reward_type == "dense" else 1.0)
-        # action repeat: the loop sent a command on every tick since the first action
-        assert len(u.timing.command_ns) >= len(u.timing.step_ns) * 3
+        # action repeat: the loop sent a command on every tick from the first action to the episode's end
+        t = u.timing
+        ticks = [k for k in t.tick_ns if t.action_ns[0] < k <= t.command_ns[-1]]
+        assert len(ticks) >= 3 and set(ticks) <= set(t.command_ns), (ticks, list(t.command_ns))
         assert len(u.timing.action_latency_ns) >= 1
+    finally:
+        env.close()
+
+
+def test_action_targets_are_the_numpy_formula_bit_for_bit() -> None:
+    """_action_to_target works on Python floats (cheaper in a cold worker); it must give numpy's values exactly."""
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim")
+    try:
+        u = env.unwrapped
+        rng = np.random.default_rng(0)
+        for mode in ("absolute", "delta"):
+            u.action_mode = mode
+            for _ in range(500):
+                a = rng.uniform(-1.2, 1.2, u.action_space.shape).astype(np.float32)
+                a[rng.integers(len(a))] = rng.choice([-1.0, 1.0, 0.999, -0.999, 0.5])
+                q = rng.uniform(u._lower, u._upper)
+                target, hit = u._action_to_target(a, q)
+                a64 = a.astype(np.float64)
+                if mode == "absolute":
+                    ref = u._lower + (a64 + 1.0) * 0.5 * (u._upper - u._lower)
+                    ref_hit = bool(np.any(np.abs(a64) >= 0.999))
+                else:
+                    raw = q + a64 * u.delta_coeff * u._half_range
+                    ref = np.clip(raw, u._lower, u._upper)
+                    ref_hit = bool(np.any(raw != ref))
+                assert target.dtype == np.float64 and np.array_equal(target, ref) and hit == ref_hit, (mode, a, q)
     finally:
         env.close()
 

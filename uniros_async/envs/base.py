@@ -40,7 +40,7 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         self._deferred: tuple[Callable[..., Any], str, float] | None = None
         self._closed = False
         self._needs_reset = True
-        self._action_bounds: tuple[Any, np.ndarray, np.ndarray, bool] | None = None  # (space, low, high, finite)
+        self._action_bounds: tuple[Any, list[float], list[float], bool] | None = None  # (space, low, high, finite)
 
     # ---- lifecycle
 
@@ -217,9 +217,12 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         bounds = self._action_bounds
         if bounds is None or bounds[0] is not space:
             finite = bool(np.isfinite(space.low).all() and np.isfinite(space.high).all())
-            bounds = self._action_bounds = (space, space.low - 1e-6, space.high + 1e-6, finite)
+            low, high = space.low - 1e-6, space.high + 1e-6
+            bounds = self._action_bounds = (space, low.ravel().tolist(), high.ravel().tolist(), finite)
         _, low, high, finite = bounds
-        inside = (a >= low).all() and (a <= high).all()  # NaN fails these, and inf too when the bounds are finite
+        # on Python floats (float32 converts exactly, so each comparison is numpy's): a worker wakes cold for each
+        # action, and four numpy calls cost more than the loop. NaN fails these, and inf when the bounds are finite
+        inside = all(lo <= x <= hi for lo, x, hi in zip(low, a.ravel().tolist(), high, strict=True))
         if not (inside and (finite or np.isfinite(a).all())):
             if not np.isfinite(a).all():
                 raise gym_error.InvalidAction(f"action contains NaN or inf: {a.tolist()}")

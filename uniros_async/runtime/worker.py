@@ -155,15 +155,27 @@ def _default(value: Any) -> Any:
     return repr(value)
 
 
+_HEADS: dict[bytes, tuple[np.dtype[Any], tuple[int, ...], int]] = {}
+"""Parsed array headers (dtype, shape, data offset) by their bytes: a worker sees the same few every step, and
+parsing one (a dtype from its string, a struct unpack per dimension) costs more than the array itself."""
+
+
 def _ext_hook(code: int, data: bytes) -> Any:
     if code != _ND_EXT:
         return msgpack.ExtType(code, data)
     n = data[0]
-    dtype = np.dtype(data[1 : 1 + n].decode())
     ndim = data[1 + n]
-    at = 2 + n
-    shape = tuple(_SHAPE.unpack_from(data, at + 8 * i)[0] for i in range(ndim))
-    return np.frombuffer(data, dtype=dtype, offset=at + 8 * ndim).reshape(shape).copy()  # writable
+    end = 2 + n + 8 * ndim
+    head = data[:end]
+    parsed = _HEADS.get(head)
+    if parsed is None:
+        dtype = np.dtype(data[1 : 1 + n].decode())
+        shape = tuple(_SHAPE.unpack_from(data, 2 + n + 8 * i)[0] for i in range(ndim))
+        parsed = (dtype, shape, end)
+        if len(_HEADS) < 256:
+            _HEADS[head] = parsed
+    dtype, shape, end = parsed
+    return np.frombuffer(data, dtype=dtype, offset=end).reshape(shape).copy()  # writable
 
 
 def _str_list_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:

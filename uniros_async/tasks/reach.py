@@ -113,6 +113,12 @@ class ReachEnv(TaskEnv):
         self._lower = np.asarray(spec.joint_lower_rad)
         self._upper = np.asarray(spec.joint_upper_rad)
         self._half_range = (self._upper - self._lower) / 2
+        # the same values as Python floats: _action_to_target runs once per action in a worker that wakes cold,
+        # where every numpy call costs tens of microseconds and float arithmetic on 5-6 values almost nothing
+        self._lower_l: list[float] = self._lower.tolist()
+        self._upper_l: list[float] = self._upper.tolist()
+        self._span_l: list[float] = (self._upper - self._lower).tolist()
+        self._half_range_l: list[float] = self._half_range.tolist()
         self.action_space = gym.spaces.Box(-1.0, 1.0, (n,), np.float32)
         self.observation_space = self._make_observation_space()
         self.goal = np.zeros(3)
@@ -139,15 +145,16 @@ class ReachEnv(TaskEnv):
     # ---- hooks
 
     def _action_to_target(self, action: np.ndarray, q_arm: np.ndarray) -> tuple[np.ndarray, bool]:
-        a = action.astype(np.float64)
+        a = action.tolist()  # float32 to Python float is exact: the same float64 arithmetic as numpy's, per element
         if self.action_mode == "absolute":
-            target = self._lower + (a + 1.0) * 0.5 * (self._upper - self._lower)
-            hit = bool(np.any(np.abs(a) >= 0.999))
+            target = [lo + (x + 1.0) * 0.5 * span for lo, x, span in zip(self._lower_l, a, self._span_l, strict=True)]
+            hit = any(abs(x) >= 0.999 for x in a)
         else:
-            raw = q_arm + a * self.delta_coeff * self._half_range
-            target = np.clip(raw, self._lower, self._upper)
-            hit = bool(np.any(raw != target))
-        return target, hit
+            dc = self.delta_coeff
+            raw = [q + x * dc * h for q, x, h in zip(q_arm.tolist(), a, self._half_range_l, strict=True)]
+            target = [min(max(r, lo), hi) for r, lo, hi in zip(raw, self._lower_l, self._upper_l, strict=True)]
+            hit = raw != target
+        return np.array(target), hit
 
     @property
     def _relative_action(self) -> bool:
