@@ -283,6 +283,14 @@ def test_wall_clock_members_meet_on_one_deadline_after_a_reset() -> None:
         # a reset that took longer than a cycle: past the regular deadline, the same rule again
         assert deadline(grid + 20_000_000, first=False) == grid + cycle
         assert deadline(grid + 20_000_000, first=True, previous=0) == grid + cycle
+        # near the cut-off (cycle / 8 before the grid point), members that got their actions 1 ms apart decide
+        # from the instant the agent sent the step (set by the worker), not from their own arrival times
+        sent = grid - cycle // 8 - 500_000
+        assert deadline(sent + 1_000_000, first=False) == grid + cycle  # alone, past the cut-off: the next one
+        for first in (False, True):
+            u.step_reference_ns = sent
+            assert deadline(sent + 1_000_000, first=first, previous=grid - cycle if not first else 0) == grid
+            assert u.step_reference_ns is None  # used once
     finally:
         env.close()
 

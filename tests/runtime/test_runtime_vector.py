@@ -37,6 +37,12 @@ def test_mixed_rx200_ned2_are_padded_and_say_so_in_infos() -> None:
             assert obs[1, -1] == 0.0
             assert rewards[1] in (-1.0, 1.0)  # sparse reward reached the ned2 worker
             assert list(info["env_id"]) == [RX, NED]
+        # every local member got the same reference instant with its step, the one a wall-clock env decides a new
+        # deadline from (a sim-clock env never reads it, so it is still there to see)
+        t0 = time.monotonic_ns()
+        venv.step(venv.action_space.sample())
+        refs = venv.get_attr("step_reference_ns")
+        assert refs[0] == refs[1] and isinstance(refs[0], int) and t0 <= refs[0] <= time.monotonic_ns()
         # step_async / step_wait are plain methods
         venv.step_async(np.zeros((2, 6), np.float32))
         obs, *_ = venv.step_wait()

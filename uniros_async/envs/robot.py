@@ -94,6 +94,9 @@ class RobotEnv(BaseEnv):
         self._cache: tuple[int, Returns] | None = None
         self._deadline_ns = 0
         self._first_step = True  # the next step is the first after a reset (see _step_deadline)
+        self.step_reference_ns: int | None = None
+        """Set by a vector env's worker before each step: when the agent sent the step (the machine's monotonic
+        clock), the same instant for every member; used once, then cleared (see ``_step_deadline``)."""
         self._last_return_wall_ns: int | None = None
         self._cmd_seq = 0
         self.unsafe_actions = 0
@@ -402,11 +405,13 @@ class RobotEnv(BaseEnv):
 
         On a wall clock the members of a vector env must return together, also when one of them has just
         reset while the others waited for it. So there the first step after a reset and every late step take
-        the same rule, at the moment the action arrives (which is the same moment for every member): the first
-        grid point at least ``cycle / 8`` away (an action acts at least that long, e.g. 100 ms of 800, before its
-        returns). A step whose regular deadline is nearer than that is late too. A reset that ended half a cycle
-        or more before the next grid point used to align its first step one cycle later than the members that
-        kept their deadline: they then returned a cycle early and the agent got their returns 800 ms old.
+        the same rule, from the instant the agent sent the step (``step_reference_ns``, set by the worker; else
+        when the action arrived): the first grid point at least ``cycle / 8`` after it (an action acts about that
+        long, e.g. 100 ms of 800, before its returns). A step whose regular deadline is nearer than that is late
+        too. Every member of a vector env on one machine decides from the same instant, so none can fall on the
+        other side of a cut-off from the rest. (A reset that ended half a cycle or more before the next grid
+        point used to align its first step one cycle later than the members that kept their deadline: they then
+        returned a cycle early and the agent got their returns 800 ms old.)
         """
         cfg = self.config
         cycle_ns = round(cfg.action_cycle_s * 1e9)
@@ -417,11 +422,18 @@ class RobotEnv(BaseEnv):
                 self.timing.step_overruns += 1
                 deadline = now + cycle_ns if cfg.turn_based else self._next_deadline(now)
             return deadline
+        # the vector env's reference instant when there is one, so members that get their actions a millisecond
+        # apart cannot fall on either side of a grid point's cut-off
+        ref, self.step_reference_ns = self.step_reference_ns, None
+        if ref is None or not 0 <= now - ref < cycle_ns:  # none, or not this machine's clock
+            ref = now
         lead = cycle_ns // 8
-        if first or deadline - now < lead:
+        if first or deadline - ref < lead:
             if not first:
                 self.timing.step_overruns += 1
-            deadline = self._next_deadline(now, lead)
+            deadline = self._next_deadline(ref, lead)
+            if deadline <= now:  # this worker got to the step more than cycle / 8 after the agent sent it
+                deadline = self._next_deadline(now, lead)
         return deadline
 
     def _aligned_start(self, now: int) -> int:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -240,7 +241,14 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             per_env: list[Any] = list(batch)
         else:
             per_env = list(iterate(self.action_space, actions))
-        return [{"op": "step", "action": a, "autoreset": autoreset} for a in per_env]
+        # one reference time for the whole step, for the members on this machine (CLOCK_MONOTONIC is machine-wide):
+        # a wall-clock env that must pick a new deadline decides it from this instant, so every member picks the
+        # same one (RobotEnv._step_deadline); a remote worker's clock is another machine's
+        t = time.monotonic_ns()
+        return [
+            {"op": "step", "action": a, "autoreset": autoreset, **({"t": t} if w.remote is None else {})}
+            for a, w in zip(per_env, self._sup.workers, strict=True)
+        ]
 
     def _wait(self, timeout: float | None) -> list[Any]:
         fut = self._pending
