@@ -74,10 +74,21 @@ def _reference_reason(checker: SafetyChecker, q: np.ndarray) -> str | None:
     if checker.kin.table_clearance_m(q) < checker.config.table_margin_m:
         return "table"
     ee = checker.kin.ee_position(q)
-    if np.any(ee < checker._lo) or np.any(ee > checker._hi):
+    if np.any(ee < checker.config.workspace_min_m) or np.any(ee > checker.config.workspace_max_m):
         return "workspace"
-    if checker._contact_pairs(q) - checker._allowed:
-        return "self-collision"
+    # every contact of the checker's model at q, filtered here on its own: not the table, not bodies within two
+    # hops, not a pair that touches at home
+    m, d = checker._model, checker._data
+    d.qpos[:] = m.qpos0
+    d.qpos[checker._qadr] = q
+    mujoco.mj_kinematics(m, d)
+    mujoco.mj_collision(m, d)
+    for a, b in d.contact.geom[: d.ncon].tolist():
+        a, b = min(a, b), max(a, b)
+        if "table" in (m.geom(a).name, m.geom(b).name) or checker._near_mat[m.geom_bodyid[a], m.geom_bodyid[b]]:
+            continue
+        if (a, b) not in checker._allowed:
+            return "self-collision"
     return None
 
 
