@@ -402,3 +402,37 @@ async def test_cross_process_no_lost_wakeups() -> None:
                         assert bytes(await t.receive()) == b"%d" % i
             finally:
                 await t.aclose()
+
+
+async def test_receive_blocking_gets_replies_without_the_event_loop() -> None:
+    """``receive_blocking`` (the supervisor's wait for its workers' replies, in the agent's thread) delivers what
+    ``receive`` would, through both the spin and the sleep on the doorbell (an echo in another process); it returns
+    None, consuming nothing, when nothing comes within its timeout, and when the peer hangs up, after which
+    ``receive`` reports the hang-up."""
+    async with _echo_process() as (uri, proc):
+        t = await connect(uri)
+        assert isinstance(t, shm.ShmTransport)
+        try:
+            for i in range(200):  # spinning: the echo answers within the window
+                assert t.try_send(b"%d" % i)
+                assert bytes(t.receive_blocking(T_S) or b"") == b"%d" % i
+            with _no_spin():
+                t._spin_credit = 0  # type: ignore[attr-defined]
+                for i in range(50):  # sleeping on the doorbell every time
+                    assert t.try_send(b"x" * (i + 1))
+                    assert bytes(t.receive_blocking(T_S) or b"") == b"x" * (i + 1)
+            t0 = time.monotonic()
+            assert t.receive_blocking(0.05) is None  # nothing was sent: nothing comes
+            assert 0.04 < time.monotonic() - t0 < 2.0
+            assert t.try_send(b"after the timeout")
+            async with asyncio.timeout(T_S):
+                assert bytes(await t.receive()) == b"after the timeout"  # nothing was lost or consumed
+            proc.kill()
+            await asyncio.to_thread(proc.join, T_S)
+            assert t.receive_blocking(T_S) is None  # the control socket's EOF: handed to receive()
+            with pytest.raises(TransportBrokenError):
+                async with asyncio.timeout(T_S):
+                    await t.receive()
+        finally:
+            await t.aclose()
+        assert t.receive_blocking(0.0) is None  # closed

@@ -12,6 +12,9 @@ The receiver reads without a syscall when data is there; otherwise it polls for 
 (50 us, yielding the CPU between polls, and only while such spins keep paying off), then sets its ticket, re-checks
 (after a barrier: no lost wakeup) and awaits its doorbell, which is registered in the event loop (``loop.add_reader``).
 The same holds the other way for a sender that waits for space (backpressure). An idle end costs no CPU.
+A thread with nothing else to do can move frames without running the event loop: ``try_send`` writes when there
+is room, ``receive_blocking`` polls the same way and then sleeps in ``poll(2)`` on the doorbell (the supervisor's
+step, in the agent's thread).
 
 ``receive`` returns a read-only view straight into the ring when the frame is contiguous there (the usual case: the
 writer restarts at offset 0 whenever little is in flight) and a copy when the frame wraps around the end. The space
@@ -33,6 +36,7 @@ import logging
 import mmap
 import os
 import secrets
+import select
 import socket
 import struct
 import threading
@@ -130,6 +134,7 @@ class ShmTransport(Transport):
         self._signaled_reader = 0  # the peer's reader ticket we last rang for
         self._signaled_writer = 0
         self._rx_waiter: asyncio.Future[None] | None = None
+        self._poller: select.poll | None = None  # receive_blocking's, made on first use
         self._spin_credit = _SPIN_CREDIT if self.spin_ns > 0 else 0
         self._sent_since_wait = 0  # bytes sent since receive() last waited: a hint of how long a reply takes
         self._tx_waiter: asyncio.Future[None] | None = None
@@ -166,36 +171,44 @@ class ShmTransport(Transport):
             TransportClosedError: this end was closed.
             TransportBrokenError: the peer is gone (after every frame it sent was delivered) or broke the protocol.
         """
-        if self._rx_fast:  # the common case, inlined: a whole frame, contiguous in the ring, is already there
-            ctl = self._rx_ctl
-            rpos = self._rpos
-            if rpos != self._rx_released:
-                ctl[R_POS] = self._rx_released = rpos
-                _fence_acquire()
-                _fence_release()
-                ticket = ctl[W_TICKET]
-                if ticket & 1 and ticket != self._signaled_writer:
-                    self._signaled_writer = ticket
-                    os.eventfd_write(self._peer_doorbell, 1)
-            avail = ctl[W_POS] - rpos
-            cap = self._cap
-            if 0 < avail <= cap:
-                off = rpos % cap
-                n = self._rx_q[off >> 3]
-                if n == SKIP and avail > cap - off:
-                    rpos += cap - off
-                    avail -= cap - off
-                    off = 0
-                    n = self._rx_q[0]
-                rec = 8 + ((n + 7) & ~7)
-                end = off + 8 + n
-                if n <= self._max_frame and rec <= avail and end <= cap:
-                    self._rpos = rpos + rec
-                    stats = self.stats
-                    stats.frames_received += 1
-                    stats.bytes_received += n
-                    return self._rx_ro[off + 8 : end]
+        if self._rx_fast:  # the common case: a whole frame, contiguous in the ring, is already there
+            view = self._take_ready()
+            if view is not None:
+                return view
         return await self._receive_slow()
+
+    def _take_ready(self) -> memoryview | None:
+        """The next frame if it is already there, whole and contiguous in the ring (a view), else None (nothing is
+        consumed then). Gives the space of the previous frame back to the writer first."""
+        ctl = self._rx_ctl
+        rpos = self._rpos
+        if rpos != self._rx_released:
+            ctl[R_POS] = self._rx_released = rpos
+            _fence_acquire()
+            _fence_release()
+            ticket = ctl[W_TICKET]
+            if ticket & 1 and ticket != self._signaled_writer:
+                self._signaled_writer = ticket
+                os.eventfd_write(self._peer_doorbell, 1)
+        avail = ctl[W_POS] - rpos
+        cap = self._cap
+        if 0 < avail <= cap:
+            off = rpos % cap
+            n = self._rx_q[off >> 3]
+            if n == SKIP and avail > cap - off:
+                rpos += cap - off
+                avail -= cap - off
+                off = 0
+                n = self._rx_q[0]
+            rec = 8 + ((n + 7) & ~7)
+            end = off + 8 + n
+            if n <= self._max_frame and rec <= avail and end <= cap:
+                self._rpos = rpos + rec
+                stats = self.stats
+                stats.frames_received += 1
+                stats.bytes_received += n
+                return self._rx_ro[off + 8 : end]
+        return None
 
     async def _receive_slow(self) -> memoryview:
         if self._closed:
@@ -298,23 +311,37 @@ class ShmTransport(Transport):
             self._signaled_writer = ticket
             os.eventfd_write(self._peer_doorbell, 1)
 
+    def _window_ns(self) -> int:
+        """How long to poll for the next frame: ``spin_ns``, plus, after a large send, the time the peer needs to
+        read it (~0.1 ns per byte across cores) before it can answer."""
+        window_ns = self.spin_ns + min(self._sent_since_wait // 10, _SPIN_EXTRA_NS)
+        self._sent_since_wait = 0
+        return window_ns
+
+    def _spin(self, window_ns: int) -> bool:
+        """Poll for data past our read position for up to ``window_ns``, yielding the CPU between polls; True if it
+        came. Keeps the spin credit (see ``_SPIN_CREDIT``)."""
+        ctl = self._rx_ctl
+        rpos = self._rpos
+        deadline = _now_ns() + window_ns
+        while ctl[W_POS] == rpos:
+            if _now_ns() > deadline:
+                self._spin_credit -= 1
+                return False
+            _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin
+        self._spin_credit = _SPIN_CREDIT
+        return True
+
+    def _slept(self, t0: int, window_ns: int) -> None:
+        if self._spin_credit == 0 and self._spin_allowed and _now_ns() - t0 < window_ns + _WAKEUP_NS:
+            self._spin_credit = 1  # a short spin would have caught this one: try spinning again
+
     async def _wait_readable(self) -> None:
         """Sleep until the peer publishes more than we have read (or hangs up, or we close)."""
         ctl = self._rx.ctl
-        # A reply to a large frame takes the peer at least the time to read it (~0.1 ns per byte across cores).
-        window_ns = self.spin_ns + min(self._sent_since_wait // 10, _SPIN_EXTRA_NS)
-        self._sent_since_wait = 0
-        if self._spin_credit > 0:
-            rpos = self._rpos
-            deadline = _now_ns() + window_ns
-            while ctl[W_POS] == rpos:
-                if _now_ns() > deadline:
-                    self._spin_credit -= 1
-                    break
-                _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin
-            else:
-                self._spin_credit = _SPIN_CREDIT
-                return
+        window_ns = self._window_ns()
+        if self._spin_credit > 0 and self._spin(window_ns):
+            return
         ticket = self._rx_ticket + 1
         ctl[R_TICKET] = ticket  # odd: "I am about to sleep; ring my doorbell"
         _fence_acquire()
@@ -327,14 +354,65 @@ class ShmTransport(Transport):
                     await fut
                 finally:
                     self._rx_waiter = None
-                if self._spin_credit == 0 and self._spin_allowed and _now_ns() - t0 < window_ns + _WAKEUP_NS:
-                    self._spin_credit = 1  # a short spin would have caught this one: try spinning again
+                self._slept(t0, window_ns)
         finally:
             self._rx_ticket = ticket + 1
             if not self._closed:
                 ctl[R_TICKET] = ticket + 1
         if self._closed:
             raise TransportClosedError(f"transport to {self.peer} was closed")
+
+    def receive_blocking(self, timeout_s: float) -> memoryview | None:
+        """``receive`` in the calling thread, outside the event loop, for a caller that has nothing else to do
+        meanwhile (the agent's thread waiting for its workers' replies): polls as ``receive`` does, then blocks in
+        ``poll(2)`` on the doorbell for at most ``timeout_s``. Costs no event-loop round: the counterpart of
+        ``try_send``. This transport's event loop must not be running a ``receive`` meanwhile.
+
+        Returns the frame as ``receive`` would, or None when it cannot be had here: nothing came within
+        ``timeout_s``, the control socket has news (the peer hung up), the next frame needs the slow path (wrapped
+        around the ring's end or streamed), or this end is closed or broken. Nothing was consumed then, and
+        ``receive`` must be awaited (it delivers the frame or raises what is wrong).
+        """
+        if not self._rx_fast:
+            return None
+        view = self._take_ready()
+        if view is not None:
+            return view
+        if self._rx_ctl[W_POS] != self._rpos:  # it came just now, or it is something only the slow path takes
+            return self._take_ready()
+        deadline = _now_ns() + int(timeout_s * 1e9)
+        window_ns = self._window_ns()
+        ctl = self._rx_ctl
+        if self._spin_credit > 0 and self._spin(window_ns):
+            return self._take_ready()
+        poller = self._poller
+        if poller is None:
+            poller = self._poller = select.poll()
+            poller.register(self._doorbell, select.POLLIN)
+            poller.register(self._sock.fileno(), select.POLLIN)
+        ticket = self._rx_ticket + 1
+        ctl[R_TICKET] = ticket  # odd: "I am about to sleep; ring my doorbell"
+        _fence_acquire()
+        _fence_release()
+        t0 = _now_ns()
+        try:
+            while ctl[W_POS] == self._rpos:  # re-checked after the fence: no lost wakeup
+                left_ns = deadline - _now_ns()
+                if left_ns <= 0:
+                    return None
+                for fd, _ in poller.poll(-(-left_ns // 1_000_000)):
+                    if fd != self._doorbell:
+                        return None  # the control socket: EOF or stray bytes, which _on_socket handles
+                    try:
+                        os.eventfd_read(fd)
+                    except BlockingIOError:
+                        pass
+            self._slept(t0, window_ns)
+        finally:
+            self._rx_ticket = ticket + 1
+            if not self._closed:
+                ctl[R_TICKET] = ticket + 1
+        return self._take_ready()
 
     # -------------------------------------------------------------------------------------------------- sending
 
