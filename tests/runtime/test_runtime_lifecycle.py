@@ -10,6 +10,7 @@ import sys
 import textwrap
 import time
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -159,6 +160,33 @@ def test_hung_worker_times_out_and_close_stays_bounded() -> None:
         t0 = time.monotonic()
         venv.close()
         assert time.monotonic() - t0 < 8.0
+    assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
+
+
+def test_step_wait_with_a_timeout_can_be_called_again() -> None:
+    """A step_wait that runs out of its own timeout while a worker is stopped leaves the step pending, replies and
+    all; once the worker runs again, the next step_wait gets every reply, in order."""
+    venv = make_vec([RX, NED], clock="sim", turn_based=True)
+    victim = venv.pids[1]
+    assert victim is not None
+    try:
+        venv.reset(seed=0)
+        os.kill(victim, signal.SIGSTOP)
+        venv.step_async(np.full((2, 6), 0.5, np.float32))
+        t0 = time.monotonic()
+        with pytest.raises(gym.error.AlreadyPendingCallError, match="did not finish within 0.3 s"):
+            venv.step_wait(timeout=0.3)
+        assert 0.25 < time.monotonic() - t0 < 3.0
+        with pytest.raises(gym.error.AlreadyPendingCallError):  # still pending: no new step over it
+            venv.step(np.zeros((2, 6), np.float32))
+        os.kill(victim, signal.SIGCONT)
+        obs, rewards, terminated, truncated, info = venv.step_wait(timeout=30.0)
+        assert obs.shape == (2, 28) and list(info["env_id"]) == [RX, NED]
+        obs2, *_ = venv.step(np.full((2, 6), 0.5, np.float32))  # the connection is in step: the next one works
+        assert obs2.shape == (2, 28)
+    finally:
+        os.kill(victim, signal.SIGCONT)
+        venv.close()
     assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
 
 

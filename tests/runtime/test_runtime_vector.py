@@ -58,8 +58,9 @@ def test_mixed_rx200_ned2_are_padded_and_say_so_in_infos() -> None:
 def test_step_async_sends_without_running_the_loop_and_falls_back_when_it_cannot(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """step_async writes every request into the workers' shm rings from the caller's thread (the supervisor's loop
-    does not run until step_wait); with a ring that refuses (try_send False) the loop path sends, same results."""
+    """step_async writes every request into the workers' shm rings from the caller's thread, and step_wait and step
+    take the replies there too (the supervisor's loop never runs); with a ring that refuses (try_send False) the
+    loop path sends and receives, with the same results."""
     from uniros_async.transports import shm
 
     def run(venv: UnirosVectorEnv, fast: bool) -> list[np.ndarray]:
@@ -86,6 +87,9 @@ def test_step_async_sends_without_running_the_loop_and_falls_back_when_it_cannot
                     time.sleep(0.01)
                 assert all(w.transport._rx_ctl[shm.W_POS] != w.transport._rpos for w in workers), "replies due"
             out.append(venv.step_wait()[0])
+            assert len(drives) == (0 if fast else 2)
+            out.append(venv.step(rng.uniform(-1, 1, (2, 6)).astype(np.float32))[0])
+            assert len(drives) == (0 if fast else 3)
         return out
 
     specs = [(RX, {"turn_based": True}), (NED, {"turn_based": True})]

@@ -5,7 +5,10 @@ that the calling thread runs itself, only for the duration of each call (``loop.
 the agent side needs to run between calls (replies wait in the shm rings, a dead worker's hang-up in its socket),
 and a call then costs no hand-over to another thread (~16 us of loop start/stop instead of ~300 us of thread
 wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_all`` sends requests
-and returns at once; the replies are collected by ``_Pending.result``. Every wait on a worker has a deadline; a
+and returns at once; the replies are collected by ``_Pending.result``. A step to local shm workers does not run the
+loop at all: the requests go out with ``ShmTransport.try_send`` and the replies come in with ``receive_blocking``,
+in the calling thread (``_send_now``, ``_receive_now``); whatever that cannot do (no room, a hang-up, a deadline)
+is left to the loop, which also reports it. Every wait on a worker has a deadline; a
 worker that does not answer in time, whose connection breaks or whose process died is marked broken and every
 later request to it raises WorkerError naming its index (issue 5). A call interrupted by Ctrl-C while the loop
 waits is finished (its replies consumed) before the next call; one interrupted inside a request's own code marks
@@ -55,6 +58,8 @@ __all__ = ["ProxyEnv", "Supervisor", "WorkerHandle", "check_env_args", "make"]
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
+LATER: Any = object()
+"""``WorkerHandle.receive_reply_blocking``: no reply this way; ``receive_reply`` must follow."""
 
 # how the supervisor reaches its workers: shared memory on one machine (the default), or tcp on loopback
 _LISTEN_URIS = {"shm": "shm://", "tcp": "tcp://127.0.0.1:0"}
@@ -214,6 +219,32 @@ class WorkerHandle:
         except BaseException:  # cancelled, Ctrl-C inside this frame, a malformed reply: replies out of step
             self.broken = f"waiting for the reply to {op!r} was interrupted ({self.spec.env_id})"
             raise
+        return self._result(reply)
+
+    def receive_reply_blocking(self, op: Any, timeout_s: float) -> Any:
+        """``receive_reply`` in this thread without the event loop (``ShmTransport.receive_blocking``), for a local
+        worker whose request is in flight: returns its result, or ``LATER`` when the reply cannot be had that way
+        (not there within ``timeout_s``, the worker hung up, not an shm connection, ...: nothing was consumed, and
+        ``receive_reply`` must follow, which also reports what went wrong).
+
+        Raises:
+            WorkerError: the worker raised (its traceback attached; the worker stays usable).
+        """
+        receive_blocking = getattr(self.transport, "receive_blocking", None)
+        if self.broken is not None or not self.in_flight or receive_blocking is None:
+            return LATER
+        try:
+            frame = receive_blocking(timeout_s)
+            if frame is None:
+                return LATER
+            self.in_flight = False
+            reply = unpack(frame)
+        except BaseException:  # Ctrl-C in the wait, a malformed reply: replies out of step
+            self.broken = f"waiting for the reply to {op!r} was interrupted ({self.spec.env_id})"
+            raise
+        return self._result(reply)
+
+    def _result(self, reply: dict[str, Any]) -> Any:
         if not reply.get("ok"):
             raise WorkerError(
                 self.index, f"{self.spec.env_id}: {reply.get('error')}", remote_traceback=reply.get("traceback", "")
@@ -495,9 +526,57 @@ class Supervisor:
         """``request_all(messages, return_exceptions=True)`` run to the end in this thread (its waits have their own
         deadlines, so no outer timeout is added: the cheapest round trip, used by ``UnirosVectorEnv.step``)."""
         presend = self._send_now(messages)
-        return self._drive(
-            self.request_all(messages, return_exceptions=True, present=presend), self.call_timeout_s + 5.0
+        t = self.call_timeout_s
+        deadline = time.monotonic() + t
+        results: list[Any] = [None] * len(messages)
+        rest = self._receive_now(messages, presend, deadline, results)
+        if not rest:
+            return _raise_unexpected(results)
+        # the requests not sent yet and the replies not received yet go through the event loop, under what is
+        # left of the same deadline
+        left = [m if i in rest else None for i, m in enumerate(messages)]
+        more = self._drive(
+            self.request_all(
+                left, return_exceptions=True, present=presend & rest, wait_s=max(deadline - time.monotonic(), 0.0)
+            ),
+            t + 5.0,
         )
+        for i in rest:
+            results[i] = more[i]
+        return _raise_unexpected(results)
+
+    def _receive_now(
+        self, messages: Sequence[dict[str, Any] | None], sent: frozenset[int], deadline: float, results: list[Any]
+    ) -> set[int]:
+        """Collect the replies of the requests ``_send_now`` sent, in this thread and without the event loop
+        (``WorkerHandle.receive_reply_blocking``), into ``results``; stops at the first that cannot be had that
+        way. Returns the indices still to do (requests not sent, replies not received)."""
+        rest = {i for i, m in enumerate(messages) if m is not None}
+        if not sent or not self._lock.acquire(blocking=False):
+            return rest
+        try:
+            if self._loop.is_closed() or self._orphans:
+                return rest
+            for i in sorted(sent):
+                w = self.workers[i]
+                op = messages[i].get("op")  # type: ignore[union-attr]
+                try:
+                    r = w.receive_reply_blocking(op, max(deadline - time.monotonic(), 0.0))
+                except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
+                    r = exc
+                if r is LATER:
+                    break
+                results[i] = r
+                rest.discard(i)
+            return rest
+        except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
+            for j in rest:
+                w = self.workers[j]
+                if w.in_flight and w.broken is None:
+                    w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
+            raise
+        finally:
+            self._lock.release()
 
     def _send_now(self, messages: Sequence[dict[str, Any] | None]) -> frozenset[int]:
         """Send the requests that can go at once (``WorkerHandle.try_send_request``: local shm workers with room),
@@ -535,11 +614,10 @@ class Supervisor:
     def submit_all(self, messages: Sequence[dict[str, Any] | None]) -> _Pending[list[Any]]:
         """``request_all(messages, return_exceptions=True)``, returning once every request is sent."""
         presend = self._send_now(messages)
-        if len(presend) == sum(m is not None for m in messages):  # all sent: the loop runs when the replies are due
+        if len(presend) == sum(m is not None for m in messages):  # all sent: nothing runs until the replies are due
             if self._loop.is_closed():
                 raise RuntimeError("the supervisor is closed")
-            coro = self.request_all(messages, return_exceptions=True, present=presend)
-            return _Pending(self, self._loop.create_task(coro))
+            return _SentPending(self, messages, presend)
 
         async def start() -> asyncio.Task[list[Any]]:
             sent: asyncio.Future[None] = asyncio.get_running_loop().create_future()
@@ -559,10 +637,12 @@ class Supervisor:
         return_exceptions: bool = False,
         sent: asyncio.Future[None] | None = None,
         present: frozenset[int] = frozenset(),
+        wait_s: float | None = None,
     ) -> list[Any]:
         """Send ``messages[i]`` to worker i (None: skip), all before waiting for any (then ``sent`` is set). Once
         every reply is in, raise the first failure (by index), or with ``return_exceptions`` put each WorkerError
-        in its slot. ``present``: the workers whose request ``_send_now`` has sent already."""
+        in its slot. ``present``: the workers whose request ``_send_now`` has sent already. ``wait_s``: how long
+        to wait at most (default: the call timeout, which error messages name either way)."""
         for i, m in enumerate(messages):
             if m is not None and i not in present:
                 self.workers[i].check_idle()  # before anything is sent
@@ -574,7 +654,7 @@ class Supervisor:
         # the other (each waits in its ring meanwhile): no task per worker, so a step costs the fewest event-loop
         # rounds, and a hung worker is still found within the call timeout.
         try:
-            async with asyncio.timeout(t):
+            async with asyncio.timeout(t if wait_s is None else wait_s):
                 for i, m in enumerate(messages):
                     if m is None:
                         continue
@@ -628,10 +708,7 @@ class Supervisor:
                 w = self.workers[j]
                 if w.broken is None:
                     w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
-        for r in results:
-            if isinstance(r, BaseException) and not (return_exceptions and isinstance(r, WorkerError)):
-                raise r
-        return results
+        return _raise_unexpected(results, worker_errors=not return_exceptions)
 
     def pids(self) -> list[int | None]:
         """The worker process ids, in index order."""
@@ -726,6 +803,15 @@ class Supervisor:
             self.close()
 
 
+def _raise_unexpected(results: list[Any], *, worker_errors: bool = False) -> list[Any]:
+    """``results``, unless one of them is an exception other than a WorkerError (or is any, with
+    ``worker_errors``): the first of those is raised, as ``request_all`` does once every reply is in."""
+    for r in results:
+        if isinstance(r, BaseException) and (worker_errors or not isinstance(r, WorkerError)):
+            raise r
+    return results
+
+
 async def _aclose(transport: Any) -> None:
     if transport is not None:
         await transport.aclose()
@@ -779,6 +865,61 @@ class _Pending(Generic[T]):
         if task.cancelled():
             raise concurrent.futures.CancelledError()
         return task.result()
+
+
+class _SentPending(_Pending[list[Any]]):
+    """``submit_all``'s requests when ``_send_now`` sent every one: ``result`` collects the replies in the calling
+    thread (``Supervisor._receive_now``, no event-loop round) and leaves to ``request_all`` on the supervisor's loop
+    only those it cannot get that way. The call timeout starts at the first ``result``, as for a task."""
+
+    def __init__(self, supervisor: Supervisor, messages: Sequence[dict[str, Any] | None], sent: frozenset[int]) -> None:
+        self._sup = supervisor
+        self._messages = messages
+        self._sent = sent
+        self._results: list[Any] = [None] * len(messages)
+        self._rest: set[int] | None = None  # what the calling thread could not collect (None: not tried yet)
+        self._task: asyncio.Task[list[Any]] | None = None  # ... collected by request_all instead
+
+    def done(self) -> bool:
+        if self._task is not None:
+            return self._task.done()
+        return self._rest is not None and not self._rest
+
+    def result(self, timeout: float | None = None) -> list[Any]:
+        """As ``_Pending.result``."""
+        sup = self._sup
+        now = time.monotonic()
+        end = None if timeout is None else now + timeout
+        if self._rest is None:
+            deadline = now + sup.call_timeout_s
+            self._rest = sup._receive_now(
+                self._messages, self._sent, deadline if end is None else min(deadline, end), self._results
+            )
+            if self._rest:
+                if sup._loop.is_closed():
+                    raise concurrent.futures.CancelledError()
+                left = [m if i in self._rest else None for i, m in enumerate(self._messages)]
+                wait_s = max(deadline - time.monotonic(), 0.0)
+                coro = sup.request_all(left, return_exceptions=True, present=self._sent & self._rest, wait_s=wait_s)
+                self._task = sup._loop.create_task(coro)
+        if self._task is not None:
+            task = self._task
+            if not task.done():
+                t = sup.call_timeout_s + 5.0 if end is None else max(end - time.monotonic(), 0.0)
+                try:
+                    sup._drive(asyncio.wait({task}, timeout=t), t + 1.0)
+                except RuntimeError:  # closed meanwhile
+                    pass
+            if not task.done():
+                raise concurrent.futures.TimeoutError()
+            if task.cancelled():
+                raise concurrent.futures.CancelledError()
+            more = task.result()
+            for i in self._rest or ():
+                self._results[i] = more[i]
+            self._rest = set()
+            self._task = None
+        return _raise_unexpected(self._results)
 
 
 class ProxyEnv(gym.Env[Any, Any]):
