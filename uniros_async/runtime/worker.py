@@ -379,6 +379,8 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         await server.build()
         if server.realtime:
             _no_spin(transport)
+        elif hasattr(transport, "spin_ns"):
+            transport.spin_ns = TURN_SPIN_NS
         await server.serve(transport)
     except TransportError:
         logger.info("worker %d: the supervisor went away", spec.index)
@@ -387,6 +389,13 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         if transport is not None:
             await transport.aclose()
         await listener.aclose()
+
+
+TURN_SPIN_NS = 200_000
+"""How long a worker without a real-time env loop polls for the next request before it sleeps: the agent's turn
+between two steps (collect the returns, pick the next actions, pack them: ~60 us for one env here) is longer than
+``ShmTransport.spin_ns``, so with the default every step would wake the worker from sleep (~40 us on an idle core).
+The spin credit still stops the polling when requests come slower than this (a learner's update between steps)."""
 
 
 def _no_spin(transport: Any) -> None:
