@@ -7,17 +7,21 @@ gymnasium's ``AsyncVectorEnv`` and SB3's ``SubprocVecEnv`` (both over pickled pi
 
 The reference, "the bare env step", is the same env made with ``gymnasium.make`` in this process and stepped as a
 user would (``env.step``; its world runs on the env's own loop thread), on the same trajectory: the turn-based sim
-is deterministic, so step k costs the bare env and every sub-env the same physics. Each row first steps the two
-alternately (bare step k, then the vector env's step k: same state, same action, the same moment's machine load;
-the bare env's loop thread is let finish its step's trailing work, untimed, before the vector step is timed, and
-the workers theirs, ``TRAIL_S``, before the next bare step), then the vector env alone, back to back. Reported per row:
+is deterministic, so step k costs the bare env and every sub-env the same physics. Each row first steps them in
+alternating blocks (steps k..k+B-1 of the bare env back to back, then the same steps of the vector env: same states,
+same actions, the same minute's machine load; the bare env's loop thread is let finish its block's trailing work,
+untimed, before the vector block, and the workers theirs, ``TRAIL_S``, before the next bare block), then the vector
+env alone, back to back. Within a block both run as a training loop steps them, one step right after the other; the
+first step of each block, which starts on idle (halted, cache-cold) cores, is left out of both. Reported per row:
 
 - ``steps_per_s``: N / median time per vector step, back to back (aggregate env steps per second);
 - ``overhead_us``: median over k of (vector step k - bare step k) in the alternating phase, the per-step overhead
-  (meaningful at N = 1; above that the workers share the machine's cores);
+  (meaningful at N = 1; above that the workers share the machine's cores). The rx200 step itself scatters by
+  milliseconds from step to step here (the same physics, 5-12 ms), so its figure is only as good as the number of
+  steps; the trivial env's figure is the precise one;
 - ``bare_ms`` / ``step_ms``: the medians of both in the alternating phase;
 - at N = 1 also ``floor_ms``, the env's own step time with nothing around it (``_Floor``: the env attached to a
-  loop in this thread, its step coroutine timed from inside; the third member of the alternation), and
+  loop in this thread, its step coroutine timed from inside; a third block between the two), and
   ``overhead_over_floor_us``: median over k of (vector step k - floor step k). The bare gymnasium step pays the
   hand-over to its loop thread; a worker of ``make_vec`` runs the env attached to its own loop and does not, so
   the first overhead can be negative; the second is what the runtime costs on top of the env's work.
@@ -49,7 +53,7 @@ ENV_ID = "uniros/Rx200Reach-v0"
 ENV_KW: dict[str, Any] = {"turn_based": True, "max_episode_steps": 10**9}
 TRIVIAL_ID = "CartPole-v1"
 TRAIL_S = 0.005
-"""Untimed pause after each vector step of the alternating phase: a worker replies before the servo tick that its
+"""Untimed pause after each vector block of the alternating phase: a worker replies before the servo tick that its
 step's last sim event also woke (~1 ms of physics), which would otherwise run during the bare step timed next."""
 
 
@@ -157,9 +161,17 @@ def _quiesce(env: Any) -> None:
 
 
 def _run(
-    impl: str, n: int, bare: Any, env_id: str, kwargs: dict[str, Any], steps: int, floor: _Floor | None = None
+    impl: str,
+    n: int,
+    bare: Any,
+    env_id: str,
+    kwargs: dict[str, Any],
+    steps: int,
+    floor: _Floor | None = None,
+    block: int = 8,
 ) -> dict[str, Any]:
-    actions = _actions(bare.action_space, 2 * steps + 1)
+    block = min(block, steps)
+    actions = _actions(bare.action_space, 2 * steps + 2)
     batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
     venv, reset, step = _vector(impl, n, env_id, kwargs)
     vec_t: list[float] = []
@@ -171,27 +183,30 @@ def _run(
         bare.reset(seed=0)
         if floor is not None:
             floor.reset(0)
-        # paired: bare step k, then the vector env's step k (same state, same action, same moment's load)
-        for k in range(steps + 1):
-            t0 = time.perf_counter()
-            _, _, terminated, truncated, _ = bare.step(actions[k])
-            t1 = time.perf_counter()
+        # paired: steps k..k+B-1 of the bare env back to back, then the same steps of the floor, then of the
+        # vector env (same states, same actions, the same moment's load); the first step of each block is left out
+        for k0 in range(0, steps + 1 - block + 1, block):
+            ks = range(k0, k0 + block)
+            b: list[float] = []
+            for k in ks:
+                t0 = time.perf_counter()
+                _, _, terminated, truncated, _ = bare.step(actions[k])
+                b.append(time.perf_counter() - t0)
+                if terminated or truncated:  # the trivial env's episodes end; the vector envs reset themselves
+                    bare.reset()
             _quiesce(bare)
             if floor is not None:
-                f = floor.step_s(actions[k])
-                if k > 0:
-                    floor_t.append(f)
-            t2 = time.perf_counter()
-            step(batch[k])
-            t3 = time.perf_counter()
+                floor_t += [floor.step_s(actions[k]) for k in ks][1:]
+            v: list[float] = []
+            for k in ks:
+                t0 = time.perf_counter()
+                step(batch[k])
+                v.append(time.perf_counter() - t0)
             time.sleep(TRAIL_S)  # the workers' trailing work (the next servo tick) must not overlap the bare step
-            if k > 0:  # step 0 is the warm-up
-                bare_t.append(t1 - t0)
-                vec_t.append(t3 - t2)
-            if terminated or truncated:  # the trivial env's episodes end; the vector envs reset themselves
-                bare.reset()
+            bare_t += b[1:]
+            vec_t += v[1:]
         # throughput: the vector env alone, back to back
-        for k in range(steps + 1, 2 * steps + 1):
+        for k in range(steps + 1, 2 * steps + 2):
             t0 = time.perf_counter()
             step(batch[k])
             tight_t.append(time.perf_counter() - t0)
@@ -234,7 +249,7 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     trivial = _make_env(TRIVIAL_ID, {})
     try:
         for impl in IMPLS:
-            records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, max(steps, 200)))
+            records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, max(steps, 200), block=20))
     finally:
         trivial.close()
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))

@@ -1,0 +1,43 @@
+"""``uniros bench throughput``: one short row per implementation, the JSON schema, the table and bad configs.
+
+Real worker processes of all three implementations; the test checks what the records say and how they relate,
+never a figure's size (that is the benchmark's job, docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from uniros_async.bench import throughput
+from uniros_async.errors import ConfigError
+
+pytestmark = pytest.mark.slow
+
+
+def test_a_short_run_prints_the_table_and_writes_every_record(tmp_path: Path) -> None:
+    out = tmp_path / "t.json"
+    lines: list[str] = []
+    records = throughput.main(
+        throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, json_path=str(out)), log=lines.append
+    )
+    assert json.loads(out.read_text()) == records
+    rows = {(r["env"], r["impl"]) for r in records}
+    assert rows == {(e, i) for e in (throughput.ENV_ID, throughput.TRIVIAL_ID) for i in throughput.IMPLS}
+    for r in records:
+        assert {"impl", "n_envs", "steps_per_s", "overhead_us"} <= r.keys()
+        assert r["n_envs"] == 1 and r["steps_per_s"] > 0 and r["bare_ms"] > 0 and r["step_ms"] > 0
+        if r["env"] == throughput.ENV_ID:  # the floor is measured beside the rx200 rows at N = 1
+            assert r["floor_ms"] > 0 and isinstance(r["overhead_over_floor_us"], float)
+        else:
+            assert "floor_ms" not in r
+    text = "\n".join(lines)
+    assert "gymnasium-async" in text and "sb3-subproc" in text and "physics bound" in text
+
+
+@pytest.mark.parametrize("kw", [{"n_envs": ()}, {"n_envs": (0,)}, {"steps": 2}])
+def test_bad_configs_are_refused(kw: dict[str, object]) -> None:
+    with pytest.raises(ConfigError, match="n_envs must be >= 1 and steps >= 5"):
+        throughput.ThroughputBenchConfig(**kw)  # type: ignore[arg-type]
