@@ -405,9 +405,13 @@ class AsyncTD3(TD3):
                 with rt.timed(rt.cond):
                     rt.step_t0 = time.perf_counter()
                     rt.actor_in_step = True
-                    rt.cond.notify()
                 try:
-                    new_obs, rewards, dones, infos = env.step(actions)
+                    # SB3's VecEnv.step, in its two halves: the learner is woken only once the actions are out, so
+                    # that its wake-up does not take the GIL from the actor in the middle of sending them
+                    env.step_async(actions)
+                    with rt.timed(rt.cond):
+                        rt.cond.notify()
+                    new_obs, rewards, dones, infos = env.step_wait()
                 finally:
                     rt.actor_in_step = False
                 step_s = time.perf_counter() - rt.step_t0
