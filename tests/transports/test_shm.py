@@ -436,3 +436,25 @@ async def test_receive_blocking_gets_replies_without_the_event_loop() -> None:
         finally:
             await t.aclose()
         assert t.receive_blocking(0.0) is None  # closed
+
+
+async def test_loan_writes_in_the_ring_and_guards_its_frame() -> None:
+    """A loan is the frame's place in the ring (the receiver's view shows the same bytes with no copy in between);
+    while it is out, nothing else is sent on that end; a loan whose end closed meanwhile sends nothing."""
+    async with open_pair("shm://") as (a, b, _):
+        assert isinstance(a, shm.ShmTransport)
+        async with asyncio.timeout(T_S):
+            for _ in range(3):
+                async with a.loan(640 * 480 * 3) as buf:
+                    assert buf.obj is a._tx.data.obj  # type: ignore[attr-defined]  # the ring's own memory
+                    buf[:4] = b"\x01\x02\x03\x04"
+                    with pytest.raises(RuntimeError, match="loaned frame"):
+                        await a.send(b"in between")
+                    assert not a.try_send(b"in between")
+                got = await b.receive()
+                assert got.nbytes == 640 * 480 * 3 and bytes(got[:4]) == b"\x01\x02\x03\x04"
+            with pytest.raises(TransportClosedError):
+                async with a.loan(100) as buf:
+                    buf[:] = bytes(100)
+                    await a.aclose()
+            assert a.stats.frames_sent == 3

@@ -283,6 +283,43 @@ async def check_auth_rejects_wrong_key(uri: str) -> None:
             await lst.aclose()
 
 
+async def check_loaned_frames(uri: str) -> None:
+    """``loan``: a frame written in place arrives as written, between ordinary frames and in order, also when a
+    loan waits for room or is larger than any ring; a loan whose block raises sends nothing; a loan over
+    ``max_frame_bytes`` is refused and the connection stays."""
+    async with open_pair(uri, TransportOptions(ring_bytes=64 * 1024, max_frame_bytes=1 << 20)) as (a, b, _):
+        async with asyncio.timeout(T_S):
+            sizes = [0, 1, 277, 5000, 40_000, 40_000, 200_000]  # two 40 KB loans cannot share a 64 KiB ring
+            for i, n in enumerate(sizes):
+                pattern = bytes([i + 1]) * n
+
+                async def reader(n: int = n, pattern: bytes = pattern) -> None:
+                    assert bytes(await b.receive()) == b"before"
+                    got = await b.receive()
+                    assert got.nbytes == n and bytes(got) == pattern
+                    assert bytes(await b.receive()) == b"after"
+
+                task = asyncio.ensure_future(reader())
+                await a.send(b"before")
+                async with a.loan(n) as buf:
+                    assert len(buf) == n and not buf.readonly
+                    buf[:] = pattern
+                await a.send(b"after")
+                await task
+            with contextlib.suppress(ZeroDivisionError):
+                async with a.loan(100) as buf:
+                    buf[:] = b"z" * 100
+                    raise ZeroDivisionError  # an error while writing: nothing goes out
+            try:
+                async with a.loan((1 << 20) + 1):
+                    raise AssertionError("a loan over max_frame_bytes was granted")
+            except FrameTooLargeError:
+                pass
+            await a.send(b"next")
+            assert bytes(await b.receive()) == b"next"
+            assert a.stats.frames_sent == 3 * len(sizes) + 1
+
+
 CHECKS: list[Callable[[str], Awaitable[None]]] = [
     check_round_trip_small,
     check_order_and_backpressure,
@@ -295,6 +332,7 @@ CHECKS: list[Callable[[str], Awaitable[None]]] = [
     check_cancelled_receive_leaves_connection_usable,
     check_both_directions_at_once,
     check_several_peers,
+    check_loaned_frames,
 ]
 AUTH_CHECKS: list[Callable[[str], Awaitable[None]]] = [check_auth_accepts_right_key, check_auth_rejects_wrong_key]
 

@@ -47,6 +47,10 @@ class MemoryTransport(Transport):
         self._peer_closed = False
 
     @property
+    def max_frame_bytes(self) -> int:
+        return self._options.max_frame_bytes
+
+    @property
     def peer(self) -> str:
         return f"memory://{self._name}"
 

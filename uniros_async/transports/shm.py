@@ -31,6 +31,7 @@ admitted. ``bind_host`` does not apply.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import logging
 import mmap
@@ -41,7 +42,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import AsyncIterator, Sequence
 
 from uniros_async.errors import (
     ConfigError,
@@ -138,6 +139,7 @@ class ShmTransport(Transport):
         self._spin_credit = _SPIN_CREDIT if self.spin_ns > 0 else 0
         self._sent_since_wait = 0  # bytes sent since receive() last waited: a hint of how long a reply takes
         self._tx_waiter: asyncio.Future[None] | None = None
+        self._loaned = False  # a loan() block is writing the next frame in place
         self._rx_partial: _Partial | None = None
         self._tx_stream: asyncio.Task[None] | None = None
         self._peer_gone = False
@@ -155,6 +157,10 @@ class ShmTransport(Transport):
             self._spin_credit = 0  # the writer is in this process, likely on this very event loop: spinning can't help
         self._loop.add_reader(self._doorbell, self._on_doorbell)
         self._loop.add_reader(sock.fileno(), self._on_socket)
+
+    @property
+    def max_frame_bytes(self) -> int:
+        return self._max_frame
 
     @property
     def peer(self) -> str:
@@ -467,6 +473,49 @@ class ShmTransport(Transport):
         self._write(frame, (), n, rec, *place)
         return True
 
+    @contextlib.asynccontextmanager
+    async def loan(self, nbytes: int) -> AsyncIterator[memoryview]:
+        """The next frame's own place in the ring, ``nbytes`` long: write it in the block, and it is sent when the
+        block ends, without a copy (a renderer draws straight into it). Waits for room as ``send`` does. If the
+        block raises, nothing is sent. A frame larger than the ring is lent from a buffer of our own and streamed
+        (one copy). Nothing else may be sent on this end during the block; the view must not be used after it.
+
+        Raises:
+            TransportClosedError, TransportBrokenError, FrameTooLargeError: as ``send``.
+        """
+        if not self._tx_fast:
+            await self._send_checks()
+        if nbytes < 0 or nbytes > self._max_frame:
+            raise FrameTooLargeError(f"frame of {nbytes} bytes exceeds max_frame_bytes={self._max_frame}")
+        rec = 8 + ((nbytes + 7) & ~7)
+        if rec > self._cap:
+            async with super().loan(nbytes) as view:
+                yield view
+            return
+        while (place := self._place(rec)) is None:
+            await self._wait_writable(rec)
+            if not self._tx_fast:
+                await self._send_checks()
+        off, skip = place
+        start = (0 if skip else off) + 8
+        view = self._tx_data[start : start + nbytes]
+        self._loaned = True
+        self._tx_fast = False
+        try:
+            yield view
+        finally:
+            self._loaned = False
+            self._tx_fast = not (self._closed or self._broken is not None or self._peer_gone)
+            with contextlib.suppress(BufferError):  # the caller still holds views of it: theirs to drop
+                view.release()
+        if not self._tx_fast:
+            await self._send_checks()  # closed or broken during the block: raises, nothing is sent
+        if skip:
+            self._tx_q[off >> 3] = SKIP
+            off = 0
+        self._tx_q[off >> 3] = nbytes
+        self._commit_record(nbytes, rec, skip)
+
     def _place(self, rec: int) -> tuple[int, int] | None:
         """Where a record of ``rec`` bytes goes: (ring offset, bytes skipped to the end of the ring first), or None
         while the ring lacks room."""
@@ -491,7 +540,6 @@ class ShmTransport(Transport):
     def _write(self, one: Buffer | None, parts: Sequence[Buffer], n: int, rec: int, off: int, skip: int) -> None:
         """Copy the frame (``one`` buffer, or ``parts``) to its place, publish it, and ring the reader if it sleeps."""
         cap = self._cap
-        ctl = self._tx_ctl
         data_q = self._tx_q
         if skip:
             data_q[off >> 3] = SKIP
@@ -516,6 +564,12 @@ class ShmTransport(Transport):
                     data[pos:] = view[:first]
                     data[: k - first] = view[first:]
                     pos = k - first
+        self._commit_record(n, rec, skip)
+
+    def _commit_record(self, n: int, rec: int, skip: int) -> None:
+        """Publish the record of an ``n``-byte frame (``rec`` bytes, after ``skip`` bytes to the ring's end) whose
+        header and data are in place, and ring the reader if it sleeps."""
+        ctl = self._tx_ctl
         wpos = self._wpos + skip + rec
         ctl[W_POS] = self._wpos = wpos  # publish, then (after the fence) see whether the reader sleeps
         _fence_acquire()
@@ -533,6 +587,8 @@ class ShmTransport(Transport):
         """The slow path of send(): finish a cancelled streamed frame, then raise if the connection is unusable."""
         if self._closed:
             raise TransportClosedError(f"send on closed transport to {self.peer}")
+        if self._loaned:
+            raise RuntimeError(f"a loaned frame to {self.peer} is still being written: send after its block ends")
         if self._tx_stream is not None:
             await self._join_stream()
         if self._closed:

@@ -229,6 +229,10 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     # ------------------------------------------------------------------------------------------ public API
 
     @property
+    def max_frame_bytes(self) -> int:
+        return self._send_limit
+
+    @property
     def peer(self) -> str:
         return self._peer
 

@@ -1,0 +1,39 @@
+"""``uniros bench transport``: a few samples per case through real processes, the JSON schema, the table, bad
+configs. Sizes of figures are the benchmark's job (docs/performance.md), not the test's."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from uniros_async.bench import transport
+from uniros_async.errors import ConfigError
+
+KEYS = {"transport", "payload", "rtt_p50_us", "rtt_p90_us", "rtt_p99_us", "throughput_msg_s"}
+
+
+def test_every_transport_and_payload_gets_a_record_and_a_row(tmp_path: Path) -> None:
+    out = tmp_path / "t.json"
+    lines: list[str] = []
+    kinds = ("memory", "shm", "shm-loan", "tcp", "mp-pipe")
+    cfg = transport.TransportBenchConfig(
+        transports=kinds, rtt_samples=30, throughput_frames=30, json_path=str(out), progress=False
+    )
+    records = transport.main(cfg, log=lines.append)
+    assert json.loads(out.read_text()) == records
+    assert {(r["transport"], r["payload"]) for r in records} == {(k, p) for k in kinds for p in transport.PAYLOADS}
+    for r in records:
+        assert set(r) == KEYS
+        assert 0 < r["rtt_p50_us"] <= r["rtt_p90_us"] <= r["rtt_p99_us"] and r["throughput_msg_s"] > 0
+    table = "\n".join(lines)
+    for name in ("shm p50 vs fastest peer (mp-pipe)", "shm-loan p50 vs fastest peer (mp-pipe)"):
+        assert table.count(name) == len(transport.PAYLOADS)
+
+
+def test_unknown_transport_or_payload_is_named() -> None:
+    with pytest.raises(ConfigError, match="unknown transport.*'udp'.*shm-loan"):
+        transport.TransportBenchConfig(transports=("udp",))
+    with pytest.raises(ConfigError, match="unknown payload.*'huge'"):
+        transport.TransportBenchConfig(payloads=("huge",))
