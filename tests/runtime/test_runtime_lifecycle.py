@@ -190,6 +190,41 @@ def test_step_wait_with_a_timeout_can_be_called_again() -> None:
     assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
 
 
+def test_ctrl_c_while_waiting_for_replies_marks_the_unanswered_worker_broken() -> None:
+    """Ctrl-C while the agent's thread waits for a reply (outside any event loop: ``receive_blocking`` in
+    ``poll(2)``) reaches the caller; the worker whose reply was still owed is broken (its next reply could not be
+    matched to a request) and says so on the next step; the worker that had answered stays usable."""
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    venv = make_vec([RX, NED], clock="sim", turn_based=True)
+    victim = venv.pids[1]
+    assert victim is not None
+    old = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        venv.reset(seed=0)
+        os.kill(victim, signal.SIGSTOP)  # its reply cannot come
+        signal.setitimer(signal.ITIMER_REAL, 0.3)
+        t0 = time.monotonic()
+        with pytest.raises(KeyboardInterrupt):
+            venv.step(np.zeros((2, 6), np.float32))
+        assert time.monotonic() - t0 < 3.0
+        os.kill(victim, signal.SIGCONT)
+        with pytest.raises(WorkerError, match="interrupted") as e:
+            venv.step(np.zeros((2, 6), np.float32))
+        assert e.value.index == 1
+        assert venv._sup.workers[0].broken is None  # it had answered before the interrupt
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+        os.kill(victim, signal.SIGCONT)
+        t0 = time.monotonic()
+        venv.close()
+        assert time.monotonic() - t0 < 8.0
+    assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
+
+
 def test_tcp_transport_works_and_reports_a_killed_worker() -> None:
     with pytest.raises(ConfigError, match="transport"):
         make_vec([RX], transport="udp")
