@@ -150,7 +150,7 @@ def test_her_run_saves_resumes_and_evaluates_with_the_obs_statistics(
     monkeypatch.setattr(evaluate_mod, "make_eval_env", lambda *a, **k: _LastObs(make_eval_env(*a, **k)))
     del pairs[:]
     r = evaluate_checkpoint(run, RX_GOAL["id"], {"clock": "sim", "reward_type": "sparse"}, episodes=1)
-    assert r.episodes == 1
+    assert r.episodes == 1 and r.normalized_obs and r.to_dict()["normalized_obs"] is True
     _assert_normalised_with(pairs, s300)
     model, _, _ = load_policy(run)
     assert model.get_vec_normalize_env().obs_rms["observation"].count == s300.obs_rms["observation"].count

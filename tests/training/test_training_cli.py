@@ -55,6 +55,7 @@ def test_train_sigterm_resume_eval_plot(tmp_path: Path) -> None:
                 "--no-progress")
     assert ev.returncode == 0, ev.stderr
     assert "success rate:" in ev.stdout and "mean return:" in ev.stdout and "mean episode length:" in ev.stdout
+    assert "observations: as the env gives them (trained without normalize_obs)" in ev.stdout
 
     from uniros_async.cli import main
 

@@ -170,6 +170,10 @@ def _run_eval(args: argparse.Namespace) -> int:
     print(f"success rate: {100 * result.success_rate:.1f} % ({result.successes}/{result.episodes})")
     print(f"mean return: {result.mean_return:.3f} (std {result.std_return:.3f})")
     print(f"mean episode length: {result.mean_length:.2f}")
+    if result.normalized_obs:
+        print("observations: normalised with the checkpoint's statistics (trained with normalize_obs)")
+    else:
+        print("observations: as the env gives them (trained without normalize_obs)")
     if args.json_path:
         Path(args.json_path).write_text(json.dumps({**result.to_dict(), "checkpoint": str(args.checkpoint)}, indent=2))
     return 0

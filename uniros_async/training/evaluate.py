@@ -59,6 +59,8 @@ class EvalResult:
     mean_length: float
     seed: int | None
     env_kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
+    normalized_obs: bool = False
+    """Whether the policy saw the observations normalised with its checkpoint's statistics (``normalize_obs``)."""
 
     @property
     def success_rate(self) -> float:
@@ -129,6 +131,7 @@ def evaluate_policy(
         std_return=float(np.std(returns)),
         mean_length=float(np.mean(lengths)),
         seed=seed,
+        normalized_obs=stats is not None,
     )
 
 
