@@ -525,25 +525,7 @@ class Supervisor:
     def request_all_now(self, messages: Sequence[dict[str, Any] | None]) -> list[Any]:
         """``request_all(messages, return_exceptions=True)`` run to the end in this thread (its waits have their own
         deadlines, so no outer timeout is added: the cheapest round trip, used by ``UnirosVectorEnv.step``)."""
-        presend = self._send_now(messages)
-        t = self.call_timeout_s
-        deadline = time.monotonic() + t
-        results: list[Any] = [None] * len(messages)
-        rest = self._receive_now(messages, presend, deadline, results)
-        if not rest:
-            return _raise_unexpected(results)
-        # the requests not sent yet and the replies not received yet go through the event loop, under what is
-        # left of the same deadline
-        left = [m if i in rest else None for i, m in enumerate(messages)]
-        more = self._drive(
-            self.request_all(
-                left, return_exceptions=True, present=presend & rest, wait_s=max(deadline - time.monotonic(), 0.0)
-            ),
-            t + 5.0,
-        )
-        for i in rest:
-            results[i] = more[i]
-        return _raise_unexpected(results)
+        return _SentPending(self, messages, self._send_now(messages)).result()
 
     def _receive_now(
         self, messages: Sequence[dict[str, Any] | None], sent: frozenset[int], deadline: float, results: list[Any]
@@ -868,9 +850,11 @@ class _Pending(Generic[T]):
 
 
 class _SentPending(_Pending[list[Any]]):
-    """``submit_all``'s requests when ``_send_now`` sent every one: ``result`` collects the replies in the calling
-    thread (``Supervisor._receive_now``, no event-loop round) and leaves to ``request_all`` on the supervisor's loop
-    only those it cannot get that way. The call timeout starts at the first ``result``, as for a task."""
+    """Requests of which ``_send_now`` sent those in ``sent`` (``submit_all``: every one; ``request_all_now``: as many
+    as it could): ``result`` collects their replies in the calling thread (``Supervisor._receive_now``, no event-loop
+    round) and leaves the rest, requests not sent and replies not had that way, to ``request_all`` on the
+    supervisor's loop, under what is left of the same deadline. The call timeout starts at the first ``result``, as
+    for a task."""
 
     def __init__(self, supervisor: Supervisor, messages: Sequence[dict[str, Any] | None], sent: frozenset[int]) -> None:
         self._sup = supervisor
