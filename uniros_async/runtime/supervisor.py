@@ -58,6 +58,11 @@ __all__ = ["ProxyEnv", "Supervisor", "WorkerHandle", "check_env_args", "make"]
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
+REPLY_SPIN_NS = 200_000
+"""How long the supervisor polls for a reply before it sleeps (``ShmTransport.spin_ns``): a worker takes ~60 us to
+unpack a request, step a trivial env and pack the reply, longer than the transport's default window, so the agent
+would sleep and pay a wake-up (~30 us) on every step. The agent's thread has nothing else to do meanwhile, and the
+spin credit stops the polling when replies take longer (a 10 Hz env's step, a real-time action cycle)."""
 LATER: Any = object()
 """``WorkerHandle.receive_reply_blocking``: no reply this way; ``receive_reply`` must follow."""
 
@@ -458,6 +463,8 @@ class Supervisor:
                 w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s, auth_key=key))
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
+            if hasattr(w.transport, "spin_ns"):  # shm: see REPLY_SPIN_NS
+                w.transport.spin_ns = REPLY_SPIN_NS
             w.info = await w.request({"op": "spaces"}, timeout_s)
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
