@@ -139,15 +139,23 @@ _ND_EXT = 42
 _SHAPE = struct.Struct("<q")
 
 
+_PACKED_HEADS: dict[tuple[str, tuple[int, ...]], bytes] = {}
+"""Array headers by (dtype, shape), the packing side of ``_HEADS``: the same few every step."""
+
+
 def _default(value: Any) -> Any:
     """msgpack's hook for what it cannot pack itself: arrays as ExtType, numpy scalars as Python ones."""
     if isinstance(value, np.ndarray):
         if value.dtype == object:
             return value.tolist()
-        a = np.ascontiguousarray(value)
-        d = a.dtype.str.encode()
-        head = bytes((len(d),)) + d + bytes((a.ndim,)) + b"".join(_SHAPE.pack(n) for n in a.shape)
-        return msgpack.ExtType(_ND_EXT, head + a.tobytes())
+        key = (value.dtype.str, value.shape)
+        head = _PACKED_HEADS.get(key)
+        if head is None:
+            d = key[0].encode()
+            head = bytes((len(d),)) + d + bytes((value.ndim,)) + b"".join(_SHAPE.pack(n) for n in value.shape)
+            if len(_PACKED_HEADS) < 256:
+                _PACKED_HEADS[key] = head
+        return msgpack.ExtType(_ND_EXT, head + value.tobytes())  # tobytes: C order, whatever the strides
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, tuple | list):  # subclasses msgpack refuses (named tuples are packed as lists)
