@@ -869,7 +869,7 @@ class _SentPending(_Pending[list[Any]]):
         self._sent = sent
         self._results: list[Any] = [None] * len(messages)
         self._rest: set[int] | None = None  # what the calling thread could not collect (None: not tried yet)
-        self._task: asyncio.Task[list[Any]] | None = None  # ... collected by request_all instead
+        self._task: asyncio.Task[list[Any]] | None = None  # type: ignore[assignment]  # ... by request_all instead
 
     def done(self) -> bool:
         if self._task is not None:
@@ -894,18 +894,7 @@ class _SentPending(_Pending[list[Any]]):
                 coro = sup.request_all(left, return_exceptions=True, present=self._sent & self._rest, wait_s=wait_s)
                 self._task = sup._loop.create_task(coro)
         if self._task is not None:
-            task = self._task
-            if not task.done():
-                t = sup.call_timeout_s + 5.0 if end is None else max(end - time.monotonic(), 0.0)
-                try:
-                    sup._drive(asyncio.wait({task}, timeout=t), t + 1.0)
-                except RuntimeError:  # closed meanwhile
-                    pass
-            if not task.done():
-                raise concurrent.futures.TimeoutError()
-            if task.cancelled():
-                raise concurrent.futures.CancelledError()
-            more = task.result()
+            more = super().result(None if end is None else max(end - time.monotonic(), 0.0))
             for i in self._rest or ():
                 self._results[i] = more[i]
             self._rest = set()

@@ -191,28 +191,6 @@ class Listener(abc.ABC):
             TransportClosedError: the listener was closed.
         """
 
-    @property
-    def max_frame_bytes(self) -> int | None:
-        """The largest frame ``send`` accepts on this end (None: not known before sending)."""
-        return None
-
-    @contextlib.asynccontextmanager
-    async def loan(self, nbytes: int) -> AsyncIterator[memoryview]:
-        """A writable buffer for the next frame, ``nbytes`` long: write it in the block, and it is sent when the
-        block ends (not if the block raises). A transport that can lend its own memory does (``shm``: the frame's
-        place in the ring, so it is never copied); this default sends a buffer of its own (one copy, as ``send``).
-        Nothing else may be sent on this end during the block; the view must not be used after it.
-
-        Raises:
-            as ``send``.
-        """
-        limit = self.max_frame_bytes
-        if nbytes < 0 or (limit is not None and nbytes > limit):
-            raise FrameTooLargeError(f"frame of {nbytes} bytes exceeds max_frame_bytes={limit}")
-        buf = bytearray(nbytes)
-        yield memoryview(buf)
-        await self.send(buf)
-
     @abc.abstractmethod
     async def aclose(self) -> None:
         """Stop listening and release names/ports/segments; idempotent. Accepted transports stay open."""

@@ -186,16 +186,10 @@ class ShmTransport(Transport):
     def _take_ready(self) -> memoryview | None:
         """The next frame if it is already there, whole and contiguous in the ring (a view), else None (nothing is
         consumed then). Gives the space of the previous frame back to the writer first."""
-        ctl = self._rx_ctl
         rpos = self._rpos
         if rpos != self._rx_released:
-            ctl[R_POS] = self._rx_released = rpos
-            _fence_acquire()
-            _fence_release()
-            ticket = ctl[W_TICKET]
-            if ticket & 1 and ticket != self._signaled_writer:
-                self._signaled_writer = ticket
-                os.eventfd_write(self._peer_doorbell, 1)
+            self._release_rx()
+        ctl = self._rx_ctl
         avail = ctl[W_POS] - rpos
         cap = self._cap
         if 0 < avail <= cap:
@@ -569,15 +563,7 @@ class ShmTransport(Transport):
     def _commit_record(self, n: int, rec: int, skip: int) -> None:
         """Publish the record of an ``n``-byte frame (``rec`` bytes, after ``skip`` bytes to the ring's end) whose
         header and data are in place, and ring the reader if it sleeps."""
-        ctl = self._tx_ctl
-        wpos = self._wpos + skip + rec
-        ctl[W_POS] = self._wpos = wpos  # publish, then (after the fence) see whether the reader sleeps
-        _fence_acquire()
-        _fence_release()
-        ticket = ctl[R_TICKET]
-        if ticket & 1 and ticket != self._signaled_reader:
-            self._signaled_reader = ticket
-            os.eventfd_write(self._peer_doorbell, 1)
+        self._publish(self._wpos + skip + rec)
         self._sent_since_wait += n
         stats = self.stats
         stats.frames_sent += 1
@@ -599,8 +585,8 @@ class ShmTransport(Transport):
             raise TransportBrokenError(f"peer {self.peer} closed the connection")
 
     def _publish(self, wpos: int) -> None:
-        """Make everything up to ``wpos`` visible to the reader, and wake it if it sleeps."""
-        ctl = self._tx.ctl
+        """Make everything up to ``wpos`` visible to the reader, then (after the fence) wake it if it sleeps."""
+        ctl = self._tx_ctl
         ctl[W_POS] = self._wpos = wpos
         _fence_acquire()
         _fence_release()
