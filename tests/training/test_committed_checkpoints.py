@@ -43,3 +43,16 @@ def test_a_committed_policy_still_reaches_its_goals(name: str, env_id: str, kwar
         pytest.fail(f"{ckpt} is missing: docs/results.md reproduces its figures from it")
     result = evaluate_checkpoint(ckpt, env_id, {**kwargs, "clock": "sim", "robot": robot}, episodes=EPISODES, seed=0)
     assert result.successes >= EPISODES - 1, result.summary()
+
+
+@pytest.mark.parametrize("name,env_id,kwargs", CASES)
+def test_eval_defaults_to_the_kwargs_the_policy_was_trained_with(name: str, env_id: str, kwargs: dict[str, str]) -> None:
+    """``uniros eval`` without ``--env-kwargs`` evaluates on the env as trained (action mode, reward, ...): the
+    kwargs come from the checkpoint's config, the clock left to the evaluation; another env id gets none."""
+    from uniros_async.training.checkpoint import find_checkpoint, read_meta
+    from uniros_async.training.evaluate import training_kwargs
+
+    meta = read_meta(find_checkpoint(CHECKPOINTS / name))
+    assert training_kwargs(meta, env_id) == kwargs
+    assert training_kwargs(meta, env_id, label="not-a-label") is None
+    assert training_kwargs(meta, "uniros/Ned2Reach-v0") is None

@@ -47,7 +47,9 @@ def add_parsers(subparsers: Any) -> None:
     e = subparsers.add_parser("eval", help="success rate, mean return and episode length of a checkpoint")
     e.add_argument("checkpoint", help="run directory, checkpoint directory or model.zip")
     e.add_argument("--env", required=True, metavar="ID", help="env id, e.g. uniros/Rx200Reach-v0")
-    e.add_argument("--env-kwargs", default=None, metavar="YAML", help="env kwargs as YAML, e.g. '{reward_type: dense}'")
+    e.add_argument("--env-kwargs", default=None, metavar="YAML",
+                   help="env kwargs as YAML, e.g. '{reward_type: dense}' (default: those the policy was trained with "
+                        "on this env id)")
     e.add_argument("--robot", default=None, help="sim, emulated-real, ... (shortcut for the robot kwarg)")
     e.add_argument("--clock", default="sim", choices=("sim", "wall"),
                    help="sim: accelerated (default); wall: real time")
@@ -135,9 +137,18 @@ def _run_eval(args: argparse.Namespace) -> int:
     from uniros_async.training.config import EnvEntry
     from uniros_async.training.evaluate import evaluate_checkpoint
 
-    kwargs = _yaml_value(args.env_kwargs, "--env-kwargs") if args.env_kwargs else {}
-    if not isinstance(kwargs, dict):
-        raise ConfigError(f"--env-kwargs must be a mapping, got {args.env_kwargs!r}")
+    if args.env_kwargs is not None:
+        kwargs = _yaml_value(args.env_kwargs, "--env-kwargs") if args.env_kwargs else {}
+        if not isinstance(kwargs, dict):
+            raise ConfigError(f"--env-kwargs must be a mapping, got {args.env_kwargs!r}")
+    else:  # as the policy was trained on this env (its action mode, reward, robot): anything else is a new task
+        from uniros_async.training.checkpoint import find_checkpoint, read_meta
+        from uniros_async.training.evaluate import training_kwargs
+
+        trained = training_kwargs(read_meta(find_checkpoint(args.checkpoint)), args.env, args.label)
+        kwargs = dict(trained or {})
+        if kwargs:
+            print(f"env kwargs as in training: {kwargs} (--env-kwargs to choose others)")
     kwargs.setdefault("clock", args.clock)
     if args.robot is not None:
         kwargs["robot"] = args.robot

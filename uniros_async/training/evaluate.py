@@ -163,6 +163,23 @@ def _algo_class(name: str) -> type:
     raise CheckpointError(f"unknown algorithm {name!r} in the checkpoint's meta.json (expected TD3 or AsyncTD3)")
 
 
+def training_kwargs(meta: CheckpointMeta, env_id: str, label: str | None = None) -> dict[str, Any] | None:
+    """The kwargs the policy was trained with on ``env_id`` (``env_defaults`` filled in, ``clock`` left out: an
+    evaluation picks its own), from the training env with that id (and ``label``, when given). None when the run
+    did not train on that id, when several of its envs match (a multi-task run: give the label), or when the
+    checkpoint's config cannot be read."""
+    from uniros_async.training.config import train_config_from_dict
+
+    try:
+        cfg = train_config_from_dict(meta.config)
+    except (ConfigError, TypeError, KeyError):
+        return None
+    found = [kw for lab, i, kw in cfg.env_specs() if i == env_id and (label is None or lab == label)]
+    if len(found) != 1:
+        return None
+    return {k: v for k, v in found[0].items() if k != "clock"}
+
+
 def load_policy(checkpoint: str | Path) -> tuple[Any, CheckpointMeta, Path]:
     """Load a checkpoint's model for prediction only (a one-row replay buffer, no env attached).
 
