@@ -95,6 +95,9 @@ def test_step_async_sends_without_running_the_loop_and_falls_back_when_it_cannot
     specs = [(RX, {"turn_based": True}), (NED, {"turn_based": True})]
     venv = make_vec(specs, clock="sim")
     try:
+        from uniros_async.runtime.supervisor import REPLY_SPIN_NS
+
+        assert all(not w.info["realtime"] and w.transport.spin_ns == REPLY_SPIN_NS for w in venv._sup.workers)
         fast = run(venv, True)
     finally:
         venv.close()
@@ -208,6 +211,11 @@ def test_real_time_mixed_placements() -> None:
         elapsed = time.monotonic() - t0
         assert obs.shape == (2, 28) and np.all(np.isfinite(rewards))
         assert 0.3 < elapsed < 3.0, elapsed  # three 0.2 s action cycles, stepped in parallel
+        # real-time workers: the agent keeps the transport's short reply poll (supervisor.REPLY_SPIN_NS)
+        from uniros_async.transports.shm import ShmTransport
+
+        for w in venv._sup.workers:
+            assert w.info["realtime"] is True and w.transport.spin_ns == ShmTransport.spin_ns
     finally:
         venv.close()
     assert multiprocessing.active_children() == []

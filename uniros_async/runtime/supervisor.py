@@ -62,7 +62,9 @@ REPLY_SPIN_NS = 200_000
 """How long the supervisor polls for a reply before it sleeps (``ShmTransport.spin_ns``): a worker takes ~60 us to
 unpack a request, step a trivial env and pack the reply, longer than the transport's default window, so the agent
 would sleep and pay a wake-up (~30 us) on every step. The agent's thread has nothing else to do meanwhile, and the
-spin credit stops the polling when replies take longer (a 10 Hz env's step, a real-time action cycle)."""
+spin credit stops the polling when replies take longer (a 10 Hz env's step). Not for workers with a real-time env
+loop: there the acting thread may run SCHED_RR above the workers, and its poll would keep a lower-ranked worker
+from the very reply it waits for; their connections keep the transport's default."""
 LATER: Any = object()
 """``WorkerHandle.receive_reply_blocking``: no reply this way; ``receive_reply`` must follow."""
 
@@ -463,9 +465,9 @@ class Supervisor:
                 w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s, auth_key=key))
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
-            if hasattr(w.transport, "spin_ns"):  # shm: see REPLY_SPIN_NS
-                w.transport.spin_ns = REPLY_SPIN_NS
             w.info = await w.request({"op": "spaces"}, timeout_s)
+            if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm: see REPLY_SPIN_NS
+                w.transport.spin_ns = REPLY_SPIN_NS
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
         for r in results:

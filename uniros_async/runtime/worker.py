@@ -511,6 +511,7 @@ class _Server:
             "metadata": {k: v for k, v in env.metadata.items() if isinstance(v, int | float | str | list)},
             "max_episode_steps": env.spec.max_episode_steps if env.spec is not None else None,
             "pid": os.getpid(),
+            "realtime": self.realtime,  # a real-time env loop shares this worker's event loop
         }
 
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:
