@@ -385,10 +385,10 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
             transport = await listener.accept()
         await listener.aclose()
         await server.build()
-        if server.realtime:
-            _no_spin(transport)
-        elif hasattr(transport, "spin_ns"):
-            transport.spin_ns = TURN_SPIN_NS
+        if hasattr(transport, "spin_ns"):  # shm
+            # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
+            # for the next request would save, and the poll would hold the loop (up to 50 us)
+            transport.spin_ns = 0 if server.realtime else TURN_SPIN_NS
         await server.serve(transport)
     except TransportError:
         logger.info("worker %d: the supervisor went away", spec.index)
@@ -404,14 +404,6 @@ TURN_SPIN_NS = 200_000
 between two steps (collect the returns, pick the next actions, pack them: ~60 us for one env here) is longer than
 ``ShmTransport.spin_ns``, so with the default every step would wake the worker from sleep (~40 us on an idle core).
 The spin credit still stops the polling when requests come slower than this (a learner's update between steps)."""
-
-
-def _no_spin(transport: Any) -> None:
-    """Stop an shm transport from polling for the next request: the poll holds the event loop (up to 50 us), and a
-    real-time env loop shares that loop now; its ticks matter more than the wake-up it would save."""
-    if hasattr(transport, "_spin_allowed") and hasattr(transport, "_spin_credit"):
-        transport._spin_allowed = False
-        transport._spin_credit = 0
 
 
 class _Server:

@@ -100,9 +100,9 @@ class ShmTransport(Transport):
     delivery = Delivery.RELIABLE
     scheme = "shm"
     spin_ns: int = 50_000
-    """How long receive() polls before it sleeps (plus a margin after large sends); 0 disables spinning. Spinning
-    holds the event loop, so other tasks of this loop wait up to this long; it never happens when both ends are in
-    the same process."""
+    """How long receive() polls before it sleeps (plus a margin after large sends); 0 disables spinning, also when
+    set on an open connection. Spinning holds the event loop, so other tasks of this loop wait up to this long; it
+    never happens when both ends are in the same process."""
 
     def __init__(
         self,
@@ -333,14 +333,14 @@ class ShmTransport(Transport):
         return True
 
     def _slept(self, t0: int, window_ns: int) -> None:
-        if self._spin_credit == 0 and self._spin_allowed and _now_ns() - t0 < window_ns + _WAKEUP_NS:
+        if self._spin_credit == 0 and self._spin_allowed and self.spin_ns and _now_ns() - t0 < window_ns + _WAKEUP_NS:
             self._spin_credit = 1  # a short spin would have caught this one: try spinning again
 
     async def _wait_readable(self) -> None:
         """Sleep until the peer publishes more than we have read (or hangs up, or we close)."""
         ctl = self._rx.ctl
         window_ns = self._window_ns()
-        if self._spin_credit > 0 and self._spin(window_ns):
+        if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
             return
         ticket = self._rx_ticket + 1
         ctl[R_TICKET] = ticket  # odd: "I am about to sleep; ring my doorbell"
@@ -383,7 +383,7 @@ class ShmTransport(Transport):
         deadline = _now_ns() + int(timeout_s * 1e9)
         window_ns = self._window_ns()
         ctl = self._rx_ctl
-        if self._spin_credit > 0 and self._spin(window_ns):
+        if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
             return self._take_ready()
         poller = self._poller
         if poller is None:
