@@ -233,43 +233,54 @@ def test_modelled_agent_latency_in_sim_time(latency: float) -> None:
         env.close()
 
 
+@pytest.mark.parametrize("phase_ns", [0, 3_000_000, 60_000_000])
 @pytest.mark.parametrize("env_id", ["uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"])
-def test_loops_and_deadlines_sit_on_the_clock_grid(env_id: str) -> None:
-    """Env-loop ticks fall TICK_OFFSET after the grid of their period (where the servo publishes), and steps
-    return TICK_ALIGN after a tick on the grid of the action cycle: the same instants for every arm and process."""
+def test_loops_and_deadlines_sit_on_the_clock_grid(env_id: str, phase_ns: int) -> None:
+    """Env-loop ticks fall TICK_OFFSET (plus the env's loop phase) after the grid of their period (where the servo
+    publishes), and steps return TICK_ALIGN after a tick on the grid of the action cycle: the same instants for
+    every arm and process of one phase. The phase is capped at a quarter of the loop period."""
     from uniros_async.envs.robot import TICK_ALIGN_NS, TICK_OFFSET_NS
+    from uniros_async.envs.runtime import deferred_start
 
-    env = gym.make(env_id, clock="sim")
+    with deferred_start():
+        env = gym.make(env_id, clock="sim")
     try:
         u = env.unwrapped
+        u.loop_phase_ns = phase_ns
+        u.start_thread()
         env.reset(seed=0)
         for _ in range(3):
             env.step(np.zeros(env.action_space.shape, np.float32))
         period = round(1e9 / u.env_loop_rate_hz)
-        assert {t % period for t in u.timing.tick_ns} == {TICK_OFFSET_NS}
-        assert {s % 800_000_000 for s in u.timing.step_ns} == {TICK_OFFSET_NS + TICK_ALIGN_NS}
+        phase = min(phase_ns, period // 4)  # 60 ms: 25 ms at 10 Hz, 10 ms at 25 Hz
+        assert {t % period for t in u.timing.tick_ns} == {TICK_OFFSET_NS + phase}
+        assert {s % 800_000_000 for s in u.timing.step_ns} == {TICK_OFFSET_NS + TICK_ALIGN_NS + phase}
         # the returns the agent gets were built at the tick just before: TICK_ALIGN old
         assert set(u.timing.observation_age_ns) == {TICK_ALIGN_NS}
     finally:
         env.close()
 
 
-def test_wall_clock_members_meet_on_one_deadline_after_a_reset() -> None:
+@pytest.mark.parametrize("phase_ns", [0, 3_000_000])
+def test_wall_clock_members_meet_on_one_deadline_after_a_reset(phase_ns: int) -> None:
     """On a wall clock, the first step after a reset and a late step take the same rule at the moment the
-    action arrives, so a vector env's member that just reset returns with the ones that waited for it."""
+    action arrives, so a vector env's member that just reset returns with the ones that waited for it. Members
+    of different loop phases (worker ranks) decide on the same grid point, each returning at its phase after it."""
     from uniros_async.envs.robot import TICK_ALIGN_NS, TICK_OFFSET_NS
 
     env = gym.make("uniros/Rx200Reach-v0", clock="wall")
     try:
         u = env.unwrapped
         env.reset(seed=0)
+        u.loop_phase_ns = phase_ns  # only the deadline rule is exercised here (the loop keeps its start)
         cycle = 800_000_000
         grid = 100 * cycle + TICK_OFFSET_NS + TICK_ALIGN_NS  # a point of the action-cycle grid
         overruns = u.timing.step_overruns
 
-        def deadline(now: int, *, first: bool, previous: int = grid - cycle) -> int:
+        def deadline(now: int, *, first: bool, previous: int = grid - cycle + phase_ns) -> int:
+            """The member's deadline, relative to its phase (so the same figures hold for every phase)."""
             u._first_step, u._deadline_ns = first, previous
-            return int(u._step_deadline(now))
+            return int(u._step_deadline(now)) - phase_ns
 
         # the action came 300 ms before the grid point: the member that kept its deadline and the one that just
         # reset (its deadline from the reset is ignored) both return there
@@ -284,13 +295,17 @@ def test_wall_clock_members_meet_on_one_deadline_after_a_reset() -> None:
         assert deadline(grid + 20_000_000, first=False) == grid + cycle
         assert deadline(grid + 20_000_000, first=True, previous=0) == grid + cycle
         # near the cut-off (cycle / 8 before the grid point), members that got their actions 1 ms apart decide
-        # from the instant the agent sent the step (set by the worker), not from their own arrival times
+        # from the instant the agent sent the step (set by the worker), not from their own arrival times, and
+        # from the grid point, not from their phase after it (0.5 ms before the cut-off: a 3 ms phase would
+        # have put a member on the other side of it)
         sent = grid - cycle // 8 - 500_000
         assert deadline(sent + 1_000_000, first=False) == grid + cycle  # alone, past the cut-off: the next one
         for first in (False, True):
             u.step_reference_ns = sent
-            assert deadline(sent + 1_000_000, first=first, previous=grid - cycle if not first else 0) == grid
+            assert deadline(sent + 1_000_000, first=first, previous=grid - cycle + phase_ns if not first else 0) == grid
             assert u.step_reference_ns is None  # used once
+        u.step_reference_ns = grid - cycle // 8 + 500_000  # 0.5 ms after the cut-off: the next point, any phase
+        assert deadline(grid - cycle // 8 + 600_000, first=False) == grid + cycle
     finally:
         env.close()
 

@@ -216,6 +216,14 @@ def test_real_time_mixed_placements() -> None:
 
         for w in venv._sup.workers:
             assert w.info["realtime"] is True and w.transport.spin_ns == ShmTransport.spin_ns
+        # each member's loop ticks at its rank's phase (worker.LOOP_PHASE_STEP_NS): the first worker (rank 1)
+        # 1 ms later than the second, so they do not tick at one instant
+        from uniros_async.envs.robot import TICK_OFFSET_NS
+        from uniros_async.runtime.worker import LOOP_PHASE_STEP_NS
+
+        for snap, period, rank in zip(venv.call("timing_snapshot"), (40_000_000, 100_000_000), (1, 0), strict=True):
+            offset = np.median([t % period for t in snap["tick_ns"]])
+            assert abs(offset - (TICK_OFFSET_NS + rank * LOOP_PHASE_STEP_NS)) < 400_000, (rank, offset)
     finally:
         venv.close()
     assert multiprocessing.active_children() == []

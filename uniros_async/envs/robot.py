@@ -55,8 +55,12 @@ TICK_OFFSET_NS = 5_000_000
 """Env-loop ticks fall this long after the points of the clock's grid of their period (``clock.grid_after``), where
 the servo sims publish their joint states: the tick sees the state of the same instant, 5 ms old, not one a
 period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the grid point in the same loop and
-must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and action cycles that are multiples of
-their periods) keep one phase: the agent gets every member's returns equally fresh."""
+must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and
+action cycles that are multiples of their periods) keep one phase, give or take each member's
+``RobotEnv.loop_phase_ns`` of a few ms: the agent gets every member's returns about equally fresh."""
+LOOP_PHASE_MAX_FRACTION = 4
+"""``RobotEnv.loop_phase_ns`` is capped at a quarter of the loop's period, so a tick still sees the state its servo
+published at the period's start."""
 
 
 async def _settle() -> None:
@@ -94,6 +98,10 @@ class RobotEnv(BaseEnv):
         self._cache: tuple[int, Returns] | None = None
         self._deadline_ns = 0
         self._first_step = True  # the next step is the first after a reset (see _step_deadline)
+        self.loop_phase_ns = 0
+        """How much later than ``TICK_OFFSET_NS`` this env's loop ticks and its steps return, on the same grids (at
+        most a quarter of the loop period). Set before the env starts; a vector env's worker sets it by rank
+        (``runtime.worker.LOOP_PHASE_STEP_NS``) so that its members do not all tick and return at one instant."""
         self.step_reference_ns: int | None = None
         """Set by a vector env's worker before each step: when the agent sent the step (the machine's monotonic
         clock), the same instant for every member; used once, then cleared (see ``_step_deadline``)."""
@@ -105,6 +113,10 @@ class RobotEnv(BaseEnv):
     @property
     def _period_ns(self) -> int:
         return round(1e9 / self.env_loop_rate_hz)
+
+    @property
+    def _phase_ns(self) -> int:
+        return min(max(int(self.loop_phase_ns), 0), self._period_ns // LOOP_PHASE_MAX_FRACTION)
 
     @property
     def _wall_turn_based(self) -> bool:
@@ -183,7 +195,7 @@ class RobotEnv(BaseEnv):
                 if isinstance(clock, SimClock):
                     clock.pause()
                 if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
-                    start = grid_after(clock.now_ns(), self._period_ns, TICK_OFFSET_NS)
+                    start = grid_after(clock.now_ns(), self._period_ns, TICK_OFFSET_NS + self._phase_ns)
                     node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
                 started(None)
                 await asyncio.Event().wait()  # until close() cancels main
@@ -428,7 +440,8 @@ class RobotEnv(BaseEnv):
         if ref is None or not 0 <= now - ref < cycle_ns:  # none, or not this machine's clock
             ref = now
         lead = cycle_ns // 8
-        if first or deadline - ref < lead:
+        # the grid point itself, not this member's phase after it, decides: members of different phases agree
+        if first or deadline - self._phase_ns - ref < lead:
             if not first:
                 self.timing.step_overruns += 1
             deadline = self._next_deadline(ref, lead)
@@ -445,14 +458,15 @@ class RobotEnv(BaseEnv):
     def _next_deadline(self, now: int, lead_ns: int | None = None) -> int:
         """The first point, at least ``lead_ns`` (None: half an action cycle) after ``now``, of the grid of action
         cycles that starts ``TICK_ALIGN_NS`` after a scheduled env-loop tick (``TICK_OFFSET_NS`` after the clock's
-        grid).
+        grid), plus this env's ``loop_phase_ns``.
 
         When the action cycle is a multiple of the loop period, every step returns just after a tick, so its
         returns are ~1 ms old instead of up to a period; and every env on the same clock (the members of a vector
         env, at 10 or 25 Hz) returns at the same instant, so the agent gets all of them that fresh.
         """
         cycle = round(self.config.action_cycle_s * 1e9)
-        return grid_after(now + (cycle // 2 if lead_ns is None else lead_ns), cycle, TICK_OFFSET_NS + TICK_ALIGN_NS)
+        point = grid_after(now + (cycle // 2 if lead_ns is None else lead_ns), cycle, TICK_OFFSET_NS + TICK_ALIGN_NS)
+        return point + self._phase_ns  # every member picks the same grid point, then returns at its own phase
 
     async def _settle(self, timeout_s: float) -> JointState:
         tol = self.config.settle_tol_rad
