@@ -390,7 +390,7 @@ async def test_any_contiguous_buffer_can_be_sent() -> None:
 
 async def test_spinning_receive_round_trips_and_closes() -> None:
     async with asyncio.timeout(T_S), contract.open_pair("tcp://127.0.0.1:0") as (a, b, _):
-        a.spin_s = b.spin_s = 50e-6
+        a.spin_ns = b.spin_ns = 50_000
         for i in range(200):
             await a.send(b"%d" % i)
             assert bytes(await b.receive()) == b"%d" % i
@@ -403,6 +403,50 @@ async def test_spinning_receive_round_trips_and_closes() -> None:
             await waiter
 
 
+async def test_spin_reads_the_socket_without_the_event_loop() -> None:
+    """The spin reads frames (small and large) straight from the socket: they are queued before the event loop runs
+    again."""
+    async with asyncio.timeout(T_S), contract.open_pair("tcp://127.0.0.1:0") as (a, b, _):
+        await a.send(b"first")  # written to the socket at once, without a turn of the loop
+        assert not b.has_news()
+        b._spin(50_000_000)  # synchronous: the loop's reader cannot run meanwhile
+        assert b.has_news() and b._spin_credit == tcp._SPIN_CREDIT
+        assert bytes(await b.receive()) == b"first"
+        big = bytes(range(256)) * 160  # 40 KiB: a large frame, read into its own buffer
+        await a.send(big)
+        assert a._tr.get_write_buffer_size() == 0 and not b.has_news()  # all of it is in the kernel
+        b._spin(50_000_000)
+        assert b.has_news()
+        assert bytes(await b.receive()) == big
+
+
+async def test_spin_credit_stops_spinning_on_an_idle_connection_and_comes_back() -> None:
+    async with asyncio.timeout(T_S), contract.open_pair("tcp://127.0.0.1:0") as (a, b, _):
+        b.spin_ns = 20_000
+        for _ in range(3):  # only listening (nothing sent since the last receive): no poll, no credit spent
+            with pytest.raises(TimeoutError):
+                await asyncio.wait_for(b.receive(), 0.005)
+        assert b._spin_credit == tcp._SPIN_CREDIT
+        for _ in range(tcp._SPIN_CREDIT):  # a request without an answer: every spin misses and costs credit
+            await b.send(b"request")
+            with pytest.raises(TimeoutError):
+                await asyncio.wait_for(b.receive(), 0.005)
+        assert b._spin_credit == 0
+        with pytest.raises(TimeoutError):  # no credit: no spin (the credit cannot go below 0)
+            await asyncio.wait_for(b.receive(), 0.005)
+        assert b._spin_credit == 0
+        b.spin_ns = 1_000_000_000  # a window a wait on this loop is shorter than: a spin would have caught it
+        await b.send(b"request")
+        waiter = asyncio.ensure_future(b.receive())
+        await asyncio.sleep(0)
+        await a.send(b"soon")
+        assert bytes(await waiter) == b"soon"
+        assert b._spin_credit == 1  # try spinning again
+        b.spin_ns = 0
+        await a.send(b"no spin")
+        assert bytes(await b.receive()) == b"no spin"
+
+
 def test_contract_under_uvloop() -> None:
     uvloop = pytest.importorskip("uvloop")
 
@@ -413,6 +457,7 @@ def test_contract_under_uvloop() -> None:
         await test_held_views_survive_later_receives_and_sizes_mix()
         await test_cancelled_send_under_backpressure_leaves_no_half_frame()
         await test_spinning_receive_round_trips_and_closes()
+        await test_spin_reads_the_socket_without_the_event_loop()
 
     with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
         runner.run(main())

@@ -466,7 +466,7 @@ class Supervisor:
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
             w.info = await w.request({"op": "spaces"}, timeout_s)
-            if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm: see REPLY_SPIN_NS
+            if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
                 w.transport.spin_ns = REPLY_SPIN_NS
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)

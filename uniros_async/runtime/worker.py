@@ -394,7 +394,7 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
             transport = await listener.accept()
         await listener.aclose()
         await server.build()
-        if hasattr(transport, "spin_ns"):  # shm
+        if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
             # for the next request would save, and the poll would hold the loop (up to 50 us)
             transport.spin_ns = 0 if server.realtime else TURN_SPIN_NS

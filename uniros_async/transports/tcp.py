@@ -28,11 +28,21 @@ mutable buffer instead of copying it (uvloop, Python >= 3.12), ``send`` returns 
 so callers may reuse their buffers as soon as ``send`` returns, as with every transport. ``send`` waits while more
 than 1 MiB is unsent (pause_writing/resume_writing), so memory stays bounded.
 
-Measured on the project's 2-core VM (echo server in another process, quiet machine, same run): 277 B round trip
-p50 ~80 us on the default loop, ~55 us on uvloop, ~100 us for pyzmq REQ/REP (raw blocking Python sockets: 30 us;
-idle cores halt and every wakeup costs 10-25 us). With ``TcpTransport.spin_s = 50e-6`` on both ends uvloop reaches
-~26-30 us, but a spinning receiver takes the CPU its peer needs once other processes compete for the 2 cores, so
-spinning is off by default. 640x480x3 images one way: ~4300/s on either loop (pyzmq PUSH/PULL ~3700-4400/s).
+Polling: when this end sent a frame since it last received one (it may be waiting for an answer), ``receive`` reads
+the socket itself (``os.readv`` into the same buffers the loop's reader would use) for up to ``spin_ns`` before it
+sleeps in the event loop, yielding the CPU between reads, under the spin credit of ``ShmTransport``: a miss costs
+credit, and a connection without credit sleeps at once until a wait shows a spin would have caught the frame. A
+receiver that only listens never polls (reading each frame as it lands cost a stream 40 % of its small-frame
+rate). A frame sent after a ``receive`` that waited is a reply and goes out at once, never into a burst: a reply
+corked to the end of the loop iteration cost the echo ~30 us per round trip.
+
+Measured on the project's 2-core VM (echo server in another process, quiet machine, same run,
+``uniros bench transport``): 277 B round trip p50 22 us with the default 50 us poll against 96 us without it and
+81-93 us for pyzmq tcp; 64 KiB 71 us (173 us without; pyzmq 134-141 us). Raw Python sockets in the same hour:
+28 us blocking, 12 us busy-polling. Each wake-up of a halted core costs 10-25 us here, which is what the poll
+saves. An earlier poll that turned the event loop (``asyncio.sleep(0)``) instead of reading the socket reached
+26-30 us on uvloop only and took the CPU its peer needed under load, so it was opt-in. 640x480x3 images one way:
+~4,500/s (pyzmq PUSH/PULL ~3,100-3,300/s).
 
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
 (the bus) closes it and calls ``connect`` again, which retries with exponential backoff (5 ms doubling to 500 ms)
@@ -110,6 +120,16 @@ _BACKOFF_FIRST_S = 0.005
 _BACKOFF_MAX_S = 0.5
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
 
+# Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
+# reads (ShmTransport's rule): in a request/reply exchange the answer usually comes sooner than a sleeping process
+# wakes up, and while both ends keep reading neither core halts. A spin that finds nothing costs credit; without
+# credit no spin is tried until a wait turns out to have been short enough that a spin would have caught it. So an
+# idle receiver spins a few times, then sleeps; a slow peer (a 10 Hz arm's states) stops the spinning at once.
+_now_ns = time.perf_counter_ns
+_yield = getattr(os, "sched_yield", lambda: None)
+_SPIN_CREDIT = 4
+_WAKEUP_NS = 50_000  # a wait this much longer than the spin window would have been caught by it
+
 # Python 3.11's selector transport copies what it cannot send at once; uvloop and 3.12+ keep a reference instead
 # (and only they send a list of buffers with one sendmsg; 3.11's writelines joins them first).
 _SELECTOR_COPIES = sys.version_info < (3, 12)
@@ -173,10 +193,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     delivery = Delivery.RELIABLE
     scheme = "tcp"
-    spin_s: float = 0.0
-    """Opt-in busy wait: while frames have been arriving within ``spin_s`` of asking, ``receive`` keeps the event
-    loop turning that long before sleeping in the kernel. Set it on the class or on one transport. 0 (the default)
-    always sleeps: on 2 cores a spinning receiver takes the CPU its peer needs (module docstring, "Measured")."""
+    spin_ns: int = 50_000
+    """When ``receive`` may be waiting for an answer (this end sent a frame since it last received one), it reads
+    the socket itself for up to this long before it sleeps in the event loop, yielding the CPU between reads, while
+    spins keep finding frames (see ``_SPIN_CREDIT``). A receiver that only listens (a subscriber, the far end of a
+    stream) never polls: it sleeps and reads what piled up in one go. Set it on the class or on one transport; 0
+    always sleeps (a real-time worker's connections do: a SCHED_RR process that polls keeps lower-ranked ones from
+    their cores)."""
 
     def __init__(self, options: TransportOptions, *, listener: TcpListener | None = None, uri: str = "") -> None:
         Transport.__init__(self)
@@ -203,7 +226,9 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._rx_waiter: asyncio.Future[None] | None = None
         self._lent: list[bytearray] = []  # large-frame buffers handed out by receive, maybe still in use
         self._pool: list[bytearray] = []
-        self._last_wait_s = 0.0  # how long the last receive waited (only tracked with spin_s)
+        self._fd = -1  # the socket's descriptor, for receive's own reads while it spins (-1: none, or lost)
+        self._spin_credit = _SPIN_CREDIT
+        self._sent_since_receive = False  # only a receive that may be waiting for an answer polls
         # send side
         self._write_paused = False
         self._drain_waiters: collections.deque[asyncio.Future[None]] = collections.deque()
@@ -324,6 +349,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 and not all(isinstance(p.obj, bytes) for p in parts)
             ):
                 await self._wait_flushed()
+        self._sent_since_receive = True  # the next receive may be waiting for an answer: it polls
         stats = self.stats
         stats.frames_sent += 1
         stats.bytes_sent += n
@@ -339,8 +365,10 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         """
         frames = self._frames
         if not frames:
-            if self.spin_s:
-                await self._spin()
+            spin_ns = self.spin_ns
+            if spin_ns and self._spin_credit > 0 and self._sent_since_receive:
+                self._spin(spin_ns)
+            t0 = _now_ns()
             while not frames:
                 if not self._ok:
                     self._raise_unusable("receive")
@@ -351,8 +379,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                     await fut
                 finally:
                     self._rx_waiter = None
+                if self._spin_credit <= 0 and spin_ns and _now_ns() - t0 < spin_ns + _WAKEUP_NS:
+                    self._spin_credit = 1  # a spin would have caught this one: try spinning again
+            # a frame that answers this wait is a reply, not part of a burst: it goes out at once
+            self._last_write_s = 0.0
         if self._closed:
             self._raise_unusable("receive")
+        self._sent_since_receive = False
         frame = frames.popleft()
         if isinstance(frame, bytes):
             n = len(frame)
@@ -404,6 +437,8 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         sock = tr.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if sock is not None and hasattr(os, "readv"):
+            self._fd = sock.fileno()
         peer = tr.get_extra_info("peername")
         if peer:
             self._peer = _format_uri(peer[0], peer[1])
@@ -461,6 +496,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         return False  # let asyncio close our end too
 
     def connection_lost(self, exc: Exception | None) -> None:
+        self._fd = -1  # the event loop closes the socket; its number may soon name another file
         if self._state == _HANDSHAKE:
             self._handshake_failed(
                 TransportBrokenError(f"connection to {self._peer} lost during the handshake: {exc or 'closed'}"),
@@ -542,24 +578,33 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             self._reading_paused = True
             self._tr.pause_reading()
 
-    async def _spin(self) -> None:
-        """Keep the loop turning for up to ``spin_s`` instead of sleeping in the kernel, if the previous frame came
-        that soon (waking a halted core costs 10-25 us per direction on these machines); times the whole wait so
-        that spinning stops by itself once frames come slower than that."""
+    def _spin(self, spin_ns: int) -> None:
+        """Read the socket ourselves (the event loop's reader would do the same with the same buffers) until a
+        whole frame is queued or ``spin_ns`` passed, yielding the CPU between reads. Anything unusual (end of
+        stream, an error, paused reading) is left to the event loop, which meets it on its next read."""
+        fd = self._fd
+        if fd < 0 or not self._ok:
+            return
         frames = self._frames
-        spin_s = self.spin_s
-        started = time.perf_counter()
-        if self._last_wait_s < spin_s:
-            while not frames and self._ok and time.perf_counter() - started < spin_s:  # noqa: ASYNC110 (busy wait)
-                await asyncio.sleep(0)
-        if not frames and self._ok:
-            fut = self._loop.create_future()  # wait here (not in receive) to time the whole wait
-            self._rx_waiter = fut
+        deadline = _now_ns() + spin_ns
+        readv = os.readv
+        while not self._reading_paused:
             try:
-                await fut
-            finally:
-                self._rx_waiter = None
-        self._last_wait_s = time.perf_counter() - started
+                n = readv(fd, (self.get_buffer(-1),))
+            except (BlockingIOError, InterruptedError):
+                if _now_ns() > deadline:
+                    self._spin_credit -= 1
+                    return
+                _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin
+                continue
+            except OSError:
+                return
+            if n == 0:
+                return
+            self.buffer_updated(n)
+            if frames or not self._ok:
+                self._spin_credit = _SPIN_CREDIT
+                return
 
     def _take_buffer(self, n: int) -> memoryview:
         """A buffer for a large frame: a pooled one that nobody holds any more, or a new one."""
