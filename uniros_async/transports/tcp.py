@@ -122,13 +122,15 @@ _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then
 
 # Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
 # reads (ShmTransport's rule): in a request/reply exchange the answer usually comes sooner than a sleeping process
-# wakes up, and while both ends keep reading neither core halts. A spin that finds nothing costs credit; without
+# wakes up, and while both ends keep reading neither core halts. After a large send the window grows by 1 ns per
+# byte sent, up to _SPIN_EXTRA_NS (the answer to 64 KiB took ~70 us). A spin that finds nothing costs credit; without
 # credit no spin is tried until a wait turns out to have been short enough that a spin would have caught it. So an
 # idle receiver spins a few times, then sleeps; a slow peer (a 10 Hz arm's states) stops the spinning at once.
 _now_ns = time.perf_counter_ns
 _yield = getattr(os, "sched_yield", lambda: None)
 _SPIN_CREDIT = 4
 _WAKEUP_NS = 50_000  # a wait this much longer than the spin window would have been caught by it
+_SPIN_EXTRA_NS = 150_000  # at most this much longer after a large send: 1 ns per byte sent (in, through, out, back)
 
 # Python 3.11's selector transport copies what it cannot send at once; uvloop and 3.12+ keep a reference instead
 # (and only they send a list of buffers with one sendmsg; 3.11's writelines joins them first).
@@ -228,7 +230,8 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._pool: list[bytearray] = []
         self._fd = -1  # the socket's descriptor, for receive's own reads while it spins (-1: none, or lost)
         self._spin_credit = _SPIN_CREDIT
-        self._sent_since_receive = False  # only a receive that may be waiting for an answer polls
+        self._sent_since_receive = 0  # bytes: only a receive that may be waiting for an answer polls, and longer
+        # after a large send (the answer to 64 KiB took ~70 us here)
         # send side
         self._write_paused = False
         self._drain_waiters: collections.deque[asyncio.Future[None]] = collections.deque()
@@ -349,7 +352,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 and not all(isinstance(p.obj, bytes) for p in parts)
             ):
                 await self._wait_flushed()
-        self._sent_since_receive = True  # the next receive may be waiting for an answer: it polls
+        self._sent_since_receive += n  # the next receive may be waiting for an answer: it polls
         stats = self.stats
         stats.frames_sent += 1
         stats.bytes_sent += n
@@ -365,9 +368,11 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         """
         frames = self._frames
         if not frames:
-            spin_ns = self.spin_ns
-            if spin_ns and self._spin_credit > 0 and self._sent_since_receive:
-                self._spin(spin_ns)
+            window_ns = 0
+            if self.spin_ns and self._sent_since_receive:
+                window_ns = self.spin_ns + min(self._sent_since_receive, _SPIN_EXTRA_NS)
+                if self._spin_credit > 0:
+                    self._spin(window_ns)
             t0 = _now_ns()
             while not frames:
                 if not self._ok:
@@ -379,13 +384,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                     await fut
                 finally:
                     self._rx_waiter = None
-                if self._spin_credit <= 0 and spin_ns and _now_ns() - t0 < spin_ns + _WAKEUP_NS:
+                if window_ns and self._spin_credit <= 0 and _now_ns() - t0 < window_ns + _WAKEUP_NS:
                     self._spin_credit = 1  # a spin would have caught this one: try spinning again
             # a frame that answers this wait is a reply, not part of a burst: it goes out at once
             self._last_write_s = 0.0
         if self._closed:
             self._raise_unusable("receive")
-        self._sent_since_receive = False
+        self._sent_since_receive = 0
         frame = frames.popleft()
         if isinstance(frame, bytes):
             n = len(frame)
@@ -578,15 +583,15 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             self._reading_paused = True
             self._tr.pause_reading()
 
-    def _spin(self, spin_ns: int) -> None:
+    def _spin(self, window_ns: int) -> None:
         """Read the socket ourselves (the event loop's reader would do the same with the same buffers) until a
-        whole frame is queued or ``spin_ns`` passed, yielding the CPU between reads. Anything unusual (end of
+        whole frame is queued or ``window_ns`` passed, yielding the CPU between reads. Anything unusual (end of
         stream, an error, paused reading) is left to the event loop, which meets it on its next read."""
         fd = self._fd
         if fd < 0 or not self._ok:
             return
         frames = self._frames
-        deadline = _now_ns() + spin_ns
+        deadline = _now_ns() + window_ns
         readv = os.readv
         while not self._reading_paused:
             try:
