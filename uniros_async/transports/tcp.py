@@ -36,13 +36,13 @@ receiver that only listens never polls (reading each frame as it lands cost a st
 rate). A frame sent after a ``receive`` that waited is a reply and goes out at once, never into a burst: a reply
 corked to the end of the loop iteration cost the echo ~30 us per round trip.
 
-Measured on the project's 2-core VM (echo server in another process, quiet machine, same run,
-``uniros bench transport``): 277 B round trip p50 22 us with the default 50 us poll against 96 us without it and
-81-93 us for pyzmq tcp; 64 KiB 71 us (173 us without; pyzmq 134-141 us). Raw Python sockets in the same hour:
-28 us blocking, 12 us busy-polling. Each wake-up of a halted core costs 10-25 us here, which is what the poll
-saves. An earlier poll that turned the event loop (``asyncio.sleep(0)``) instead of reading the socket reached
-26-30 us on uvloop only and took the CPU its peer needed under load, so it was opt-in. 640x480x3 images one way:
-~4,500/s (pyzmq PUSH/PULL ~3,100-3,300/s).
+Measured on the project's 2-core VM (echo server in another process, quiet machine, ``uniros bench transport``,
+docs/performance.md): 277 B round trip p50 20-24 us with the default 50 us poll, against 62-99 us without it and
+79-108 us for pyzmq tcp; 64 KiB 66-75 us (pyzmq 114-163 us). Raw Python sockets in the same hour: 28 us blocking,
+12 us busy-polling; each wake-up of a halted core costs 10-25 us here, which is what the poll saves. An earlier
+poll that turned the event loop (``asyncio.sleep(0)``) instead of reading the socket reached 26-30 us on uvloop
+only and took the CPU its peer needed under load, so it was opt-in. 640x480x3 images one way: 4,150-4,950/s
+(pyzmq PUSH/PULL 2,900-3,300/s).
 
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
 (the bus) closes it and calls ``connect`` again, which retries with exponential backoff (5 ms doubling to 500 ms)
