@@ -45,6 +45,13 @@ Buffer = bytes | bytearray | memoryview
 
 DEFAULT_MAX_FRAME_BYTES = 64 * 1024 * 1024
 
+# The polling rule shm and tcp share (their ``spin_ns``): a receive that polls and finds nothing costs one credit;
+# without credit a connection sleeps at once until a wait turns out shorter than its window plus SPIN_WAKEUP_NS
+# (a poll would have caught that frame); after a large send the window grows, up to SPIN_EXTRA_NS.
+SPIN_CREDIT = 4
+SPIN_WAKEUP_NS = 50_000
+SPIN_EXTRA_NS = 150_000
+
 
 class Delivery(enum.Enum):
     """The guarantee of a transport."""

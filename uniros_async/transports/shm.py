@@ -59,7 +59,17 @@ from uniros_async.transports._shm_ring import (
     W_TICKET,
     RingViews,
 )
-from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
+from uniros_async.transports.base import (
+    SPIN_CREDIT,
+    SPIN_EXTRA_NS,
+    SPIN_WAKEUP_NS,
+    Buffer,
+    Delivery,
+    Listener,
+    Transport,
+    TransportOptions,
+    split_uri,
+)
 
 __all__ = ["ShmListener", "ShmTransport", "connect", "listen"]
 
@@ -84,10 +94,10 @@ _fence_release = _fence_lock.release
 # a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
 _now_ns = time.perf_counter_ns
 _yield = os.sched_yield
-_SPIN_CREDIT = 4
+_SPIN_CREDIT = SPIN_CREDIT
 _RESTART_BYTES = 4096
-_WAKEUP_NS = 50_000
-_SPIN_EXTRA_NS = 150_000
+_WAKEUP_NS = SPIN_WAKEUP_NS
+_SPIN_EXTRA_NS = SPIN_EXTRA_NS
 
 
 class ShmTransport(Transport):
