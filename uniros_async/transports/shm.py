@@ -51,6 +51,7 @@ from uniros_async.errors import (
     TransportClosedError,
 )
 from uniros_async.transports import _shm_handshake
+from uniros_async.transports import base as _base
 from uniros_async.transports._shm_ring import (
     R_POS,
     R_TICKET,
@@ -59,17 +60,7 @@ from uniros_async.transports._shm_ring import (
     W_TICKET,
     RingViews,
 )
-from uniros_async.transports.base import (
-    SPIN_CREDIT,
-    SPIN_EXTRA_NS,
-    SPIN_WAKEUP_NS,
-    Buffer,
-    Delivery,
-    Listener,
-    Transport,
-    TransportOptions,
-    split_uri,
-)
+from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
 
 __all__ = ["ShmListener", "ShmTransport", "connect", "listen"]
 
@@ -94,10 +85,10 @@ _fence_release = _fence_lock.release
 # a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
 _now_ns = time.perf_counter_ns
 _yield = os.sched_yield
-_SPIN_CREDIT = SPIN_CREDIT
+_SPIN_CREDIT = _base.SPIN_CREDIT
 _RESTART_BYTES = 4096
-_WAKEUP_NS = SPIN_WAKEUP_NS
-_SPIN_EXTRA_NS = SPIN_EXTRA_NS
+_WAKEUP_NS = _base.SPIN_WAKEUP_NS
+_SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS
 
 
 class ShmTransport(Transport):

@@ -73,17 +73,8 @@ from uniros_async.errors import (
     TransportBrokenError,
     TransportClosedError,
 )
-from uniros_async.transports.base import (
-    SPIN_CREDIT,
-    SPIN_EXTRA_NS,
-    SPIN_WAKEUP_NS,
-    Buffer,
-    Delivery,
-    Listener,
-    Transport,
-    TransportOptions,
-    split_uri,
-)
+from uniros_async.transports import base as _base
+from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
 
 __all__ = [
     "FLAG_AUTH",
@@ -138,9 +129,9 @@ _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then
 # idle receiver spins a few times, then sleeps; a slow peer (a 10 Hz arm's states) stops the spinning at once.
 _now_ns = time.perf_counter_ns
 _yield = getattr(os, "sched_yield", lambda: None)
-_SPIN_CREDIT = SPIN_CREDIT
-_WAKEUP_NS = SPIN_WAKEUP_NS  # a wait this much longer than the spin window would have been caught by it
-_SPIN_EXTRA_NS = SPIN_EXTRA_NS  # at most this much longer after a large send: 1 ns per byte sent (in, out, back)
+_SPIN_CREDIT = _base.SPIN_CREDIT
+_WAKEUP_NS = _base.SPIN_WAKEUP_NS  # a wait this much longer than the window would have been caught by it
+_SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS  # at most this much longer after a large send: 1 ns per byte sent
 
 # Python 3.11's selector transport copies what it cannot send at once; uvloop and 3.12+ keep a reference instead
 # (and only they send a list of buffers with one sendmsg; 3.11's writelines joins them first).
