@@ -37,3 +37,45 @@ def test_unknown_transport_or_payload_is_named() -> None:
         transport.TransportBenchConfig(transports=("udp",))
     with pytest.raises(ConfigError, match="unknown payload.*'huge'"):
         transport.TransportBenchConfig(payloads=("huge",))
+
+
+def test_the_loan_echo_answers_in_place_with_the_stamp_only() -> None:
+    """The shm-loan row's echo (iceoryx2's method): a loaned frame of the request's size that carries the request's
+    8-byte stamp and none of its payload, so neither side copies the payload. A real spawned echo over real shm."""
+    import asyncio
+    import multiprocessing as mp
+    import os
+
+    from uniros_async.bench import _peers
+    from uniros_async.transports.base import TransportOptions, connect
+
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_peers.serve_uniros, args=("shm://", child, True), daemon=True)
+    proc.start()
+    try:
+        assert parent.poll(30), "echo did not start"
+        uri = parent.recv()
+        payload = os.urandom(640 * 480 * 3)
+
+        async def main() -> tuple[int, bytes, bytes]:
+            t = await connect(uri, TransportOptions())
+            try:
+                async with asyncio.timeout(10):
+                    async with t.loan(len(payload)) as buf:
+                        buf[:] = payload
+                    reply = await t.receive()
+                    out = reply.nbytes, bytes(reply[:8]), bytes(reply[8:])
+                    await t.send(_peers.STOP)
+                    return out
+            finally:
+                await t.aclose()
+
+        n, stamp, rest = asyncio.run(main())
+        assert n == len(payload) and stamp == payload[:8]
+        assert rest != payload[8:]  # the payload itself was not copied back
+    finally:
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
+        parent.close()

@@ -23,8 +23,13 @@ def _quiet() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def serve_uniros(uri: str, ready: Connection) -> None:
-    """Echo server on one of our transports (shm://, tcp://)."""
+def serve_uniros(uri: str, ready: Connection, loan: bool = False) -> None:
+    """Echo server on one of our transports (shm://, tcp://).
+
+    ``loan``: answer each frame with a frame of the same size loaned from the ring (``ShmTransport.loan``) that
+    carries only the request's first 8 bytes (the client's stamp), the way iceoryx2's publish-subscribe benchmark
+    answers (it loans and sends without writing the payload): the round trip of a zero-copy producer, no payload
+    copy on either side. Without it every frame goes back with ``send`` (one copy into the ring)."""
     _quiet()
     from uniros_async.errors import TransportBrokenError, TransportClosedError
     from uniros_async.transports.base import TransportOptions, listen
@@ -43,6 +48,10 @@ def serve_uniros(uri: str, ready: Connection) -> None:
                     for _ in range(n):
                         await t.receive()
                     await t.send(b"ACK")
+                    continue
+                if loan:
+                    async with t.loan(f.nbytes) as buf:
+                        buf[:8] = f[:8]
                     continue
                 await t.send(f)
         except (TransportBrokenError, TransportClosedError):
