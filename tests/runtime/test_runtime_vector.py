@@ -256,3 +256,77 @@ def test_sb3_her_uses_compute_reward_in_the_workers() -> None:
         assert model.num_timesteps >= 300
     finally:
         venv.close()
+
+
+def test_a_step_stopped_half_way_is_finished_by_the_event_loop_with_the_same_returns(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``Supervisor._exchange_now`` (the step's one-pass exchange) hands what is left to the general path when a
+    ring refuses a request after the first one went, or a reply cannot be taken in this thread: the returns are
+    those of an undisturbed run (real workers, deterministic CartPole)."""
+    from uniros_async.transports import shm
+
+    def run() -> list[tuple[np.ndarray, np.ndarray]]:
+        venv = make_vec(["CartPole-v1", "CartPole-v1"], pad=False)
+        try:
+            venv.reset(seed=5)
+            out = []
+            for k in range(40):
+                obs, rew, term, trunc, _ = venv.step(np.array([k % 2, (k // 3) % 2]))
+                out.append((obs, np.stack([rew, term, trunc])))
+            return out
+        finally:
+            venv.close()
+
+    clean = run()
+    calls = {"send": 0, "receive": 0}
+    real_try_send, real_receive = shm.ShmTransport.try_send, shm.ShmTransport.receive_blocking
+
+    def flaky_try_send(self: shm.ShmTransport, frame: bytes) -> bool:
+        calls["send"] += 1
+        return calls["send"] % 4 != 2 and real_try_send(self, frame)  # now and then the second request of a step
+
+    def flaky_receive(self: shm.ShmTransport, timeout_s: float) -> memoryview | None:
+        calls["receive"] += 1
+        return None if calls["receive"] % 3 == 0 else real_receive(self, timeout_s)
+
+    monkeypatch.setattr(shm.ShmTransport, "try_send", flaky_try_send)
+    monkeypatch.setattr(shm.ShmTransport, "receive_blocking", flaky_receive)
+    disturbed = run()
+    assert calls["send"] > 40 and calls["receive"] > 40  # both paths were taken, and stopped now and then
+    for (a, b), (c, d) in zip(clean, disturbed, strict=True):
+        np.testing.assert_array_equal(a, c)
+        np.testing.assert_array_equal(b, d)
+
+
+@pytest.mark.parametrize(
+    "infos",
+    [
+        [{"env_id": "a", "n": 1, "x": 0.5}, {"env_id": "b", "flag": True}],
+        [{"v": np.arange(3.0), "nested": {"k": 2, "s": "t"}}, {}, {"nested": {"k": 5}, "v": np.ones(3)}],
+        [{"final_obs": np.zeros(2), "final_info": {"r": 1.0}}, {"final_obs": None}, {"r": np.float32(2)}],
+    ],
+)
+def test_vector_infos_are_gymnasiums(infos: list[dict]) -> None:
+    """``UnirosVectorEnv._add_info`` (the faster one) builds what gymnasium's ``VectorEnv._add_info`` builds."""
+    venv = object.__new__(UnirosVectorEnv)  # only num_envs is needed: no workers
+    venv.num_envs = len(infos)
+    ours: dict = {}
+    theirs: dict = {}
+    for i, info in enumerate(infos):
+        ours = venv._add_info(ours, info, i)
+        theirs = gym.vector.VectorEnv._add_info(venv, theirs, info, i)
+
+    def same(a: object, b: object) -> None:
+        assert type(a) is type(b)
+        if isinstance(a, dict):
+            assert list(a) == list(b)
+            for k in a:
+                same(a[k], b[k])
+        else:
+            assert isinstance(a, np.ndarray) and isinstance(b, np.ndarray)
+            assert a.dtype == b.dtype and a.shape == b.shape
+            for x, y in zip(a, b, strict=True):
+                assert np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y
+
+    same(ours, theirs)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from uniros_async.errors import CodecError
-from uniros_async.runtime.worker import pack, unpack
+from uniros_async.runtime.worker import STEP_TAG, PackedRequest, pack, pack_step_reply, pack_step_request, unpack
 
 
 @pytest.mark.parametrize(
@@ -39,6 +39,55 @@ def test_scalars_objects_and_odd_keys() -> None:
 
 def test_malformed_frames_are_refused_by_name() -> None:
     with pytest.raises(CodecError, match="malformed worker frame"):
-        unpack(b"\xc1")
+        unpack(b"\x92\x01")  # an array of two that ends after one
     with pytest.raises(CodecError, match="expected a map, got list"):
         unpack(pack({"x": 1})[:0] + b"\x91\x01")
+
+
+@pytest.mark.parametrize("action", [np.array([0.25, -1.0], np.float32), 1, np.array(2, np.int64)], ids=repr)
+@pytest.mark.parametrize("autoreset", ["next_step", "same_step", None])
+def test_step_requests_round_trip_to_the_message_they_stand_for(action: object, autoreset: str | None) -> None:
+    for t in (123_456_789_012, None):
+        req = pack_step_request(action, autoreset, t)
+        assert isinstance(req, PackedRequest) and req.get("op") == "step" and req.get("other", 7) == 7
+        frame = pack(req)  # the supervisor's pack sends it as it is
+        assert frame is req.frame and frame[0] == STEP_TAG
+        msg = unpack(frame)
+        assert msg["op"] == "step" and msg["autoreset"] == autoreset and msg.get("t") == t
+        assert np.array_equal(msg["action"], action) and type(msg["action"]) is type(action)
+
+
+def test_step_replies_round_trip_and_odd_infos_take_the_general_path() -> None:
+    obs = np.arange(4, dtype=np.float32)
+    for terminated, truncated in [(False, False), (True, False), (False, True), (True, True)]:
+        frame = pack_step_reply([obs, -0.5, terminated, truncated, {"env_id": "x", "d": np.ones(2)}])
+        assert frame[0] == STEP_TAG
+        reply = unpack(frame)
+        assert reply["ok"] is True
+        o, r, te, tr, info = reply["result"]
+        assert np.array_equal(o, obs) and o.dtype == obs.dtype and r == -0.5 and (te, tr) == (terminated, truncated)
+        assert info["env_id"] == "x" and np.array_equal(info["d"], np.ones(2))
+    # an info key msgpack refuses (a tuple): the general frame, the key as its str, as for every other reply
+    reply = unpack(pack_step_reply([obs, 1.0, False, False, {(1, 2): "t"}]))
+    assert reply["result"][4] == {"(1, 2)": "t"} and reply["result"][1] == 1.0
+
+
+@pytest.mark.parametrize(
+    ("frame", "what"),
+    [
+        (bytes([STEP_TAG, 1, 0]), "header alone is 11"),
+        (bytes([STEP_TAG, 1, 9]) + bytes(8), "autoreset mode 9"),
+        (bytes([STEP_TAG, 5, 0]) + bytes(8), "kind 5"),
+        (bytes([STEP_TAG, 2, 0]) + bytes(8) + b"\x91\x01", "needs \\[obs, info\\]"),
+        (bytes([STEP_TAG, 1, 1]) + bytes(8) + b"\x92\x01", "incomplete input"),
+    ],
+    ids=["truncated", "mode", "kind", "reply body", "action"],
+)
+def test_malformed_step_frames_are_refused_by_name(frame: bytes, what: str) -> None:
+    with pytest.raises(CodecError, match=f"malformed step frame.*{what}"):
+        unpack(frame)
+
+
+def test_a_step_request_with_an_unknown_autoreset_mode_is_refused_before_packing() -> None:
+    with pytest.raises(ValueError, match="autoreset must be one of.*'sometimes'"):
+        pack_step_request(1, "sometimes", None)

@@ -134,6 +134,8 @@ class WorkerHandle:
     broken: str | None = None
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
     in_flight: bool = False  # a request was sent and its reply not yet taken
+    try_send: Any = None  # the transport's try_send and receive_blocking for a local worker that has them, else None
+    receive_blocking: Any = None
 
     def check_idle(self) -> None:
         """Raise AlreadyPendingCallError if a reply is still outstanding (one request at a time per connection:
@@ -196,10 +198,8 @@ class WorkerHandle:
         """Send an already packed request at once, outside the event loop, when nothing stands in the way (a local
         worker, not broken, its shm ring has room); True if sent (``receive_reply`` must follow). False: nothing was
         sent, ``send_request`` must do it (and raises what is wrong)."""
-        if self.broken is not None or self.in_flight or self.remote is not None:
-            return False
-        try_send = getattr(self.transport, "try_send", None)
-        if try_send is None or not try_send(frame):
+        try_send = self.try_send
+        if self.broken is not None or self.in_flight or try_send is None or not try_send(frame):
             return False
         self.in_flight = True
         return True
@@ -237,7 +237,7 @@ class WorkerHandle:
         Raises:
             WorkerError: the worker raised (its traceback attached; the worker stays usable).
         """
-        receive_blocking = getattr(self.transport, "receive_blocking", None)
+        receive_blocking = self.receive_blocking
         if self.broken is not None or not self.in_flight or receive_blocking is None:
             return LATER
         try:
@@ -468,6 +468,9 @@ class Supervisor:
             w.info = await w.request({"op": "spaces"}, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
                 w.transport.spin_ns = REPLY_SPIN_NS
+            if w.remote is None:
+                w.try_send = getattr(w.transport, "try_send", None)
+                w.receive_blocking = getattr(w.transport, "receive_blocking", None)
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
         for r in results:
@@ -534,7 +537,62 @@ class Supervisor:
     def request_all_now(self, messages: Sequence[dict[str, Any] | None]) -> list[Any]:
         """``request_all(messages, return_exceptions=True)`` run to the end in this thread (its waits have their own
         deadlines, so no outer timeout is added: the cheapest round trip, used by ``UnirosVectorEnv.step``)."""
+        done = self._exchange_now(messages)
+        if done is not None:
+            return done
         return _SentPending(self, messages, self._send_now(messages)).result()
+
+    def _exchange_now(self, messages: Sequence[dict[str, Any] | None]) -> list[Any] | None:
+        """The common case of ``request_all_now`` in one pass, with no other layer in between (the step of issue 5's
+        per-step overhead): a request for every worker, all local and idle over shm, each sent with ``try_send``
+        and its reply taken with ``receive_blocking``. None, with nothing sent, when the case is not that one; if
+        something stops it half-way (a full ring, a reply that needs the event loop), what is left is finished by
+        the general path (``_SentPending``) under the same deadline."""
+        workers = self.workers
+        for w, m in zip(workers, messages, strict=True):
+            if m is None or w.try_send is None or w.in_flight or w.broken is not None:
+                return None
+        if self._orphans or self._loop.is_closed() or not self._lock.acquire(blocking=False):
+            return None
+        results: list[Any] = []
+        sent = 0
+        try:
+            frames = [pack(m) for m in messages]  # type: ignore[arg-type]  # all packed before the first goes
+            for w, frame in zip(workers, frames, strict=True):
+                if not w.try_send(frame):
+                    break
+                w.in_flight = True
+                sent += 1
+            if sent == len(workers):
+                deadline = time.monotonic() + self.call_timeout_s
+                for w, m in zip(workers, messages, strict=True):
+                    frame = w.receive_blocking(max(deadline - time.monotonic(), 0.0))
+                    if frame is None:
+                        break
+                    w.in_flight = False
+                    try:
+                        reply = unpack(frame)
+                    except Exception as exc:  # noqa: BLE001 - in its slot, as _receive_now does
+                        w.broken = f"its reply to {m.get('op')!r} was malformed ({w.spec.env_id}): {exc}"  # type: ignore[union-attr]
+                        results.append(exc)
+                        continue
+                    try:
+                        results.append(w._result(reply))
+                    except WorkerError as exc:  # the worker raised: in its slot, as request_all does
+                        results.append(exc)
+        except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
+            for w in workers:
+                if w.in_flight and w.broken is None:
+                    w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
+            raise
+        finally:
+            self._lock.release()
+        if len(results) < len(workers):  # the rest by the general path: requests not sent, replies not had here
+            k = len(results)
+            left = [None] * k + list(messages[k:])
+            more = _SentPending(self, left, frozenset(range(k, sent))).result()
+            results += more[k:]
+        return _raise_unexpected(results)
 
     def _receive_now(
         self, messages: Sequence[dict[str, Any] | None], sent: frozenset[int], deadline: float, results: list[Any]

@@ -29,7 +29,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from uniros_async.errors import ConfigError, WorkerError
 from uniros_async.runtime.supervisor import Supervisor
-from uniros_async.runtime.worker import space_from_plain
+from uniros_async.runtime.worker import PackedRequest, pack_step_request, space_from_plain
 
 __all__ = ["UnirosVectorEnv", "make_vec"]
 
@@ -174,11 +174,19 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         return self._step_returns(self._wait(timeout))
 
     def _step_returns(self, replies: list[Any]) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        obs = self._stack_obs([r[0] for r in replies])
-        rewards = np.array([r[1] for r in replies], dtype=np.float64)
-        terminated = np.array([r[2] for r in replies], dtype=np.bool_)
-        truncated = np.array([r[3] for r in replies], dtype=np.bool_)
-        return obs, rewards, terminated, truncated, self._infos([r[4] for r in replies])
+        n = self.num_envs
+        rewards = np.empty(n, dtype=np.float64)
+        terminated = np.empty(n, dtype=np.bool_)
+        truncated = np.empty(n, dtype=np.bool_)
+        obs: list[Any] = []
+        infos: dict[str, Any] = {}
+        for i, (o, reward, term, trunc, info) in enumerate(replies):  # one pass over the replies
+            obs.append(o)
+            rewards[i] = reward
+            terminated[i] = term
+            truncated[i] = trunc
+            infos = self._add_info(infos, info, i)
+        return self._stack_obs(obs), rewards, terminated, truncated, infos
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """``step_async`` then ``step_wait``, in one run of the supervisor's loop.
@@ -232,13 +240,19 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             raise ConfigError(f"expected {self.num_envs} seeds, got {len(seeds)}")
         return seeds
 
-    def _step_messages(self, actions: Any, autoreset: str) -> list[dict[str, Any]]:
-        if isinstance(self.single_action_space, gym.spaces.Box):
-            batch = np.asarray(actions, dtype=self.single_action_space.dtype)
-            expected = (self.num_envs, *self.single_action_space.shape)
-            if batch.shape != expected:
-                raise gym.error.InvalidAction(f"actions must have shape {expected}, got {batch.shape}")
-            per_env: list[Any] = list(batch)
+    def _step_messages(self, actions: Any, autoreset: str) -> list[PackedRequest]:
+        """One packed step request per worker (``pack_step_request``: no message map to build or walk)."""
+        space = self.single_action_space
+        if isinstance(space, gym.spaces.Box):
+            per_env: Any = np.asarray(actions, dtype=space.dtype)
+            expected = (self.num_envs, *space.shape)
+            if per_env.shape != expected:
+                raise gym.error.InvalidAction(f"actions must have shape {expected}, got {per_env.shape}")
+        elif isinstance(space, gym.spaces.Discrete):  # gymnasium's iterate over the batch space costs ~7 us here
+            batch = np.asarray(actions, dtype=np.int64)
+            if batch.shape != (self.num_envs,):
+                raise gym.error.InvalidAction(f"actions must have shape {(self.num_envs,)}, got {batch.shape}")
+            per_env = batch.tolist()
         else:
             per_env = list(iterate(self.action_space, actions))
         # one reference time for the whole step, for the members on this machine (CLOCK_MONOTONIC is machine-wide):
@@ -246,7 +260,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         # same one (RobotEnv._step_deadline); a remote worker's clock is another machine's
         t = time.monotonic_ns()
         return [
-            {"op": "step", "action": a, "autoreset": autoreset, **({"t": t} if w.remote is None else {})}
+            pack_step_request(a, autoreset, t if w.remote is None else None)
             for a, w in zip(per_env, self._sup.workers, strict=True)
         ]
 
@@ -295,7 +309,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
     def _stack_obs(self, obs: list[Any]) -> Any:
         space = self.single_observation_space
         if isinstance(space, gym.spaces.Box):  # gymnasium's concatenate does this, after an allocation of its own
-            return np.stack(obs).astype(space.dtype, copy=False)
+            return np.array(obs, dtype=space.dtype)  # as np.stack, a quarter of its cost
         out: Any = create_empty_array(self.single_observation_space, self.num_envs)
         return concatenate(self.single_observation_space, obs, out)
 
@@ -303,6 +317,39 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         vector_infos: dict[str, Any] = {}
         for i, info in enumerate(infos):
             vector_infos = self._add_info(vector_infos, info, i)
+        return vector_infos
+
+    def _add_info(self, vector_infos: dict[str, Any], env_info: dict[str, Any], env_num: int) -> dict[str, Any]:
+        """gymnasium's ``VectorEnv._add_info``, the same result (tested against it), without the arrays it allocates
+        and drops for keys it already has, and with ``np.empty`` for object arrays (None-filled, as ``np.full`` with
+        None, at a third of its cost): it ran every step, for every key of every sub-env's info."""
+        n = self.num_envs
+        for key, value in env_info.items():
+            if key == "final_obs":
+                array = vector_infos.get(key)
+                if array is None:
+                    array = np.empty(n, dtype=object)
+                array[env_num] = value
+            elif isinstance(value, dict):
+                array = self._add_info(vector_infos.get(key, {}), value, env_num)
+            else:
+                array = vector_infos.get(key)
+                if array is None:
+                    kind = type(value)
+                    if kind is int or kind is float or kind is bool or issubclass(kind, np.number):
+                        array = np.zeros(n, dtype=kind)
+                    elif isinstance(value, np.ndarray):
+                        array = np.zeros((n, *value.shape), dtype=value.dtype)
+                    else:
+                        array = np.empty(n, dtype=object)
+                array[env_num] = value
+            mask_key = f"_{key}"
+            mask = vector_infos.get(mask_key)
+            if mask is None:
+                mask = np.zeros(n, dtype=np.bool_)
+            mask[env_num] = True
+            vector_infos[key] = array
+            vector_infos[mask_key] = mask
         return vector_infos
 
     def __repr__(self) -> str:

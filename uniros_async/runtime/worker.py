@@ -205,6 +205,8 @@ def pack(message: dict[str, Any]) -> bytes:
     Raises:
         CodecError: ``message`` holds something that cannot be packed even as its repr.
     """
+    if type(message) is PackedRequest:
+        return message.frame
     try:
         return msgpack.packb(message, default=_default, use_bin_type=True)  # type: ignore[no-any-return]
     except (TypeError, ValueError, OverflowError):
@@ -216,17 +218,11 @@ def unpack(frame: bytes | memoryview) -> dict[str, Any]:
     """The message in ``frame``.
 
     Raises:
-        CodecError: the frame is not msgpack, or not a map.
+        CodecError: the frame is not msgpack, or not a map (or a step frame that is malformed).
     """
-    try:
-        try:
-            msg = msgpack.unpackb(frame, raw=False, strict_map_key=False, ext_hook=_ext_hook)
-        except TypeError:  # a map key that came as a list (a tuple key): keys as their str, as to_wire does
-            msg = msgpack.unpackb(
-                frame, raw=False, strict_map_key=False, ext_hook=_ext_hook, object_pairs_hook=_str_list_keys
-            )
-    except (ValueError, TypeError, IndexError, msgpack.UnpackException) as exc:
-        raise CodecError(f"malformed worker frame: {exc}") from exc
+    if frame and frame[0] == STEP_TAG:
+        return _unpack_step(frame)
+    msg = _unpackb(frame, "worker frame")
     if not isinstance(msg, dict):
         raise CodecError(f"expected a map, got {type(msg).__name__}")
     if "__to_wire__" in msg:
@@ -234,6 +230,96 @@ def unpack(frame: bytes | memoryview) -> dict[str, Any]:
         if not isinstance(msg, dict):
             raise CodecError(f"expected a map, got {type(msg).__name__}")
     return msg
+
+
+# ------------------------------------------------------ the step's own frames
+
+STEP_TAG = 0xC1
+"""First byte of a step request or reply frame: a byte msgpack never uses, so no msgpack frame starts with it."""
+_STEP_REQUEST, _STEP_REPLY = 1, 2
+_STEP_REQ = struct.Struct("<BBBq")  # tag, kind, autoreset mode (index in AUTORESET_MODES), reference time ns (-1: none)
+_STEP_REP = struct.Struct("<BBBd")  # tag, kind, flags (1: terminated, 2: truncated), reward
+_TERMINATED, _TRUNCATED = 1, 2
+
+
+class PackedRequest:
+    """A step request already packed (``pack_step_request``): the supervisor sends ``frame`` as it is (``pack``
+    returns it) and asks it only for its op, as of a message dict (``get("op")``)."""
+
+    __slots__ = ("frame",)
+    op = "step"
+
+    def __init__(self, frame: bytes) -> None:
+        self.frame = frame
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return self.op if key == "op" else default
+
+
+def pack_step_request(action: Any, autoreset: str | None, t: int | None) -> PackedRequest:
+    """The frame of ``{"op": "step", "action": action, "autoreset": autoreset, "t": t}`` (no ``t`` when None) in the
+    step's own format: a fixed header and the action alone in msgpack, so neither side builds or walks a map.
+    ``unpack`` turns it back into that dict.
+
+    Raises:
+        ValueError: ``autoreset`` is not one of ``AUTORESET_MODES``.
+    """
+    if autoreset not in AUTORESET_MODES:
+        raise ValueError(f"autoreset must be one of {AUTORESET_MODES}, got {autoreset!r}")
+    head = _STEP_REQ.pack(STEP_TAG, _STEP_REQUEST, AUTORESET_MODES.index(autoreset), -1 if t is None else t)
+    return PackedRequest(head + msgpack.packb(action, default=_default, use_bin_type=True))
+
+
+def pack_step_reply(result: list[Any]) -> bytes:
+    """The reply frame of a step's ``[obs, reward, terminated, truncated, info]``: the reward and flags in a fixed
+    header, then ``[obs, info]`` in msgpack. ``unpack`` turns it back into ``{"ok": True, "result": result}``."""
+    obs, reward, terminated, truncated, info = result
+    flags = (_TERMINATED if terminated else 0) | (_TRUNCATED if truncated else 0)
+    try:
+        body = msgpack.packb([obs, info], default=_default, use_bin_type=True)
+    except (TypeError, ValueError, OverflowError):  # an info msgpack refuses: the general, forgiving path
+        return pack({"ok": True, "result": result})
+    return _STEP_REP.pack(STEP_TAG, _STEP_REPLY, flags, reward) + body
+
+
+def _unpack_step(frame: bytes | memoryview) -> dict[str, Any]:
+    """The message in a frame that starts with STEP_TAG (see ``pack_step_request`` / ``pack_step_reply``)."""
+    size = _STEP_REQ.size
+    if len(frame) < size:
+        raise CodecError(f"malformed step frame: {len(frame)} bytes, the header alone is {size}")
+    _, kind, mode, t = _STEP_REQ.unpack_from(frame)
+    if kind == _STEP_REQUEST:
+        if mode >= len(AUTORESET_MODES):
+            raise CodecError(f"malformed step frame: autoreset mode {mode}; expected 0-{len(AUTORESET_MODES) - 1}")
+        msg = {"op": "step", "action": _unpackb(frame[size:]), "autoreset": AUTORESET_MODES[mode]}
+        if t >= 0:
+            msg["t"] = t
+        return msg
+    if kind == _STEP_REPLY:
+        _, _, flags, reward = _STEP_REP.unpack_from(frame)
+        body = _unpackb(frame[_STEP_REP.size :])
+        if type(body) is not list or len(body) != 2 or type(body[1]) is not dict:
+            raise CodecError("malformed step frame: a reply needs [obs, info] after its header")
+        return {"ok": True, "result": [body[0], reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), body[1]]}
+    raise CodecError(f"malformed step frame: kind {kind}; expected {_STEP_REQUEST} (request) or {_STEP_REPLY} (reply)")
+
+
+def _unpackb(data: bytes | memoryview, what: str = "step frame") -> Any:
+    """msgpack's unpackb with the worker protocol's hooks; map keys that came as lists (tuple keys) as their str,
+    as ``to_wire`` does.
+
+    Raises:
+        CodecError: ``data`` is not msgpack (named ``what``).
+    """
+    try:
+        try:
+            return msgpack.unpackb(data, raw=False, strict_map_key=False, ext_hook=_ext_hook)
+        except TypeError:  # a map key that came as a list (a tuple key)
+            return msgpack.unpackb(
+                data, raw=False, strict_map_key=False, ext_hook=_ext_hook, object_pairs_hook=_str_list_keys
+            )
+    except (ValueError, TypeError, IndexError, msgpack.UnpackException) as exc:
+        raise CodecError(f"malformed {what}: {exc}") from exc
 
 
 def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
@@ -465,6 +551,9 @@ class _Server:
             except Exception as exc:  # noqa: BLE001 - sent back; the env stays usable when it can
                 reply = _error_reply(exc, f"{op} failed")
             else:
+                if op == "step":
+                    await transport.send(pack_step_reply(result))
+                    continue
                 reply = {"ok": True, "result": result}
             await transport.send(pack(reply))
             if op == "close":
