@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 
 from uniros_async.errors import CodecError
-from uniros_async.runtime.worker import STEP_TAG, PackedRequest, pack, pack_step_reply, pack_step_request, unpack
+from uniros_async.runtime.worker import (
+    STEP_TAG,
+    PackedRequest,
+    _array_part,
+    pack,
+    pack_step_reply,
+    pack_step_request,
+    unpack,
+)
 
 
 @pytest.mark.parametrize(
@@ -67,21 +75,32 @@ def test_step_replies_round_trip_and_odd_infos_take_the_general_path() -> None:
         o, r, te, tr, info = reply["result"]
         assert np.array_equal(o, obs) and o.dtype == obs.dtype and r == -0.5 and (te, tr) == (terminated, truncated)
         assert info["env_id"] == "x" and np.array_equal(info["d"], np.ones(2))
+    # a goal env's dict observation travels in msgpack, its arrays by value
+    goal_obs = {"observation": obs, "desired_goal": np.ones(3)}
+    o = unpack(pack_step_reply([goal_obs, 0.0, False, False, {}]))["result"][0]
+    assert set(o) == set(goal_obs) and all(np.array_equal(o[k], goal_obs[k]) for k in goal_obs)
     # an info key msgpack refuses (a tuple): the general frame, the key as its str, as for every other reply
     reply = unpack(pack_step_reply([obs, 1.0, False, False, {(1, 2): "t"}]))
     assert reply["result"][4] == {"(1, 2)": "t"} and reply["result"][1] == 1.0
 
 
+_REQ = bytes([STEP_TAG, 1])  # a request's tag and kind; then mode, encoding, and 8 bytes of reference time
+_ARRAY_HEAD = _array_part(np.zeros(4, np.float32))[:-16]  # the header of a 4-float array, without its data
+
+
 @pytest.mark.parametrize(
     ("frame", "what"),
     [
-        (bytes([STEP_TAG, 1, 0]), "header alone is 11"),
-        (bytes([STEP_TAG, 1, 9]) + bytes(8), "autoreset mode 9"),
-        (bytes([STEP_TAG, 5, 0]) + bytes(8), "kind 5"),
-        (bytes([STEP_TAG, 2, 0]) + bytes(8) + b"\x91\x01", "needs \\[obs, info\\]"),
-        (bytes([STEP_TAG, 1, 1]) + bytes(8) + b"\x92\x01", "incomplete input"),
+        (_REQ + bytes([0]), "header alone is 12"),
+        (_REQ + bytes([9, 0]) + bytes(8), "autoreset mode 9"),
+        (bytes([STEP_TAG, 5, 0, 0]) + bytes(12), "kind 5"),
+        (_REQ + bytes([1, 7]) + bytes(8), "encoding 7"),
+        (_REQ + bytes([1, 0]) + bytes(8) + b"\x92\x01", "incomplete input"),
+        (_REQ + bytes([1, 1]) + bytes(8) + _ARRAY_HEAD + bytes(3), "needs 16 bytes, got 3"),
+        (bytes([STEP_TAG, 2, 0, 0, 1, 0, 0, 0]) + bytes(8) + b"\xc0\x91\x01", "info must be a map, got list"),
+        (bytes([STEP_TAG, 2, 0, 1, 99, 0, 0, 0]) + bytes(8) + _ARRAY_HEAD, "its array ends at 115"),
     ],
-    ids=["truncated", "mode", "kind", "reply body", "action"],
+    ids=["truncated", "mode", "kind", "encoding", "action", "array", "info", "obs past the end"],
 )
 def test_malformed_step_frames_are_refused_by_name(frame: bytes, what: str) -> None:
     with pytest.raises(CodecError, match=f"malformed step frame.*{what}"):
@@ -91,3 +110,25 @@ def test_malformed_step_frames_are_refused_by_name(frame: bytes, what: str) -> N
 def test_a_step_request_with_an_unknown_autoreset_mode_is_refused_before_packing() -> None:
     with pytest.raises(ValueError, match="autoreset must be one of.*'sometimes'"):
         pack_step_request(1, "sometimes", None)
+
+
+def test_packing_from_several_threads_at_once_keeps_each_message_whole() -> None:
+    """The Packer is kept per thread: the ``default`` hook (every array) lets another thread run in the middle of a
+    pack, which with one shared Packer would mix two messages' bytes."""
+    import threading
+
+    bad: list[str] = []
+
+    def work(k: int) -> None:
+        for i in range(300):
+            msg = {"op": "step", "action": np.full(k + 1, i, np.float32), "obs": [np.arange(k + i % 5)] * 3}
+            back = unpack(pack(msg))
+            if not (np.array_equal(back["action"], msg["action"]) and len(back["obs"][2]) == k + i % 5):
+                bad.append(f"thread {k} message {i}")
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not bad, bad[:3]

@@ -549,7 +549,10 @@ class Supervisor:
         something stops it half-way (a full ring, a reply that needs the event loop), what is left is finished by
         the general path (``_SentPending``) under the same deadline."""
         workers = self.workers
-        for w, m in zip(workers, messages, strict=True):
+        if len(messages) != len(workers):
+            return None
+        # (plain zips below, the lengths being equal: zip's strict check costs more than the rest of a loop here)
+        for w, m in zip(workers, messages):  # noqa: B905
             if m is None or w.try_send is None or w.in_flight or w.broken is not None:
                 return None
         if self._orphans or self._loop.is_closed() or not self._lock.acquire(blocking=False):
@@ -558,14 +561,14 @@ class Supervisor:
         sent = 0
         try:
             frames = [pack(m) for m in messages]  # type: ignore[arg-type]  # all packed before the first goes
-            for w, frame in zip(workers, frames, strict=True):
+            for w, frame in zip(workers, frames):  # noqa: B905
                 if not w.try_send(frame):
                     break
                 w.in_flight = True
                 sent += 1
             if sent == len(workers):
                 deadline = time.monotonic() + self.call_timeout_s
-                for w, m in zip(workers, messages, strict=True):
+                for w, m in zip(workers, messages):  # noqa: B905
                     frame = w.receive_blocking(max(deadline - time.monotonic(), 0.0))
                     if frame is None:
                         break

@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -155,16 +156,9 @@ _PACKED_HEADS: dict[tuple[str, tuple[int, ...]], bytes] = {}
 def _default(value: Any) -> Any:
     """msgpack's hook for what it cannot pack itself: arrays as ExtType, numpy scalars as Python ones."""
     if isinstance(value, np.ndarray):
-        if value.dtype == object:
+        if value.dtype.hasobject:
             return value.tolist()
-        key = (value.dtype.str, value.shape)
-        head = _PACKED_HEADS.get(key)
-        if head is None:
-            d = key[0].encode()
-            head = bytes((len(d),)) + d + bytes((value.ndim,)) + b"".join(_SHAPE.pack(n) for n in value.shape)
-            if len(_PACKED_HEADS) < 256:
-                _PACKED_HEADS[key] = head
-        return msgpack.ExtType(_ND_EXT, head + value.tobytes())  # tobytes: C order, whatever the strides
+        return msgpack.ExtType(_ND_EXT, _array_part(value))
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, tuple | list):  # subclasses msgpack refuses (named tuples are packed as lists)
@@ -172,31 +166,71 @@ def _default(value: Any) -> Any:
     return repr(value)
 
 
+def _array_part(value: np.ndarray) -> bytes:
+    """An array on the wire: a header (dtype string, ndim, shape; cached by dtype and shape) and the data in C
+    order, whatever the strides. The payload of the array ExtType, and a step frame's array as it is."""
+    key = (value.dtype.str, value.shape)
+    head = _PACKED_HEADS.get(key)
+    if head is None:
+        d = key[0].encode()
+        head = bytes((len(d),)) + d + bytes((value.ndim,)) + b"".join(_SHAPE.pack(n) for n in value.shape)
+        if len(_PACKED_HEADS) < 256:
+            _PACKED_HEADS[key] = head
+    return head + value.tobytes()
+
+
 _HEADS: dict[bytes, tuple[np.dtype[Any], tuple[int, ...], int]] = {}
-"""Parsed array headers (dtype, shape, data offset) by their bytes: a worker sees the same few every step, and
+"""Parsed array headers (dtype, shape, element count) by their bytes: a worker sees the same few every step, and
 parsing one (a dtype from its string, a struct unpack per dimension) costs more than the array itself."""
+
+
+def _array_from(buf: bytes | memoryview, start: int = 0, stop: int | None = None) -> np.ndarray:
+    """The array ``_array_part`` wrote in ``buf[start:stop]``, as a writable copy.
+
+    Raises:
+        ValueError, TypeError, IndexError: not such an array (the data does not match its header, a bad dtype, too
+            short); the callers turn these into CodecError.
+    """
+    stop = len(buf) if stop is None else stop
+    n = buf[start]
+    ndim = buf[start + 1 + n]
+    data_start = start + 2 + n + 8 * ndim
+    head = bytes(buf[start:data_start])
+    parsed = _HEADS.get(head)
+    if parsed is None:
+        dtype = np.dtype(head[1 : 1 + n].decode())
+        shape = tuple(_SHAPE.unpack_from(head, 2 + n + 8 * i)[0] for i in range(ndim))
+        parsed = (dtype, shape, math.prod(shape))
+        if len(_HEADS) < 256:
+            _HEADS[head] = parsed
+    dtype, shape, count = parsed
+    if stop - data_start != count * dtype.itemsize:
+        raise ValueError(f"an array of {dtype} {shape} needs {count * dtype.itemsize} bytes, got {stop - data_start}")
+    return np.frombuffer(buf, dtype=dtype, count=count, offset=data_start).reshape(shape).copy()
 
 
 def _ext_hook(code: int, data: bytes) -> Any:
     if code != _ND_EXT:
         return msgpack.ExtType(code, data)
-    n = data[0]
-    ndim = data[1 + n]
-    end = 2 + n + 8 * ndim
-    head = data[:end]
-    parsed = _HEADS.get(head)
-    if parsed is None:
-        dtype = np.dtype(data[1 : 1 + n].decode())
-        shape = tuple(_SHAPE.unpack_from(data, 2 + n + 8 * i)[0] for i in range(ndim))
-        parsed = (dtype, shape, end)
-        if len(_HEADS) < 256:
-            _HEADS[head] = parsed
-    dtype, shape, end = parsed
-    return np.frombuffer(data, dtype=dtype, offset=end).reshape(shape).copy()  # writable
+    return _array_from(data)
 
 
 def _str_list_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
     return {str(tuple(k)) if isinstance(k, list) else k: v for k, v in pairs}
+
+
+_local = threading.local()
+
+
+def _packb(value: Any) -> bytes:
+    """``msgpack.packb(value, default=_default, use_bin_type=True)`` with a Packer kept per thread: ``packb`` builds
+    a new Packer every call, which costs a quarter of packing a step reply (a Packer is not thread-safe: the
+    ``default`` hook lets other threads run in the middle of a pack, hence one per thread). A pack that raises
+    leaves the Packer reset."""
+    packer = getattr(_local, "packer", None)
+    if packer is None:
+        packer = _local.packer = msgpack.Packer(default=_default, use_bin_type=True)
+    return packer.pack(value)  # type: ignore[no-any-return]
 
 
 def pack(message: dict[str, Any]) -> bytes:
@@ -208,7 +242,7 @@ def pack(message: dict[str, Any]) -> bytes:
     if type(message) is PackedRequest:
         return message.frame
     try:
-        return msgpack.packb(message, default=_default, use_bin_type=True)  # type: ignore[no-any-return]
+        return _packb(message)
     except (TypeError, ValueError, OverflowError):
         # e.g. a dict key msgpack refuses: the slow, forgiving path, marked for unpack
         return encode_plain({"__to_wire__": to_wire(message)})
@@ -237,8 +271,9 @@ def unpack(frame: bytes | memoryview) -> dict[str, Any]:
 STEP_TAG = 0xC1
 """First byte of a step request or reply frame: a byte msgpack never uses, so no msgpack frame starts with it."""
 _STEP_REQUEST, _STEP_REPLY = 1, 2
-_STEP_REQ = struct.Struct("<BBBq")  # tag, kind, autoreset mode (index in AUTORESET_MODES), reference time ns (-1: none)
-_STEP_REP = struct.Struct("<BBBd")  # tag, kind, flags (1: terminated, 2: truncated), reward
+_STEP_REQ = struct.Struct("<BBBBq")  # tag, kind, autoreset mode (index in AUTORESET_MODES), body, reference time ns
+_STEP_REP = struct.Struct("<BBBBId")  # tag, kind, flags, observation's encoding, observation's bytes, reward
+_MSGPACK, _ARRAY = 0, 1  # how the action (request) or observation (reply) travels: msgpack, or as ``_array_part``
 _TERMINATED, _TRUNCATED = 1, 2
 
 
@@ -256,52 +291,78 @@ class PackedRequest:
         return self.op if key == "op" else default
 
 
+def _part(value: Any) -> tuple[int, bytes]:
+    """(encoding, bytes) of an action or observation: an array of numbers as it is (``_array_part``: no msgpack
+    ExtType and no hook on either side), anything else in msgpack."""
+    if type(value) is np.ndarray and not value.dtype.hasobject:
+        return _ARRAY, _array_part(value)
+    return _MSGPACK, _packb(value)
+
+
 def pack_step_request(action: Any, autoreset: str | None, t: int | None) -> PackedRequest:
     """The frame of ``{"op": "step", "action": action, "autoreset": autoreset, "t": t}`` (no ``t`` when None) in the
-    step's own format: a fixed header and the action alone in msgpack, so neither side builds or walks a map.
-    ``unpack`` turns it back into that dict.
+    step's own format: a fixed header, then the action, so neither side builds or walks a map. ``unpack`` turns it
+    back into that dict.
 
     Raises:
         ValueError: ``autoreset`` is not one of ``AUTORESET_MODES``.
     """
     if autoreset not in AUTORESET_MODES:
         raise ValueError(f"autoreset must be one of {AUTORESET_MODES}, got {autoreset!r}")
-    head = _STEP_REQ.pack(STEP_TAG, _STEP_REQUEST, AUTORESET_MODES.index(autoreset), -1 if t is None else t)
-    return PackedRequest(head + msgpack.packb(action, default=_default, use_bin_type=True))
+    enc, body = _part(action)
+    mode = AUTORESET_MODES.index(autoreset)
+    return PackedRequest(_STEP_REQ.pack(STEP_TAG, _STEP_REQUEST, mode, enc, -1 if t is None else t) + body)
 
 
 def pack_step_reply(result: list[Any]) -> bytes:
     """The reply frame of a step's ``[obs, reward, terminated, truncated, info]``: the reward and flags in a fixed
-    header, then ``[obs, info]`` in msgpack. ``unpack`` turns it back into ``{"ok": True, "result": result}``."""
+    header, the observation, then the info in msgpack. ``unpack`` turns it back into ``{"ok": True, "result":
+    result}``."""
     obs, reward, terminated, truncated, info = result
     flags = (_TERMINATED if terminated else 0) | (_TRUNCATED if truncated else 0)
     try:
-        body = msgpack.packb([obs, info], default=_default, use_bin_type=True)
-    except (TypeError, ValueError, OverflowError):  # an info msgpack refuses: the general, forgiving path
+        enc, obs_part = _part(obs)
+        info_part = _packb(info)
+    except (TypeError, ValueError, OverflowError):  # something msgpack refuses: the general, forgiving path
         return pack({"ok": True, "result": result})
-    return _STEP_REP.pack(STEP_TAG, _STEP_REPLY, flags, reward) + body
+    return _STEP_REP.pack(STEP_TAG, _STEP_REPLY, flags, enc, len(obs_part), reward) + obs_part + info_part
 
 
 def _unpack_step(frame: bytes | memoryview) -> dict[str, Any]:
     """The message in a frame that starts with STEP_TAG (see ``pack_step_request`` / ``pack_step_reply``)."""
-    size = _STEP_REQ.size
+    kind = frame[1] if len(frame) > 1 else None
+    size = _STEP_REQ.size if kind == _STEP_REQUEST else _STEP_REP.size
     if len(frame) < size:
         raise CodecError(f"malformed step frame: {len(frame)} bytes, the header alone is {size}")
-    _, kind, mode, t = _STEP_REQ.unpack_from(frame)
     if kind == _STEP_REQUEST:
+        _, _, mode, enc, t = _STEP_REQ.unpack_from(frame)
         if mode >= len(AUTORESET_MODES):
             raise CodecError(f"malformed step frame: autoreset mode {mode}; expected 0-{len(AUTORESET_MODES) - 1}")
-        msg = {"op": "step", "action": _unpackb(frame[size:]), "autoreset": AUTORESET_MODES[mode]}
+        msg = {"op": "step", "action": _unpart(enc, frame, size, len(frame)), "autoreset": AUTORESET_MODES[mode]}
         if t >= 0:
             msg["t"] = t
         return msg
     if kind == _STEP_REPLY:
-        _, _, flags, reward = _STEP_REP.unpack_from(frame)
-        body = _unpackb(frame[_STEP_REP.size :])
-        if type(body) is not list or len(body) != 2 or type(body[1]) is not dict:
-            raise CodecError("malformed step frame: a reply needs [obs, info] after its header")
-        return {"ok": True, "result": [body[0], reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), body[1]]}
+        _, _, flags, enc, obs_len, reward = _STEP_REP.unpack_from(frame)
+        obs = _unpart(enc, frame, size, size + obs_len)
+        info = _unpackb(frame[size + obs_len :])
+        if type(info) is not dict:
+            raise CodecError(f"malformed step frame: a reply's info must be a map, got {type(info).__name__}")
+        return {"ok": True, "result": [obs, reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), info]}
     raise CodecError(f"malformed step frame: kind {kind}; expected {_STEP_REQUEST} (request) or {_STEP_REPLY} (reply)")
+
+
+def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:
+    if enc == _MSGPACK:
+        return _unpackb(frame[start:stop])
+    if enc != _ARRAY:
+        raise CodecError(f"malformed step frame: encoding {enc}; expected {_MSGPACK} (msgpack) or {_ARRAY} (array)")
+    if stop > len(frame):
+        raise CodecError(f"malformed step frame: {len(frame)} bytes, its array ends at {stop}")
+    try:
+        return _array_from(frame, start, stop)
+    except (ValueError, TypeError, IndexError) as exc:
+        raise CodecError(f"malformed step frame: {exc}") from exc
 
 
 def _unpackb(data: bytes | memoryview, what: str = "step frame") -> Any:
@@ -535,6 +596,7 @@ class _Server:
             self.build_error = _error_reply(exc, f"could not make {self.spec.env_id}")
 
     async def serve(self, transport: Any) -> None:
+        try_send = getattr(transport, "try_send", None)  # shm: a step's reply leaves without a coroutine when it can
         while True:
             frame = await transport.receive()
             try:
@@ -547,12 +609,17 @@ class _Server:
                 await transport.send(pack(self.build_error))
                 return
             try:
-                result = await self.handle(op, request)
+                if op == "step" and not self.attached:  # a synchronous env's step: no coroutine in the way
+                    result = self._step_now(request["action"], request.get("autoreset"))
+                else:
+                    result = await self.handle(op, request)
             except Exception as exc:  # noqa: BLE001 - sent back; the env stays usable when it can
                 reply = _error_reply(exc, f"{op} failed")
             else:
                 if op == "step":
-                    await transport.send(pack_step_reply(result))
+                    frame = pack_step_reply(result)
+                    if try_send is None or not try_send(frame):
+                        await transport.send(frame)
                     continue
                 reply = {"ok": True, "result": result}
             await transport.send(pack(reply))
@@ -622,27 +689,54 @@ class _Server:
     async def _step(self, action: Any, autoreset: str | None) -> list[Any]:
         env = self.env
         assert env is not None
+        if not self.attached:
+            return self._step_now(action, autoreset)
+        if self._reset_instead(autoreset):
+            obs, info = await self._reset()
+            return [obs, 0.0, False, False, self._info(info)]
+        result, reset = self._returns(*await astep_through(env, action), autoreset)
+        if reset:
+            result[0], _ = await self._reset()
+        return result
+
+    def _step_now(self, action: Any, autoreset: str | None) -> list[Any]:
+        """``_step`` for an env stepped through its synchronous API (not attached), in the caller's frame."""
+        env = self.env
+        assert env is not None
+        if self._reset_instead(autoreset):
+            obs, info = env.reset()
+            return [obs, 0.0, False, False, self._info(info)]
+        result, reset = self._returns(*env.step(action), autoreset)
+        if reset:
+            result[0], _ = env.reset()
+        return result
+
+    def _reset_instead(self, autoreset: str | None) -> bool:
+        """Whether this step resets instead (gymnasium's NEXT_STEP mode: the step after an episode's end resets and
+        ignores the action).
+
+        Raises:
+            ValueError: an unknown autoreset mode.
+        """
         if autoreset not in AUTORESET_MODES:
             raise ValueError(f"autoreset must be one of {AUTORESET_MODES}, got {autoreset!r}")
         if autoreset == "next_step" and self.needs_autoreset:
-            # gymnasium's NEXT_STEP mode: the step after an episode's end resets and ignores the action
             self.needs_autoreset = False
-            obs, info = await self._reset()
-            return [obs, 0.0, False, False, self._info(info)]
-        if self.attached:
-            obs, reward, terminated, truncated, info = await astep_through(env, action)
-        else:
-            obs, reward, terminated, truncated, info = env.step(action)
+            return True
+        return False
+
+    def _returns(
+        self, obs: Any, reward: Any, terminated: Any, truncated: Any, info: dict[str, Any], autoreset: str | None
+    ) -> tuple[list[Any], bool]:
+        """A step's reply, and whether its observation must now be replaced by a reset's (SB3's SAME_STEP
+        convention: the final observation goes in the info)."""
         done = bool(terminated or truncated)
         info = self._info(info)
         if autoreset == "next_step":
             self.needs_autoreset = done
         elif autoreset == "same_step" and done:
-            # SB3's convention: the reset observation replaces the final one, which goes in the info
-            final_obs = obs
-            obs, _ = await self._reset()
-            info = {**info, "final_obs": final_obs}
-        return [obs, float(reward), bool(terminated), bool(truncated), info]
+            return [obs, float(reward), bool(terminated), bool(truncated), {**info, "final_obs": obs}], True
+        return [obs, float(reward), bool(terminated), bool(truncated), info], False
 
     async def aclose(self) -> None:
         env, self.env = self.env, None

@@ -230,7 +230,10 @@ class ShmTransport(Transport):
                 what = "in the middle of a frame" if self._rx_partial is not None else "the connection"
                 raise TransportBrokenError(f"peer {self.peer} closed {what}")
             else:
-                await self._wait_readable()
+                window_ns = self._window_ns()
+                if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
+                    continue  # (polled here, not in _wait_readable: a coroutine less per frame that a poll catches)
+                await self._wait_readable(window_ns)
 
     def _take(self, avail: int) -> memoryview | None:
         """Consume what ``avail`` bytes allow: a whole frame (returned), a skip record or a streamed chunk (None)."""
@@ -337,12 +340,10 @@ class ShmTransport(Transport):
         if self._spin_credit == 0 and self._spin_allowed and self.spin_ns and _now_ns() - t0 < window_ns + _WAKEUP_NS:
             self._spin_credit = 1  # a short spin would have caught this one: try spinning again
 
-    async def _wait_readable(self) -> None:
-        """Sleep until the peer publishes more than we have read (or hangs up, or we close)."""
+    async def _wait_readable(self, window_ns: int) -> None:
+        """Sleep until the peer publishes more than we have read (or hangs up, or we close); ``window_ns``: how long
+        the poll before it was (see ``_slept``)."""
         ctl = self._rx.ctl
-        window_ns = self._window_ns()
-        if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
-            return
         ticket = self._rx_ticket + 1
         ctl[R_TICKET] = ticket  # odd: "I am about to sleep; ring my doorbell"
         _fence_acquire()
