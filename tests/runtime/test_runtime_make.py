@@ -90,3 +90,29 @@ def test_step_error_comes_back_and_the_env_stays_usable() -> None:
         assert obs.shape == (28,)
     finally:
         env.close()
+
+
+def test_a_synchronous_envs_step_errors_come_back_and_the_worker_keeps_serving() -> None:
+    """The worker's step lane for an env it steps synchronously (CartPole): an action the env refuses and a
+    malformed step frame each come back as an error reply, and the next step is served as usual."""
+    from uniros_async.runtime import make_vec
+    from uniros_async.runtime.worker import STEP_TAG, unpack
+
+    venv = make_vec(["CartPole-v1"], pad=False)
+    try:
+        venv.reset(seed=0)
+        with pytest.raises(WorkerError, match="step failed: AssertionError") as e:
+            venv.step(np.array([5]))  # Discrete(2)
+        assert e.value.index == 0 and "cartpole" in e.value.remote_traceback.lower()
+        w = venv._sup.workers[0]
+
+        async def raw(frame: bytes) -> dict:
+            await w.transport.send(frame)
+            return unpack(await w.transport.receive())
+
+        reply = venv._sup.call(raw(bytes([STEP_TAG, 1, 0])))
+        assert reply["ok"] is False and "bad request" in reply["error"] and "malformed step frame" in reply["error"]
+        obs, rew, term, trunc, info = venv.step(np.array([1]))
+        assert obs.shape == (1, 4) and rew[0] == 1.0 and info["env_id"][0] == "CartPole-v1"
+    finally:
+        venv.close()
