@@ -19,7 +19,11 @@ an ExtType (code 42: dtype, shape, raw bytes) and numpy scalars as Python number
 reply: ~10 us of CPU each way instead of ~13-33 us for a recursive walk in Python; ``to_wire``/``from_wire``
 remain, for plain-data users). Anything else msgpack cannot take travels as its ``repr`` (infos may hold odd
 objects). A request is ``{"op": ..., ...}``; a reply is ``{"ok": True, "result": ...}`` or ``{"ok": False,
-"error": "Type: message", "traceback": "..."}``. An exception while serving a request is sent back (the
+"error": "Type: message", "traceback": "..."}``. A step, the hot path, has frames of its own (``pack_step_request``,
+``pack_step_reply``; first byte ``STEP_TAG``, which msgpack never uses): a fixed header (autoreset mode and
+reference time; reward and flags), the action or observation as dtype/shape/bytes, the info in msgpack, so
+neither side builds or walks a message map per step; ``unpack`` turns them into the same dicts, and a worker
+steps a synchronous env straight from the frame. An exception while serving a request is sent back (the
 supervisor raises it as WorkerError) and the worker keeps serving; an exception while building the env is sent as
 the reply to the first request, and the worker exits.
 
