@@ -153,8 +153,9 @@ _ND_EXT = 42
 _SHAPE = struct.Struct("<q")
 
 
-_PACKED_HEADS: dict[tuple[str, tuple[int, ...]], bytes] = {}
-"""Array headers by (dtype, shape), the packing side of ``_HEADS``: the same few every step."""
+_PACKED_HEADS: dict[tuple[np.dtype[Any], tuple[int, ...]], bytes] = {}
+"""Array headers by (dtype, shape), the packing side of ``_HEADS``: the same few every step (keyed by the dtype
+itself: ``dtype.str`` builds a new string every call, which costs more than the lookup)."""
 
 
 def _default(value: Any) -> Any:
@@ -173,10 +174,10 @@ def _default(value: Any) -> Any:
 def _array_part(value: np.ndarray) -> bytes:
     """An array on the wire: a header (dtype string, ndim, shape; cached by dtype and shape) and the data in C
     order, whatever the strides. The payload of the array ExtType, and a step frame's array as it is."""
-    key = (value.dtype.str, value.shape)
+    key = (value.dtype, value.shape)
     head = _PACKED_HEADS.get(key)
     if head is None:
-        d = key[0].encode()
+        d = value.dtype.str.encode()
         head = bytes((len(d),)) + d + bytes((value.ndim,)) + b"".join(_SHAPE.pack(n) for n in value.shape)
         if len(_PACKED_HEADS) < 256:
             _PACKED_HEADS[key] = head
@@ -325,7 +326,10 @@ def pack_step_reply(result: list[Any]) -> bytes:
     obs, reward, terminated, truncated, info = result
     flags = (_TERMINATED if terminated else 0) | (_TRUNCATED if truncated else 0)
     try:
-        enc, obs_part = _part(obs)
+        if type(obs) is np.ndarray and not obs.dtype.hasobject:  # (``_part``, inline: the common case)
+            enc, obs_part = _ARRAY, _array_part(obs)
+        else:
+            enc, obs_part = _MSGPACK, _packb(obs)
         info_part = _packb(info)
     except (TypeError, ValueError, OverflowError):  # something msgpack refuses: the general, forgiving path
         return pack({"ok": True, "result": result})
@@ -760,7 +764,7 @@ class _Server:
         """A step's reply, and whether its observation must now be replaced by a reset's (SB3's SAME_STEP
         convention: the final observation goes in the info)."""
         done = bool(terminated or truncated)
-        info = self._info(info)
+        info = {**info, "env_id": self.spec.env_id}  # (``_info``, inline: every step)
         if autoreset == "next_step":
             self.needs_autoreset = done
         elif autoreset == "same_step" and done:
