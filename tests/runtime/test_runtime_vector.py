@@ -261,9 +261,9 @@ def test_sb3_her_uses_compute_reward_in_the_workers() -> None:
 def test_a_step_stopped_half_way_is_finished_by_the_event_loop_with_the_same_returns(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """``Supervisor._exchange_now`` (the step's one-pass exchange) hands what is left to the general path when a
-    ring refuses a request after the first one went, or a reply cannot be taken in this thread: the returns are
-    those of an undisturbed run (real workers, deterministic CartPole)."""
+    """A step sent and collected in the caller's thread (``try_send`` / ``receive_blocking``) hands what is left to
+    the event loop when a ring refuses a request after the first one went, or a reply cannot be taken in this
+    thread: the returns are those of an undisturbed run (real workers, deterministic CartPole)."""
     from uniros_async.transports import shm
 
     def run() -> list[tuple[np.ndarray, np.ndarray]]:

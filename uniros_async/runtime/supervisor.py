@@ -537,65 +537,7 @@ class Supervisor:
     def request_all_now(self, messages: Sequence[dict[str, Any] | None]) -> list[Any]:
         """``request_all(messages, return_exceptions=True)`` run to the end in this thread (its waits have their own
         deadlines, so no outer timeout is added: the cheapest round trip, used by ``UnirosVectorEnv.step``)."""
-        done = self._exchange_now(messages)
-        if done is not None:
-            return done
         return _SentPending(self, messages, self._send_now(messages)).result()
-
-    def _exchange_now(self, messages: Sequence[dict[str, Any] | None]) -> list[Any] | None:
-        """The common case of ``request_all_now`` in one pass, with no other layer in between (the step of issue 5's
-        per-step overhead): a request for every worker, all local and idle over shm, each sent with ``try_send``
-        and its reply taken with ``receive_blocking``. None, with nothing sent, when the case is not that one; if
-        something stops it half-way (a full ring, a reply that needs the event loop), what is left is finished by
-        the general path (``_SentPending``) under the same deadline."""
-        workers = self.workers
-        if len(messages) != len(workers):
-            return None
-        # (plain zips below, the lengths being equal: zip's strict check costs more than the rest of a loop here)
-        for w, m in zip(workers, messages):  # noqa: B905
-            if m is None or w.try_send is None or w.in_flight or w.broken is not None:
-                return None
-        if self._orphans or self._loop.is_closed() or not self._lock.acquire(blocking=False):
-            return None
-        results: list[Any] = []
-        sent = 0
-        try:
-            frames = [pack(m) for m in messages]  # type: ignore[arg-type]  # all packed before the first goes
-            for w, frame in zip(workers, frames):  # noqa: B905
-                if not w.try_send(frame):
-                    break
-                w.in_flight = True
-                sent += 1
-            if sent == len(workers):
-                deadline = time.monotonic() + self.call_timeout_s
-                for w, m in zip(workers, messages):  # noqa: B905
-                    frame = w.receive_blocking(max(deadline - time.monotonic(), 0.0))
-                    if frame is None:
-                        break
-                    w.in_flight = False
-                    try:
-                        reply = unpack(frame)
-                    except Exception as exc:  # noqa: BLE001 - in its slot, as _receive_now does
-                        w.broken = f"its reply to {m.get('op')!r} was malformed ({w.spec.env_id}): {exc}"  # type: ignore[union-attr]
-                        results.append(exc)
-                        continue
-                    try:
-                        results.append(w._result(reply))
-                    except WorkerError as exc:  # the worker raised: in its slot, as request_all does
-                        results.append(exc)
-        except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
-            for w in workers:
-                if w.in_flight and w.broken is None:
-                    w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
-            raise
-        finally:
-            self._lock.release()
-        if len(results) < len(workers):  # the rest by the general path: requests not sent, replies not had here
-            k = len(results)
-            left = [None] * k + list(messages[k:])
-            more = _SentPending(self, left, frozenset(range(k, sent))).result()
-            results += more[k:]
-        return _raise_unexpected(results)
 
     def _receive_now(
         self, messages: Sequence[dict[str, Any] | None], sent: frozenset[int], deadline: float, results: list[Any]

@@ -326,10 +326,7 @@ def pack_step_reply(result: list[Any]) -> bytes:
     obs, reward, terminated, truncated, info = result
     flags = (_TERMINATED if terminated else 0) | (_TRUNCATED if truncated else 0)
     try:
-        if type(obs) is np.ndarray and not obs.dtype.hasobject:  # (``_part``, inline: the common case)
-            enc, obs_part = _ARRAY, _array_part(obs)
-        else:
-            enc, obs_part = _MSGPACK, _packb(obs)
+        enc, obs_part = _part(obs)
         info_part = _packb(info)
     except (TypeError, ValueError, OverflowError):  # something msgpack refuses: the general, forgiving path
         return pack({"ok": True, "result": result})
@@ -764,7 +761,7 @@ class _Server:
         """A step's reply, and whether its observation must now be replaced by a reset's (SB3's SAME_STEP
         convention: the final observation goes in the info)."""
         done = bool(terminated or truncated)
-        info = {**info, "env_id": self.spec.env_id}  # (``_info``, inline: every step)
+        info = self._info(info)
         if autoreset == "next_step":
             self.needs_autoreset = done
         elif autoreset == "same_step" and done:
