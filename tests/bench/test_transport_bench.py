@@ -30,6 +30,7 @@ def test_every_transport_and_payload_gets_a_record_and_a_row(tmp_path: Path) -> 
     table = "\n".join(lines)
     for name in ("shm p50 vs fastest peer (mp-pipe)", "shm-loan p50 vs fastest peer (mp-pipe)"):
         assert table.count(name) == len(transport.PAYLOADS)
+    assert "shm-loan: both ends write their frames in place" in table  # the row's method, under the table
 
 
 def test_unknown_transport_or_payload_is_named() -> None:

@@ -444,6 +444,11 @@ def format_table(records: list[dict[str, Any]]) -> str:
                     kind = "network peer" if ours == "tcp" else "peer"
                     lines.append(f"{'':<8} {ours} p50 vs fastest {kind} ({best['transport']}): {verdict}")
             lines.append("")
+    if any(r["transport"] == "shm-loan" for r in records):
+        lines += [
+            "shm-loan: both ends write their frames in place (ShmTransport.loan) and only an 8-byte stamp of the",
+            "  payload (iceoryx2's method): zero-copy round trips; shm and tcp copy the payload in on both sides",
+        ]
     return "\n".join(lines)
 
 
