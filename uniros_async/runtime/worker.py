@@ -23,7 +23,7 @@ objects). A request is ``{"op": ..., ...}``; a reply is ``{"ok": True, "result":
 ``pack_step_reply``; first byte ``STEP_TAG``, which msgpack never uses): a fixed header (autoreset mode and
 reference time; reward and flags), the action or observation as dtype/shape/bytes, the info in msgpack, so
 neither side builds or walks a message map per step; ``unpack`` turns them into the same dicts, and a worker
-steps a synchronous env straight from the frame. An exception while serving a request is sent back (the
+steps a synchronous env without a coroutine in between. An exception while serving a request is sent back (the
 supervisor raises it as WorkerError) and the worker keeps serving; an exception while building the env is sent as
 the reply to the first request, and the worker exits.
 
@@ -340,8 +340,10 @@ def _unpack_step(frame: bytes | memoryview) -> dict[str, Any]:
     if len(frame) < size:
         raise CodecError(f"malformed step frame: {len(frame)} bytes, the header alone is {size}")
     if kind == _STEP_REQUEST:
-        action, autoreset, t = _step_request(frame)
-        msg = {"op": "step", "action": action, "autoreset": autoreset}
+        _, _, mode, enc, t = _STEP_REQ.unpack_from(frame)
+        if mode >= len(AUTORESET_MODES):
+            raise CodecError(f"malformed step frame: autoreset mode {mode}; expected 0-{len(AUTORESET_MODES) - 1}")
+        msg = {"op": "step", "action": _unpart(enc, frame, size, len(frame)), "autoreset": AUTORESET_MODES[mode]}
         if t >= 0:
             msg["t"] = t
         return msg
@@ -353,21 +355,6 @@ def _unpack_step(frame: bytes | memoryview) -> dict[str, Any]:
             raise CodecError(f"malformed step frame: a reply's info must be a map, got {type(info).__name__}")
         return {"ok": True, "result": [obs, reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), info]}
     raise CodecError(f"malformed step frame: kind {kind}; expected {_STEP_REQUEST} (request) or {_STEP_REPLY} (reply)")
-
-
-def _step_request(frame: bytes | memoryview) -> tuple[Any, str | None, int]:
-    """(action, autoreset mode, reference time or -1) of a step request frame.
-
-    Raises:
-        CodecError: the frame is not a well-formed step request.
-    """
-    size = _STEP_REQ.size
-    if len(frame) < size or frame[1] != _STEP_REQUEST:
-        raise CodecError(f"malformed step frame: not a step request of at least {size} bytes")
-    _, _, mode, enc, t = _STEP_REQ.unpack_from(frame)
-    if mode >= len(AUTORESET_MODES):
-        raise CodecError(f"malformed step frame: autoreset mode {mode}; expected 0-{len(AUTORESET_MODES) - 1}")
-    return _unpart(enc, frame, size, len(frame)), AUTORESET_MODES[mode], t
 
 
 def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:
@@ -617,18 +604,6 @@ class _Server:
         try_send = getattr(transport, "try_send", None)  # shm: a step's reply leaves without a coroutine when it can
         while True:
             frame = await transport.receive()
-            if frame and frame[0] == STEP_TAG and not self.attached and self.build_error is None:
-                # a synchronous env's step, the hot path: decoded, stepped and answered without a message dict
-                try:
-                    action, autoreset, _ = _step_request(frame)
-                    reply_frame = pack_step_reply(self._step_now(action, autoreset))
-                except CodecError as exc:
-                    reply_frame = pack(_error_reply(exc, "bad request"))
-                except Exception as exc:  # noqa: BLE001 - sent back; the env stays usable when it can
-                    reply_frame = pack(_error_reply(exc, "step failed"))
-                if try_send is None or not try_send(reply_frame):
-                    await transport.send(reply_frame)
-                continue
             try:
                 request = unpack(frame)
             except Exception as exc:  # noqa: BLE001
