@@ -299,6 +299,56 @@ def test_a_step_stopped_half_way_is_finished_by_the_event_loop_with_the_same_ret
         np.testing.assert_array_equal(b, d)
 
 
+def test_replies_read_into_place_and_replies_that_cannot_be_give_the_same_returns(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``venv.step`` reads each Box observation from its reply straight into the vector observation; replies it
+    cannot read that way (another dtype than the space's, ``step_wait``'s results) are cast and stacked as before:
+    the returns are the same arrays either way."""
+    from uniros_async.runtime import vector
+    from uniros_async.runtime.vector import _Returns
+    from uniros_async.runtime.worker import pack_step_reply
+
+    in_place = []
+    real = vector.unpack_step_reply_into
+
+    def spy(*args: object) -> object:
+        got = real(*args)  # type: ignore[arg-type]
+        in_place.append(got is not None)
+        return got
+
+    monkeypatch.setattr(vector, "unpack_step_reply_into", spy)
+    venv = make_vec(["CartPole-v1", "CartPole-v1"], pad=False)
+    try:
+        venv.reset(seed=3)
+        actions = [np.array([k % 2, (k // 2) % 2]) for k in range(30)]
+        fast = [venv.step(a) for a in actions]
+        assert len(in_place) == 60 and all(in_place)  # every reply of venv.step was read into place
+        venv.reset(seed=3)
+        slow = []
+        for a in actions:
+            venv.step_async(a)
+            slow.append(venv.step_wait())
+        for f, s in zip(fast, slow, strict=True):
+            for x, y in zip(f[:4], s[:4], strict=True):
+                np.testing.assert_array_equal(x, y)
+                assert x.dtype == y.dtype
+            assert f[4].keys() == s[4].keys()
+        # an env that sends float64 for its float32 space: the general path, cast into the float32 batch
+        obs64 = np.array([0.1, -0.2, 0.3, 1e-40])
+        returns = _Returns(venv)
+        frames = [pack_step_reply([obs64 * (i + 1), 1.0, i == 1, False, {"env_id": "x"}]) for i in range(2)]
+        results = [returns.decode(i, memoryview(f)) for i, f in enumerate(frames)]
+        assert all(type(r) is list for r in results)
+        obs, rew, term, trunc, info = returns.finish(results)
+        assert obs.dtype == np.float32 and obs.shape == (2, 4)
+        np.testing.assert_array_equal(obs, np.stack([obs64, 2 * obs64]).astype(np.float32))
+        assert rew.tolist() == [1.0, 1.0] and term.tolist() == [False, True] and not trunc.any()
+        assert info["env_id"].tolist() == ["x", "x"]
+    finally:
+        venv.close()
+
+
 @pytest.mark.parametrize(
     "infos",
     [

@@ -11,10 +11,12 @@ from uniros_async.runtime.worker import (
     STEP_TAG,
     PackedRequest,
     _array_part,
+    array_head,
     pack,
     pack_step_reply,
     pack_step_request,
     unpack,
+    unpack_step_reply_into,
 )
 
 
@@ -82,6 +84,36 @@ def test_step_replies_round_trip_and_odd_infos_take_the_general_path() -> None:
     # an info key msgpack refuses (a tuple): the general frame, the key as its str, as for every other reply
     reply = unpack(pack_step_reply([obs, 1.0, False, False, {(1, 2): "t"}]))
     assert reply["result"][4] == {"(1, 2)": "t"} and reply["result"][1] == 1.0
+
+
+def test_a_step_reply_read_into_place_matches_unpack_and_writes_nothing_it_cannot_take() -> None:
+    """``unpack_step_reply_into`` (the vector env's way in) gives what ``unpack`` gives, the observation's bytes in
+    the caller's buffer; an observation of another dtype, shape or encoding leaves the buffer untouched (None)."""
+    obs = np.arange(6, dtype=np.float32).reshape(2, 3)
+    info = {"env_id": "x", "final_obs": np.ones(2)}
+    frame = memoryview(pack_step_reply([obs, 2.5, True, False, info]))
+    out = np.full((2, 3), -1, np.float32)
+    reward, terminated, truncated, got = unpack_step_reply_into(
+        frame, memoryview(out).cast("B"), array_head(obs.dtype, obs.shape)
+    )
+    _, *rest = unpack(frame)["result"]
+    assert np.array_equal(out, obs) and [reward, terminated, truncated] == rest[:3]
+    assert got.keys() == rest[3].keys() and np.array_equal(got["final_obs"], np.ones(2))
+    untouched = np.full(6, -1, np.float64)
+    for head, dest in [
+        (array_head(np.dtype(np.float64), (2, 3)), memoryview(untouched).cast("B")),  # the env sent float32
+        (array_head(obs.dtype, (3, 2)), memoryview(out).cast("B")),  # another shape, the same size
+        (array_head(obs.dtype, (2, 3)), memoryview(out).cast("B")[:12]),  # a buffer of another size
+    ]:
+        assert unpack_step_reply_into(frame, dest, head) is None
+    assert (untouched == -1).all()
+    goal = pack_step_reply([{"observation": np.zeros(3)}, 0.0, False, False, {}])  # a dict travels in msgpack
+    assert unpack_step_reply_into(goal, memoryview(out).cast("B"), array_head(obs.dtype, obs.shape)) is None
+    assert unpack_step_reply_into(pack({"ok": True, "result": None}), memoryview(out).cast("B"), b"") is None
+    with pytest.raises(CodecError, match="info must be a map, got list"):
+        bad = pack_step_reply([obs, 0.0, False, False, {}])[:-1] + b"\x90"  # the info: an empty list
+        unpack_step_reply_into(bad, memoryview(out).cast("B"), array_head(obs.dtype, obs.shape))
+    assert np.array_equal(out, obs)
 
 
 _REQ = bytes([STEP_TAG, 1])  # a request's tag and kind; then mode, encoding, and 8 bytes of reference time

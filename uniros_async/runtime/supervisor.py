@@ -41,7 +41,7 @@ import multiprocessing
 import os
 import threading
 import time
-from collections.abc import Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from typing import Any, Generic, TypeVar
 
 import gymnasium as gym
@@ -51,7 +51,15 @@ from gymnasium.envs.registration import registry
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.priority import MAX_LOOP_RANK
 from uniros_async.runtime.remote import RemoteWorker, RemoteWorkerProcess, check_plain, parse_placement
-from uniros_async.runtime.worker import WorkerSpec, pack, space_from_plain, unpack, worker_entry
+from uniros_async.runtime.worker import (
+    STEP_TAG,
+    PackedRequest,
+    WorkerSpec,
+    pack,
+    space_from_plain,
+    unpack,
+    worker_entry,
+)
 
 __all__ = ["ProxyEnv", "Supervisor", "WorkerHandle", "check_env_args", "make"]
 
@@ -65,6 +73,11 @@ would sleep and pay a wake-up (~30 us) on every step. The agent's thread has not
 spin credit stops the polling when replies take longer (a 10 Hz env's step). Not for workers with a real-time env
 loop: there the acting thread may run SCHED_RR above the workers, and its poll would keep a lower-ranked worker
 from the very reply it waits for; their connections keep the transport's default."""
+Request = dict[str, Any] | PackedRequest
+"""A request to a worker: a message, or a step request already packed (``worker.pack_step_request``)."""
+StepDecoder = Callable[[int, memoryview], Any]
+"""``decode(worker index, step reply frame)``: what a step's reply becomes when taken in the calling thread (see
+``WorkerHandle.receive_reply_blocking``); reads the frame before it returns (the ring reuses its bytes)."""
 LATER: Any = object()
 """``WorkerHandle.receive_reply_blocking``: no reply this way; ``receive_reply`` must follow."""
 
@@ -165,7 +178,7 @@ class WorkerHandle:
         await self.send_request(message, timeout_s)
         return await self.receive_reply(message.get("op"), timeout_s)
 
-    async def send_request(self, message: dict[str, Any], timeout_s: float | None) -> None:
+    async def send_request(self, message: Request, timeout_s: float | None) -> None:
         """The first half of ``request``: send ``message`` (``receive_reply`` must follow). Raises as ``request``;
         ``timeout_s=None``: no deadline of its own (the caller's bounds the wait)."""
         if self.broken is not None:
@@ -228,11 +241,13 @@ class WorkerHandle:
             raise
         return self._result(reply)
 
-    def receive_reply_blocking(self, op: Any, timeout_s: float) -> Any:
+    def receive_reply_blocking(self, op: Any, timeout_s: float, decode: StepDecoder | None = None) -> Any:
         """``receive_reply`` in this thread without the event loop (``ShmTransport.receive_blocking``), for a local
         worker whose request is in flight: returns its result, or ``LATER`` when the reply cannot be had that way
         (not there within ``timeout_s``, the worker hung up, not an shm connection, ...: nothing was consumed, and
-        ``receive_reply`` must follow, which also reports what went wrong).
+        ``receive_reply`` must follow, which also reports what went wrong). ``decode``: what a step's reply frame
+        becomes instead of its result, ``decode(index, frame)``, called while the frame is still in the ring (an
+        error reply is not a step frame: it raises as usual).
 
         Raises:
             WorkerError: the worker raised (its traceback attached; the worker stays usable).
@@ -245,6 +260,8 @@ class WorkerHandle:
             if frame is None:
                 return LATER
             self.in_flight = False
+            if decode is not None and frame[0] == STEP_TAG:
+                return decode(self.index, frame)
             reply = unpack(frame)
         except BaseException:  # Ctrl-C in the wait, a malformed reply: replies out of step
             self.broken = f"waiting for the reply to {op!r} was interrupted ({self.spec.env_id})"
@@ -534,17 +551,23 @@ class Supervisor:
             if not t.cancelled():
                 t.exception()  # retrieved: the interrupted caller is gone
 
-    def request_all_now(self, messages: Sequence[dict[str, Any] | None]) -> list[Any]:
-        """``request_all(messages, return_exceptions=True)`` run to the end in this thread (its waits have their own
-        deadlines, so no outer timeout is added: the cheapest round trip, used by ``UnirosVectorEnv.step``)."""
-        return _SentPending(self, messages, self._send_now(messages)).result()
+    def send_all_now(self, messages: Sequence[Request | None]) -> _SentPending:
+        """``request_all(messages, return_exceptions=True)`` to be run to the end in this thread by the ``result``
+        of what this returns (its waits have their own deadlines, so no outer timeout is added: the cheapest round
+        trip, used by ``UnirosVectorEnv.step``); the requests that can go at once are sent before it returns."""
+        return _SentPending(self, messages, self._send_now(messages))
 
     def _receive_now(
-        self, messages: Sequence[dict[str, Any] | None], sent: frozenset[int], deadline: float, results: list[Any]
+        self,
+        messages: Sequence[Request | None],
+        sent: frozenset[int],
+        deadline: float,
+        results: list[Any],
+        decode: StepDecoder | None = None,
     ) -> set[int]:
         """Collect the replies of the requests ``_send_now`` sent, in this thread and without the event loop
-        (``WorkerHandle.receive_reply_blocking``), into ``results``; stops at the first that cannot be had that
-        way. Returns the indices still to do (requests not sent, replies not received)."""
+        (``WorkerHandle.receive_reply_blocking``, with ``decode``), into ``results``; stops at the first that cannot
+        be had that way. Returns the indices still to do (requests not sent, replies not received)."""
         rest = {i for i, m in enumerate(messages) if m is not None}
         if not sent or not self._lock.acquire(blocking=False):
             return rest
@@ -555,7 +578,7 @@ class Supervisor:
                 w = self.workers[i]
                 op = messages[i].get("op")  # type: ignore[union-attr]
                 try:
-                    r = w.receive_reply_blocking(op, max(deadline - time.monotonic(), 0.0))
+                    r = w.receive_reply_blocking(op, max(deadline - time.monotonic(), 0.0), decode)
                 except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
                     r = exc
                 if r is LATER:
@@ -572,7 +595,7 @@ class Supervisor:
         finally:
             self._lock.release()
 
-    def _send_now(self, messages: Sequence[dict[str, Any] | None]) -> frozenset[int]:
+    def _send_now(self, messages: Sequence[Request | None]) -> frozenset[int]:
         """Send the requests that can go at once (``WorkerHandle.try_send_request``: local shm workers with room),
         in this thread without running the event loop: a step's actions then reach every worker within tens of
         microseconds of each other instead of one event-loop round apart. Stops at the first that cannot (that one
@@ -605,7 +628,7 @@ class Supervisor:
 
         return _Pending(self, self._drive(start(), 5.0))
 
-    def submit_all(self, messages: Sequence[dict[str, Any] | None]) -> _Pending[list[Any]]:
+    def submit_all(self, messages: Sequence[Request | None]) -> _Pending[list[Any]]:
         """``request_all(messages, return_exceptions=True)``, returning once every request is sent."""
         presend = self._send_now(messages)
         if len(presend) == sum(m is not None for m in messages):  # all sent: nothing runs until the replies are due
@@ -626,7 +649,7 @@ class Supervisor:
 
     async def request_all(
         self,
-        messages: Sequence[dict[str, Any] | None],
+        messages: Sequence[Request | None],
         *,
         return_exceptions: bool = False,
         sent: asyncio.Future[None] | None = None,
@@ -868,7 +891,7 @@ class _SentPending(_Pending[list[Any]]):
     supervisor's loop, under what is left of the same deadline. The call timeout starts at the first ``result``, as
     for a task."""
 
-    def __init__(self, supervisor: Supervisor, messages: Sequence[dict[str, Any] | None], sent: frozenset[int]) -> None:
+    def __init__(self, supervisor: Supervisor, messages: Sequence[Request | None], sent: frozenset[int]) -> None:
         self._sup = supervisor
         self._messages = messages
         self._sent = sent
@@ -881,15 +904,16 @@ class _SentPending(_Pending[list[Any]]):
             return self._task.done()
         return self._rest is not None and not self._rest
 
-    def result(self, timeout: float | None = None) -> list[Any]:
-        """As ``_Pending.result``."""
+    def result(self, timeout: float | None = None, decode: StepDecoder | None = None) -> list[Any]:
+        """As ``_Pending.result``; ``decode``: what a step reply taken in this thread becomes instead of its result
+        (``WorkerHandle.receive_reply_blocking``; the replies taken by the event loop are results as usual)."""
         sup = self._sup
         now = time.monotonic()
         end = None if timeout is None else now + timeout
         if self._rest is None:
             deadline = now + sup.call_timeout_s
             self._rest = sup._receive_now(
-                self._messages, self._sent, deadline if end is None else min(deadline, end), self._results
+                self._messages, self._sent, deadline if end is None else min(deadline, end), self._results, decode
             )
             if self._rest:
                 if sup._loop.is_closed():

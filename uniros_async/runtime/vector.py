@@ -29,7 +29,14 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from uniros_async.errors import ConfigError, WorkerError
 from uniros_async.runtime.supervisor import Supervisor
-from uniros_async.runtime.worker import PackedRequest, pack_step_request, space_from_plain
+from uniros_async.runtime.worker import (
+    PackedRequest,
+    array_head,
+    pack_step_request,
+    space_from_plain,
+    unpack,
+    unpack_step_reply_into,
+)
 
 __all__ = ["UnirosVectorEnv", "make_vec"]
 
@@ -136,6 +143,9 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         self.single_action_space = _merge(act_spaces, names, union=False, what="action")
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
+        obs_space = self.single_observation_space
+        # a Box observation goes from each reply straight into its row of the vector observation (_Returns)
+        self._obs_head = array_head(obs_space.dtype, obs_space.shape) if isinstance(obs_space, gym.spaces.Box) else None
         self.metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}
         self.render_mode = None
         self.spec = None
@@ -171,22 +181,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         Raises:
             WorkerError: a worker raised, died or did not answer within the call timeout (its index named).
         """
-        return self._step_returns(self._wait(timeout))
-
-    def _step_returns(self, replies: list[Any]) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        n = self.num_envs
-        rewards = np.empty(n, dtype=np.float64)
-        terminated = np.empty(n, dtype=np.bool_)
-        truncated = np.empty(n, dtype=np.bool_)
-        obs: list[Any] = []
-        infos: dict[str, Any] = {}
-        for i, (o, reward, term, trunc, info) in enumerate(replies):  # one pass over the replies
-            obs.append(o)
-            rewards[i] = reward
-            terminated[i] = term
-            truncated[i] = trunc
-            infos = self._add_info(infos, info, i)
-        return self._stack_obs(obs), rewards, terminated, truncated, infos
+        return _Returns(self).finish(self._wait(timeout))
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """``step_async`` then ``step_wait``, in one run of the supervisor's loop.
@@ -198,7 +193,9 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         if self._pending is not None:
             raise gym.error.AlreadyPendingCallError("step was called while a step_async is pending", "step")
         msgs = self._step_messages(actions, "next_step")
-        return self._step_returns(self._collect(self._sup.request_all_now(msgs)))
+        pending = self._sup.send_all_now(msgs)
+        returns = _Returns(self)  # made while the workers step
+        return returns.finish(self._collect(pending.result(decode=returns.decode)))
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
         """Call method ``name`` (or read attribute ``name``) of every sub-env; plain data in and out."""
@@ -357,6 +354,62 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
 
     def __repr__(self) -> str:
         return f"UnirosVectorEnv({self.env_ids})"
+
+
+class _Returns:
+    """One vector step's returns, filled reply by reply: made (its arrays allocated) while the workers step; a
+    reply that ``decode`` takes while it is still in the transport's ring leaves its observation in its row of the
+    vector observation at once (a Box observation space; ``worker.unpack_step_reply_into``), the others (a Dict
+    observation, a reply taken by the event loop, a restarted worker's) go through ``finish`` as results."""
+
+    __slots__ = ("venv", "obs", "raw", "row_bytes", "rewards", "terminated", "truncated")
+
+    def __init__(self, venv: UnirosVectorEnv) -> None:
+        n = venv.num_envs
+        self.venv = venv
+        self.rewards = np.empty(n, dtype=np.float64)
+        self.terminated = np.empty(n, dtype=np.bool_)
+        self.truncated = np.empty(n, dtype=np.bool_)
+        space: Any = venv.single_observation_space
+        self.obs: np.ndarray | None = None
+        self.raw: memoryview | None = None  # the bytes of ``obs``, row after row
+        self.row_bytes = 0
+        if venv._obs_head is not None:
+            self.obs = np.empty((n, *space.shape), dtype=space.dtype)
+            self.raw = self.obs.data.cast("B")
+            self.row_bytes = self.obs.nbytes // n
+
+    def decode(self, i: int, frame: memoryview) -> Any:
+        """Sub-env ``i``'s step reply: its info (a dict) when the rest went straight into place, else its result
+        (``[obs, reward, terminated, truncated, info]``, a list) for ``finish``."""
+        raw, head = self.raw, self.venv._obs_head
+        if raw is not None and head is not None:
+            k = self.row_bytes
+            got = unpack_step_reply_into(frame, raw[i * k : i * k + k], head)
+            if got is not None:
+                self.rewards[i], self.terminated[i], self.truncated[i], info = got
+                return info
+        return unpack(frame)["result"]
+
+    def finish(self, results: list[Any]) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """The vector returns, from ``results`` (what ``decode`` returned, or the results of the usual path)."""
+        venv = self.venv
+        obs = self.obs
+        others: list[Any] = []
+        infos: dict[str, Any] = {}
+        for i, r in enumerate(results):
+            if type(r) is dict:  # decoded in place; only its info is left
+                info = r
+            else:
+                o, self.rewards[i], self.terminated[i], self.truncated[i], info = r
+                if obs is not None:
+                    obs[i] = o
+                else:
+                    others.append(o)
+            infos = venv._add_info(infos, info, i)
+        if obs is None:
+            obs = venv._stack_obs(others)
+        return obs, self.rewards, self.terminated, self.truncated, infos
 
 
 _SB3_CLASS: list[type] = []

@@ -174,14 +174,21 @@ def _default(value: Any) -> Any:
 def _array_part(value: np.ndarray) -> bytes:
     """An array on the wire: a header (dtype string, ndim, shape; cached by dtype and shape) and the data in C
     order, whatever the strides. The payload of the array ExtType, and a step frame's array as it is."""
-    key = (value.dtype, value.shape)
-    head = _PACKED_HEADS.get(key)
+    head = _PACKED_HEADS.get((value.dtype, value.shape))
     if head is None:
-        d = value.dtype.str.encode()
-        head = bytes((len(d),)) + d + bytes((value.ndim,)) + b"".join(_SHAPE.pack(n) for n in value.shape)
-        if len(_PACKED_HEADS) < 256:
-            _PACKED_HEADS[key] = head
+        head = array_head(value.dtype, value.shape)
     return head + value.tobytes()
+
+
+def array_head(dtype: np.dtype[Any], shape: tuple[int, ...]) -> bytes:
+    """The header ``_array_part`` writes before the data of an array of ``dtype`` and ``shape``."""
+    head = _PACKED_HEADS.get((dtype, shape))
+    if head is None:
+        d = dtype.str.encode()
+        head = bytes((len(d),)) + d + bytes((len(shape),)) + b"".join(_SHAPE.pack(n) for n in shape)
+        if len(_PACKED_HEADS) < 256:
+            _PACKED_HEADS[(dtype, shape)] = head
+    return head
 
 
 _HEADS: dict[bytes, tuple[np.dtype[Any], tuple[int, ...], int]] = {}
@@ -238,7 +245,7 @@ def _packb(value: Any) -> bytes:
     return packer.pack(value)  # type: ignore[no-any-return]
 
 
-def pack(message: dict[str, Any]) -> bytes:
+def pack(message: dict[str, Any] | PackedRequest) -> bytes:
     """One frame for ``message``.
 
     Raises:
@@ -355,6 +362,32 @@ def _unpack_step(frame: bytes | memoryview) -> dict[str, Any]:
             raise CodecError(f"malformed step frame: a reply's info must be a map, got {type(info).__name__}")
         return {"ok": True, "result": [obs, reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), info]}
     raise CodecError(f"malformed step frame: kind {kind}; expected {_STEP_REQUEST} (request) or {_STEP_REPLY} (reply)")
+
+
+def unpack_step_reply_into(
+    frame: bytes | memoryview, out: memoryview, head: bytes
+) -> tuple[float, bool, bool, dict[str, Any]] | None:
+    """A step reply's reward, terminated, truncated and info, with its observation's bytes copied straight into
+    ``out`` (the bytes of a sub-env's row of the vector observation), when the observation is an array whose
+    header is ``head`` (``array_head``) and whose data fills ``out``: one copy from the frame, no array of its own to
+    make and stack. None when it is not such a reply (nothing is written then): ``unpack`` takes it.
+
+    Raises:
+        CodecError: the info is not a map, or not msgpack.
+    """
+    size = _STEP_REP.size
+    if len(frame) < size or frame[0] != STEP_TAG or frame[1] != _STEP_REPLY:
+        return None
+    _, _, flags, enc, obs_len, reward = _STEP_REP.unpack_from(frame)
+    data = size + len(head)
+    end = size + obs_len
+    if enc != _ARRAY or end > len(frame) or end - data != len(out) or frame[size:data] != head:
+        return None
+    out[:] = frame[data:end]
+    info = _unpackb(frame[end:])
+    if type(info) is not dict:
+        raise CodecError(f"malformed step frame: a reply's info must be a map, got {type(info).__name__}")
+    return reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), info
 
 
 def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:
