@@ -19,6 +19,8 @@ import contextlib
 import dataclasses
 import enum
 import importlib
+import os
+import time
 from collections.abc import AsyncIterator, Sequence
 from types import TracebackType
 from typing import ClassVar, Self
@@ -51,6 +53,10 @@ DEFAULT_MAX_FRAME_BYTES = 64 * 1024 * 1024
 SPIN_CREDIT = 4
 SPIN_WAKEUP_NS = 50_000
 SPIN_EXTRA_NS = 150_000
+spin_clock_ns = time.perf_counter_ns
+"""The clock a spin reads its window on."""
+spin_yield = getattr(os, "sched_yield", lambda: None)
+"""What a spin does between two polls: lets whatever waits for this core (the peer, if it shares it) run now."""
 
 
 class Delivery(enum.Enum):

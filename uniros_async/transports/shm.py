@@ -41,7 +41,6 @@ import select
 import socket
 import struct
 import threading
-import time
 from collections.abc import AsyncIterator, Sequence
 
 from uniros_async.errors import (
@@ -83,8 +82,8 @@ _fence_release = _fence_lock.release
 # sending a large frame the window grows by the time the peer needs to read it (up to _SPIN_EXTRA_NS). A spin that
 # finds nothing costs credit; without credit no spin is tried until a sleep turns out to have been short enough that
 # a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
-_now_ns = time.perf_counter_ns
-_yield = os.sched_yield
+_now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
+_yield = _base.spin_yield
 _SPIN_CREDIT = _base.SPIN_CREDIT
 _RESTART_BYTES = 4096
 _WAKEUP_NS = _base.SPIN_WAKEUP_NS

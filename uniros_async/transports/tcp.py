@@ -127,8 +127,8 @@ _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then
 # byte sent, up to _SPIN_EXTRA_NS (the answer to 64 KiB took ~70 us). A spin that finds nothing costs credit; without
 # credit no spin is tried until a wait turns out to have been short enough that a spin would have caught it. So an
 # idle receiver spins a few times, then sleeps; a slow peer (a 10 Hz arm's states) stops the spinning at once.
-_now_ns = time.perf_counter_ns
-_yield = getattr(os, "sched_yield", lambda: None)
+_now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
+_yield = _base.spin_yield
 _SPIN_CREDIT = _base.SPIN_CREDIT
 _WAKEUP_NS = _base.SPIN_WAKEUP_NS  # a wait this much longer than the window would have been caught by it
 _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS  # at most this much longer after a large send: 1 ns per byte sent
