@@ -583,6 +583,8 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
             # for the next request would save, and the poll would hold the loop (up to 50 us)
             transport.spin_ns = 0 if server.realtime else TURN_SPIN_NS
+        if hasattr(transport, "on_shared_core") and not server.realtime:
+            transport.on_shared_core = _move_off_core
         await server.serve(transport)
     except TransportError:
         logger.info("worker %d: the supervisor went away", spec.index)
@@ -598,6 +600,21 @@ TURN_SPIN_NS = 200_000
 between two steps (collect the returns, pick the next actions, pack them: ~60 us for one env here) is longer than
 ``ShmTransport.spin_ns``, so with the default every step would wake the worker from sleep (~40 us on an idle core).
 The spin credit still stops the polling when requests come slower than this (a learner's update between steps)."""
+
+
+def _move_off_core(cpu: int) -> None:
+    """Move this worker off ``cpu``, its agent's core (``ShmTransport.on_shared_core``): the scheduler often wakes a
+    worker on the core of the agent that woke it (in a VM, whose halted vCPU looks busy, nearly always), and the two
+    then take turns on one core while the other idles. Pinned away for a moment, then allowed everywhere again: the
+    worker stays on its new core until a later wake-up places it anew."""
+    try:
+        allowed = os.sched_getaffinity(0)
+        others = allowed - {cpu}
+        if others:
+            os.sched_setaffinity(0, others)  # migrates at once
+            os.sched_setaffinity(0, allowed)
+    except OSError as exc:  # not permitted here: the turns on one core go on, correct if slower
+        logger.debug("could not move off cpu %d: %s", cpu, exc)
 
 
 class _Server:

@@ -13,6 +13,7 @@ Each ctl block is one page of native uint64 words, each word on its own cache li
 
     W_POS      bytes ever written (producer only)       R_POS   bytes ever released (consumer only)
     R_TICKET   odd while the consumer waits for data    W_TICKET  odd while the producer waits for space
+    R_CPU      1 + the CPU the consumer last waited on (0: not known; a hint, see ShmTransport._peer_here)
 
 Positions only grow, so ``W_POS - R_POS`` is the fill level and ``pos % cap`` the offset. A record is an 8-byte
 header (the payload length) and the payload padded to 8 bytes, so headers never straddle the end of the ring.
@@ -29,6 +30,7 @@ import os
 
 __all__ = [
     "CTL_BYTES",
+    "R_CPU",
     "R_POS",
     "R_TICKET",
     "SKIP",
@@ -47,6 +49,7 @@ W_POS = 0
 R_POS = 8
 R_TICKET = 16
 W_TICKET = 24
+R_CPU = 32
 SKIP = 1 << 63
 MAX_CAPACITY = 1 << 30
 _SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL

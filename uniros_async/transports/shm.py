@@ -41,7 +41,7 @@ import select
 import socket
 import struct
 import threading
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 
 from uniros_async.errors import (
     ConfigError,
@@ -52,6 +52,7 @@ from uniros_async.errors import (
 from uniros_async.transports import _shm_handshake
 from uniros_async.transports import base as _base
 from uniros_async.transports._shm_ring import (
+    R_CPU,
     R_POS,
     R_TICKET,
     SKIP,
@@ -84,6 +85,9 @@ _fence_release = _fence_lock.release
 # a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
 _now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
 _yield = _base.spin_yield
+_this_cpu = _base.this_cpu
+_SHARED_CORE_NS = 50_000  # a poll that lasts longer looks where the peer runs (_peer_here): once, ~0.3 us
+_CPU_HINT_NS = 1_000_000  # a sender says where it runs at most this often (a process seldom changes cores)
 _SPIN_CREDIT = _base.SPIN_CREDIT
 _RESTART_BYTES = 4096
 _WAKEUP_NS = _base.SPIN_WAKEUP_NS
@@ -103,6 +107,10 @@ class ShmTransport(Transport):
     """How long receive() polls before it sleeps (plus a margin after large sends); 0 disables spinning, also when
     set on an open connection. Spinning holds the event loop, so other tasks of this loop wait up to this long; it
     never happens when both ends are in the same process."""
+
+    on_shared_core: Callable[[int], None] | None = None
+    """Called with the CPU when this end, about to poll for the peer's next frame, finds the peer on its own core
+    (``_peer_here``): a worker moves itself off it (``runtime.worker``); the agent's process is left where it is."""
 
     def __init__(
         self,
@@ -134,6 +142,7 @@ class ShmTransport(Transport):
         self._tx_ticket = 0
         self._signaled_reader = 0  # the peer's reader ticket we last rang for
         self._signaled_writer = 0
+        self._cpu_said_by = 0  # _commit_record says again where this end runs after this time
         self._rx_waiter: asyncio.Future[None] | None = None
         self._poller: select.poll | None = None  # receive_blocking's, made on first use
         self._spin_credit = _SPIN_CREDIT if self.spin_ns > 0 else 0
@@ -321,17 +330,49 @@ class ShmTransport(Transport):
         self._sent_since_wait = 0
         return window_ns
 
+    def _peer_here(self) -> bool:
+        """Whether the peer, when it last looked, ran on the CPU this end polls on (and say where this end runs).
+
+        A poll only pays while the peer runs on another core. When both ends share one (a woken worker is often
+        placed on its waker's core, more so in a VM whose other vCPU halted and looks busy to the scheduler), a
+        poll holds up the very peer it waits for: under EEVDF a ``sched_yield`` seldom hands the core over, and a
+        step took 300-400 us instead of 60 until the scheduler moved one of them, some milliseconds later. So the
+        two ends of a connection publish where they wait (``R_CPU``), and an end that finds the peer on its own
+        core sleeps at once: a shared core then costs two context switches per exchange, not a scheduler slice.
+        An end looks only once a poll has lasted ``_SHARED_CORE_NS`` (a quick exchange never pays for the look),
+        and says where it runs when it looks and, at most once a millisecond, when it sends: a hint (a process
+        seldom changes cores), which also covers an end that never polls long (its replies are there before it
+        looks, because the peer preempted it on the shared core).
+        """
+        cpu = _this_cpu() + 1
+        self._rx_ctl[R_CPU] = cpu
+        if cpu == 0 or self._tx_ctl[R_CPU] != cpu:
+            return False
+        if self.on_shared_core is None:
+            return True
+        self.on_shared_core(cpu - 1)  # moves this end elsewhere, if it can
+        moved = _this_cpu() + 1
+        self._rx_ctl[R_CPU] = moved
+        return moved == cpu
+
     def _spin(self, window_ns: int) -> bool:
         """Poll for data past our read position for up to ``window_ns``, yielding the CPU between polls; True if it
         came. Keeps the spin credit (see ``_SPIN_CREDIT``)."""
         ctl = self._rx_ctl
         rpos = self._rpos
-        deadline = _now_ns() + window_ns
+        start = _now_ns()
+        deadline = start + window_ns
+        look_at = start + _SHARED_CORE_NS
         while ctl[W_POS] == rpos:
-            if _now_ns() > deadline:
+            now = _now_ns()
+            if now > look_at:  # a poll this long: is the peer waiting for this very core?
+                look_at = deadline
+                if self._peer_here():
+                    return False
+            if now > deadline:
                 self._spin_credit -= 1
                 return False
-            _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin
+            _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin (if it agrees)
         self._spin_credit = _SPIN_CREDIT
         return True
 
@@ -569,6 +610,10 @@ class ShmTransport(Transport):
         stats = self.stats
         stats.frames_sent += 1
         stats.bytes_sent += n
+        now = _now_ns()
+        if now > self._cpu_said_by:  # where this end runs, for the peer's _peer_here: at most every _CPU_HINT_NS
+            self._cpu_said_by = now + _CPU_HINT_NS
+            self._rx_ctl[R_CPU] = _this_cpu() + 1
 
     async def _send_checks(self) -> None:
         """The slow path of send(): finish a cancelled streamed frame, then raise if the connection is unusable."""

@@ -1,0 +1,64 @@
+"""A worker that finds itself on its agent's core moves off it (``ShmTransport.on_shared_core``,
+``worker._move_off_core``): real processes, real CPU affinity, read back from /proc."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from uniros_async.runtime import make_vec
+from uniros_async.transports.base import this_cpu
+
+pytestmark = pytest.mark.skipif(
+    not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2 or this_cpu() < 0,
+    reason="needs CPU affinity, sched_getcpu and at least two CPUs (the CI machine has two)",
+)
+
+
+def _last_cpu(pid: int) -> int:
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[36])  # field 39: the CPU it last ran on
+
+
+def test_a_worker_placed_on_its_agents_core_moves_to_another_and_keeps_every_core_allowed() -> None:
+    cpus = os.sched_getaffinity(0)
+    here = min(cpus)
+    venv = make_vec(["CartPole-v1"], pad=False)
+    pid = venv.pids[0]
+    try:
+        venv.reset(seed=0)
+        os.sched_setaffinity(0, {here})  # the agent (this process) stays on one core ...
+        os.sched_setaffinity(pid, {here})  # ... and the worker is put on the same one, then allowed everywhere
+        os.sched_setaffinity(pid, cpus)
+        assert _last_cpu(pid) == here
+        # it looks where the agent runs once a poll for the next request has lasted 50 us, which on one core it
+        # soon does (the agent cannot run while it polls, unless a yield happens to hand the core over)
+        for k in range(2000):
+            venv.step(np.array([k % 2]))
+            if _last_cpu(pid) != here:
+                break
+        assert _last_cpu(pid) != here  # it moved itself off the agent's core
+        assert os.sched_getaffinity(pid) == cpus  # and is not pinned anywhere
+        obs, reward, *_ = venv.step(np.array([1]))
+        assert obs.shape == (1, 4) and reward[0] in (0.0, 1.0)  # and serves as before
+    finally:
+        os.sched_setaffinity(0, cpus)
+        venv.close()
+
+
+def test_an_agent_alone_on_its_core_is_not_moved() -> None:
+    """Only workers move: the agent's process, which the user owns, keeps the affinity it had."""
+    cpus = os.sched_getaffinity(0)
+    here = min(cpus)
+    venv = make_vec(["CartPole-v1"], pad=False)
+    try:
+        venv.reset(seed=0)
+        os.sched_setaffinity(0, {here})
+        for k in range(20):
+            venv.step(np.array([k % 2]))
+        assert os.sched_getaffinity(0) == {here} and this_cpu() == here
+    finally:
+        os.sched_setaffinity(0, cpus)
+        venv.close()
