@@ -26,6 +26,9 @@ def test_a_short_run_prints_the_table_and_writes_every_record(tmp_path: Path) ->
     assert json.loads(out.read_text()) == records
     rows = {(r["env"], r["impl"]) for r in records}
     assert rows == {(e, i) for e in (throughput.ENV_ID, throughput.TRIVIAL_ID) for i in throughput.IMPLS}
+    in_turns = [r for r in records if r.get("envs_in_turn")]
+    assert sorted(r["impl"] for r in in_turns) == sorted(throughput.IMPLS)
+    assert all(r["env"] == throughput.TRIVIAL_ID and r["envs_in_turn"] == 2 for r in in_turns)
     for r in records:
         assert {"impl", "n_envs", "steps_per_s", "overhead_us"} <= r.keys()
         assert r["n_envs"] == 1 and r["steps_per_s"] > 0 and r["bare_ms"] > 0 and r["step_ms"] > 0
@@ -35,6 +38,7 @@ def test_a_short_run_prints_the_table_and_writes_every_record(tmp_path: Path) ->
             assert "floor_ms" not in r
     text = "\n".join(lines)
     assert "gymnasium-async" in text and "sb3-subproc" in text and "physics bound" in text
+    assert "stepped in turn" in text
 
 
 @pytest.mark.parametrize("kw", [{"n_envs": ()}, {"n_envs": (0,)}, {"steps": 2}])

@@ -27,8 +27,10 @@ first step of each block, which starts on idle (halted, cache-cold) cores, is le
   the first overhead can be negative; the second is what the runtime costs on top of the env's work.
 
 A second table does the same for a trivial env (gymnasium's ``CartPole-v1``, ~10 us a step), N = 1: what each
-runtime costs per step when the env costs nothing. The physics bound on aggregate steps/s is printed beside:
-min(N, cores) / bare step time.
+runtime costs per step when the env costs nothing. A third steps two vector envs of that env in turn, a block of
+20 steps each, as a training loop with an evaluation env does (``_run_in_turns``; ``envs_in_turn`` in the
+records): a worker woken after its pause must not find itself sharing the agent's core. The physics bound on
+aggregate steps/s is printed beside: min(N, cores) / bare step time.
 """
 
 from __future__ import annotations
@@ -72,7 +74,8 @@ class ThroughputBenchConfig:
 def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
     import gymnasium as gym
 
-    import uniros_async  # noqa: F401  (registers the uniros ids, also in a spawned process)
+    if env_id.startswith("uniros/"):
+        import uniros_async  # noqa: F401  (registers the uniros ids, also in a spawned process)
 
     return gym.make(env_id, **kwargs)
 
@@ -228,6 +231,52 @@ def _run(
     return record
 
 
+def _run_in_turns(impl: str, bare: Any, env_id: str, steps: int, block: int = 20) -> dict[str, Any]:
+    """Two vector envs of one sub-env each, stepped in turn, a block of steps each (a training env and an
+    evaluation env, or two tasks): per block, steps k..k+B-1 of the bare env, then the same steps of one vector env,
+    then of the other; the overhead is over the bare step, as in ``_run``, the first step of each block left out."""
+    actions = _actions(bare.action_space, steps + block)
+    pairs = [_vector(impl, 1, env_id, {}) for _ in range(2)]
+    vec_t: list[float] = []
+    bare_t: list[float] = []
+    try:
+        for _, reset, _ in pairs:
+            reset()
+        bare.reset(seed=0)
+        for k0 in range(0, steps, block):
+            ks = range(k0, k0 + block)
+            b: list[float] = []
+            for k in ks:
+                t0 = time.perf_counter()
+                _, _, terminated, truncated, _ = bare.step(actions[k])
+                b.append(time.perf_counter() - t0)
+                if terminated or truncated:
+                    bare.reset()
+            for _, _, step in pairs:
+                v: list[float] = []
+                for k in ks:
+                    a = np.full(1, actions[k])
+                    t0 = time.perf_counter()
+                    step(a)
+                    v.append(time.perf_counter() - t0)
+                bare_t += b[1:]
+                vec_t += v[1:]
+    finally:
+        for venv, _, _ in pairs:
+            venv.close()
+    med = float(np.median(vec_t))
+    return {
+        "env": env_id,
+        "impl": impl,
+        "n_envs": 1,
+        "envs_in_turn": 2,
+        "steps_per_s": round(1 / med, 1),
+        "overhead_us": round(float(np.median(np.subtract(vec_t, bare_t))) * 1e6, 1),
+        "bare_ms": round(float(np.median(bare_t)) * 1e3, 3),
+        "step_ms": round(med * 1e3, 3),
+    }
+
+
 def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     ns = tuple(n for n in config.n_envs if n <= 4) if config.quick else config.n_envs
     steps = min(config.steps, 40) if config.quick else config.steps
@@ -250,6 +299,9 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     try:
         for impl in IMPLS:
             records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, max(steps, 200), block=20))
+        # (--quick: against gymnasium's only, to keep within its minute)
+        for impl in IMPLS[:2] if config.quick else IMPLS:
+            records.append(_run_in_turns(impl, trivial, TRIVIAL_ID, 100 if config.quick else max(steps, 200)))
     finally:
         trivial.close()
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
@@ -261,7 +313,12 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     ]
     for r in records:
         if r["env"] == TRIVIAL_ID and r["impl"] == IMPLS[0]:
-            lines += ["", f"{TRIVIAL_ID} (trivial env: the runtime's own cost per step)", head, "-" * len(head)]
+            what = (
+                "two vector envs of one env each, stepped in turn: a training and an evaluation env"
+                if r.get("envs_in_turn")
+                else "trivial env: the runtime's own cost per step"
+            )
+            lines += ["", f"{TRIVIAL_ID} ({what})", head, "-" * len(head)]
         lines.append(
             f"{r['n_envs']:>3} {r['impl']:<16} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}"
             f" {r['step_ms']:>8.3f} {r['bare_ms']:>8.3f}"
