@@ -34,7 +34,9 @@ def _domain_arg(p: argparse.ArgumentParser) -> None:
 
 
 def _build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="uniros", description="uniros_async: real-time RL on simulated and real robots")
+    parser = argparse.ArgumentParser(
+        prog="uniros", description="uniros_async: real-time RL on simulated and real robots"
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -61,7 +63,9 @@ def _build_parser() -> argparse.ArgumentParser:
 
     bl = bench.add_parser("latency", help="the paper's timing figures (Fig 8-10): cycles, ages, latencies, learners")
     scenarios = ["single", "concurrent", "turn-based", "sweep"]
-    bl.add_argument("--scenario", dest="scenario_name", default="concurrent", choices=scenarios, help="default concurrent")
+    bl.add_argument(
+        "--scenario", dest="scenario_name", default="concurrent", choices=scenarios, help="default concurrent"
+    )
     bl.add_argument(
         "--duration", type=float, default=None, help="wall seconds per learner/mode/sweep point (default: per scenario)"
     )
@@ -136,7 +140,9 @@ def _build_parser() -> argparse.ArgumentParser:
     ws = worker.add_parser("serve", help="start env workers on request (make_vec/make with worker='tcp://HOST:PORT')")
     ws.add_argument("--listen", default="tcp://0.0.0.0:7000", help="tcp://HOST:PORT (default tcp://0.0.0.0:7000)")
     ws.add_argument(
-        "--auth-key-env", default=None, metavar="VAR",
+        "--auth-key-env",
+        default=None,
+        metavar="VAR",
         help="read the shared auth key from this environment variable (default: $UNIROS_WORKER_AUTH_KEY if set)",
     )
     ws.add_argument("--max-workers", type=int, default=None, metavar="N", help="refuse more than N workers at once")
@@ -175,8 +181,10 @@ def _run_topic(args: argparse.Namespace) -> int:
 
         async def go(node: Any) -> None:
             for t in await node.list_topics():
-                print(f"{t['topic']}  [{t['type']}]  pubs: {', '.join(t['publishers']) or '-'}  subs: "
-                      f"{', '.join(s for s in t['subscribers'] if not s.startswith('/uniros_cli_')) or '-'}")
+                print(
+                    f"{t['topic']}  [{t['type']}]  pubs: {', '.join(t['publishers']) or '-'}  subs: "
+                    f"{', '.join(s for s in t['subscribers'] if not s.startswith('/uniros_cli_')) or '-'}"
+                )
 
     elif args.action == "echo":
 
@@ -194,7 +202,10 @@ def _run_topic(args: argparse.Namespace) -> int:
                         msg = await sub.receive()
                 except TimeoutError:
                     break
-                print(yaml.safe_dump(to_dict(msg), sort_keys=False, default_flow_style=None).rstrip() + "\n---", flush=True)
+                print(
+                    yaml.safe_dump(to_dict(msg), sort_keys=False, default_flow_style=None).rstrip() + "\n---",
+                    flush=True,
+                )
                 n += 1
 
     elif args.action == "hz":
@@ -217,8 +228,11 @@ def _run_topic(args: argparse.Namespace) -> int:
                     import numpy as np
 
                     d = np.diff(stamps) / 1e9
-                    print(f"average rate: {1 / d.mean():.3f} Hz  min {d.min() * 1e3:.2f} ms  max {d.max() * 1e3:.2f} ms  "
-                          f"std {d.std() * 1e3:.3f} ms  window: {len(stamps)}", flush=True)
+                    print(
+                        f"average rate: {1 / d.mean():.3f} Hz  min {d.min() * 1e3:.2f} ms  max {d.max() * 1e3:.2f} ms  "
+                        f"std {d.std() * 1e3:.3f} ms  window: {len(stamps)}",
+                        flush=True,
+                    )
                 else:
                     print("no new messages", flush=True)
                 reports += 1
@@ -293,16 +307,24 @@ def _run_bench(args: argparse.Namespace) -> int:
     elif args.scenario == "simclock":
         from uniros_async.bench import simclock
 
-        simclock.main(simclock.SimClockBenchConfig(sim_seconds=args.sim_seconds, episodes=args.episodes, json_path=args.json_path))
+        simclock.main(
+            simclock.SimClockBenchConfig(sim_seconds=args.sim_seconds, episodes=args.episodes, json_path=args.json_path)
+        )
     elif args.scenario == "latency":
         from uniros_async.bench import latency
 
         latency.main(
             latency.LatencyBenchConfig(
-                scenario=args.scenario_name, duration_s=args.duration,
-                learners=tuple(args.learners) if args.learners else None, action_cycle_s=args.action_cycle,
-                think_ms=args.think_ms, learning_starts=args.learning_starts, seed=args.seed,
-                json_path=args.json_path, plot_path=args.plot_path, progress=not args.no_progress,
+                scenario=args.scenario_name,
+                duration_s=args.duration,
+                learners=tuple(args.learners) if args.learners else None,
+                action_cycle_s=args.action_cycle,
+                think_ms=args.think_ms,
+                learning_starts=args.learning_starts,
+                seed=args.seed,
+                json_path=args.json_path,
+                plot_path=args.plot_path,
+                progress=not args.no_progress,
                 keep_cores_awake=not args.allow_idle,
             )
         )
@@ -311,14 +333,21 @@ def _run_bench(args: argparse.Namespace) -> int:
 
         envloop.main(
             envloop.EnvLoopBenchConfig(
-                duration_s=args.duration, arms=tuple(args.arms), action_cycle_s=args.action_cycle, robot=args.robot,
-                concurrent=args.concurrent, json_path=args.json_path, progress=not args.no_progress,
+                duration_s=args.duration,
+                arms=tuple(args.arms),
+                action_cycle_s=args.action_cycle,
+                robot=args.robot,
+                concurrent=args.concurrent,
+                json_path=args.json_path,
+                progress=not args.no_progress,
             )
         )
     else:
         from uniros_async.bench import timers
 
-        timers.main(timers.TimerBenchConfig(duration_s=args.duration, json_path=args.json_path, progress=not args.no_progress))
+        timers.main(
+            timers.TimerBenchConfig(duration_s=args.duration, json_path=args.json_path, progress=not args.no_progress)
+        )
     return 0
 
 
@@ -345,7 +374,9 @@ def _run_worker(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``uniros`` command; returns the exit code."""
     args = _build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
     try:
         if args.command == "bench":
             return _run_bench(args)

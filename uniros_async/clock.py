@@ -163,7 +163,7 @@ class WallClock(Clock):
             return
         if self._tfd is None:
             await asyncio.sleep((deadline_ns - time.monotonic_ns()) / 1e9)
-            while time.monotonic_ns() < deadline_ns:  # asyncio may wake a hair early
+            while time.monotonic_ns() < deadline_ns:  # noqa: ASYNC110 - a sleep, not a wait: asyncio may wake early
                 await asyncio.sleep((deadline_ns - time.monotonic_ns()) / 1e9)
             return
         pool = self._pools.get(loop)

@@ -132,7 +132,8 @@ def test_goal_envs_pad_the_observation_key() -> None:
     try:
         space = venv.single_observation_space
         assert isinstance(space, gym.spaces.Dict)
-        # rx200 24, ned2 21: the standard vector without the direction to the goal and distance (HER relabels desired_goal only)
+        # rx200 24, ned2 21: the standard vector without the direction to the goal and distance
+        # (HER relabels desired_goal only)
         assert space["observation"].shape == (24,) and space["desired_goal"].shape == (3,)
         obs, info = venv.reset(seed=2)
         assert obs["observation"].shape == (2, 24) and obs["achieved_goal"].shape == (2, 3)

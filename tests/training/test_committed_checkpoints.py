@@ -46,7 +46,9 @@ def test_a_committed_policy_still_reaches_its_goals(name: str, env_id: str, kwar
 
 
 @pytest.mark.parametrize("name,env_id,kwargs", CASES)
-def test_eval_defaults_to_the_kwargs_the_policy_was_trained_with(name: str, env_id: str, kwargs: dict[str, str]) -> None:
+def test_eval_defaults_to_the_kwargs_the_policy_was_trained_with(
+    name: str, env_id: str, kwargs: dict[str, str]
+) -> None:
     """``uniros eval`` without ``--env-kwargs`` evaluates on the env as trained (action mode, reward, ...): the
     kwargs come from the checkpoint's config, the clock left to the evaluation; another env id gets none."""
     from uniros_async.training.checkpoint import find_checkpoint, read_meta

@@ -476,12 +476,12 @@ async def test_has_news_and_fileno_tell_a_caller_outside_the_loop_what_waits() -
         assert select.select([fd], [], [], 0)[0] == []
         await s.send(b"news")
         async with asyncio.timeout(5):
-            while not c.has_news():  # the loop has read the frame: the socket says nothing any more, has_news does
+            while not c.has_news():  # noqa: ASYNC110 - the loop has read the frame: the socket is quiet, has_news not
                 await asyncio.sleep(0.001)
         assert bytes(await c.receive()) == b"news" and not c.has_news()
         await s.aclose()
         async with asyncio.timeout(5):
-            while not c.has_news():  # the peer's EOF: receive would raise at once
+            while not c.has_news():  # noqa: ASYNC110 - the peer's EOF: receive would raise at once
                 await asyncio.sleep(0.001)
         await c.aclose()
         assert c.fileno() == -1

@@ -93,7 +93,9 @@ async def _run(config: TimerBenchConfig, log: Callable[[str], None]) -> list[dic
 def main(config: TimerBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Run, print the table, write JSON when asked."""
     records = asyncio.run(_run(config, log))
-    head = f"{'timer':<18} {'rate Hz':>7} {'median err ms':>14} {'p99 ms':>8} {'max ms':>8} {'fires':>6} {'overruns':>8}"
+    head = (
+        f"{'timer':<18} {'rate Hz':>7} {'median err ms':>14} {'p99 ms':>8} {'max ms':>8} {'fires':>6} {'overruns':>8}"
+    )
     lines = [f"fire-time error over {config.duration_s:g} s (actual - deadline)", head, "-" * len(head)]
     for r in records:
         lines.append(

@@ -31,9 +31,9 @@ TRANSPORT_CHOICES = ("auto", "memory", "shm", "tcp")
 
 # In-process delivery tables, keyed by (domain_id, topic). Only subscriptions that accept in-process delivery
 # (their node's transport is "auto" or "memory") are listed.
-_LOCAL_SUBS: dict[tuple[str, str], list["Subscription[Any]"]] = collections.defaultdict(list)
-_LOCAL_PUBS: dict[tuple[str, str], list["Publisher[Any]"]] = collections.defaultdict(list)
-_LOCAL_SERVICES: dict[tuple[str, str], "Service[Any, Any]"] = {}
+_LOCAL_SUBS: dict[tuple[str, str], list[Subscription[Any]]] = collections.defaultdict(list)
+_LOCAL_PUBS: dict[tuple[str, str], list[Publisher[Any]]] = collections.defaultdict(list)
+_LOCAL_SERVICES: dict[tuple[str, str], Service[Any, Any]] = {}
 
 _HELLO_TIMEOUT_S = 5.0
 

@@ -188,8 +188,12 @@ class Domain:
     def _op_advertise_service(self, p: _Participant, req: dict[str, Any]) -> Any:
         name = req["name"]
         if name in self._services:
-            raise _RequestError("name_conflict", f"service {name!r} is already provided by {self._services[name][1]['node']}")
-        self._services[name] = (p, {"name": name, "node": req["node"], "req": req["req"], "resp": req["resp"], **p.info})
+            owner = self._services[name][1]["node"]
+            raise _RequestError("name_conflict", f"service {name!r} is already provided by {owner}")
+        self._services[name] = (
+            p,
+            {"name": name, "node": req["node"], "req": req["req"], "resp": req["resp"], **p.info},
+        )
         return None
 
     def _op_unadvertise_service(self, p: _Participant, req: dict[str, Any]) -> Any:
@@ -201,7 +205,9 @@ class Domain:
     def _op_lookup_service(self, p: _Participant, req: dict[str, Any]) -> Any:
         entry = self._services.get(req["name"])
         if entry is None:
-            raise _RequestError("not_found", f"no service {req['name']!r} in this domain; known: {sorted(self._services)}")
+            raise _RequestError(
+                "not_found", f"no service {req['name']!r} in this domain; known: {sorted(self._services)}"
+            )
         return entry[1]
 
     def _op_list_nodes(self, p: _Participant, req: dict[str, Any]) -> Any:
@@ -215,14 +221,17 @@ class Domain:
         ]
 
     def _op_list_services(self, p: _Participant, req: dict[str, Any]) -> Any:
-        return [{"service": n, "node": e[1]["node"], "req": e[1]["req"], "resp": e[1]["resp"]} for n, e in sorted(self._services.items())]
+        return [
+            {"service": n, "node": e[1]["node"], "req": e[1]["req"], "resp": e[1]["resp"]}
+            for n, e in sorted(self._services.items())
+        ]
 
     def _op_param_get(self, p: _Participant, req: dict[str, Any]) -> Any:
         name = req["name"]
         if name in self.params:
             return {"found": True, "value": self.params[name]}
         prefix = name.rstrip("/") + "/"
-        sub = {k[len(prefix):]: v for k, v in self.params.items() if k.startswith(prefix)}
+        sub = {k[len(prefix) :]: v for k, v in self.params.items() if k.startswith(prefix)}
         if sub:
             return {"found": True, "value": _unflatten(sub)}
         return {"found": False, "value": None}

@@ -66,7 +66,9 @@ def array_field(dtype: Any, ndim: int, *, optional: bool = False, default: Any =
     return field(default=default, metadata=meta)
 
 
-@typing.dataclass_transform(kw_only_default=True, frozen_default=True, field_specifiers=(dataclasses.field, array_field))
+@typing.dataclass_transform(
+    kw_only_default=True, frozen_default=True, field_specifiers=(dataclasses.field, array_field)
+)
 def message(cls: type[M]) -> type[M]:
     """Make ``cls`` a frozen, slotted, keyword-only message dataclass and register it for the codec.
 

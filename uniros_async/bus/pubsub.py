@@ -272,13 +272,20 @@ class Subscription(Generic[M]):
                 conn = await self.node._connect_to(info)
                 await conn.send(
                     codec.encode_plain(
-                        {"op": "subscribe", "topic": self.topic, "type": self.msg_type.__name__, "qos": self.qos.to_wire()}
+                        {
+                            "op": "subscribe",
+                            "topic": self.topic,
+                            "type": self.msg_type.__name__,
+                            "qos": self.qos.to_wire(),
+                        }
                     )
                 )
                 async with asyncio.timeout(_HELLO_TIMEOUT_S):
                     reply = codec.decode_plain(await conn.receive())
                 if not reply.get("ok"):
-                    logger.error("%s: publisher %s refused the subscription: %s", self.topic, info["node"], reply.get("error"))
+                    logger.error(
+                        "%s: publisher %s refused the subscription: %s", self.topic, info["node"], reply.get("error")
+                    )
                     return
                 self._connected.add(key)
                 self._pub_count_changed.set()
@@ -291,7 +298,9 @@ class Subscription(Generic[M]):
                     except CodecError as exc:
                         self.rejected += 1
                         if self.rejected < 10 or self.rejected % 1000 == 0:
-                            logger.warning("%s: rejected frame %d from %s: %s", self.topic, self.rejected, info["node"], exc)
+                            logger.warning(
+                                "%s: rejected frame %d from %s: %s", self.topic, self.rejected, info["node"], exc
+                            )
                         continue
                     self._deliver(msg)
                     if self.zero_copy and self.callback is not None:

@@ -35,7 +35,9 @@ Resp = TypeVar("Resp")
 class Service(Generic[Req, Resp]):
     """Answers ``Req`` with ``Resp`` by calling ``handler`` (sync or async)."""
 
-    def __init__(self, node: Node, req_type: type[Req], resp_type: type[Resp], name: str, handler: Callable[[Req], Any]):
+    def __init__(
+        self, node: Node, req_type: type[Req], resp_type: type[Resp], name: str, handler: Callable[[Req], Any]
+    ):
         self.node = node
         self.req_type = req_type
         self.resp_type = resp_type
@@ -59,7 +61,9 @@ class Service(Generic[Req, Resp]):
             ) from exc
         if type(resp) is not self.resp_type:
             self.failures += 1
-            raise ServiceError(f"service {self.name}: handler returned {type(resp).__name__}, expected {self.resp_type.__name__}")
+            raise ServiceError(
+                f"service {self.name}: handler returned {type(resp).__name__}, expected {self.resp_type.__name__}"
+            )
         return resp
 
     async def _serve_conn(self, conn: Transport) -> None:
@@ -101,7 +105,9 @@ class ServiceClient(Generic[Req, Resp]):
             ServiceError: the handler raised; ``remote_traceback`` has the server's traceback.
         """
         if type(req) is not self.req_type:
-            raise CodecError(f"service {self.name}: expected request {self.req_type.__name__}, got {type(req).__name__}")
+            raise CodecError(
+                f"service {self.name}: expected request {self.req_type.__name__}, got {type(req).__name__}"
+            )
         try:
             async with asyncio.timeout(timeout_s):
                 local = _LOCAL_SERVICES.get((self.node.domain_id, self.name))

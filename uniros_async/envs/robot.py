@@ -8,13 +8,14 @@ hooks and caches them with the tick's stamp, and sends the current action's join
 to be, as UniROS's env loop does, so a delta acts as a joint velocity for the whole action cycle. An action whose
 target fails a safety check (joint limits, a link near the table, the EE outside the workspace box,
 self-collision) is never sent: the arm is told to hold and ``info["unsafe_reason"]`` says why (or, with
-``unsafe_action="project"``, the safe part of it is sent and ``info["action_projected"]`` says so). ``step`` hands the action over at once
-and returns the cached returns at the end of the action cycle, an absolute deadline from the previous step.
+``unsafe_action="project"``, the safe part of it is sent and ``info["action_projected"]`` says so). ``step`` hands
+the action over at once and returns the cached returns at the end of the action cycle, an absolute deadline from the
+previous step.
 
 Termination is checked at the loop's rate: once an action came, the first tick whose returns say ``terminated``
-(the goal reached mid-cycle, say) ends the episode there, as on UniROS's real-time envs: the arm is told to hold, and the returns of
-that tick are kept and handed to the agent at the end of the cycle. (Turn-based mode, the baseline, judges and
-applies everything once per step instead.)
+(the goal reached mid-cycle, say) ends the episode there, as on UniROS's real-time envs: the arm is told to hold,
+and the returns of that tick are kept and handed to the agent at the end of the cycle. (Turn-based mode, the
+baseline, judges and applies everything once per step instead.)
 
 The arm is reached only through its topics (``joint_states``, ``command``) and services (``hold``, ``reset``)
 in namespace ``/<robot>``, so the same code drives the sim in this process, a sim in another process, the
@@ -165,7 +166,9 @@ class RobotEnv(BaseEnv):
                     # accelerated emulated real arm: the same emulation model, in sim time, in this process
                     emulation = EmulationConfig(seed=cfg.emulation_seed) if cfg.robot == "emulated-real" else None
                     domain: Any = await stack.enter_async_context(open_domain("memory://"))
-                    await stack.enter_async_context(open_servo_sim(spec, domain=domain, clock=clock, emulation=emulation))
+                    await stack.enter_async_context(
+                        open_servo_sim(spec, domain=domain, clock=clock, emulation=emulation)
+                    )
                 elif cfg.robot in ("sim-process", "emulated-real"):
                     from uniros_async.sim.emulated import EmulationConfig
                     from uniros_async.sim.serve import open_servo_sim_process
@@ -261,7 +264,8 @@ class RobotEnv(BaseEnv):
                 return js
             if time.monotonic() > deadline:
                 raise RobotError(
-                    f"{self.robot_spec.name}: no joint state on {self._js.topic} within {timeout_s} s; is the arm running?"
+                    f"{self.robot_spec.name}: no joint state on {self._js.topic} within {timeout_s} s;"
+                    " is the arm running?"
                 )
             await self._clock.sleep(0.2 / self.robot_spec.hardware_rate_hz)
 
@@ -480,7 +484,11 @@ class RobotEnv(BaseEnv):
                 if np.max(np.abs(q - self.home_q)) < tol and np.max(np.abs(v)) < 10 * tol:
                     return js
             if time.monotonic() > deadline:
-                err = "no state" if js is None else f"{np.max(np.abs(js.position[self._arm_idx] - self.home_q)):.3f} rad away"
+                err = (
+                    "no state"
+                    if js is None
+                    else f"{np.max(np.abs(js.position[self._arm_idx] - self.home_q)):.3f} rad away"
+                )
                 raise RobotError(f"{self.robot_spec.name}: did not settle at home within {timeout_s} s ({err})")
 
     async def _ahold(self) -> None:
@@ -489,4 +497,3 @@ class RobotEnv(BaseEnv):
         if js is not None:  # hold = keep commanding where it is (action repeat of the current position)
             self._target = js.position[self._arm_idx].copy()
             self._send(self._target, self._clock.now_ns())
-

@@ -180,7 +180,8 @@ class SafetyChecker:
         mujoco.mj_kinematics(m, d)
         clearance = self._clearance()  # the table top is the plane z = 0
         if clearance < self.config.table_margin_m:
-            return f"a link would be {clearance * 100:.1f} cm above the table (margin {self.config.table_margin_m * 100:.1f} cm)"
+            margin_cm = self.config.table_margin_m * 100
+            return f"a link would be {clearance * 100:.1f} cm above the table (margin {margin_cm:.1f} cm)"
         x, y, z = self._site_xpos[self._ee_site].tolist()
         x0, y0, z0, x1, y1, z1 = self._ws
         if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):
