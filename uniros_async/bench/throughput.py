@@ -155,6 +155,19 @@ class _Floor:
         self.loop.close()
 
 
+def _bare_block(bare: Any, actions: list[Any], ks: range) -> list[float]:
+    """Steps ``ks`` of the bare env back to back, each timed (an episode's end resets it, untimed: the trivial env's
+    episodes end; the vector envs reset themselves)."""
+    times: list[float] = []
+    for k in ks:
+        t0 = time.perf_counter()
+        _, _, terminated, truncated, _ = bare.step(actions[k])
+        times.append(time.perf_counter() - t0)
+        if terminated or truncated:
+            bare.reset()
+    return times
+
+
 def _quiesce(env: Any) -> None:
     """Let the bare env's loop thread finish what its last step's sim event woke (the next tick's physics), so that
     it does not run, holding the GIL, during the vector env's step that is timed next."""
@@ -190,13 +203,7 @@ def _run(
         # vector env (same states, same actions, the same moment's load); the first step of each block is left out
         for k0 in range(0, steps + 1 - block + 1, block):
             ks = range(k0, k0 + block)
-            b: list[float] = []
-            for k in ks:
-                t0 = time.perf_counter()
-                _, _, terminated, truncated, _ = bare.step(actions[k])
-                b.append(time.perf_counter() - t0)
-                if terminated or truncated:  # the trivial env's episodes end; the vector envs reset themselves
-                    bare.reset()
+            b = _bare_block(bare, actions, ks)
             _quiesce(bare)
             if floor is not None:
                 floor_t += [floor.step_s(actions[k]) for k in ks][1:]
@@ -245,13 +252,7 @@ def _run_in_turns(impl: str, bare: Any, env_id: str, steps: int, block: int = 20
         bare.reset(seed=0)
         for k0 in range(0, steps, block):
             ks = range(k0, k0 + block)
-            b: list[float] = []
-            for k in ks:
-                t0 = time.perf_counter()
-                _, _, terminated, truncated, _ = bare.step(actions[k])
-                b.append(time.perf_counter() - t0)
-                if terminated or truncated:
-                    bare.reset()
+            b = _bare_block(bare, actions, ks)
             for _, _, step in pairs:
                 v: list[float] = []
                 for k in ks:
