@@ -87,6 +87,7 @@ def _build_parser() -> argparse.ArgumentParser:
     bth.add_argument("--quick", action="store_true", help="N = 1, 2, 4 and fewer steps")
     bth.add_argument("--steps", type=int, default=100)
     bth.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+    bth.add_argument("--transport", choices=("shm", "tcp"), default="shm", help="make_vec's workers over (default shm)")
 
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0)
@@ -303,7 +304,11 @@ def _run_bench(args: argparse.Namespace) -> int:
     elif args.scenario == "throughput":
         from uniros_async.bench import throughput
 
-        throughput.main(throughput.ThroughputBenchConfig(quick=args.quick, steps=args.steps, json_path=args.json_path))
+        throughput.main(
+            throughput.ThroughputBenchConfig(
+                quick=args.quick, steps=args.steps, json_path=args.json_path, transport=args.transport
+            )
+        )
     elif args.scenario == "simclock":
         from uniros_async.bench import simclock
 

@@ -45,3 +45,14 @@ def test_a_short_run_prints_the_table_and_writes_every_record(tmp_path: Path) ->
 def test_bad_configs_are_refused(kw: dict[str, object]) -> None:
     with pytest.raises(ConfigError, match="n_envs must be >= 1 and steps >= 5"):
         throughput.ThroughputBenchConfig(**kw)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="transport must be 'shm' or 'tcp', got 'udp'"):
+        throughput.ThroughputBenchConfig(transport="udp")
+
+
+def test_the_uniros_rows_can_run_over_tcp() -> None:
+    lines: list[str] = []
+    records = throughput.main(
+        throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, transport="tcp"), log=lines.append
+    )
+    assert "make_vec's workers over tcp" in "\n".join(lines)
+    assert all(r["steps_per_s"] > 0 for r in records if r["impl"] == "uniros")

@@ -30,8 +30,9 @@ def test_a_worker_placed_on_its_agents_core_moves_to_another_and_keeps_every_cor
     try:
         venv.reset(seed=0)
         os.sched_setaffinity(0, {here})  # the agent (this process) stays on one core ...
-        os.sched_setaffinity(pid, {here})  # ... and the worker is put on the same one, then allowed everywhere
-        os.sched_setaffinity(pid, cpus)
+        os.sched_setaffinity(pid, {here})  # ... the worker is put on the same one (it moves there once it runs) ...
+        venv.step(np.array([0]))
+        os.sched_setaffinity(pid, cpus)  # ... and is then allowed everywhere again
         assert _last_cpu(pid) == here
         # it looks where the agent runs once a poll for the next request has lasted 50 us, which on one core it
         # soon does (the agent cannot run while it polls, unless a yield happens to hand the core over)

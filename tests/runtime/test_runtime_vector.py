@@ -350,6 +350,34 @@ def test_replies_read_into_place_and_replies_that_cannot_be_give_the_same_return
         venv.close()
 
 
+def test_tcp_workers_step_in_the_callers_thread_with_the_returns_of_shm(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Workers over tcp (``transport="tcp"``) get their requests and give their replies without the supervisor's
+    event loop too (``TcpTransport.try_send`` / ``receive_blocking``): same trajectory as over shm."""
+    from uniros_async.transports import tcp
+
+    taken = []
+    real = tcp.TcpTransport.receive_blocking
+
+    def spy(self: tcp.TcpTransport, timeout_s: float) -> memoryview | None:
+        got = real(self, timeout_s)
+        taken.append(got is not None)
+        return got
+
+    monkeypatch.setattr(tcp.TcpTransport, "receive_blocking", spy)
+    runs = {}
+    for transport in ("shm", "tcp"):
+        venv = make_vec(["CartPole-v1", "CartPole-v1"], pad=False, transport=transport)
+        try:
+            venv.reset(seed=7)
+            runs[transport] = [venv.step(np.array([k % 2, (k // 3) % 2]))[:4] for k in range(30)]
+        finally:
+            venv.close()
+    assert len(taken) == 60 and all(taken)  # every reply was taken in this thread
+    for a, b in zip(runs["shm"], runs["tcp"], strict=True):
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
 @pytest.mark.parametrize(
     "infos",
     [

@@ -485,3 +485,39 @@ async def test_has_news_and_fileno_tell_a_caller_outside_the_loop_what_waits() -
                 await asyncio.sleep(0.001)
         await c.aclose()
         assert c.fileno() == -1
+
+
+async def test_try_send_and_receive_blocking_go_without_the_loop_and_leave_what_they_cannot_take() -> None:
+    """The supervisor's way to a tcp worker between calls (as for shm): a small frame written at once, a reply read
+    from the socket in the caller's thread. What they cannot do (nothing came in time, a large frame, the peer's
+    end of stream) they leave, consuming nothing, to ``send`` / ``receive``, which report it."""
+    async with _listening() as lst:
+        acc = asyncio.ensure_future(lst.accept())
+        c = await connect(lst.uri, TransportOptions())
+        s = await acc
+        assert isinstance(c, tcp.TcpTransport)
+        t0 = time.monotonic()
+        assert c.receive_blocking(0.05) is None  # nothing came: it waited its time, took nothing
+        assert time.monotonic() - t0 >= 0.04
+        assert c.try_send(b"ping")
+        assert bytes(await s.receive()) == b"ping"
+        await s.send(b"pong")  # on the socket at once: read here, without the loop
+        got = c.receive_blocking(T_S)
+        assert got is not None and bytes(got) == b"pong"
+        await s.send(b"queued")
+        async with asyncio.timeout(T_S):
+            while not c._frames:  # noqa: ASYNC110 - the loop's reader queues it; no event says when
+                await asyncio.sleep(0.001)
+        got = c.receive_blocking(0)  # already queued: no wait at all
+        assert got is not None and bytes(got) == b"queued"
+        assert not c.try_send(bytes(tcp._JOIN_MAX_BYTES + 1))  # a large frame is send's to write
+        await c.send(bytes(tcp._JOIN_MAX_BYTES + 1))
+        assert len(await s.receive()) == tcp._JOIN_MAX_BYTES + 1
+        await s.aclose()
+        t0 = time.monotonic()
+        assert c.receive_blocking(T_S) is None  # the peer's end of stream, read here: left to receive
+        assert time.monotonic() - t0 < T_S / 2
+        with pytest.raises(TransportBrokenError, match="closed the connection"):
+            await c.receive()
+        assert not c.try_send(b"x")
+        await c.aclose()

@@ -65,10 +65,14 @@ class ThroughputBenchConfig:
     steps: int = 100
     quick: bool = False
     json_path: str | None = None
+    transport: str = "shm"
+    """How ``make_vec`` reaches its workers (``shm`` or ``tcp`` on loopback); the peers use their pipes either way."""
 
     def __post_init__(self) -> None:
         if not self.n_envs or min(self.n_envs) < 1 or self.steps < 5:
             raise ConfigError(f"n_envs must be >= 1 and steps >= 5, got {self.n_envs}, {self.steps}")
+        if self.transport not in ("shm", "tcp"):
+            raise ConfigError(f"transport must be 'shm' or 'tcp', got {self.transport!r}")
 
 
 def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
@@ -81,13 +85,13 @@ def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
 
 
 def _vector(
-    impl: str, n: int, env_id: str, kwargs: dict[str, Any]
+    impl: str, n: int, env_id: str, kwargs: dict[str, Any], transport: str = "shm"
 ) -> tuple[Any, Callable[[], Any], Callable[[Any], Any]]:
     """(vec env, reset(): seeds 0..n-1, step(actions)) for one implementation."""
     if impl == "uniros":
         from uniros_async.runtime import make_vec
 
-        venv = make_vec([env_id] * n, pad=env_id == ENV_ID, **kwargs)
+        venv = make_vec([env_id] * n, pad=env_id == ENV_ID, transport=transport, **kwargs)
         return venv, lambda: venv.reset(seed=0), venv.step
     factory = functools.partial(_make_env, env_id, kwargs)
     if impl == "gymnasium-async":
@@ -185,11 +189,12 @@ def _run(
     steps: int,
     floor: _Floor | None = None,
     block: int = 8,
+    transport: str = "shm",
 ) -> dict[str, Any]:
     block = min(block, steps)
     actions = _actions(bare.action_space, 2 * steps + 2)
     batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
-    venv, reset, step = _vector(impl, n, env_id, kwargs)
+    venv, reset, step = _vector(impl, n, env_id, kwargs, transport)
     vec_t: list[float] = []
     bare_t: list[float] = []
     tight_t: list[float] = []
@@ -238,12 +243,14 @@ def _run(
     return record
 
 
-def _run_in_turns(impl: str, bare: Any, env_id: str, steps: int, block: int = 20) -> dict[str, Any]:
+def _run_in_turns(
+    impl: str, bare: Any, env_id: str, steps: int, block: int = 20, transport: str = "shm"
+) -> dict[str, Any]:
     """Two vector envs of one sub-env each, stepped in turn, a block of steps each (a training env and an
     evaluation env, or two tasks): per block, steps k..k+B-1 of the bare env, then the same steps of one vector env,
     then of the other; the overhead is over the bare step, as in ``_run``, the first step of each block left out."""
     actions = _actions(bare.action_space, steps + block)
-    pairs = [_vector(impl, 1, env_id, {}) for _ in range(2)]
+    pairs = [_vector(impl, 1, env_id, {}, transport) for _ in range(2)]
     vec_t: list[float] = []
     bare_t: list[float] = []
     try:
@@ -291,7 +298,8 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     try:
         for n in ns:
             for impl in IMPLS:
-                records.append(_run(impl, n, bare, ENV_ID, ENV_KW, steps, floor if n == 1 else None))
+                floor_n = floor if n == 1 else None
+                records.append(_run(impl, n, bare, ENV_ID, ENV_KW, steps, floor_n, transport=config.transport))
     finally:
         if floor is not None:
             floor.close()
@@ -299,16 +307,19 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     trivial = _make_env(TRIVIAL_ID, {})
     try:
         for impl in IMPLS:
-            records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, max(steps, 200), block=20))
+            trivial_steps = max(steps, 200)
+            records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, trivial_steps, block=20, transport=config.transport))
         # (--quick: against gymnasium's only, to keep within its minute)
         for impl in IMPLS[:2] if config.quick else IMPLS:
-            records.append(_run_in_turns(impl, trivial, TRIVIAL_ID, 100 if config.quick else max(steps, 200)))
+            turn_steps = 100 if config.quick else max(steps, 200)
+            records.append(_run_in_turns(impl, trivial, TRIVIAL_ID, turn_steps, transport=config.transport))
     finally:
         trivial.close()
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
     head = f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'step ms':>8} {'bare ms':>8}"
     lines = [
-        f"{ENV_ID} (turn-based, accelerated), {steps} steps per row, bare step {bare_ms:.2f} ms median, {cores} cores",
+        f"{ENV_ID} (turn-based, accelerated), {steps} steps per row, bare step {bare_ms:.2f} ms median, {cores} cores;"
+        f" make_vec's workers over {config.transport}",
         head,
         "-" * len(head),
     ]

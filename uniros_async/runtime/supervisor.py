@@ -5,14 +5,15 @@ that the calling thread runs itself, only for the duration of each call (``loop.
 the agent side needs to run between calls (replies wait in the shm rings, a dead worker's hang-up in its socket),
 and a call then costs no hand-over to another thread (~16 us of loop start/stop instead of ~300 us of thread
 wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_all`` sends requests
-and returns at once; the replies are collected by ``_Pending.result``. A step to local shm workers does not run the
-loop at all: the requests go out with ``ShmTransport.try_send`` and the replies come in with ``receive_blocking``,
-in the calling thread (``_send_now``, ``_receive_now``); whatever that cannot do (no room, a hang-up, a deadline)
-is left to the loop, which also reports it. Every wait on a worker has a deadline; a
-worker that does not answer in time, whose connection breaks or whose process died is marked broken and every
-later request to it raises WorkerError naming its index (issue 5). A call interrupted by Ctrl-C while the loop
-waits is finished (its replies consumed) before the next call; one interrupted inside a request's own code marks
-that worker broken, since its next reply could no longer be matched to a request.
+and returns at once; the replies are collected by ``_Pending.result``. A step does not run the loop at all: the
+requests go out with the transport's ``try_send`` and the replies come in with its ``receive_blocking`` (shm and
+tcp, local and remote workers), in the calling thread (``_send_now``, ``_receive_now``); whatever that cannot do (no
+room, a hang-up, a deadline, a launcher's news of a remote worker) is left to the loop, which also reports it.
+Every wait on a worker has a deadline; a worker that does not answer in time, whose connection breaks or whose
+process died is marked broken and every later request to it raises WorkerError naming its index (issue 5). A call
+interrupted by Ctrl-C while the loop waits is finished (its replies consumed) before the next call; one
+interrupted inside a request's own code marks that worker broken, since its next reply could no longer be matched
+to a request.
 
 Start-up: every process is started first (spawn, daemon), then each worker's listen URI (``shm://`` by default,
 ``tcp://127.0.0.1:0`` with ``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the
@@ -147,7 +148,7 @@ class WorkerHandle:
     broken: str | None = None
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
     in_flight: bool = False  # a request was sent and its reply not yet taken
-    try_send: Any = None  # the transport's try_send and receive_blocking for a local worker that has them, else None
+    try_send: Any = None  # the transport's try_send and receive_blocking where it has them (shm, tcp), else None
     receive_blocking: Any = None
 
     def check_idle(self) -> None:
@@ -208,11 +209,16 @@ class WorkerHandle:
         self.in_flight = True
 
     def try_send_request(self, frame: bytes) -> bool:
-        """Send an already packed request at once, outside the event loop, when nothing stands in the way (a local
-        worker, not broken, its shm ring has room); True if sent (``receive_reply`` must follow). False: nothing was
-        sent, ``send_request`` must do it (and raises what is wrong)."""
+        """Send an already packed request at once, outside the event loop, when nothing stands in the way (not
+        broken, no news from a remote worker's launcher, room in the transport); True if sent (``receive_reply`` must
+        follow). False: nothing was sent, ``send_request`` must do it (and raises what is wrong)."""
         try_send = self.try_send
-        if self.broken is not None or self.in_flight or try_send is None or not try_send(frame):
+        if self.broken is not None or self.in_flight or try_send is None:
+            return False
+        remote = self.remote
+        if remote is not None and remote.lifeline_has_news():  # send_request reports the launcher's news
+            return False
+        if not try_send(frame):
             return False
         self.in_flight = True
         return True
@@ -242,9 +248,9 @@ class WorkerHandle:
         return self._result(reply)
 
     def receive_reply_blocking(self, op: Any, timeout_s: float, decode: StepDecoder | None = None) -> Any:
-        """``receive_reply`` in this thread without the event loop (``ShmTransport.receive_blocking``), for a local
+        """``receive_reply`` in this thread without the event loop (the transport's ``receive_blocking``), for a
         worker whose request is in flight: returns its result, or ``LATER`` when the reply cannot be had that way
-        (not there within ``timeout_s``, the worker hung up, not an shm connection, ...: nothing was consumed, and
+        (not there within ``timeout_s``, the worker hung up, a transport without it, ...: nothing was consumed, and
         ``receive_reply`` must follow, which also reports what went wrong). ``decode``: what a step's reply frame
         becomes instead of its result, ``decode(index, frame)``, called while the frame is still in the ring (an
         error reply is not a step frame: it raises as usual).
@@ -485,9 +491,8 @@ class Supervisor:
             w.info = await w.request({"op": "spaces"}, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
                 w.transport.spin_ns = REPLY_SPIN_NS
-            if w.remote is None:
-                w.try_send = getattr(w.transport, "try_send", None)
-                w.receive_blocking = getattr(w.transport, "receive_blocking", None)
+            w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a remote worker too)
+            w.receive_blocking = getattr(w.transport, "receive_blocking", None)
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
         for r in results:
@@ -596,7 +601,7 @@ class Supervisor:
             self._lock.release()
 
     def _send_now(self, messages: Sequence[Request | None]) -> frozenset[int]:
-        """Send the requests that can go at once (``WorkerHandle.try_send_request``: local shm workers with room),
+        """Send the requests that can go at once (``WorkerHandle.try_send_request``: workers whose transport has room),
         in this thread without running the event loop: a step's actions then reach every worker within tens of
         microseconds of each other instead of one event-loop round apart. Stops at the first that cannot (that one
         and those after go through ``request_all`` as usual); returns the indices sent."""

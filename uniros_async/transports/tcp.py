@@ -58,6 +58,7 @@ import hashlib
 import hmac
 import logging
 import os
+import select
 import socket
 import struct
 import sys
@@ -391,8 +392,12 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             self._last_write_s = 0.0
         if self._closed:
             self._raise_unusable("receive")
+        return self._pop_frame()
+
+    def _pop_frame(self) -> memoryview:
+        """The next queued frame as ``receive`` returns it (there is one)."""
         self._sent_since_receive = 0
-        frame = frames.popleft()
+        frame = self._frames.popleft()
         if isinstance(frame, bytes):
             n = len(frame)
             view = memoryview(frame)
@@ -411,6 +416,72 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         stats.frames_received += 1
         stats.bytes_received += n
         return view
+
+    def try_send(self, frame: bytes) -> bool:
+        """Send a small ``frame`` at once, outside the event loop, when nothing waits before it (no burst corked,
+        nothing unsent, writing not paused); True if the socket took it whole. False: nothing was sent, ``send``
+        must do it (it waits, or raises what is wrong). The counterpart of ``ShmTransport.try_send``, for a caller
+        in the loop's own thread while the loop is not running (the supervisor between calls)."""
+        n = len(frame)
+        tr = self._tr
+        if (
+            tr is None
+            or not self._ok
+            or self._closed
+            or self._write_paused
+            or self._cork is not None
+            or n > _JOIN_MAX_BYTES
+            or n > self._send_limit
+            or tr.get_write_buffer_size()
+        ):
+            return False
+        tr.write(_pack_header(n) + frame)  # the loop's transport writes it to the socket now: its buffer is empty
+        self._last_write_s = time.perf_counter()
+        self._sent_since_receive += n
+        stats = self.stats
+        stats.frames_sent += 1
+        stats.bytes_sent += n
+        return True
+
+    def receive_blocking(self, timeout_s: float) -> memoryview | None:
+        """``receive`` in the calling thread while the event loop does not run (the agent's thread waiting for its
+        workers' replies): a frame already queued, or one read from the socket here (``_spin``'s reads, then
+        ``poll(2)`` on the socket for at most ``timeout_s``). Returns None when it cannot be had this way: nothing
+        came in time, something is unsent (only the loop sends it), reading is paused, the peer hung up or broke
+        the protocol, or this end is closed. Nothing was consumed then: ``receive`` must be awaited (it delivers
+        the frame or raises what is wrong)."""
+        tr = self._tr
+        if tr is None or self._closed or not self._ok or tr.get_write_buffer_size():
+            return None
+        frames = self._frames
+        if not frames:
+            fd = self._fd
+            if fd < 0:
+                return None
+            deadline = _now_ns() + int(timeout_s * 1e9)
+            if self.spin_ns and self._sent_since_receive and self._spin_credit > 0:
+                self._spin(self.spin_ns + min(self._sent_since_receive, _SPIN_EXTRA_NS))
+            poller = None
+            while not frames:
+                left_ns = deadline - _now_ns()
+                if left_ns <= 0 or not self._ok or self._reading_paused or self._fd < 0:
+                    return None
+                if poller is None:
+                    poller = select.poll()
+                    poller.register(fd, select.POLLIN)
+                if not poller.poll(-(-left_ns // 1_000_000)):
+                    continue
+                try:
+                    n = os.readv(fd, (self.get_buffer(-1),))
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError:
+                    return None  # the loop's reader meets the error too
+                if n == 0:
+                    return None  # end of stream: the loop's reader sees it as well
+                self.buffer_updated(n)
+            self._last_write_s = 0.0  # a frame that answers this wait is a reply, as in receive
+        return self._pop_frame()
 
     async def aclose(self) -> None:
         """Close this end; idempotent. Frames already sent are flushed for up to 1 s, then the socket is
