@@ -44,6 +44,11 @@ poll that turned the event loop (``asyncio.sleep(0)``) instead of reading the so
 only and took the CPU its peer needed under load, so it was opt-in. 640x480x3 images one way: 4,150-4,950/s
 (pyzmq PUSH/PULL 2,900-3,300/s).
 
+Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, and ``receive_blocking``
+reads the socket in the caller's thread (the poll's reads, then ``poll(2)``), for a caller in the loop's thread while
+the loop is not running (the supervisor between calls). Whatever they cannot do they leave to ``send`` and
+``receive``, having taken nothing.
+
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
 (the bus) closes it and calls ``connect`` again, which retries with exponential backoff (5 ms doubling to 500 ms)
 until ``connect_timeout_s``; frames that were in flight when the connection broke are lost, as on any TCP link.
