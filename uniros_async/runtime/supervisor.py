@@ -36,6 +36,7 @@ import asyncio
 import concurrent.futures
 import contextlib
 import dataclasses
+import functools
 import importlib
 import logging
 import multiprocessing
@@ -164,9 +165,10 @@ class WorkerHandle:
     def index(self) -> int:
         return self.spec.index
 
-    @property
+    @functools.cached_property
     def remote(self) -> RemoteWorkerProcess | None:
-        """The launcher's handle of a remote worker, or None for a local one."""
+        """The launcher's handle of a remote worker, or None for a local one (read on every step; a handle keeps
+        its process: a restart makes a new handle)."""
         return self.process if isinstance(self.process, RemoteWorkerProcess) else None
 
     async def request(self, message: dict[str, Any], timeout_s: float) -> Any:
