@@ -357,9 +357,7 @@ def _unpack_step(frame: bytes | memoryview) -> dict[str, Any]:
     if kind == _STEP_REPLY:
         _, _, flags, enc, obs_len, reward = _STEP_REP.unpack_from(frame)
         obs = _unpart(enc, frame, size, size + obs_len)
-        info = _unpackb(frame[size + obs_len :])
-        if type(info) is not dict:
-            raise CodecError(f"malformed step frame: a reply's info must be a map, got {type(info).__name__}")
+        info = _reply_info(frame, size + obs_len)
         return {"ok": True, "result": [obs, reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), info]}
     raise CodecError(f"malformed step frame: kind {kind}; expected {_STEP_REQUEST} (request) or {_STEP_REPLY} (reply)")
 
@@ -384,10 +382,19 @@ def unpack_step_reply_into(
     if enc != _ARRAY or end > len(frame) or end - data != len(out) or frame[size:data] != head:
         return None
     out[:] = frame[data:end]
-    info = _unpackb(frame[end:])
+    return reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), _reply_info(frame, end)
+
+
+def _reply_info(frame: bytes | memoryview, start: int) -> dict[str, Any]:
+    """A step reply's info, the msgpack map from ``start`` to the frame's end.
+
+    Raises:
+        CodecError: not msgpack, or not a map.
+    """
+    info = _unpackb(frame[start:])
     if type(info) is not dict:
         raise CodecError(f"malformed step frame: a reply's info must be a map, got {type(info).__name__}")
-    return reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), info
+    return info
 
 
 def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:

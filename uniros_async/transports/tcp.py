@@ -359,6 +359,9 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 and not all(isinstance(p.obj, bytes) for p in parts)
             ):
                 await self._wait_flushed()
+        self._count_sent(n)
+
+    def _count_sent(self, n: int) -> None:
         self._sent_since_receive += n  # the next receive may be waiting for an answer: it polls
         stats = self.stats
         stats.frames_sent += 1
@@ -375,11 +378,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         """
         frames = self._frames
         if not frames:
-            window_ns = 0
-            if self.spin_ns and self._sent_since_receive:
-                window_ns = self.spin_ns + min(self._sent_since_receive, _SPIN_EXTRA_NS)
-                if self._spin_credit > 0:
-                    self._spin(window_ns)
+            window_ns = self._poll_for_answer()
             t0 = _now_ns()
             while not frames:
                 if not self._ok:
@@ -391,8 +390,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                     await fut
                 finally:
                     self._rx_waiter = None
-                if window_ns and self._spin_credit <= 0 and _now_ns() - t0 < window_ns + _WAKEUP_NS:
-                    self._spin_credit = 1  # a spin would have caught this one: try spinning again
+                self._waited(t0, window_ns)
             # a frame that answers this wait is a reply, not part of a burst: it goes out at once
             self._last_write_s = 0.0
         if self._closed:
@@ -442,10 +440,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             return False
         tr.write(_pack_header(n) + frame)  # the loop's transport writes it to the socket now: its buffer is empty
         self._last_write_s = time.perf_counter()
-        self._sent_since_receive += n
-        stats = self.stats
-        stats.frames_sent += 1
-        stats.bytes_sent += n
+        self._count_sent(n)
         return True
 
     def receive_blocking(self, timeout_s: float) -> memoryview | None:
@@ -464,8 +459,8 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             if fd < 0:
                 return None
             deadline = _now_ns() + int(timeout_s * 1e9)
-            if self.spin_ns and self._sent_since_receive and self._spin_credit > 0:
-                self._spin(self.spin_ns + min(self._sent_since_receive, _SPIN_EXTRA_NS))
+            window_ns = self._poll_for_answer()
+            t0 = _now_ns()
             poller = None
             while not frames:
                 left_ns = deadline - _now_ns()
@@ -485,8 +480,24 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 if n == 0:
                     return None  # end of stream: the loop's reader sees it as well
                 self.buffer_updated(n)
+            self._waited(t0, window_ns)
             self._last_write_s = 0.0  # a frame that answers this wait is a reply, as in receive
         return self._pop_frame()
+
+    def _poll_for_answer(self) -> int:
+        """Before a wait: if this end sent since it last received (an answer may be due), poll the socket for up to
+        the window (``_spin``, under the spin credit); the window, 0 when none applies."""
+        if not (self.spin_ns and self._sent_since_receive):
+            return 0
+        window_ns = self.spin_ns + min(self._sent_since_receive, _SPIN_EXTRA_NS)
+        if self._spin_credit > 0:
+            self._spin(window_ns)
+        return window_ns
+
+    def _waited(self, t0: int, window_ns: int) -> None:
+        """After a wait that began at ``t0``: without credit, a wait a poll would have caught earns one back."""
+        if window_ns and self._spin_credit <= 0 and _now_ns() - t0 < window_ns + _WAKEUP_NS:
+            self._spin_credit = 1  # a spin would have caught this one: try spinning again
 
     async def aclose(self) -> None:
         """Close this end; idempotent. Frames already sent are flushed for up to 1 s, then the socket is
