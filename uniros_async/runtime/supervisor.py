@@ -558,10 +558,87 @@ class Supervisor:
             if not t.cancelled():
                 t.exception()  # retrieved: the interrupted caller is gone
 
+    def send_steps_now(self, messages: Sequence[PackedRequest]) -> int:
+        """The first half of ``UnirosVectorEnv.step``: send one packed step request to every worker, in this thread
+        (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
+        half is ``receive_steps_now``. What ``_send_now`` does for ``send_all_now``'s general requests, in as few lines
+        of Python as it can: this runs on every step, and at one env a step's own cost on the agent side is what a
+        few lines cost (issue 5's 50 us).
+
+        Raises:
+            gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).
+        """
+        workers = self.workers
+        for w in workers:
+            if w.in_flight:
+                w.check_idle()  # raises unless it is broken (that one is reported by the request it is sent)
+        lock = self._lock
+        if self._orphans or not lock.acquire(blocking=False):
+            return 0
+        try:
+            if self._loop.is_closed():
+                return 0
+            sent = 0
+            for w, m in zip(workers, messages):  # noqa: B905  (one message per worker: _step_messages checks it)
+                if not w.try_send_request(m.frame):
+                    break
+                sent += 1
+            return sent
+        finally:
+            lock.release()
+
+    def receive_steps_now(self, messages: Sequence[PackedRequest], sent: int, decode: StepDecoder) -> list[Any]:
+        """The second half of ``UnirosVectorEnv.step``: the replies to ``messages``, of which ``send_steps_now``
+        sent the first ``sent``, each taken in this thread (``WorkerHandle.receive_reply_blocking``, with
+        ``decode``) while every request went and every reply can be had that way; from the first that cannot, the
+        rest (requests not sent, replies not had) go through ``request_all`` on the loop, under the same deadline,
+        as ``send_all_now(messages).result(decode=decode)`` does. Returns what ``result`` returns, a WorkerError in
+        the slot of a worker that failed.
+
+        Raises:
+            Exception: any other error a reply raised (a malformed frame), as ``request_all``.
+        """
+        n = len(messages)
+        got = 0
+        if sent == n and self._lock.acquire(blocking=False):
+            results: list[Any] = [None] * n
+            unexpected: Exception | None = None
+            deadline = time.monotonic() + self.call_timeout_s
+            try:
+                if not self._orphans and not self._loop.is_closed():
+                    for w in self.workers:
+                        try:
+                            r = w.receive_reply_blocking("step", max(deadline - time.monotonic(), 0.0), decode)
+                        except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
+                            r = exc
+                            if unexpected is None and not isinstance(exc, WorkerError):
+                                unexpected = exc
+                        if r is LATER:
+                            break
+                        results[got] = r
+                        got += 1
+            except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
+                for w in self.workers[got:]:
+                    if w.in_flight and w.broken is None:
+                        w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
+                raise
+            finally:
+                self._lock.release()
+            if got == n:
+                if unexpected is not None:
+                    raise unexpected  # as request_all: once every reply is in
+                return results
+            pending = _SentPending(self, messages, frozenset(range(sent)), results, set(range(got, n)))
+            pending.to_loop(deadline)
+        else:
+            pending = _SentPending(self, messages, frozenset(range(sent)))
+        return pending.result(decode=decode)
+
     def send_all_now(self, messages: Sequence[Request | None]) -> _SentPending:
         """``request_all(messages, return_exceptions=True)`` to be run to the end in this thread by the ``result``
-        of what this returns (its waits have their own deadlines, so no outer timeout is added: the cheapest round
-        trip, used by ``UnirosVectorEnv.step``); the requests that can go at once are sent before it returns."""
+        of what this returns (its waits have their own deadlines, so no outer timeout is added); the requests that
+        can go at once are sent before it returns (``UnirosVectorEnv.step`` has its own lean pair of this,
+        ``send_steps_now`` and ``receive_steps_now``)."""
         return _SentPending(self, messages, self._send_now(messages))
 
     def _receive_now(
@@ -898,12 +975,21 @@ class _SentPending(_Pending[list[Any]]):
     supervisor's loop, under what is left of the same deadline. The call timeout starts at the first ``result``, as
     for a task."""
 
-    def __init__(self, supervisor: Supervisor, messages: Sequence[Request | None], sent: frozenset[int]) -> None:
+    def __init__(
+        self,
+        supervisor: Supervisor,
+        messages: Sequence[Request | None],
+        sent: frozenset[int],
+        results: list[Any] | None = None,
+        rest: set[int] | None = None,
+    ) -> None:
+        """``results`` and ``rest``: what the calling thread collected already and what it could not (given together,
+        by ``receive_steps_now``, which then calls ``to_loop``)."""
         self._sup = supervisor
         self._messages = messages
         self._sent = sent
-        self._results: list[Any] = [None] * len(messages)
-        self._rest: set[int] | None = None  # what the calling thread could not collect (None: not tried yet)
+        self._results: list[Any] = [None] * len(messages) if results is None else results
+        self._rest: set[int] | None = rest  # what the calling thread could not collect (None: not tried yet)
         self._task: asyncio.Task[list[Any]] | None = None  # type: ignore[assignment]  # ... by request_all instead
 
     def done(self) -> bool:
@@ -922,13 +1008,7 @@ class _SentPending(_Pending[list[Any]]):
             self._rest = sup._receive_now(
                 self._messages, self._sent, deadline if end is None else min(deadline, end), self._results, decode
             )
-            if self._rest:
-                if sup._loop.is_closed():
-                    raise concurrent.futures.CancelledError()
-                left = [m if i in self._rest else None for i, m in enumerate(self._messages)]
-                wait_s = max(deadline - time.monotonic(), 0.0)
-                coro = sup.request_all(left, return_exceptions=True, present=self._sent & self._rest, wait_s=wait_s)
-                self._task = sup._loop.create_task(coro)
+            self.to_loop(deadline)
         if self._task is not None:
             more = super().result(None if end is None else max(end - time.monotonic(), 0.0))
             for i in self._rest or ():
@@ -936,6 +1016,22 @@ class _SentPending(_Pending[list[Any]]):
             self._rest = set()
             self._task = None
         return _raise_unexpected(self._results)
+
+    def to_loop(self, deadline: float) -> None:
+        """Start ``request_all`` on the supervisor's loop for what the calling thread could not collect (``rest``),
+        with what is left until ``deadline``; ``result`` runs it.
+
+        Raises:
+            concurrent.futures.CancelledError: there is something left and the supervisor is closed.
+        """
+        sup = self._sup
+        if self._rest:
+            if sup._loop.is_closed():
+                raise concurrent.futures.CancelledError()
+            left = [m if i in self._rest else None for i, m in enumerate(self._messages)]
+            wait_s = max(deadline - time.monotonic(), 0.0)
+            coro = sup.request_all(left, return_exceptions=True, present=self._sent & self._rest, wait_s=wait_s)
+            self._task = sup._loop.create_task(coro)
 
 
 class ProxyEnv(gym.Env[Any, Any]):

@@ -146,6 +146,8 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         obs_space = self.single_observation_space
         # a Box observation goes from each reply straight into its row of the vector observation (_Returns)
         self._obs_head = array_head(obs_space.dtype, obs_space.shape) if isinstance(obs_space, gym.spaces.Box) else None
+        self._action_form: tuple[Any, ...] = (None,)  # _action_form of single_action_space, made at the first step
+        self._obs_batch = ((self.num_envs, *obs_space.shape), np.dtype(obs_space.dtype)) if self._obs_head else None
         self.metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}
         self.render_mode = None
         self.spec = None
@@ -189,13 +191,15 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         Raises:
             WorkerError: as ``step_wait``.
         """
-        self._check_open()
+        if self._closed_vec:
+            self._check_open()
         if self._pending is not None:
             raise gym.error.AlreadyPendingCallError("step was called while a step_async is pending", "step")
         msgs = self._step_messages(actions, "next_step")
-        pending = self._sup.send_all_now(msgs)
+        sup = self._sup
+        sent = sup.send_steps_now(msgs)
         returns = _Returns(self)  # made while the workers step
-        return returns.finish(self._collect(pending.result(decode=returns.decode)))
+        return returns.finish(self._collect(sup.receive_steps_now(msgs, sent, returns.decode)))
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
         """Call method ``name`` (or read attribute ``name``) of every sub-env; plain data in and out."""
@@ -240,15 +244,18 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
     def _step_messages(self, actions: Any, autoreset: str) -> list[PackedRequest]:
         """One packed step request per worker (``pack_step_request``: no message map to build or walk)."""
         space = self.single_action_space
-        if isinstance(space, gym.spaces.Box):
-            per_env: Any = np.asarray(actions, dtype=space.dtype)
-            expected = (self.num_envs, *space.shape)
-            if per_env.shape != expected:
-                raise gym.error.InvalidAction(f"actions must have shape {expected}, got {per_env.shape}")
-        elif isinstance(space, gym.spaces.Discrete):  # gymnasium's iterate over the batch space costs ~7 us here
-            batch = np.asarray(actions, dtype=np.int64)
-            if batch.shape != (self.num_envs,):
-                raise gym.error.InvalidAction(f"actions must have shape {(self.num_envs,)}, got {batch.shape}")
+        form = self._action_form
+        if form[0] is not space:  # worked out once per action space: a step then costs no isinstance or shape tuple
+            form = self._action_form = _action_form(space, self.num_envs)
+        _, kind, shape, dtype = form
+        if kind == "box":
+            per_env: Any = np.asarray(actions, dtype)
+            if per_env.shape != shape:
+                raise gym.error.InvalidAction(f"actions must have shape {shape}, got {per_env.shape}")
+        elif kind == "discrete":  # gymnasium's iterate over the batch space costs ~7 us here
+            batch = np.asarray(actions, dtype)
+            if batch.shape != shape:
+                raise gym.error.InvalidAction(f"actions must have shape {shape}, got {batch.shape}")
             per_env = batch.tolist()
         else:
             per_env = list(iterate(self.action_space, actions))
@@ -328,7 +335,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             if key == "final_obs":
                 array = vector_infos.get(key)
                 if array is None:
-                    array = np.empty(n, dtype=object)
+                    array = np.empty(n, object)
                 array[env_num] = value
             elif isinstance(value, dict):
                 array = self._add_info(vector_infos.get(key, {}), value, env_num)
@@ -337,16 +344,16 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
                 if array is None:
                     kind = type(value)
                     if kind is int or kind is float or kind is bool or issubclass(kind, np.number):
-                        array = np.zeros(n, dtype=kind)
+                        array = np.zeros(n, kind)
                     elif isinstance(value, np.ndarray):
-                        array = np.zeros((n, *value.shape), dtype=value.dtype)
+                        array = np.zeros((n, *value.shape), value.dtype)
                     else:
-                        array = np.empty(n, dtype=object)
+                        array = np.empty(n, object)
                 array[env_num] = value
             mask_key = f"_{key}"
             mask = vector_infos.get(mask_key)
             if mask is None:
-                mask = np.zeros(n, dtype=np.bool_)
+                mask = np.zeros(n, _BOOL)
             mask[env_num] = True
             vector_infos[key] = array
             vector_infos[mask_key] = mask
@@ -354,6 +361,19 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
 
     def __repr__(self) -> str:
         return f"UnirosVectorEnv({self.env_ids})"
+
+
+_FLOAT64, _BOOL = np.dtype(np.float64), np.dtype(np.bool_)
+
+
+def _action_form(space: gym.Space[Any], n: int) -> tuple[Any, ...]:
+    """(space, kind, batch shape, dtype) of a vector env's actions: kind "box" (an array of ``n`` rows), "discrete"
+    (``n`` ints) or "other" (iterated as gymnasium does)."""
+    if isinstance(space, gym.spaces.Box):
+        return space, "box", (n, *space.shape), np.dtype(space.dtype)
+    if isinstance(space, gym.spaces.Discrete):
+        return space, "discrete", (n,), np.dtype(np.int64)
+    return space, "other", None, None
 
 
 class _Returns:
@@ -367,17 +387,18 @@ class _Returns:
     def __init__(self, venv: UnirosVectorEnv) -> None:
         n = venv.num_envs
         self.venv = venv
-        self.rewards = np.empty(n, dtype=np.float64)
-        self.terminated = np.empty(n, dtype=np.bool_)
-        self.truncated = np.empty(n, dtype=np.bool_)
-        space: Any = venv.single_observation_space
-        self.obs: np.ndarray | None = None
-        self.raw: memoryview | None = None  # the bytes of ``obs``, row after row
-        self.row_bytes = 0
-        if venv._obs_head is not None:
-            self.obs = np.empty((n, *space.shape), dtype=space.dtype)
-            self.raw = self.obs.data.cast("B")
-            self.row_bytes = self.obs.nbytes // n
+        self.rewards = np.empty(n, _FLOAT64)  # dtypes given by position: by keyword, numpy takes twice as long
+        self.terminated = np.empty(n, _BOOL)
+        self.truncated = np.empty(n, _BOOL)
+        batch = venv._obs_batch
+        if batch is None:
+            self.obs: np.ndarray | None = None
+            self.raw: memoryview | None = None  # the bytes of ``obs``, row after row
+            self.row_bytes = 0
+        else:
+            self.obs = obs = np.empty(*batch)
+            self.raw = obs.data.cast("B")
+            self.row_bytes = obs.nbytes // n
 
     def decode(self, i: int, frame: memoryview) -> Any:
         """Sub-env ``i``'s step reply: its info (a dict) when the rest went straight into place, else its result
