@@ -7,8 +7,9 @@ and a call then costs no hand-over to another thread (~16 us of loop start/stop 
 wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_all`` sends requests
 and returns at once; the replies are collected by ``_Pending.result``. A step does not run the loop at all: the
 requests go out with the transport's ``try_send`` and the replies come in with its ``receive_blocking`` (shm and
-tcp, local and remote workers), in the calling thread (``_send_now``, ``_receive_now``); whatever that cannot do (no
-room, a hang-up, a deadline, a launcher's news of a remote worker) is left to the loop, which also reports it.
+tcp, local and remote workers), in the calling thread (``send_steps_now`` and ``receive_steps_now`` for a step,
+``_send_now`` and ``_receive_now`` for ``submit_all``); whatever that cannot do (no room, a hang-up, a deadline,
+a launcher's news of a remote worker) is left to the loop, which also reports it.
 Every wait on a worker has a deadline; a worker that does not answer in time, whose connection breaks or whose
 process died is marked broken and every later request to it raises WorkerError naming its index (issue 5). A call
 interrupted by Ctrl-C while the loop waits is finished (its replies consumed) before the next call; one
@@ -561,9 +562,9 @@ class Supervisor:
     def send_steps_now(self, messages: Sequence[PackedRequest]) -> int:
         """The first half of ``UnirosVectorEnv.step``: send one packed step request to every worker, in this thread
         (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
-        half is ``receive_steps_now``. What ``_send_now`` does for ``send_all_now``'s general requests, in as few lines
-        of Python as it can: this runs on every step, and at one env a step's own cost on the agent side is what a
-        few lines cost (issue 5's 50 us).
+        half is ``receive_steps_now``. What ``_send_now`` does for ``submit_all``'s general requests, in as few lines
+        of Python as it can: this runs on every step, and at one env the agent's share of a step's overhead is what
+        its lines of Python cost (issue 5's 50 us).
 
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).
@@ -592,8 +593,8 @@ class Supervisor:
         sent the first ``sent``, each taken in this thread (``WorkerHandle.receive_reply_blocking``, with
         ``decode``) while every request went and every reply can be had that way; from the first that cannot, the
         rest (requests not sent, replies not had) go through ``request_all`` on the loop, under the same deadline,
-        as ``send_all_now(messages).result(decode=decode)`` does. Returns what ``result`` returns, a WorkerError in
-        the slot of a worker that failed.
+        as ``_SentPending.result`` does. Returns the results in index order (``decode``'s for the replies it took), a
+        WorkerError in the slot of a worker that failed.
 
         Raises:
             Exception: any other error a reply raised (a malformed frame), as ``request_all``.
@@ -633,13 +634,6 @@ class Supervisor:
         else:
             pending = _SentPending(self, messages, frozenset(range(sent)))
         return pending.result(decode=decode)
-
-    def send_all_now(self, messages: Sequence[Request | None]) -> _SentPending:
-        """``request_all(messages, return_exceptions=True)`` to be run to the end in this thread by the ``result``
-        of what this returns (its waits have their own deadlines, so no outer timeout is added); the requests that
-        can go at once are sent before it returns (``UnirosVectorEnv.step`` has its own lean pair of this,
-        ``send_steps_now`` and ``receive_steps_now``)."""
-        return _SentPending(self, messages, self._send_now(messages))
 
     def _receive_now(
         self,
@@ -969,8 +963,8 @@ class _Pending(Generic[T]):
 
 
 class _SentPending(_Pending[list[Any]]):
-    """Requests of which ``_send_now`` sent those in ``sent`` (``submit_all``: every one; ``request_all_now``: as many
-    as it could): ``result`` collects their replies in the calling thread (``Supervisor._receive_now``, no event-loop
+    """Requests of which those in ``sent`` went already (``submit_all``: every one; ``receive_steps_now``: as many as
+    it could): ``result`` collects their replies in the calling thread (``Supervisor._receive_now``, no event-loop
     round) and leaves the rest, requests not sent and replies not had that way, to ``request_all`` on the
     supervisor's loop, under what is left of the same deadline. The call timeout starts at the first ``result``, as
     for a task."""
