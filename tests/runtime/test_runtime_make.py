@@ -116,3 +116,28 @@ def test_a_synchronous_envs_step_errors_come_back_and_the_worker_keeps_serving()
         assert obs.shape == (1, 4) and rew[0] == 1.0 and info["env_id"][0] == "CartPole-v1"
     finally:
         venv.close()
+
+
+def test_a_users_own_env_as_module_colon_id_runs_in_its_worker() -> None:
+    """gymnasium's "module:Id" form: the module, which registers Id, is imported in the caller (to check the id) and
+    in the worker (a fresh interpreter, where only the uniros ids are registered by themselves)."""
+    from uniros_async.runtime import make_vec
+
+    venv = make_vec(["_custom_env:UnirosTestMarkedCartPole-v0", "CartPole-v1"], pad=False)
+    try:
+        venv.reset(seed=0)
+        _, _, _, _, infos = venv.step(np.array([0, 1]))
+        assert infos["_stepped_by_pid"].tolist() == [True, False]  # only the custom env has the key
+        assert infos["stepped_by_pid"][0] == venv.pids[0]  # and it ran in its own worker
+        assert infos["env_id"].tolist() == ["_custom_env:UnirosTestMarkedCartPole-v0", "CartPole-v1"]
+    finally:
+        venv.close()
+
+
+def test_a_module_colon_id_whose_module_is_missing_fails_in_the_caller() -> None:
+    before = set(multiprocessing.active_children())
+    with pytest.raises(ConfigError, match=r"cannot import 'no_such_module_here'.*'Thing-v0'"):
+        make("no_such_module_here:Thing-v0")
+    with pytest.raises(ConfigError, match=r"unknown env id '_custom_env:Nope-v0'.*'module:Id'"):
+        make("_custom_env:Nope-v0")  # the module imports, but registers no such id
+    assert set(multiprocessing.active_children()) == before

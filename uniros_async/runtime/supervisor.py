@@ -122,11 +122,24 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
     if placement is not None:
         check_plain(kwargs, str(env_id))
     register_envs()
-    if placement is not None and isinstance(env_id, str) and env_id not in registry:
+    reg_id = env_id  # the id in the registry
+    if isinstance(env_id, str) and ":" in env_id:  # gymnasium's "module:Id": importing the module registers Id
+        module, _, reg_id = env_id.partition(":")
+        try:
+            importlib.import_module(module)
+        except ImportError as exc:
+            if placement is None:  # a launcher may have the module where this machine has not
+                raise ConfigError(
+                    f"env id {env_id!r}: cannot import {module!r}, which should register {reg_id!r}: {exc}"
+                ) from exc
+    if placement is not None and isinstance(reg_id, str) and reg_id not in registry:
         return
-    if not isinstance(env_id, str) or env_id not in registry:
-        raise ConfigError(f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}")
-    entry = registry[env_id].entry_point
+    if not isinstance(reg_id, str) or reg_id not in registry:
+        raise ConfigError(
+            f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must be"
+            " registered in this process, or given as 'module:Id' (the module registers Id, in every worker too)"
+        )
+    entry = registry[reg_id].entry_point
     if not isinstance(entry, str) or not entry.startswith("uniros_async."):
         return
     module, _, name = entry.partition(":")
@@ -135,7 +148,7 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
         return
     from uniros_async.envs.task import split_kwargs
 
-    env_kwargs = {k: v for k, v in kwargs.items() if k not in _MAKE_KWARGS and k not in registry[env_id].kwargs}
+    env_kwargs = {k: v for k, v in kwargs.items() if k not in _MAKE_KWARGS and k not in registry[reg_id].kwargs}
     split_kwargs(cls, env_kwargs)
 
 
@@ -1093,7 +1106,8 @@ def make(
     """Make ``env_id`` in its own worker process and return a gymnasium.Env proxy for it.
 
     Args:
-        env_id: a registered id, e.g. ``"uniros/Rx200Reach-v0"``.
+        env_id: a registered id, e.g. ``"uniros/Rx200Reach-v0"``, or ``"module:Id"`` for an env of your own
+            (``module`` registers ``Id``; the worker, a fresh interpreter, imports it too).
         in_process: return the plain ``gymnasium.make`` env instead (for debugging).
         start_timeout_s: bound on starting the worker and building the env.
         call_timeout_s: bound on each reset/step.

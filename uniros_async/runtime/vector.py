@@ -543,9 +543,11 @@ def make_vec(
 
     Args:
         specs: env ids or ``(env_id, kwargs)`` pairs, e.g. ``["uniros/Rx200Reach-v0", ("uniros/Ned2Reach-v0",
-            {"robot": "emulated-real"})]``. ``{"worker": "tcp://HOST:PORT"}`` (or a ``RemoteWorker``) runs that
-            spec's worker on a launcher on another host (``uniros worker serve``, runtime/remote.py; its pid in
-            ``pids`` is on that host); ``"worker": None`` keeps it here.
+            {"robot": "emulated-real"})]``; any gymnasium id, and for an env of your own gymnasium's
+            ``"module:Id"`` (the worker imports ``module``, which registers ``Id``). ``{"worker":
+            "tcp://HOST:PORT"}`` (or a ``RemoteWorker``) runs that spec's worker on a launcher on another host
+            (``uniros worker serve``, runtime/remote.py; its pid in ``pids`` is on that host); ``"worker": None``
+            keeps it here.
         pad: pad observations and actions to the largest sizes (required when the envs differ); without it the
             spaces must match.
         start_timeout_s: bound on starting all workers and building their envs.
