@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import ipaddress
 import logging
 import math
 import multiprocessing
@@ -589,7 +590,7 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
             # for the next request would save, and the poll would hold the loop (up to 50 us)
-            transport.spin_ns = 0 if server.realtime else TURN_SPIN_NS
+            transport.spin_ns = 0 if server.realtime else turn_spin_ns(transport)
         if hasattr(transport, "on_shared_core") and not server.realtime:
             transport.on_shared_core = _move_off_core
         await server.serve(transport)
@@ -606,7 +607,25 @@ TURN_SPIN_NS = 200_000
 """How long a worker without a real-time env loop polls for the next request before it sleeps: the agent's turn
 between two steps (collect the returns, pick the next actions, pack them: ~60 us for one env here) is longer than
 ``ShmTransport.spin_ns``, so with the default every step would wake the worker from sleep (~40 us on an idle core).
-The spin credit still stops the polling when requests come slower than this (a learner's update between steps)."""
+The spin credit still stops the polling when requests come slower than this (a learner's update between steps).
+Not for a tcp connection on loopback: see ``turn_spin_ns``."""
+
+
+def turn_spin_ns(transport: Any) -> int:
+    """How long this worker polls for its next request: ``TURN_SPIN_NS``, but a tcp connection on loopback keeps
+    the transport's own ``spin_ns`` (50 us). A socket wakes its reader with a sync wake-up (the kernel is told that
+    the waker is about to sleep), which places a woken worker on its agent's core, and tcp carries no hint of where
+    the peer runs for a poll to see (shm's ``ShmTransport._peer_here``). There a 200 us poll held the agent off its
+    own core for the whole window: two tcp vector envs stepped in turn took ~400 us a step, ~140 us with 50 us
+    polls, while one env's steps cost the same with either (docs/performance.md). A worker on another host never
+    shares its agent's core and keeps the longer poll."""
+    if getattr(transport, "scheme", None) == "tcp":
+        try:
+            if ipaddress.ip_address(transport.sockname[0]).is_loopback:
+                return int(transport.spin_ns)
+        except (AssertionError, AttributeError, ValueError, IndexError, TypeError):  # no socket, or no IP address
+            pass
+    return TURN_SPIN_NS
 
 
 def _move_off_core(cpu: int) -> None:
