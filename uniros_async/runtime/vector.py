@@ -145,9 +145,12 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         obs_space = self.single_observation_space
         # a Box observation goes from each reply straight into its row of the vector observation (_Returns)
-        self._obs_head = array_head(obs_space.dtype, obs_space.shape) if isinstance(obs_space, gym.spaces.Box) else None
+        self._obs_head: bytes | None = None
+        self._obs_batch: tuple[tuple[int, ...], np.dtype[Any]] | None = None  # its shape and dtype
+        if isinstance(obs_space, gym.spaces.Box):
+            self._obs_head = array_head(obs_space.dtype, obs_space.shape)
+            self._obs_batch = ((self.num_envs, *obs_space.shape), np.dtype(obs_space.dtype))
         self._action_form: tuple[Any, ...] = (None,)  # _action_form of single_action_space, made at the first step
-        self._obs_batch = ((self.num_envs, *obs_space.shape), np.dtype(obs_space.dtype)) if self._obs_head else None
         self.metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}
         self.render_mode = None
         self.spec = None
