@@ -378,6 +378,40 @@ def test_tcp_workers_step_in_the_callers_thread_with_the_returns_of_shm(monkeypa
             np.testing.assert_array_equal(x, y)
 
 
+def test_a_reply_that_cannot_be_read_raises_once_every_reply_is_in(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A step reply the agent cannot read (the first env's, made unreadable by a patched decoder) raises its own
+    error, as ``request_all`` does, once the other workers' replies are taken too: the second worker is left with
+    no reply owed, and only the first is marked broken (its replies can no longer be trusted to match its requests),
+    which the next step reports by its index."""
+    from uniros_async.errors import CodecError
+    from uniros_async.runtime import vector
+
+    real = vector.unpack_step_reply_into
+    calls: list[int] = []
+
+    def unreadable(frame: memoryview, out: memoryview, head: bytes) -> object:
+        calls.append(1)
+        if len(calls) == 1:
+            raise CodecError("malformed step frame: made so by the test")
+        return real(frame, out, head)
+
+    venv = make_vec(["CartPole-v1", "CartPole-v1"], pad=False)
+    try:
+        venv.reset(seed=3)
+        venv.step(np.array([0, 1]))
+        monkeypatch.setattr(vector, "unpack_step_reply_into", unreadable)
+        with pytest.raises(CodecError, match="made so by the test"):
+            venv.step(np.array([1, 1]))
+        assert len(calls) == 2  # the second reply was read too
+        first, second = venv._sup.workers
+        assert not second.in_flight and second.broken is None
+        assert first.broken is not None and "interrupted" in first.broken
+        with pytest.raises(WorkerError, match="worker 0"):
+            venv.step(np.array([0, 0]))
+    finally:
+        venv.close()
+
+
 async def test_a_tcp_worker_on_loopback_polls_for_requests_only_as_long_as_its_transport() -> None:
     """``worker.turn_spin_ns``: a worker keeps polling 200 us for its next request (``TURN_SPIN_NS``), except over
     tcp on loopback, where the woken worker often shares its agent's core and a long poll holds the agent off it;
