@@ -6,8 +6,10 @@ One `make_vec(["CartPole-v1"])` (one worker over shm) is stepped in alternating 
 
 - `lean`: `UnirosVectorEnv.step` as it is (`Supervisor.send_steps_now` / `receive_steps_now`, returns' arrays made
   with positional dtypes);
-- `general`: the path the step took before the tenth session, still the one `submit_all` takes: `_send_now`, a
-  `_SentPending` and its `result` (`_receive_now`), and the returns' arrays made with keyword dtypes.
+- `general`: the path the step took before the tenth session (`b2dd1ed`), kept here as the baseline: the
+  supervisor's general send and receive of that code (`_send_now`, a `_SentPending`-like object and its `result`,
+  `_receive_now`: sets, a sort, the checks of any request) and the returns' arrays made with keyword dtypes. Only
+  its common case is kept (every request goes and every reply is taken in this thread); anything else raises.
 
 The worker, the env, the transport and the moment are the same for both, so the difference per block is the agent
 code's own cost inside the loop, which this VM's hour-to-hour drift (about 1.5-2x) hides between separate runs.
@@ -23,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from uniros_async.runtime.supervisor import _SentPending
+from uniros_async.runtime.supervisor import LATER, Supervisor, _raise_unexpected
 from uniros_async.runtime.vector import UnirosVectorEnv, _Returns, make_vec
+from uniros_async.runtime.worker import pack
 
 STEPS = 2000
 
@@ -44,11 +47,73 @@ class _KeywordReturns(_Returns):
         self.row_bytes = self.obs.nbytes // n
 
 
+def _send_now(sup: Supervisor, messages: list[Any]) -> frozenset[int]:  # b2dd1ed's Supervisor._send_now
+    for i, m in enumerate(messages):
+        if m is not None:
+            sup.workers[i].check_idle()
+    if sup._loop.is_closed() or sup._orphans or not sup._lock.acquire(blocking=False):
+        return frozenset()
+    try:
+        frames = [None if m is None else pack(m) for m in messages]
+        sent: list[int] = []
+        for i, frame in enumerate(frames):
+            if frame is None:
+                continue
+            if not sup.workers[i].try_send_request(frame):
+                break
+            sent.append(i)
+        return frozenset(sent)
+    finally:
+        sup._lock.release()
+
+
+def _receive_now(
+    sup: Supervisor, messages: list[Any], sent: frozenset[int], deadline: float, results: list[Any], decode: Any
+) -> set[int]:  # b2dd1ed's Supervisor._receive_now
+    rest = {i for i, m in enumerate(messages) if m is not None}
+    if not sent or not sup._lock.acquire(blocking=False):
+        return rest
+    try:
+        if sup._loop.is_closed() or sup._orphans:
+            return rest
+        for i in sorted(sent):
+            w = sup.workers[i]
+            op = messages[i].get("op")
+            try:
+                r = w.receive_reply_blocking(op, max(deadline - time.monotonic(), 0.0), decode)
+            except Exception as exc:  # noqa: BLE001
+                r = exc
+            if r is LATER:
+                break
+            results[i] = r
+            rest.discard(i)
+        return rest
+    finally:
+        sup._lock.release()
+
+
+class _Sent:  # b2dd1ed's _SentPending, its result() when every reply is taken in this thread
+    def __init__(self, sup: Supervisor, messages: list[Any], sent: frozenset[int]) -> None:
+        self._sup, self._messages, self._sent = sup, messages, sent
+        self._results: list[Any] = [None] * len(messages)
+        self._rest: set[int] | None = None
+
+    def result(self, timeout: float | None = None, decode: Any = None) -> list[Any]:
+        now = time.monotonic()
+        end = None if timeout is None else now + timeout
+        deadline = now + self._sup.call_timeout_s
+        until = deadline if end is None else min(deadline, end)
+        self._rest = _receive_now(self._sup, self._messages, self._sent, until, self._results, decode)
+        if self._rest:
+            raise RuntimeError("a reply could not be taken in this thread: the baseline keeps only the common case")
+        return _raise_unexpected(self._results)
+
+
 def general_step(venv: UnirosVectorEnv, actions: np.ndarray) -> Any:
     venv._check_open()
     msgs = venv._step_messages(actions, "next_step")
     sup = venv._sup
-    pending = _SentPending(sup, msgs, sup._send_now(msgs))
+    pending = _Sent(sup, msgs, _send_now(sup, msgs))
     returns = _KeywordReturns(venv)
     return returns.finish(venv._collect(pending.result(decode=returns.decode)))
 

@@ -4,12 +4,12 @@ The agent side is synchronous (gymnasium), the transports are asyncio: the super
 that the calling thread runs itself, only for the duration of each call (``loop.run_until_complete``): nothing on
 the agent side needs to run between calls (replies wait in the shm rings, a dead worker's hang-up in its socket),
 and a call then costs no hand-over to another thread (~16 us of loop start/stop instead of ~300 us of thread
-wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_all`` sends requests
+wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_steps`` sends requests
 and returns at once; the replies are collected by ``_Pending.result``. A step does not run the loop at all: the
 requests go out with the transport's ``try_send`` and the replies come in with its ``receive_blocking`` (shm and
-tcp, local and remote workers), in the calling thread (``send_steps_now`` and ``receive_steps_now`` for a step,
-``_send_now`` and ``_receive_now`` for ``submit_all``); whatever that cannot do (no room, a hang-up, a deadline,
-a launcher's news of a remote worker) is left to the loop, which also reports it.
+tcp, local and remote workers), in the calling thread (``send_steps_now``, ``receive_steps_now`` and
+``_take_replies``); whatever that cannot do (no room, a hang-up, a deadline, a launcher's news of a remote worker)
+is left to the loop, which also reports it.
 Every wait on a worker has a deadline; a worker that does not answer in time, whose connection breaks or whose
 process died is marked broken and every later request to it raises WorkerError naming its index (issue 5). A call
 interrupted by Ctrl-C while the loop waits is finished (its replies consumed) before the next call; one
@@ -575,9 +575,9 @@ class Supervisor:
     def send_steps_now(self, messages: Sequence[PackedRequest]) -> int:
         """The first half of ``UnirosVectorEnv.step``: send one packed step request to every worker, in this thread
         (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
-        half is ``receive_steps_now``. What ``_send_now`` does for ``submit_all``'s general requests, in as few lines
-        of Python as it can: this runs on every step, and at one env the agent's share of a step's overhead is what
-        its lines of Python cost (issue 5's 50 us).
+        half is ``receive_steps_now`` (``submit_steps`` uses it too). In as few lines of Python as it can: this runs
+        on every step, and at one env the agent's share of a step's overhead is what its lines of Python cost (issue
+        5's 50 us).
 
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).
@@ -603,109 +603,58 @@ class Supervisor:
 
     def receive_steps_now(self, messages: Sequence[PackedRequest], sent: int, decode: StepDecoder) -> list[Any]:
         """The second half of ``UnirosVectorEnv.step``: the replies to ``messages``, of which ``send_steps_now``
-        sent the first ``sent``, each taken in this thread (``WorkerHandle.receive_reply_blocking``, with
-        ``decode``) while every request went and every reply can be had that way; from the first that cannot, the
-        rest (requests not sent, replies not had) go through ``request_all`` on the loop, under the same deadline,
-        as ``_SentPending.result`` does. Returns the results in index order (``decode``'s for the replies it took), a
-        WorkerError in the slot of a worker that failed.
+        sent the first ``sent``, taken in this thread (``_take_replies``) while they can be had that way; from the
+        first that cannot, the rest (requests not sent, replies not had) go through ``request_all`` on the loop, under
+        the same deadline (``_SentPending``). Returns the results in index order (``decode``'s for the replies it
+        took), a WorkerError in the slot of a worker that failed.
 
         Raises:
-            Exception: any other error a reply raised (a malformed frame), as ``request_all``.
+            Exception: any other error a reply raised (a malformed frame), once every reply is in, as ``request_all``.
         """
         n = len(messages)
-        got = 0
-        if sent == n and self._lock.acquire(blocking=False):
-            results: list[Any] = [None] * n
-            unexpected: Exception | None = None
-            deadline = time.monotonic() + self.call_timeout_s
-            try:
-                if not self._orphans and not self._loop.is_closed():
-                    for w in self.workers:
-                        try:
-                            r = w.receive_reply_blocking("step", max(deadline - time.monotonic(), 0.0), decode)
-                        except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
-                            r = exc
-                            if unexpected is None and not isinstance(exc, WorkerError):
-                                unexpected = exc
-                        if r is LATER:
-                            break
-                        results[got] = r
-                        got += 1
-            except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
-                for w in self.workers[got:]:
-                    if w.in_flight and w.broken is None:
-                        w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
-                raise
-            finally:
-                self._lock.release()
-            if got == n:
-                if unexpected is not None:
-                    raise unexpected  # as request_all: once every reply is in
-                return results
-            pending = _SentPending(self, messages, frozenset(range(sent)), results, set(range(got, n)))
-            pending.to_loop(deadline)
-        else:
-            pending = _SentPending(self, messages, frozenset(range(sent)))
+        results: list[Any] = [None] * n
+        deadline = time.monotonic() + self.call_timeout_s
+        got, unexpected = self._take_replies(sent, deadline, results, decode)
+        if got == n:
+            if unexpected is not None:
+                raise unexpected
+            return results
+        pending = _SentPending(self, messages, sent, results, set(range(got, n)))
+        pending.to_loop(deadline)
         return pending.result(decode=decode)
 
-    def _receive_now(
-        self,
-        messages: Sequence[Request | None],
-        sent: frozenset[int],
-        deadline: float,
-        results: list[Any],
-        decode: StepDecoder | None = None,
-    ) -> set[int]:
-        """Collect the replies of the requests ``_send_now`` sent, in this thread and without the event loop
-        (``WorkerHandle.receive_reply_blocking``, with ``decode``), into ``results``; stops at the first that cannot
-        be had that way. Returns the indices still to do (requests not sent, replies not received)."""
-        rest = {i for i, m in enumerate(messages) if m is not None}
+    def _take_replies(
+        self, sent: int, deadline: float, results: list[Any], decode: StepDecoder | None
+    ) -> tuple[int, Exception | None]:
+        """Take the step replies of the first ``sent`` workers in this thread, in index order, into ``results``,
+        until one cannot be had that way (``WorkerHandle.receive_reply_blocking``, with ``decode``; nothing is
+        consumed then). Returns how many were taken, and the first error other than a WorkerError that taking one
+        raised (it is in that one's slot as well; ``request_all`` raises such an error once every reply is in)."""
         if not sent or not self._lock.acquire(blocking=False):
-            return rest
+            return 0, None
+        workers = self.workers
+        got = 0
+        unexpected: Exception | None = None
         try:
-            if self._loop.is_closed() or self._orphans:
-                return rest
-            for i in sorted(sent):
-                w = self.workers[i]
-                op = messages[i].get("op")  # type: ignore[union-attr]
+            if self._orphans or self._loop.is_closed():
+                return 0, None
+            while got < sent:
                 try:
-                    r = w.receive_reply_blocking(op, max(deadline - time.monotonic(), 0.0), decode)
+                    r = workers[got].receive_reply_blocking("step", max(deadline - time.monotonic(), 0.0), decode)
                 except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
                     r = exc
+                    if unexpected is None and not isinstance(exc, WorkerError):
+                        unexpected = exc
                 if r is LATER:
                     break
-                results[i] = r
-                rest.discard(i)
-            return rest
+                results[got] = r
+                got += 1
+            return got, unexpected
         except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
-            for j in rest:
-                w = self.workers[j]
+            for w in workers[got:sent]:
                 if w.in_flight and w.broken is None:
                     w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
             raise
-        finally:
-            self._lock.release()
-
-    def _send_now(self, messages: Sequence[Request | None]) -> frozenset[int]:
-        """Send the requests that can go at once (``WorkerHandle.try_send_request``: workers whose transport has room),
-        in this thread without running the event loop: a step's actions then reach every worker within tens of
-        microseconds of each other instead of one event-loop round apart. Stops at the first that cannot (that one
-        and those after go through ``request_all`` as usual); returns the indices sent."""
-        for i, m in enumerate(messages):
-            if m is not None:
-                self.workers[i].check_idle()  # before anything is sent
-        if self._loop.is_closed() or self._orphans or not self._lock.acquire(blocking=False):
-            return frozenset()
-        try:
-            frames = [None if m is None else pack(m) for m in messages]  # all packed before the first goes
-            sent: list[int] = []
-            for i, frame in enumerate(frames):
-                if frame is None:
-                    continue
-                if not self.workers[i].try_send_request(frame):
-                    break
-                sent.append(i)
-            return frozenset(sent)
         finally:
             self._lock.release()
 
@@ -719,20 +668,22 @@ class Supervisor:
 
         return _Pending(self, self._drive(start(), 5.0))
 
-    def submit_all(self, messages: Sequence[Request | None]) -> _Pending[list[Any]]:
-        """``request_all(messages, return_exceptions=True)``, returning once every request is sent."""
-        presend = self._send_now(messages)
-        if len(presend) == sum(m is not None for m in messages):  # all sent: nothing runs until the replies are due
+    def submit_steps(self, messages: Sequence[PackedRequest]) -> _Pending[list[Any]]:
+        """``request_all(messages, return_exceptions=True)`` for one step request per worker, returning once every
+        request is sent (``send_steps_now``); the replies are taken by ``.result()`` (``_take_replies``, then the
+        loop for what is left). Raises as ``send_steps_now``."""
+        sent = self.send_steps_now(messages)
+        if sent == len(messages):  # all sent: nothing runs until the replies are due
             if self._loop.is_closed():
                 raise RuntimeError("the supervisor is closed")
-            return _SentPending(self, messages, presend)
+            return _SentPending(self, messages, sent)
 
         async def start() -> asyncio.Task[list[Any]]:
-            sent: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+            done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
             task = asyncio.get_running_loop().create_task(
-                self.request_all(messages, return_exceptions=True, sent=sent, present=presend)
+                self.request_all(messages, return_exceptions=True, sent=done, present=frozenset(range(sent)))
             )
-            either: set[asyncio.Future[Any]] = {sent, task}
+            either: set[asyncio.Future[Any]] = {done, task}
             await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
             return task
 
@@ -749,7 +700,7 @@ class Supervisor:
     ) -> list[Any]:
         """Send ``messages[i]`` to worker i (None: skip), all before waiting for any (then ``sent`` is set). Once
         every reply is in, raise the first failure (by index), or with ``return_exceptions`` put each WorkerError
-        in its slot. ``present``: the workers whose request ``_send_now`` has sent already. ``wait_s``: how long
+        in its slot. ``present``: the workers whose request ``send_steps_now`` has sent already. ``wait_s``: how long
         to wait at most (default: the call timeout, which error messages name either way)."""
         for i, m in enumerate(messages):
             if m is not None and i not in present:
@@ -944,7 +895,7 @@ async def _bounded(coro: Coroutine[Any, Any, T], timeout_s: float) -> T:
 
 
 class _Pending(Generic[T]):
-    """Requests started by ``Supervisor.submit``/``submit_all``; like a concurrent.futures.Future, but ``result``
+    """Requests started by ``Supervisor.submit``/``submit_steps``; like a concurrent.futures.Future, but ``result``
     runs the supervisor's loop in the calling thread until they are done."""
 
     def __init__(self, supervisor: Supervisor, task: asyncio.Task[T]) -> None:
@@ -976,27 +927,27 @@ class _Pending(Generic[T]):
 
 
 class _SentPending(_Pending[list[Any]]):
-    """Requests of which those in ``sent`` went already (``submit_all``: every one; ``receive_steps_now``: as many as
-    it could): ``result`` collects their replies in the calling thread (``Supervisor._receive_now``, no event-loop
-    round) and leaves the rest, requests not sent and replies not had that way, to ``request_all`` on the
+    """Step requests of which the first ``sent`` went already (``submit_steps``: every one; ``receive_steps_now``: as
+    many as it could): ``result`` takes their replies in the calling thread (``Supervisor._take_replies``, no
+    event-loop round) and leaves the rest, requests not sent and replies not had that way, to ``request_all`` on the
     supervisor's loop, under what is left of the same deadline. The call timeout starts at the first ``result``, as
     for a task."""
 
     def __init__(
         self,
         supervisor: Supervisor,
-        messages: Sequence[Request | None],
-        sent: frozenset[int],
+        messages: Sequence[PackedRequest],
+        sent: int,
         results: list[Any] | None = None,
         rest: set[int] | None = None,
     ) -> None:
-        """``results`` and ``rest``: what the calling thread collected already and what it could not (given together,
+        """``results`` and ``rest``: what the calling thread took already and what it could not (given together,
         by ``receive_steps_now``, which then calls ``to_loop``)."""
         self._sup = supervisor
         self._messages = messages
         self._sent = sent
         self._results: list[Any] = [None] * len(messages) if results is None else results
-        self._rest: set[int] | None = rest  # what the calling thread could not collect (None: not tried yet)
+        self._rest: set[int] | None = rest  # what the calling thread could not take (None: not tried yet)
         self._task: asyncio.Task[list[Any]] | None = None  # type: ignore[assignment]  # ... by request_all instead
 
     def done(self) -> bool:
@@ -1012,9 +963,9 @@ class _SentPending(_Pending[list[Any]]):
         end = None if timeout is None else now + timeout
         if self._rest is None:
             deadline = now + sup.call_timeout_s
-            self._rest = sup._receive_now(
-                self._messages, self._sent, deadline if end is None else min(deadline, end), self._results, decode
-            )
+            until = deadline if end is None else min(deadline, end)
+            got, _ = sup._take_replies(self._sent, until, self._results, decode)  # raised below, with the rest
+            self._rest = set(range(got, len(self._messages)))
             self.to_loop(deadline)
         if self._task is not None:
             more = super().result(None if end is None else max(end - time.monotonic(), 0.0))
@@ -1036,8 +987,9 @@ class _SentPending(_Pending[list[Any]]):
             if sup._loop.is_closed():
                 raise concurrent.futures.CancelledError()
             left = [m if i in self._rest else None for i, m in enumerate(self._messages)]
+            present = frozenset(i for i in self._rest if i < self._sent)  # sent, their replies not taken
             wait_s = max(deadline - time.monotonic(), 0.0)
-            coro = sup.request_all(left, return_exceptions=True, present=self._sent & self._rest, wait_s=wait_s)
+            coro = sup.request_all(left, return_exceptions=True, present=present, wait_s=wait_s)
             self._task = sup._loop.create_task(coro)
 
 

@@ -178,7 +178,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         if self._pending is not None:
             raise gym.error.AlreadyPendingCallError("step_async was called twice without step_wait", "step")
         msgs = self._step_messages(actions, "next_step")
-        self._pending = self._sup.submit_all(msgs)
+        self._pending = self._sup.submit_steps(msgs)
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Collect the replies of ``step_async``.
@@ -471,7 +471,7 @@ def _sb3_class() -> type:
             if v._pending is not None:
                 raise gym.error.AlreadyPendingCallError("step_async was called twice without step_wait", "step")
             msgs = v._step_messages(actions, "same_step")
-            v._pending = v._sup.submit_all(msgs)
+            v._pending = v._sup.submit_steps(msgs)
 
         def step_wait(self) -> tuple[Any, np.ndarray, np.ndarray, list[dict[str, Any]]]:
             replies = self.venv._wait(None)
