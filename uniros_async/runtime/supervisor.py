@@ -575,9 +575,9 @@ class Supervisor:
     def send_steps_now(self, messages: Sequence[PackedRequest]) -> int:
         """The first half of ``UnirosVectorEnv.step``: send one packed step request to every worker, in this thread
         (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
-        half is ``receive_steps_now`` (``submit_steps`` uses it too). In as few lines of Python as it can: this runs
-        on every step, and at one env the agent's share of a step's overhead is what its lines of Python cost (issue
-        5's 50 us).
+        half is ``receive_steps_now``; ``submit_steps`` (``step_async``) sends with it too. In as few lines of Python
+        as it can: this runs on every step, and at one env the agent's share of a step's overhead is what its lines of
+        Python cost (issue 5's 50 us).
 
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).
