@@ -141,3 +141,20 @@ def test_a_module_colon_id_whose_module_is_missing_fails_in_the_caller() -> None
     with pytest.raises(ConfigError, match=r"unknown env id '_custom_env:Nope-v0'.*'module:Id'"):
         make("_custom_env:Nope-v0")  # the module imports, but registers no such id
     assert set(multiprocessing.active_children()) == before
+
+
+def test_an_env_registered_only_in_the_caller_fails_in_its_worker_with_the_way_out() -> None:
+    """An id registered in this process only (here, inside the test) passes the caller's check, but the worker is
+    a fresh interpreter where it does not exist: its WorkerError says so and names the two ways that work."""
+    from gymnasium.envs.classic_control.cartpole import CartPoleEnv
+
+    env_id = "UnirosTestRegisteredHereOnly-v0"
+    gym.register(env_id, entry_point=CartPoleEnv, max_episode_steps=10)
+    try:
+        before = set(multiprocessing.active_children())
+        with pytest.raises(WorkerError, match="fresh interpreter") as e:
+            make(env_id)
+        assert "'module:Id'" in str(e.value) and "NameNotFound" in str(e.value)
+        assert set(multiprocessing.active_children()) == before  # the worker is gone
+    finally:
+        del gym.registry[env_id]

@@ -673,6 +673,14 @@ class _Server:
                     self.realtime = realtime
                 else:
                     base.start_thread()  # unknown wrappers: the synchronous API over a loop thread, as in-process
+        except gym.error.UnregisteredEnv as exc:  # registered where the caller runs, as it was checked there
+            where = (
+                "this worker is a fresh interpreter, where only the uniros ids, gymnasium's own and the ids that "
+                "modules imported at start-up register exist: register the env when a module is imported and name it "
+                "'module:Id', or register it at the top level of the main script (not under "
+                "if __name__ == '__main__')"
+            )
+            self.build_error = _error_reply(exc, f"could not make {self.spec.env_id} ({where})")
         except Exception as exc:  # noqa: BLE001 - sent back to the supervisor
             self.build_error = _error_reply(exc, f"could not make {self.spec.env_id}")
 
