@@ -721,7 +721,8 @@ class _Server:
         if op == "step":
             ref = request.get("t")
             if ref is not None and self.attached:
-                env.unwrapped.step_reference_ns = ref  # see RobotEnv._step_deadline
+                base: Any = env.unwrapped
+                base.step_reference_ns = ref  # see RobotEnv._step_deadline
             return await self._step(request["action"], request.get("autoreset"))
         if op == "spaces":
             return self._spaces()
