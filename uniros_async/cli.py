@@ -88,6 +88,7 @@ def _build_parser() -> argparse.ArgumentParser:
     bth.add_argument("--steps", type=int, default=100)
     bth.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     bth.add_argument("--transport", choices=("shm", "tcp"), default="shm", help="make_vec's workers over (default shm)")
+    bth.add_argument("--no-progress", action="store_true")
 
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0)
@@ -306,7 +307,11 @@ def _run_bench(args: argparse.Namespace) -> int:
 
         throughput.main(
             throughput.ThroughputBenchConfig(
-                quick=args.quick, steps=args.steps, json_path=args.json_path, transport=args.transport
+                quick=args.quick,
+                steps=args.steps,
+                json_path=args.json_path,
+                transport=args.transport,
+                progress=not args.no_progress,
             )
         )
     elif args.scenario == "simclock":

@@ -17,12 +17,16 @@ from uniros_async.errors import ConfigError
 pytestmark = pytest.mark.slow
 
 
-def test_a_short_run_prints_the_table_and_writes_every_record(tmp_path: Path) -> None:
+def test_a_short_run_prints_the_table_and_writes_every_record(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "t.json"
     lines: list[str] = []
     records = throughput.main(
         throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, json_path=str(out)), log=lines.append
     )
+    err = capsys.readouterr().err  # the progress bar: 3 rx200 rows, 3 CartPole rows, 3 rows of two envs in turn
+    assert "throughput bench" in err and "9/9" in err
     assert json.loads(out.read_text()) == records
     rows = {(r["env"], r["impl"]) for r in records}
     assert rows == {(e, i) for e in (throughput.ENV_ID, throughput.TRIVIAL_ID) for i in throughput.IMPLS}

@@ -1,4 +1,5 @@
-"""Order statistics for benchmark samples (medians and percentiles, never means of latencies)."""
+"""Order statistics for benchmark samples (medians and percentiles, never means of latencies); the report; a
+progress counter."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["report", "summary"]
+__all__ = ["progress_counter", "report", "summary"]
 
 
 def summary(samples: Sequence[float]) -> dict[str, float]:
@@ -36,3 +37,21 @@ def report(table: str, records: list[dict[str, Any]], json_path: str | None, log
     if json_path:
         Path(json_path).write_text(json.dumps(records, indent=2) + "\n")
         log(f"wrote {json_path}")
+
+
+def progress_counter(total: int, enabled: bool, desc: str, unit: str) -> Callable[..., None]:
+    """A tqdm bar of ``total`` ``unit``s on stderr, gone when done: ``step(n)`` counts ``n`` more, ``step(0,
+    done=True)`` closes it. Without ``enabled``, a function that does nothing."""
+    if not enabled:
+        return lambda n, done=False: None
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit=unit, leave=False)
+
+    def step(n: int, done: bool = False) -> None:
+        if n:
+            bar.update(n)
+        if done:
+            bar.close()
+
+    return step

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from uniros_async.bench.stats import report
+from uniros_async.bench.stats import progress_counter, report
 from uniros_async.errors import ConfigError
 
 __all__ = ["IMPLS", "ThroughputBenchConfig", "main"]
@@ -67,6 +67,8 @@ class ThroughputBenchConfig:
     json_path: str | None = None
     transport: str = "shm"
     """How ``make_vec`` reaches its workers (``shm`` or ``tcp`` on loopback); the peers use their pipes either way."""
+    progress: bool = True
+    """A progress bar over the rows (tqdm, on stderr)."""
 
     def __post_init__(self) -> None:
         if not self.n_envs or min(self.n_envs) < 1 or self.steps < 5:
@@ -285,11 +287,15 @@ def _run_in_turns(
     }
 
 
-def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    ns = tuple(n for n in config.n_envs if n <= 4) if config.quick else config.n_envs
-    steps = min(config.steps, 40) if config.quick else config.steps
-    cores = os.cpu_count() or 1
-    records = []
+def _measure(
+    config: ThroughputBenchConfig,
+    ns: tuple[int, ...],
+    steps: int,
+    in_turns: tuple[str, ...],
+    records: list[dict[str, Any]],
+    bar: Callable[..., None],
+) -> None:
+    """Run every row into ``records``, counting each on ``bar``."""
     bare = _make_env(ENV_ID, ENV_KW)
     try:
         floor: _Floor | None = _Floor(ENV_ID, ENV_KW)
@@ -300,6 +306,7 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
             for impl in IMPLS:
                 floor_n = floor if n == 1 else None
                 records.append(_run(impl, n, bare, ENV_ID, ENV_KW, steps, floor_n, transport=config.transport))
+                bar(1)
     finally:
         if floor is not None:
             floor.close()
@@ -309,12 +316,27 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
         for impl in IMPLS:
             trivial_steps = max(steps, 200)
             records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, trivial_steps, block=20, transport=config.transport))
-        # (--quick: against gymnasium's only, to keep within its minute)
-        for impl in IMPLS[:2] if config.quick else IMPLS:
+            bar(1)
+        for impl in in_turns:
             turn_steps = 100 if config.quick else max(steps, 200)
             records.append(_run_in_turns(impl, trivial, TRIVIAL_ID, turn_steps, transport=config.transport))
+            bar(1)
     finally:
         trivial.close()
+
+
+def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    ns = tuple(n for n in config.n_envs if n <= 4) if config.quick else config.n_envs
+    steps = min(config.steps, 30) if config.quick else config.steps  # --quick: within its minute on a slow hour too
+    cores = os.cpu_count() or 1
+    records: list[dict[str, Any]] = []
+    in_turns = IMPLS[:2] if config.quick else IMPLS  # (--quick: against gymnasium's only, to keep within its minute)
+    rows = len(ns) * len(IMPLS) + len(IMPLS) + len(in_turns)
+    bar = progress_counter(rows, config.progress, "throughput bench", "row")
+    try:
+        _measure(config, ns, steps, in_turns, records, bar)
+    finally:
+        bar(0, done=True)
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
     head = f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'step ms':>8} {'bare ms':>8}"
     lines = [

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from uniros_async.bench import _peers
-from uniros_async.bench.stats import report, summary
+from uniros_async.bench.stats import progress_counter, report, summary
 from uniros_async.errors import ConfigError
 
 __all__ = ["PAYLOADS", "TransportBenchConfig", "format_table", "main"]
@@ -387,7 +387,7 @@ def main(config: TransportBenchConfig, *, log: Callable[[str], None] = print) ->
     records: list[dict[str, Any]] = []
     skipped: list[str] = []
     todo = [(k, p) for k in config.transports for p in config.payloads]
-    bar = _progress(len(todo), config.progress)
+    bar = progress_counter(len(todo), config.progress, "transport bench", "case")
     for kind in config.transports:
         why = _available(kind)
         if why is not None:
@@ -450,19 +450,3 @@ def format_table(records: list[dict[str, Any]]) -> str:
             "  payload (iceoryx2's method): zero-copy round trips; shm and tcp copy the payload in on both sides",
         ]
     return "\n".join(lines)
-
-
-def _progress(total: int, enabled: bool) -> Callable[..., None]:
-    if not enabled:
-        return lambda n, done=False: None
-    from tqdm import tqdm
-
-    bar = tqdm(total=total, desc="transport bench", unit="case", leave=False)
-
-    def step(n: int, done: bool = False) -> None:
-        if n:
-            bar.update(n)
-        if done:
-            bar.close()
-
-    return step
