@@ -331,8 +331,8 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     cores = os.cpu_count() or 1
     records: list[dict[str, Any]] = []
     in_turns = IMPLS[:2] if config.quick else IMPLS  # (--quick: against gymnasium's only, to keep within its minute)
-    rows = len(ns) * len(IMPLS) + len(IMPLS) + len(in_turns)
-    bar = progress_counter(rows, config.progress, "throughput bench", "row")
+    n_rows = len(ns) * len(IMPLS) + len(IMPLS) + len(in_turns)
+    bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
     try:
         _measure(config, ns, steps, in_turns, records, bar)
     finally:
