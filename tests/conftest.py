@@ -1,0 +1,22 @@
+"""Suite-wide settings."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+
+import pytest
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _sb3_logs_in_the_sessions_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """SB3 makes a log folder for every ``learn`` without a tensorboard folder: ``$SB3_LOGDIR``, or else a new
+    ``/tmp/SB3-<time>`` each time, which nothing removes (the training tests alone left 20 a run). Point it into
+    pytest's own temporary folder, which pytest prunes (worker processes inherit the variable)."""
+    old = os.environ.get("SB3_LOGDIR")
+    os.environ["SB3_LOGDIR"] = str(tmp_path_factory.mktemp("sb3_logs"))
+    yield
+    if old is None:
+        os.environ.pop("SB3_LOGDIR", None)
+    else:
+        os.environ["SB3_LOGDIR"] = old
