@@ -406,10 +406,10 @@ class _Returns:
     def decode(self, i: int, frame: memoryview) -> Any:
         """Sub-env ``i``'s step reply: its info (a dict) when the rest went straight into place, else its result
         (``[obs, reward, terminated, truncated, info]``, a list) for ``finish``."""
-        raw, head = self.raw, self.venv._obs_head
-        if raw is not None and head is not None:
+        raw = self.raw
+        if raw is not None:  # (a Box observation: the venv has its header)
             k = self.row_bytes
-            got = unpack_step_reply_into(frame, raw[i * k : i * k + k], head)
+            got = unpack_step_reply_into(frame, raw[i * k : i * k + k], self.venv._obs_head)  # type: ignore[arg-type]
             if got is not None:
                 self.rewards[i], self.terminated[i], self.truncated[i], info = got
                 return info
