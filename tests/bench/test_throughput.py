@@ -34,7 +34,13 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
     assert sorted(r["impl"] for r in in_turns) == sorted(throughput.IMPLS)
     assert all(r["env"] == throughput.TRIVIAL_ID and r["envs_in_turn"] == 2 for r in in_turns)
     for r in records:
-        assert {"impl", "n_envs", "steps_per_s", "overhead_us"} <= r.keys()
+        assert {"impl", "n_envs", "steps_per_s", "overhead_us", "overhead_ci_us"} <= r.keys()
+        if r["env"] == throughput.TRIVIAL_ID:  # 950 paired steps: an interval around the median
+            lo, hi = r["overhead_ci_us"]
+            assert lo <= r["overhead_us"] <= hi
+            assert 0.0 <= r["steal_pct"] <= 100.0  # measured over the interleaved run (this is Linux)
+        else:  # 5 steps, the first of the block left out: too few for a 95 % interval
+            assert r["overhead_ci_us"] is None
         assert r["n_envs"] == 1 and r["steps_per_s"] > 0 and r["bare_ms"] > 0 and r["step_ms"] > 0
         if r["env"] == throughput.ENV_ID:  # the floor is measured beside the rx200 rows at N = 1
             assert r["floor_ms"] > 0 and isinstance(r["overhead_over_floor_us"], float)
@@ -43,6 +49,7 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
     text = "\n".join(lines)
     assert "gymnasium-async" in text and "sb3-subproc" in text and "physics bound" in text
     assert "stepped in turn" in text
+    assert "95 % CI" in text and "too few steps" in text
 
 
 @pytest.mark.parametrize("kw", [{"n_envs": ()}, {"n_envs": (0,)}, {"steps": 2}])

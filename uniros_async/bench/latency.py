@@ -50,7 +50,7 @@ from uniros_async.bench.looptiming import (
     since,
     to_records,
 )
-from uniros_async.bench.stats import report
+from uniros_async.bench.stats import cpu_times, report, steal_percent
 from uniros_async.errors import ConfigError
 from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread
 
@@ -456,25 +456,6 @@ def run(config: LatencyBenchConfig) -> list[Series]:
         progress.close()
 
 
-def _cpu_times() -> list[int] | None:
-    """The aggregate ``cpu`` line of /proc/stat (jiffies: user nice system idle iowait irq softirq steal), or None."""
-    try:
-        with open("/proc/stat") as f:
-            fields = f.readline().split()
-    except OSError:
-        return None
-    return [int(x) for x in fields[1:9]] if fields and fields[0] == "cpu" and len(fields) >= 9 else None
-
-
-def _steal_percent(before: list[int] | None, after: list[int] | None) -> float | None:
-    """Share of CPU time the hypervisor stole between two ``_cpu_times`` readings, in %."""
-    if before is None or after is None:
-        return None
-    delta = [b - a for a, b in zip(before, after, strict=True)]
-    total = sum(delta)
-    return 100.0 * delta[7] / total if total > 0 else None
-
-
 def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Run the scenario, print the table, write JSON and the plot when asked; returns the records.
 
@@ -486,9 +467,9 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
     if config.plot_path is not None and importlib.util.find_spec("matplotlib") is None:
         raise ConfigError("--plot needs matplotlib: pip install matplotlib (or the [bench] extra)")
     with cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([]) as pollers:
-        cpu0 = _cpu_times()
+        cpu0 = cpu_times()
         series = run(config)
-        steal = _steal_percent(cpu0, _cpu_times())
+        steal = steal_percent(cpu0, cpu_times())
     records = to_records(config.scenario, series)
     title = f"uniros bench latency --scenario {config.scenario} --duration {config.phase_s:g}"
     machine = "" if steal is None else (

@@ -4,13 +4,14 @@ progress counter."""
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["progress_counter", "report", "summary"]
+__all__ = ["cpu_times", "median_ci", "progress_counter", "report", "steal_percent", "summary"]
 
 
 def summary(samples: Sequence[float]) -> dict[str, float]:
@@ -29,6 +30,29 @@ def summary(samples: Sequence[float]) -> dict[str, float]:
         "max": float(a.max()),
         "count": int(a.size),
     }
+
+
+def median_ci(samples: Sequence[float], level: float = 0.95) -> tuple[float, float]:
+    """A distribution-free confidence interval of the median of ``samples``: the order statistics of ranks ``l`` and
+    ``n + 1 - l``, ``l`` the largest rank with P(Binomial(n, 1/2) < l) <= (1 - level) / 2, so the interval holds the
+    true median with probability >= ``level``. It assumes independent samples; steps timed back to back share the
+    moment's load, so read it as the least the figure is uncertain by. (NaN, NaN) when ``samples`` are too few for
+    any such pair of ranks (fewer than 6 at 95 %).
+    """
+    n = len(samples)
+    tail = (1.0 - level) / 2
+    total = 2**n
+    rank = 0  # l
+    outcomes = 0  # of the 2**n, how many have at most ``rank`` successes: P(X < rank + 1) * 2**n
+    while rank < n // 2:
+        outcomes += math.comb(n, rank)
+        if outcomes / total > tail:
+            break
+        rank += 1
+    if rank == 0:
+        return float("nan"), float("nan")
+    a = np.sort(np.asarray(samples, dtype=np.float64))
+    return float(a[rank - 1]), float(a[n - rank])
 
 
 def report(table: str, records: list[dict[str, Any]], json_path: str | None, log: Callable[[str], None]) -> None:
@@ -55,3 +79,22 @@ def progress_counter(total: int, enabled: bool, desc: str, unit: str) -> Callabl
             bar.close()
 
     return step
+
+
+def cpu_times() -> list[int] | None:
+    """The aggregate ``cpu`` line of /proc/stat (jiffies: user nice system idle iowait irq softirq steal), or None."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    return [int(x) for x in fields[1:9]] if fields and fields[0] == "cpu" and len(fields) >= 9 else None
+
+
+def steal_percent(before: list[int] | None, after: list[int] | None) -> float | None:
+    """Share of CPU time the hypervisor stole between two ``cpu_times`` readings, in %."""
+    if before is None or after is None:
+        return None
+    delta = [b - a for a, b in zip(before, after, strict=True)]
+    total = sum(delta)
+    return 100.0 * delta[7] / total if total > 0 else None

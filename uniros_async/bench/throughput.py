@@ -18,7 +18,8 @@ first step of each block, which starts on idle (halted, cache-cold) cores, is le
 - ``overhead_us``: median over k of (vector step k - bare step k) in the alternating phase, the per-step overhead
   (meaningful at N = 1; above that the workers share the machine's cores). The rx200 step itself scatters by
   milliseconds from step to step here (the same physics, 5-12 ms), so its figure is only as good as the number of
-  steps; the trivial env's figure is the precise one;
+  steps; the trivial env's figure is the precise one. ``overhead_ci_us``: its 95 % confidence interval
+  (``stats.median_ci``, distribution-free), printed beside it, which says how many steps a figure rests on;
 - ``bare_ms`` / ``step_ms``: the medians of both in the alternating phase;
 - at N = 1 also ``floor_ms``, the env's own step time with nothing around it (``_Floor``: the env attached to a
   loop in this thread, its step coroutine timed from inside; a third block between the two), and
@@ -28,9 +29,11 @@ first step of each block, which starts on idle (halted, cache-cold) cores, is le
 
 A second table does the same for a trivial env (gymnasium's ``CartPole-v1``, ~10 us a step), N = 1: what each
 runtime costs per step when the env costs nothing. A third steps two vector envs of that env in turn, a block of
-20 steps each, as a training loop with an evaluation env does (``_run_in_turns``; ``envs_in_turn`` in the
-records): a worker woken after its pause must not find itself sharing the agent's core. The physics bound on
-aggregate steps/s is printed beside: min(N, cores) / bare step time.
+20 steps each, as a training loop with an evaluation env does (``envs_in_turn`` in the records): a worker woken
+after its pause must not find itself sharing the agent's core. The rows of both tables are measured in one run,
+their blocks interleaved in a rotating order (``_run_trivial``), so that each meets the same moments of the host's
+load; ``steal_pct`` in their records is the hypervisor's steal over that run, printed above them. The physics
+bound on aggregate steps/s is printed beside: min(N, cores) / bare step time.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from uniros_async.bench.stats import progress_counter, report
+from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
 from uniros_async.errors import ConfigError
 
 __all__ = ["IMPLS", "ThroughputBenchConfig", "main"]
@@ -54,6 +57,9 @@ IMPLS = ("uniros", "gymnasium-async", "sb3-subproc")
 ENV_ID = "uniros/Rx200Reach-v0"
 ENV_KW: dict[str, Any] = {"turn_based": True, "max_episode_steps": 10**9}
 TRIVIAL_ID = "CartPole-v1"
+TRIVIAL_STEPS = 1000
+"""Steps per row of the trivial env's tables (50 rounds of every row, interleaved: ``_run_trivial``): a few
+seconds in all, in a slow hour too."""
 TRAIL_S = 0.005
 """Untimed pause after each vector block of the alternating phase: a worker replies before the servo tick that its
 step's last sim event also woke (~1 ms of physics), which would otherwise run during the bare step timed next."""
@@ -236,52 +242,101 @@ def _run(
     return record
 
 
-def _run_in_turns(
-    impl: str, bare: Any, env_id: str, steps: int, block: int = 20, transport: str = "shm"
-) -> dict[str, Any]:
-    """Two vector envs of one sub-env each, stepped in turn, a block of steps each (a training env and an
-    evaluation env, or two tasks): per block, steps k..k+B-1 of the bare env, then the same steps of one vector env,
-    then of the other; the overhead is over the bare step, as in ``_run``, the first step of each block left out."""
+@dataclasses.dataclass
+class _Row:
+    """One row of the trivial env's tables while it is measured: an implementation's vector env of one sub-env, or
+    two of them stepped in turn (a training env and an evaluation env, or two tasks)."""
+
+    impl: str
+    envs: list[tuple[Any, Callable[[], Any], Callable[[Any], Any]]]
+    vec_t: list[float] = dataclasses.field(default_factory=list)
+    bare_t: list[float] = dataclasses.field(default_factory=list)
+    tight_t: list[float] = dataclasses.field(default_factory=list)
+
+
+def _run_trivial(
+    impls: tuple[str, ...],
+    in_turns: tuple[str, ...],
+    bare: Any,
+    env_id: str,
+    steps: int,
+    block: int = 20,
+    transport: str = "shm",
+) -> list[dict[str, Any]]:
+    """The trivial env's rows (one vector env of one sub-env per implementation in ``impls``, and two of them
+    stepped in turn per implementation in ``in_turns``), all measured in one interleaved run: per round, in an order
+    that rotates from round to round, each row steps k..k+B-1 of the bare env back to back, then the same steps of
+    its vector env (of each of its two, in turn), the first step of each block left out as in ``_run``. Every row so
+    meets the same moments of this shared machine's load, which a row after row run does not (one row may fall in a
+    busy second of the host, the next not); then rounds of back-to-back blocks of each single vector env for
+    steps/s. Its workers idle while the other rows step, as a worker does between its env's blocks."""
     actions = _actions(bare.action_space, steps + block)
-    pairs = [_vector(impl, 1, env_id, {}, transport) for _ in range(2)]
-    vec_t: list[float] = []
-    bare_t: list[float] = []
+    rows: list[_Row] = []
     try:
-        for _, reset, _ in pairs:
-            reset()
+        for impl in impls:
+            rows.append(_Row(impl, [_vector(impl, 1, env_id, {}, transport)]))
+        for impl in in_turns:
+            rows.append(_Row(impl, [_vector(impl, 1, env_id, {}, transport) for _ in range(2)]))
+        for row in rows:
+            for _, reset, _ in row.envs:
+                reset()
         bare.reset(seed=0)
-        for k0 in range(0, steps, block):
+        batch = [np.full(1, a) for a in actions]
+        for r, k0 in enumerate(range(0, steps, block)):
             ks = range(k0, k0 + block)
-            b = _bare_block(bare, actions, ks)
-            for _, _, step in pairs:
-                v: list[float] = []
-                for k in ks:
-                    a = np.full(1, actions[k])
-                    t0 = time.perf_counter()
-                    step(a)
-                    v.append(time.perf_counter() - t0)
-                bare_t += b[1:]
-                vec_t += v[1:]
+            for row in rows[r % len(rows) :] + rows[: r % len(rows)]:
+                b = _bare_block(bare, actions, ks)
+                for _, _, step in row.envs:
+                    row.vec_t += _timed_block(step, batch, ks)[1:]
+                    row.bare_t += b[1:]
+        singles = [row for row in rows if len(row.envs) == 1]
+        for r, k0 in enumerate(range(0, steps, block)):
+            for row in singles[r % len(singles) :] + singles[: r % len(singles)]:
+                row.tight_t += _timed_block(row.envs[0][2], batch, range(k0, k0 + block))
     finally:
-        for venv, _, _ in pairs:
-            venv.close()
-    return {**_record(env_id, impl, 1, vec_t, vec_t, bare_t), "envs_in_turn": 2}
+        for row in rows:
+            for venv, _, _ in row.envs:
+                venv.close()
+    return [
+        _record(env_id, row.impl, 1, row.tight_t, row.vec_t, row.bare_t)
+        if len(row.envs) == 1
+        else {**_record(env_id, row.impl, 1, row.vec_t, row.vec_t, row.bare_t), "envs_in_turn": 2}
+        for row in rows
+    ]
+
+
+def _timed_block(step: Callable[[Any], Any], batch: list[Any], ks: range) -> list[float]:
+    """Steps ``ks`` of a vector env back to back, each timed."""
+    times: list[float] = []
+    for k in ks:
+        t0 = time.perf_counter()
+        step(batch[k])
+        times.append(time.perf_counter() - t0)
+    return times
 
 
 def _record(
     env_id: str, impl: str, n: int, per_step: list[float], vec_t: list[float], bare_t: list[float]
 ) -> dict[str, Any]:
     """A row's record: steps/s from the median of ``per_step`` (seconds per vector step of ``n`` envs), the overhead
-    as the median of (vector step - bare step) over the paired steps, and both medians."""
+    as the median of (vector step - bare step) over the paired steps with its 95 % confidence interval (``median_ci``),
+    and both medians."""
+    diffs = np.subtract(vec_t, bare_t)
+    lo, hi = median_ci(diffs)
     return {
         "env": env_id,
         "impl": impl,
         "n_envs": n,
         "steps_per_s": round(n / float(np.median(per_step)), 1),
-        "overhead_us": round(float(np.median(np.subtract(vec_t, bare_t))) * 1e6, 1),
+        "overhead_us": round(float(np.median(diffs)) * 1e6, 1),
+        "overhead_ci_us": None if np.isnan(lo) else [round(lo * 1e6, 1), round(hi * 1e6, 1)],
         "bare_ms": round(float(np.median(bare_t)) * 1e3, 3),
         "step_ms": round(float(np.median(vec_t)) * 1e3, 3),
     }
+
+
+def _interval(ci: list[float] | None) -> str:
+    return "too few steps" if ci is None else f"{ci[0]:.0f} .. {ci[1]:.0f}"
 
 
 def _measure(
@@ -310,14 +365,13 @@ def _measure(
         bare.close()
     trivial = _make_env(TRIVIAL_ID, {})
     try:
-        for impl in IMPLS:
-            trivial_steps = max(steps, 200)
-            records.append(_run(impl, 1, trivial, TRIVIAL_ID, {}, trivial_steps, block=20, transport=config.transport))
-            bar(1)
-        for impl in in_turns:
-            turn_steps = 100 if config.quick else max(steps, 200)
-            records.append(_run_in_turns(impl, trivial, TRIVIAL_ID, turn_steps, transport=config.transport))
-            bar(1)
+        cpu0 = cpu_times()
+        rows = _run_trivial(IMPLS, in_turns, trivial, TRIVIAL_ID, TRIVIAL_STEPS, transport=config.transport)
+        steal = steal_percent(cpu0, cpu_times())
+        for r in rows:
+            r["steal_pct"] = None if steal is None else round(steal, 2)
+        records += rows
+        bar(len(rows))
     finally:
         trivial.close()
 
@@ -335,7 +389,10 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     finally:
         bar(0, done=True)
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
-    head = f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'step ms':>8} {'bare ms':>8}"
+    head = (
+        f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'its 95 % CI':>18} {'step ms':>8}"
+        f" {'bare ms':>8}"
+    )
     lines = [
         f"{ENV_ID} (turn-based, accelerated), {steps} steps per row, bare step {bare_ms:.2f} ms median, {cores} cores;"
         f" make_vec's workers over {config.transport}",
@@ -349,10 +406,18 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
                 if r.get("envs_in_turn")
                 else "trivial env: the runtime's own cost per step"
             )
+            if not r.get("envs_in_turn"):
+                steal = r.get("steal_pct")
+                lines += [
+                    "",
+                    f"{TRIVIAL_ID}: {TRIVIAL_STEPS} steps per row, the rows' blocks interleaved; hypervisor steal "
+                    + ("unknown" if steal is None else f"{steal:.1f} % of CPU time")
+                    + " meanwhile (the VM's cores were taken away that long)",
+                ]
             lines += ["", f"{TRIVIAL_ID} ({what})", head, "-" * len(head)]
         lines.append(
             f"{r['n_envs']:>3} {r['impl']:<16} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}"
-            f" {r['step_ms']:>8.3f} {r['bare_ms']:>8.3f}"
+            f" {_interval(r['overhead_ci_us']):>18} {r['step_ms']:>8.3f} {r['bare_ms']:>8.3f}"
         )
     lines.append("")
     for r in records:
