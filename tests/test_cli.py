@@ -21,8 +21,13 @@ async def uniros(*args: str, domain: str | None = None, timeout_s: float = 60) -
     if domain:
         env["UNIROS_DOMAIN"] = domain
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "uniros_async.cli", *args, env=env,
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        sys.executable,
+        "-m",
+        "uniros_async.cli",
+        *args,
+        env=env,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
     )
     try:
         async with asyncio.timeout(timeout_s):
@@ -43,8 +48,15 @@ async def test_introspection_commands() -> None:
         def tick() -> None:
             nonlocal seq
             seq += 1
-            pub.publish(JointState(header=Header(stamp_ns=arm.now_ns(), seq=seq), name=("waist",),
-                                   position=np.array([0.5]), velocity=np.zeros(1), effort=np.zeros(1)))
+            pub.publish(
+                JointState(
+                    header=Header(stamp_ns=arm.now_ns(), seq=seq),
+                    name=("waist",),
+                    position=np.array([0.5]),
+                    velocity=np.zeros(1),
+                    effort=np.zeros(1),
+                )
+            )
 
         arm.create_timer(0.02, tick)  # 50 Hz
         await arm.set_parameter("/rx200/rate_hz", 10)
@@ -57,13 +69,15 @@ async def test_introspection_commands() -> None:
         assert rc == 0, err
         assert "/rx200/joint_states  [JointState]  pubs: /rx200/arm" in out
 
-        rc, out, err = await uniros("topic", "echo", "/rx200/joint_states", "-n", "2", "--timeout", "20",
-                                    "--domain", domain.uri)
+        rc, out, err = await uniros(
+            "topic", "echo", "/rx200/joint_states", "-n", "2", "--timeout", "20", "--domain", domain.uri
+        )
         assert rc == 0, err
         assert out.count("---") == 2 and "position: [0.5]" in out
 
-        rc, out, err = await uniros("topic", "hz", "/rx200/joint_states", "--reports", "1", "--window", "2",
-                                    domain=domain.uri)
+        rc, out, err = await uniros(
+            "topic", "hz", "/rx200/joint_states", "--reports", "1", "--window", "2", domain=domain.uri
+        )
         assert rc == 0, err
         rate = float(out.split("average rate:")[1].split("Hz")[0])
         assert 40 < rate < 60, out

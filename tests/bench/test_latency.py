@@ -130,7 +130,11 @@ def _median(records: list[dict[str, Any]], env: str, metric: str, learner: str |
 def test_turn_based_scenario(tmp_path: Path) -> None:
     out, plot = tmp_path / "tb.json", tmp_path / "tb.png"
     cfg = latency.LatencyBenchConfig(
-        scenario="turn-based", duration_s=3.2, json_path=str(out), plot_path=str(plot), progress=False,
+        scenario="turn-based",
+        duration_s=3.2,
+        json_path=str(out),
+        plot_path=str(plot),
+        progress=False,
         keep_cores_awake=False,
     )
     lines: list[str] = []

@@ -62,8 +62,6 @@ def test_bad_configs_are_refused(kw: dict[str, object]) -> None:
 
 def test_the_uniros_rows_can_run_over_tcp() -> None:
     lines: list[str] = []
-    records = throughput.main(
-        throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, transport="tcp"), log=lines.append
-    )
+    records = throughput.main(throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, transport="tcp"), log=lines.append)
     assert "make_vec's workers over tcp" in "\n".join(lines)
     assert all(r["steps_per_s"] > 0 for r in records if r["impl"] == "uniros")

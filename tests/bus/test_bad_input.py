@@ -19,9 +19,11 @@ def js(seq: int) -> JointState:
 
 @pytest.mark.parametrize("transport", ["tcp", "shm"])
 async def test_malformed_frames_from_a_publisher_are_rejected_and_counted(transport: str) -> None:
-    async with open_domain() as domain, open_node("pub", domain=domain) as p, open_node(
-        "sub", domain=domain, transport=transport
-    ) as s:
+    async with (
+        open_domain() as domain,
+        open_node("pub", domain=domain) as p,
+        open_node("sub", domain=domain, transport=transport) as s,
+    ):
         pub = await p.create_publisher(JointState, "/js", qos=reliable(100))
         sub = await s.create_subscription(JointState, "/js", qos=reliable(100))
         async with asyncio.timeout(10):
@@ -59,9 +61,11 @@ async def test_registry_survives_malformed_requests() -> None:
 
 
 async def test_a_garbage_hello_to_a_node_is_rejected_and_the_node_keeps_serving() -> None:
-    async with open_domain() as domain, open_node("pub", domain=domain) as p, open_node(
-        "sub", domain=domain, transport="tcp"
-    ) as s:
+    async with (
+        open_domain() as domain,
+        open_node("pub", domain=domain) as p,
+        open_node("sub", domain=domain, transport="tcp") as s,
+    ):
         pub = await p.create_publisher(JointState, "/js", qos=reliable(10))
         raw = await connect(p._listeners["tcp"].uri, TransportOptions())
         await raw.send(b"\x00\x01 not a hello")

@@ -16,8 +16,13 @@ NAMES = ("a", "b", "c")
 
 
 def js(i: int) -> JointState:
-    return JointState(header=Header(stamp_ns=i, seq=i), name=NAMES, position=np.full(3, float(i)),
-                      velocity=np.zeros(3), effort=np.zeros(3))
+    return JointState(
+        header=Header(stamp_ns=i, seq=i),
+        name=NAMES,
+        position=np.full(3, float(i)),
+        velocity=np.zeros(3),
+        effort=np.zeros(3),
+    )
 
 
 @pytest.fixture(params=["memory://", "tcp://127.0.0.1:0"])
@@ -79,9 +84,10 @@ async def test_callbacks_and_async_iteration(domain) -> None:  # type: ignore[no
 
 
 async def test_namespaces_resolve_and_isolate(domain) -> None:  # type: ignore[no-untyped-def]
-    async with open_node("env", domain=domain, namespace="/rx200_1") as n1, open_node(
-        "env", domain=domain, namespace="/rx200_2"
-    ) as n2:
+    async with (
+        open_node("env", domain=domain, namespace="/rx200_1") as n1,
+        open_node("env", domain=domain, namespace="/rx200_2") as n2,
+    ):
         assert n1.name == "/rx200_1/env" and n1.resolve("joint_states") == "/rx200_1/joint_states"
         assert n1.resolve("~/status") == "/rx200_1/env/status" and n1.resolve("/clock") == "/clock"
         p1 = await n1.create_publisher(JointState, "joint_states")
@@ -172,6 +178,7 @@ async def test_services_in_process_and_errors(domain) -> None:  # type: ignore[n
 
 async def test_service_timeout(domain) -> None:  # type: ignore[no-untyped-def]
     async with open_node("server", domain=domain) as s:
+
         async def stuck(req: Empty) -> Trigger:
             await asyncio.sleep(10)
             return Trigger(success=True)

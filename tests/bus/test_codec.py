@@ -20,8 +20,13 @@ floats = st.floats(allow_nan=False, allow_infinity=False, width=64)
 def test_joint_state_round_trip(names: list[str], data: st.DataObject, stamp: int, seq: int) -> None:
     n = len(names)
     arrays = [np.array(data.draw(st.lists(floats, min_size=n, max_size=n)), dtype=np.float64) for _ in range(3)]
-    msg = JointState(header=Header(stamp_ns=stamp, seq=seq, frame_id="base"), name=tuple(names),
-                     position=arrays[0], velocity=arrays[1], effort=arrays[2])
+    msg = JointState(
+        header=Header(stamp_ns=stamp, seq=seq, frame_id="base"),
+        name=tuple(names),
+        position=arrays[0],
+        velocity=arrays[1],
+        effort=arrays[2],
+    )
     frame = b"".join(bytes(p) for p in codec.encode(msg))
     out = codec.decode(frame, JointState)
     assert out.header == msg.header or (out.header.stamp_ns, out.header.seq) == (stamp, seq)
@@ -31,8 +36,12 @@ def test_joint_state_round_trip(names: list[str], data: st.DataObject, stamp: in
 
 
 @settings(max_examples=50, deadline=None)
-@given(value=st.recursive(st.none() | st.booleans() | st.integers(-2**63, 2**63 - 1) | floats | st.text(),
-                          lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4)))
+@given(
+    value=st.recursive(
+        st.none() | st.booleans() | st.integers(-(2**63), 2**63 - 1) | floats | st.text(),
+        lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4),
+    )
+)
 def test_data_round_trip(value: object) -> None:
     assert codec.decode(b"".join(bytes(p) for p in codec.encode(Data(value=value)))).value == value
 
@@ -87,7 +96,7 @@ def test_decode_errors_name_what_was_wrong() -> None:
 
 def test_wrong_dtype_and_shape_are_named() -> None:
     good = JointState(header=Header(), name=("a",), position=[1.0], velocity=[0.0], effort=[0.0])
-    body = codec.decode_plain(_frame(good)[4:4 + int.from_bytes(_frame(good)[:4], "little")])
+    body = codec.decode_plain(_frame(good)[4 : 4 + int.from_bytes(_frame(good)[:4], "little")])
     name, values, table = body
     table[0][0] = "<i4"  # position claims int32
     bad = codec.encode_plain([name, values, table])

@@ -40,8 +40,17 @@ class LauncherProcess:
     def __init__(self) -> None:
         env = dict(os.environ, TEST_LAUNCHER_KEY=KEY)
         env.pop("UNIROS_WORKER_AUTH_KEY", None)
-        cmd = [sys.executable, "-m", "uniros_async.cli", "worker", "serve", "--listen", "tcp://127.0.0.1:0",
-               "--auth-key-env", "TEST_LAUNCHER_KEY"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "uniros_async.cli",
+            "worker",
+            "serve",
+            "--listen",
+            "tcp://127.0.0.1:0",
+            "--auth-key-env",
+            "TEST_LAUNCHER_KEY",
+        ]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
         try:
             assert self.proc.stdout is not None

@@ -27,9 +27,10 @@ def command(q, duration_s: float = 0.0) -> JointCommand:  # type: ignore[no-unty
 async def test_command_over_the_bus_reaches_target(robot: str) -> None:
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=None)
-        async with open_servo_sim(robot, domain=domain, clock=clock) as sim_node, open_node(
-            "env", domain=domain, clock=clock
-        ) as env:
+        async with (
+            open_servo_sim(robot, domain=domain, clock=clock) as sim_node,
+            open_node("env", domain=domain, clock=clock) as env,
+        ):
             assert sim_node.topic("joint_states") == f"/{robot}/joint_states"
             states = await env.create_subscription(JointState, f"/{robot}/joint_states")
             pub = await env.create_publisher(JointCommand, f"/{robot}/command")
@@ -58,8 +59,10 @@ async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: flo
                     stamps.append((await states.receive()).header.stamp_ns)
     periods_ms = np.diff(stamps) / 1e6
     median = statistics.median(periods_ms)
-    print(f"\n{robot} joint_states: median period {median:.4f} ms (nominal {1000 / rate_hz:.1f}), "
-          f"max {periods_ms.max():.3f} ms, n={len(periods_ms)}")
+    print(
+        f"\n{robot} joint_states: median period {median:.4f} ms (nominal {1000 / rate_hz:.1f}), "
+        f"max {periods_ms.max():.3f} ms, n={len(periods_ms)}"
+    )
     assert abs(median - 1000.0 / rate_hz) < 0.1
 
 
@@ -67,11 +70,13 @@ async def test_env_polling_at_50hz_sees_each_state_repeated() -> None:
     """As on the real arm: an env loop faster than the hardware loop reads the same joint state several times."""
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=None)
-        async with open_servo_sim("rx200", domain=domain, clock=clock), open_node(
-            "env", domain=domain, clock=clock
-        ) as env:
+        async with (
+            open_servo_sim("rx200", domain=domain, clock=clock),
+            open_node("env", domain=domain, clock=clock) as env,
+        ):
             states = await env.create_subscription(JointState, "/rx200/joint_states")
             seen: list[int] = []
+
             def poll() -> None:
                 msg = states.latest()
                 seen.append(msg.header.seq if msg is not None else -1)
@@ -87,9 +92,10 @@ async def test_env_polling_at_50hz_sees_each_state_repeated() -> None:
 async def test_services_hold_stop_mode_reset_stats() -> None:
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=None)
-        async with open_servo_sim("ned2", domain=domain, clock=clock) as sim_node, open_node(
-            "env", domain=domain, clock=clock
-        ) as env:
+        async with (
+            open_servo_sim("ned2", domain=domain, clock=clock) as sim_node,
+            open_node("env", domain=domain, clock=clock) as env,
+        ):
             pub = await env.create_publisher(JointCommand, "/ned2/command")
 
             def client(req, resp, name):  # type: ignore[no-untyped-def]
@@ -123,9 +129,10 @@ async def test_services_hold_stop_mode_reset_stats() -> None:
 async def test_bad_commands_over_the_bus_are_counted_and_logged(caplog) -> None:  # type: ignore[no-untyped-def]
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=None)
-        async with open_servo_sim("rx200", domain=domain, clock=clock) as sim_node, open_node(
-            "env", domain=domain, clock=clock
-        ) as env:
+        async with (
+            open_servo_sim("rx200", domain=domain, clock=clock) as sim_node,
+            open_node("env", domain=domain, clock=clock) as env,
+        ):
             pub = await env.create_publisher(JointCommand, "/rx200/command")
             pub.publish(command([np.nan, 0, 0, 0, 0]))
             await clock.sleep(0.15)
@@ -140,9 +147,10 @@ async def test_bad_commands_over_the_bus_are_counted_and_logged(caplog) -> None:
 async def test_markers_from_api_and_topic() -> None:
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=None)
-        async with open_servo_sim("rx200", domain=domain, clock=clock, publish_markers=True) as sim_node, open_node(
-            "viz", domain=domain, clock=clock
-        ) as viz:
+        async with (
+            open_servo_sim("rx200", domain=domain, clock=clock, publish_markers=True) as sim_node,
+            open_node("viz", domain=domain, clock=clock) as viz,
+        ):
             got: list[Marker] = []
             await viz.create_subscription(Marker, "/rx200/markers", got.append, qos=reliable(100))
             to_sim = await viz.create_publisher(Marker, "/rx200/markers_in")
@@ -152,8 +160,15 @@ async def test_markers_from_api_and_topic() -> None:
             ee = [m for m in got if m.ns == "ee"]
             assert goal and np.allclose(goal[0].position, (0.3, 0.1, 0.2))
             assert ee and np.allclose(ee[-1].position, (0.408575, 0, 0.30457), atol=0.02), "EE at home"
-            to_sim.publish(Marker(header=Header(), ns="goal", position=np.array([0.2, 0.0, 0.1]),
-                                  scale=np.full(3, 0.02), color=np.array([1.0, 0.0, 0.0, 1.0])))
+            to_sim.publish(
+                Marker(
+                    header=Header(),
+                    ns="goal",
+                    position=np.array([0.2, 0.0, 0.1]),
+                    scale=np.full(3, 0.02),
+                    color=np.array([1.0, 0.0, 0.0, 1.0]),
+                )
+            )
             await clock.sleep(0.05)
             assert np.allclose(sim_node.goal_marker, (0.2, 0.0, 0.1))
 
@@ -171,13 +186,17 @@ async def test_divergence_ends_the_node_with_simulation_error() -> None:
 
 
 async def test_emulated_arm_is_perturbed_noisy_and_delayed() -> None:
-    emu = EmulationConfig(seed=3, command_latency=LatencyModel(base_s=0.25, jitter_s=0.0, distribution="constant"),
-                          state_latency=LatencyModel(base_s=0.03, jitter_s=0.0, distribution="constant"))
+    emu = EmulationConfig(
+        seed=3,
+        command_latency=LatencyModel(base_s=0.25, jitter_s=0.0, distribution="constant"),
+        state_latency=LatencyModel(base_s=0.03, jitter_s=0.0, distribution="constant"),
+    )
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=None)
-        async with open_servo_sim("rx200", domain=domain, clock=clock, emulation=emu) as sim_node, open_node(
-            "env", domain=domain, clock=clock
-        ) as env:
+        async with (
+            open_servo_sim("rx200", domain=domain, clock=clock, emulation=emu) as sim_node,
+            open_node("env", domain=domain, clock=clock) as env,
+        ):
             f = sim_node.perturbation
             assert np.all(np.abs(f["mass"] - 1) <= 0.10) and np.all(np.abs(f["kp"] - 1) <= 0.15)
             assert np.abs(f["kp"] - 1).max() > 0.0, "gains were actually perturbed"

@@ -58,8 +58,16 @@ async def test_servo_sim_in_its_own_process_joins_the_domain() -> None:
 
 async def test_emulated_real_arm_is_reached_over_tcp_from_another_process() -> None:
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "uniros_async.sim.cli", "serve", "rx200", "--port", "0", "--emulate-real",
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        sys.executable,
+        "-m",
+        "uniros_async.sim.cli",
+        "serve",
+        "rx200",
+        "--port",
+        "0",
+        "--emulate-real",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
     )
     assert proc.stdout is not None
     try:

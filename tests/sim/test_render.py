@@ -29,7 +29,7 @@ def test_render_png_shows_the_arm_and_the_goal(tmp_path: Path) -> None:
     marked = render_rgb("rx200", goal=(0.3, 0.15, 0.15), width=320, height=240)
     red = (marked[..., 0] > 150) & (marked[..., 1] < 80) & (marked[..., 2] < 80)
     assert red.sum() > 20 and ((plain[..., 0] > 150) & (plain[..., 1] < 80) & (plain[..., 2] < 80)).sum() == 0
-    dark = (plain.max(axis=-1) < 70)
+    dark = plain.max(axis=-1) < 70
     assert dark.sum() > 500, "the (dark grey) arm is in the picture"
 
 
@@ -45,9 +45,28 @@ def test_render_ned2_at_a_pose_and_bad_input(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_cli_render_and_view_without_display(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "cli.png"
-    r = subprocess.run([sys.executable, "-m", "uniros_async.sim.cli", "render", "rx200", "--out", str(out),
-                        "--goal", "0.3", "0.1", "0.25", "--width", "200", "--height", "150"],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "uniros_async.sim.cli",
+            "render",
+            "rx200",
+            "--out",
+            str(out),
+            "--goal",
+            "0.3",
+            "0.1",
+            "0.25",
+            "--width",
+            "200",
+            "--height",
+            "150",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0, r.stderr
     assert png_size(out) == (200, 150)
     monkeypatch.delenv("DISPLAY", raising=False)

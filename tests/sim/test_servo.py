@@ -18,8 +18,12 @@ TOL_RAD = 0.03  # servo steady-state error under gravity (the MJCF targets < 0.0
 
 
 def cmd(q, *, duration_s: float = 0.0, velocity=None) -> JointCommand:  # type: ignore[no-untyped-def]
-    return JointCommand(header=Header(), position=np.asarray(q, dtype=np.float64), duration_s=duration_s,
-                        velocity=None if velocity is None else np.asarray(velocity, dtype=np.float64))
+    return JointCommand(
+        header=Header(),
+        position=np.asarray(q, dtype=np.float64),
+        duration_s=duration_s,
+        velocity=None if velocity is None else np.asarray(velocity, dtype=np.float64),
+    )
 
 
 def run_s(sim: ServoSim, seconds: float, command: JointCommand | None = None):  # type: ignore[no-untyped-def]

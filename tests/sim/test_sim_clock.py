@@ -73,9 +73,10 @@ async def test_unbounded_sim_with_env_timer_runs_much_faster_than_real_time() ->
     sim_s = 30.0
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=None)
-        async with open_servo_sim("rx200", domain=domain, clock=clock) as sim_node, open_node(
-            "env", domain=domain, clock=clock
-        ) as env:
+        async with (
+            open_servo_sim("rx200", domain=domain, clock=clock) as sim_node,
+            open_node("env", domain=domain, clock=clock) as env,
+        ):
             states = await env.create_subscription(JointState, "/rx200/joint_states")
             pub = await env.create_publisher(JointCommand, "/rx200/command")
             goal = np.array([0.5, 0.3, -0.4, 0.6, 1.0])
@@ -93,8 +94,10 @@ async def test_unbounded_sim_with_env_timer_runs_much_faster_than_real_time() ->
             timer.cancel()
             final = states.latest()
     speedup, cpu_speedup = sim_s / wall, sim_s / cpu
-    print(f"\nSimClock unbounded, rx200 10 Hz + env 10 Hz: {speedup:.0f}x real time (wall), "
-          f"{cpu_speedup:.0f}x per CPU second")
+    print(
+        f"\nSimClock unbounded, rx200 10 Hz + env 10 Hz: {speedup:.0f}x real time (wall), "
+        f"{cpu_speedup:.0f}x per CPU second"
+    )
     assert speedup >= 20, f"only {speedup:.1f}x real time"
     assert sim_node.stats.ticks == round(sim_s * 10) + 1
     deadlines, fires = list(timer.deadlines_ns), list(timer.fire_times_ns)
@@ -150,11 +153,14 @@ async def test_pause_freezes_time_until_resume() -> None:
 async def test_paced_sim_stamps_are_exact_hardware_periods() -> None:
     async with open_domain("memory://") as domain:
         clock = SimClock(time_scale=10.0)
-        async with open_servo_sim("ned2", domain=domain, clock=clock), open_node("env", domain=domain,
-                                                                                clock=clock) as env:
+        async with (
+            open_servo_sim("ned2", domain=domain, clock=clock),
+            open_node("env", domain=domain, clock=clock) as env,
+        ):
             stamps: list[int] = []
-            await env.create_subscription(JointState, "/ned2/joint_states", lambda m: stamps.append(m.header.stamp_ns),
-                                          qos=reliable(100))
+            await env.create_subscription(
+                JointState, "/ned2/joint_states", lambda m: stamps.append(m.header.stamp_ns), qos=reliable(100)
+            )
             t0 = time.perf_counter()
             await clock.sleep(0.4)
             wall = time.perf_counter() - t0

@@ -17,16 +17,29 @@ SMOKE = Path(__file__).resolve().parents[2] / "configs" / "smoke.yaml"
 
 
 def uniros(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "uniros_async.cli", *args], capture_output=True, text=True,
-                          timeout=timeout_s)
+    return subprocess.run(
+        [sys.executable, "-m", "uniros_async.cli", *args], capture_output=True, text=True, timeout=timeout_s
+    )
 
 
 def test_train_sigterm_resume_eval_plot(tmp_path: Path) -> None:
     run = tmp_path / "smoke"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "uniros_async.cli", "train", str(SMOKE), "--run-dir", str(run), "--steps", "100000",
-         "--no-progress"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "uniros_async.cli",
+            "train",
+            str(SMOKE),
+            "--run-dir",
+            str(run),
+            "--steps",
+            "100000",
+            "--no-progress",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         deadline = time.monotonic() + 90
@@ -51,8 +64,17 @@ def test_train_sigterm_resume_eval_plot(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert "done: 300 steps" in done.stdout and "success rate" in done.stdout
 
-    ev = uniros("eval", str(run), "--env", "uniros/Rx200Reach-v0", "--robot", "emulated-real", "--episodes", "2",
-                "--no-progress")
+    ev = uniros(
+        "eval",
+        str(run),
+        "--env",
+        "uniros/Rx200Reach-v0",
+        "--robot",
+        "emulated-real",
+        "--episodes",
+        "2",
+        "--no-progress",
+    )
     assert ev.returncode == 0, ev.stderr
     assert "success rate:" in ev.stdout and "mean return:" in ev.stdout and "mean episode length:" in ev.stdout
     assert "observations: as the env gives them (trained without normalize_obs)" in ev.stdout

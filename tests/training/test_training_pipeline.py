@@ -94,8 +94,11 @@ def test_the_replay_buffer_comes_back_compact(dense_run: tuple[Path, TrainResult
 
 def test_a_checkpoint_of_another_size_is_a_clear_error(dense_run: tuple[Path, TrainResult]) -> None:
     run, _ = dense_run
-    with pytest.raises(CheckpointError, match=r"observation size 25 and action size 6, but the checkpoint's policy "
-                                              r"takes observation size 28 and action size 5"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"observation size 25 and action size 6, but the checkpoint's policy "
+        r"takes observation size 28 and action size 5",
+    ):
         evaluate_checkpoint(run, NED, {"clock": "sim"}, episodes=1)
     with pytest.raises(CheckpointError, match="is a goal env"):
         evaluate_checkpoint(run, "uniros/Rx200ReachGoal-v0", {"clock": "sim"}, episodes=1)
@@ -142,8 +145,12 @@ def test_multitask_pads_samples_and_reports_per_env(tmp_path: Path) -> None:
 
 def test_her_on_the_goal_env_and_its_resume(tmp_path: Path) -> None:
     run = tmp_path / "her"
-    over = {"envs": [RX_GOAL], "td3": {"learning_starts": 100}, "eval": {"every_steps": 0},
-            "drop_observation": [13, 14, 15]}
+    over = {
+        "envs": [RX_GOAL],
+        "td3": {"learning_starts": 100},
+        "eval": {"every_steps": 0},
+        "drop_observation": [13, 14, 15],
+    }
     result = train(_cfg(run, total_steps=150, **over))
     meta = read_meta(result.checkpoint)
     assert meta.goal_env and meta.config["replay_buffer"] == "auto"  # auto: HER on goal envs

@@ -415,7 +415,12 @@ def _run_turn_based(cfg: LatencyBenchConfig, progress: _Progress) -> list[Series
     # step, returns built at the end of the cycle from the newest joint state received
     with progress.phase(cfg.phase_s):
         turn = _run_scripted(
-            {**kw, "turn_based": True, "clock": "wall"}, "rx200 sim turn-based", "rx200 sim", "turn-based", steps, cfg,
+            {**kw, "turn_based": True, "clock": "wall"},
+            "rx200 sim turn-based",
+            "rx200 sim",
+            "turn-based",
+            steps,
+            cfg,
             wall=True,
         )
     return [real_time, turn]
@@ -472,9 +477,13 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
         steal = steal_percent(cpu0, cpu_times())
     records = to_records(config.scenario, series)
     title = f"uniros bench latency --scenario {config.scenario} --duration {config.phase_s:g}"
-    machine = "" if steal is None else (
-        f"\nhypervisor steal during the run: {steal:.1f} % of CPU time (the VM's cores were taken away that long; "
-        "above ~1 % expect late ticks no scheduling class can prevent)"
+    machine = (
+        ""
+        if steal is None
+        else (
+            f"\nhypervisor steal during the run: {steal:.1f} % of CPU time (the VM's cores were taken away that long; "
+            "above ~1 % expect late ticks no scheduling class can prevent)"
+        )
     )
     if pollers:
         machine += f"\nidle cores: kept awake by {len(pollers)} SCHED_IDLE poller(s) (--allow-idle lets them halt)"

@@ -98,8 +98,13 @@ def main(config: SimClockBenchConfig, *, log: Callable[[str], None] = print) -> 
         records.append({"case": label, "x_real_time": round(x, 1)})
     walls = _episodes(config.episodes)
     med = float(np.median(walls))
-    records.append({"case": "reach episode, 100 steps x 0.8 s (median wall s)", "wall_s": round(med, 3),
-                    "x_real_time": round(80.0 / med, 1)})
+    records.append(
+        {
+            "case": "reach episode, 100 steps x 0.8 s (median wall s)",
+            "wall_s": round(med, 3),
+            "x_real_time": round(80.0 / med, 1),
+        }
+    )
     lines = [f"{'case':<58} {'x real time':>11}"]
     for r in records:
         extra = f"   ({r['wall_s']} s per episode)" if "wall_s" in r else ""

@@ -64,6 +64,7 @@ M = TypeVar("M")
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
 
+
 def _join(*parts: str) -> str:
     out = "/".join(p.strip("/") for p in parts if p.strip("/"))
     return "/" + out

@@ -37,6 +37,7 @@ M = TypeVar("M")
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
 
+
 class _Sink:
     """One remote subscriber of a publisher: a bounded queue of encoded frames and the task that sends them."""
 

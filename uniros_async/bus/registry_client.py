@@ -25,6 +25,7 @@ M = TypeVar("M")
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
 
+
 class _RegistryClient:
     """This node's connection to its domain registry: requests with ids, and pushed notifications."""
 

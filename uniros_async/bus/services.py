@@ -32,6 +32,7 @@ M = TypeVar("M")
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
 
+
 class Service(Generic[Req, Resp]):
     """Answers ``Req`` with ``Resp`` by calling ``handler`` (sync or async)."""
 

@@ -24,6 +24,7 @@ M = TypeVar("M")
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
 
+
 class Timer:
     """Calls ``callback`` every ``period_s`` of the node's clock, at absolute deadlines (``next += period``).
 

@@ -12,5 +12,12 @@ from uniros_async.runtime.supervisor import ProxyEnv, Supervisor, make
 from uniros_async.runtime.vector import UnirosVectorEnv, make_vec
 
 __all__ = [
-    "Launcher", "ProxyEnv", "RemoteWorker", "Supervisor", "UnirosVectorEnv", "make", "make_vec", "serve_launcher",
+    "Launcher",
+    "ProxyEnv",
+    "RemoteWorker",
+    "Supervisor",
+    "UnirosVectorEnv",
+    "make",
+    "make_vec",
+    "serve_launcher",
 ]

@@ -369,7 +369,8 @@ class Launcher:
         if self._key is None and host not in ("127.0.0.1", "::1", "localhost"):
             logger.warning(
                 "worker launcher %s has no auth key: anyone who can reach it can start workers (set $%s)",
-                self.uri, AUTH_KEY_ENV,
+                self.uri,
+                AUTH_KEY_ENV,
             )
         await asyncio.to_thread(_warm_registry)
 
@@ -456,15 +457,22 @@ class Launcher:
         host = self._listener.address[0]
         listen_uri = f"tcp://[{host}]:0" if ":" in host else f"tcp://{host}:0"
         spec = WorkerSpec(
-            index=index, env_id=env_id, kwargs=kwargs, parent_pid=os.getpid(), accept_timeout_s=timeout_s,
-            listen_uri=listen_uri, auth_key=self._key,
+            index=index,
+            env_id=env_id,
+            kwargs=kwargs,
+            parent_pid=os.getpid(),
+            accept_timeout_s=timeout_s,
+            listen_uri=listen_uri,
+            auth_key=self._key,
         )
         ctx = multiprocessing.get_context("spawn")
         parent_conn, child_conn = ctx.Pipe(duplex=False)
         # daemon=True: if the launcher exits, multiprocessing terminates its workers (a SIGKILLed launcher is
         # noticed by each worker's parent-pid watchdog)
         proc = ctx.Process(
-            target=worker_entry, args=(spec, child_conn), name=f"uniros-worker-{index}",
+            target=worker_entry,
+            args=(spec, child_conn),
+            name=f"uniros-worker-{index}",
             daemon=True,
         )
         proc.start()

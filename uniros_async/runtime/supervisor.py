@@ -382,8 +382,9 @@ class Supervisor:
         """A local worker, started now, or a remote one, to be started by ``_launch``."""
         if placement is None:
             return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri, rt_rank)
-        spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s,
-                          listen_uri=placement.uri)
+        spec = WorkerSpec(
+            index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s, listen_uri=placement.uri
+        )
         return WorkerHandle(spec=spec, process=RemoteWorkerProcess(placement))
 
     def _launch(self, workers: list[WorkerHandle], deadline: float) -> list[str]:
@@ -440,9 +441,7 @@ class Supervisor:
         old_remote = old.remote
         deadline = time.monotonic() + timeout_s
         if old_remote is None:
-            new = self._spawn(
-                index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri, old.spec.rt_rank
-            )
+            new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri, old.spec.rt_rank)
         else:  # through the same launcher
             new = self._new_handle(index, old.spec.env_id, old.spec.kwargs, old_remote.placement, timeout_s)
         self.workers[index] = new
@@ -456,7 +455,8 @@ class Supervisor:
             if old_remote is not None and isinstance(exc, WorkerError | ConfigError):
                 where = old_remote.placement.uri
                 raise WorkerError(
-                    index, f"could not restart the remote worker through its launcher {where}: {exc}",
+                    index,
+                    f"could not restart the remote worker through its launcher {where}: {exc}",
                     remote_traceback=getattr(exc, "remote_traceback", ""),
                 ) from exc
             raise

@@ -36,14 +36,25 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1", help="bind host of the domain and the node (default %(default)s)")
     serve.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     serve.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
-    serve.add_argument("--emulate-real", action="store_true",
-                       help="perturbed dynamics, sensor noise and network delay (sim/emulated.py)")
+    serve.add_argument(
+        "--emulate-real",
+        action="store_true",
+        help="perturbed dynamics, sensor noise and network delay (sim/emulated.py)",
+    )
     serve.add_argument("--seed", type=int, default=0, help="seed of the emulated arm (default %(default)s)")
     serve.add_argument("--sim-time", action="store_true", help="drive a SimClock and publish /clock")
-    serve.add_argument("--time-scale", type=float, default=1.0,
-                       help="with --sim-time: sim seconds per wall second; 0 = unbounded (default %(default)s)")
-    serve.add_argument("--command-timeout", type=float, default=1.0,
-                       help="watchdog: hold after this many seconds without a command; 0 disables")
+    serve.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        help="with --sim-time: sim seconds per wall second; 0 = unbounded (default %(default)s)",
+    )
+    serve.add_argument(
+        "--command-timeout",
+        type=float,
+        default=1.0,
+        help="watchdog: hold after this many seconds without a command; 0 disables",
+    )
     serve.add_argument("--markers", action="store_true", help="publish EE and goal markers on ROBOT/markers")
 
     render = actions.add_parser("render", help="render the arm to a PNG offscreen")
@@ -72,8 +83,15 @@ def run(args: argparse.Namespace) -> int:
     if action == "render":
         from uniros_async.sim.render import render_png
 
-        path = render_png(args.robot, q=args.q, goal=args.goal, out=args.out, width=args.width, height=args.height,
-                          camera=None if args.camera == "free" else args.camera)
+        path = render_png(
+            args.robot,
+            q=args.q,
+            goal=args.goal,
+            out=args.out,
+            width=args.width,
+            height=args.height,
+            camera=None if args.camera == "free" else args.camera,
+        )
         sys.stdout.write(f"{path}\n")
         return 0
     if action == "view":
@@ -124,8 +142,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     robot = add_parser(sub)
     args = parser.parse_args(["robot", *(argv if argv is not None else sys.argv[1:])])
     del robot
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
     from uniros_async.errors import UnirosError
 
     try:

@@ -134,8 +134,17 @@ class EmulationConfig:
     def nominal(cls, seed: int = 0) -> EmulationConfig:
         """No perturbation, no noise, no delay (for tests of the machinery)."""
         zero = LatencyModel(base_s=0.0, jitter_s=0.0, distribution="constant")
-        return cls(seed=seed, mass_scale=0.0, damping_scale=0.0, friction_scale=0.0, kp_scale=0.0,
-                   position_noise_std=0.0, velocity_noise_std=0.0, state_latency=zero, command_latency=zero)
+        return cls(
+            seed=seed,
+            mass_scale=0.0,
+            damping_scale=0.0,
+            friction_scale=0.0,
+            kp_scale=0.0,
+            position_noise_std=0.0,
+            velocity_noise_std=0.0,
+            state_latency=zero,
+            command_latency=zero,
+        )
 
 
 def perturb_model(
@@ -152,6 +161,7 @@ def perturb_model(
     Returns:
         The factors drawn, by name (``mass``, ``damping``, ``friction``, ``kp``), for logs and tests.
     """
+
     def factors(n: int, half: float) -> np.ndarray:
         return rng.uniform(1.0 - half, 1.0 + half, size=n) if half > 0 else np.ones(n)
 
@@ -187,8 +197,13 @@ def add_sensor_noise(state: JointState, config: EmulationConfig, rng: np.random.
     if config.velocity_noise_std > 0:
         vel = vel + rng.normal(0.0, config.velocity_noise_std, size=n)
     h = state.header
-    return JointState(header=Header(stamp_ns=h.stamp_ns, seq=h.seq, frame_id=h.frame_id), name=state.name,
-                      position=pos, velocity=vel, effort=state.effort)
+    return JointState(
+        header=Header(stamp_ns=h.stamp_ns, seq=h.seq, frame_id=h.frame_id),
+        name=state.name,
+        position=pos,
+        velocity=vel,
+        effort=state.effort,
+    )
 
 
 class DelayLine(Generic[T]):

@@ -119,9 +119,7 @@ class ServoSimNode:
         if emu is not None and not emu.command_latency.is_zero:
             self._cmd_line = DelayLine(emu.command_latency, self._rng, node.clock)
             self._tasks.append(tg.create_task(self._cmd_line.run(self._on_delayed_command), name="command delay"))
-            self.commands = await node.create_subscription(
-                JointCommand, "command", self._cmd_line.push, qos=latest()
-            )
+            self.commands = await node.create_subscription(JointCommand, "command", self._cmd_line.push, qos=latest())
         else:
             self.commands = await node.create_subscription(JointCommand, "command", qos=latest())
         if emu is not None and not emu.state_latency.is_zero:
@@ -182,9 +180,16 @@ class ServoSimNode:
     # ------------------------------------------------------------------------------------------- markers
 
     def _marker(self, ns: str, mid: int, pos: ArrayLike, rgba: Sequence[float], action: str = "add") -> Marker:
-        return Marker(header=Header(stamp_ns=self.node.now_ns(), frame_id="world"), ns=ns, id=mid, kind="sphere",
-                      action=action, position=np.asarray(pos, dtype=np.float64), scale=np.full(3, 0.03),
-                      color=np.asarray(rgba, dtype=np.float64))
+        return Marker(
+            header=Header(stamp_ns=self.node.now_ns(), frame_id="world"),
+            ns=ns,
+            id=mid,
+            kind="sphere",
+            action=action,
+            position=np.asarray(pos, dtype=np.float64),
+            scale=np.full(3, 0.03),
+            color=np.asarray(rgba, dtype=np.float64),
+        )
 
     def set_goal_marker(self, pos: ArrayLike | None) -> None:
         """Show (and publish, when ``publish_markers``) a goal marker at ``pos`` (m, world); None removes it.
@@ -347,10 +352,10 @@ async def open_servo_sim(
     spec = get_robot_spec(robot) if isinstance(robot, str) else robot
     sim, factors = build_sim(spec, config, emulation)
     ns = namespace if namespace is not None else f"/{spec.name}"
-    async with open_node(node_name, domain=domain, namespace=ns, clock=clock, transport=transport,
-                         options=options) as node:
-        sim_node = ServoSimNode(node, sim, emulation=emulation, perturbation=factors,
-                                publish_markers=publish_markers)
+    async with open_node(
+        node_name, domain=domain, namespace=ns, clock=clock, transport=transport, options=options
+    ) as node:
+        sim_node = ServoSimNode(node, sim, emulation=emulation, perturbation=factors, publish_markers=publish_markers)
         async with unwrap_task_group() as tg:
             await sim_node._start(tg)
             try:

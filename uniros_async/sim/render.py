@@ -99,8 +99,12 @@ def _add_sphere(scene: Any, pos: ArrayLike, radius: float, rgba: Sequence[float]
     if scene.ngeom >= scene.maxgeom:
         raise RenderError(f"the scene is full ({scene.maxgeom} geoms)")
     mujoco.mjv_initGeom(
-        scene.geoms[scene.ngeom], int(mujoco.mjtGeom.mjGEOM_SPHERE), np.array([radius, 0.0, 0.0]),
-        np.asarray(pos, dtype=np.float64), np.eye(3).ravel(), np.asarray(rgba, dtype=np.float32),
+        scene.geoms[scene.ngeom],
+        int(mujoco.mjtGeom.mjGEOM_SPHERE),
+        np.array([radius, 0.0, 0.0]),
+        np.asarray(pos, dtype=np.float64),
+        np.eye(3).ravel(),
+        np.asarray(rgba, dtype=np.float32),
     )
     scene.ngeom += 1
 

@@ -122,9 +122,16 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
         transport = "tcp" if config.emulation is not None and config.transport == "auto" else config.transport
         sim_node = await stack.enter_async_context(
             open_servo_sim(
-                config.robot, domain=dom, namespace=config.namespace, config=config.servo, clock=config.make_clock(),
-                emulation=config.emulation, publish_markers=config.publish_markers, node_name=config.node_name,
-                transport=transport, options=options,
+                config.robot,
+                domain=dom,
+                namespace=config.namespace,
+                config=config.servo,
+                clock=config.make_clock(),
+                emulation=config.emulation,
+                publish_markers=config.publish_markers,
+                node_name=config.node_name,
+                transport=transport,
+                options=options,
             )
         )
         logger.info("serving %s as %s in %s", config.robot, sim_node.node.name, uri)
@@ -250,8 +257,16 @@ async def open_servo_sim_process(
     """
     uri = domain.uri if isinstance(domain, Domain) else domain
     cfg = ServeConfig(
-        robot=robot, domain=uri, namespace=namespace, servo=config or ServoSimConfig(), emulation=emulation,
-        clock=clock, time_scale=time_scale, publish_markers=publish_markers, transport=transport, auth_key=auth_key,
+        robot=robot,
+        domain=uri,
+        namespace=namespace,
+        servo=config or ServoSimConfig(),
+        emulation=emulation,
+        clock=clock,
+        time_scale=time_scale,
+        publish_markers=publish_markers,
+        transport=transport,
+        auth_key=auth_key,
     )
     ctx = multiprocessing.get_context("spawn")
     parent_conn, child_conn = ctx.Pipe()

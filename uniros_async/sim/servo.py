@@ -436,8 +436,9 @@ class ServoSim:
         """The joint state now, for ``RobotSpec.joint_state_names``; stamped with sim time unless told."""
         d = self.data
         return JointState(
-            header=Header(stamp_ns=self.time_ns if stamp_ns is None else stamp_ns,
-                          seq=self.stats.ticks if seq is None else seq),
+            header=Header(
+                stamp_ns=self.time_ns if stamp_ns is None else stamp_ns, seq=self.stats.ticks if seq is None else seq
+            ),
             name=self._names,
             position=d.qpos[self._qadr],
             velocity=d.qvel[self._vadr],
@@ -650,8 +651,11 @@ class ServoSim:
     def _check_pose(self, q: np.ndarray, what: str) -> None:
         if q.shape != (self.n_joints,) or not np.isfinite(q).all():
             raise ConfigError(f"{what}: expected {self.n_joints} finite joint positions, got {q.tolist()}")
-        bad = [(j, float(x)) for j, x, lo, hi in zip(self.robot.arm_joint_names, q, self.lower, self.upper, strict=True)
-               if not lo <= x <= hi]
+        bad = [
+            (j, float(x))
+            for j, x, lo, hi in zip(self.robot.arm_joint_names, q, self.lower, self.upper, strict=True)
+            if not lo <= x <= hi
+        ]
         if bad:
             raise ConfigError(f"{what}: outside the joint limits: {bad}")
 

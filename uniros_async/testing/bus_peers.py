@@ -34,9 +34,15 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
                 def tick() -> None:
                     nonlocal seq
                     seq += 1
-                    pub.publish(JointState(header=Header(stamp_ns=node.now_ns(), seq=seq), name=("j1", "j2"),
-                                           position=np.array([seq, -seq], float), velocity=np.zeros(2),
-                                           effort=np.zeros(2)))
+                    pub.publish(
+                        JointState(
+                            header=Header(stamp_ns=node.now_ns(), seq=seq),
+                            name=("j1", "j2"),
+                            position=np.array([seq, -seq], float),
+                            velocity=np.zeros(2),
+                            effort=np.zeros(2),
+                        )
+                    )
 
                 node.create_timer(0.005, tick)
             elif role == "echo":

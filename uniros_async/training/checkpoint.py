@@ -151,8 +151,10 @@ def _buffer_state(buffer: Any) -> dict[str, Any]:
             continue
         if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == size:
             arrays[key] = value[:n].copy()
-        elif isinstance(value, dict) and value and all(
-            isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == size for v in value.values()
+        elif (
+            isinstance(value, dict)
+            and value
+            and all(isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == size for v in value.values())
         ):
             arrays[key] = {k: v[:n].copy() for k, v in value.items()}
         elif isinstance(value, int | float | bool | np.ndarray | np.generic | str) or value is None:

@@ -35,24 +35,35 @@ def add_parsers(subparsers: Any) -> None:
     t.add_argument("--run-dir", default=None, help="run directory (default runs/NAME)")
     t.add_argument("--name", default=None, help="run name")
     t.add_argument("--env", action="append", default=None, metavar="ID", help="train env id (repeat: multi-task)")
-    t.add_argument("--env-kwargs", default=None, metavar="YAML",
-                   help="kwargs for every --env, e.g. '{reward_type: sparse}'")
+    t.add_argument(
+        "--env-kwargs", default=None, metavar="YAML", help="kwargs for every --env, e.g. '{reward_type: sparse}'"
+    )
     t.add_argument("--steps", type=int, default=None, help="total env steps")
     t.add_argument("--seed", type=int, default=None)
     t.add_argument("--learner", choices=("sync", "async"), default=None)
-    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key (dotted; YAML value), e.g. --set td3.batch_size=128")
+    t.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config key (dotted; YAML value), e.g. --set td3.batch_size=128",
+    )
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     e = subparsers.add_parser("eval", help="success rate, mean return and episode length of a checkpoint")
     e.add_argument("checkpoint", help="run directory, checkpoint directory or model.zip")
     e.add_argument("--env", required=True, metavar="ID", help="env id, e.g. uniros/Rx200Reach-v0")
-    e.add_argument("--env-kwargs", default=None, metavar="YAML",
-                   help="env kwargs as YAML, e.g. '{reward_type: dense}' (default: those the policy was trained with "
-                        "on this env id)")
+    e.add_argument(
+        "--env-kwargs",
+        default=None,
+        metavar="YAML",
+        help="env kwargs as YAML, e.g. '{reward_type: dense}' (default: those the policy was trained with "
+        "on this env id)",
+    )
     e.add_argument("--robot", default=None, help="sim, emulated-real, ... (shortcut for the robot kwarg)")
-    e.add_argument("--clock", default="sim", choices=("sim", "wall"),
-                   help="sim: accelerated (default); wall: real time")
+    e.add_argument(
+        "--clock", default="sim", choices=("sim", "wall"), help="sim: accelerated (default); wall: real time"
+    )
     e.add_argument("--episodes", type=int, default=200)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--label", default=None, help="training label of the env (task-indexed multi-task policies)")
@@ -120,8 +131,11 @@ def _run_train(args: argparse.Namespace) -> int:
         cfg = train_config_from_dict(apply_overrides({}, overrides), where="command line")
     else:
         raise ConfigError("uniros train needs CONFIG.yaml, --env ID, or --resume --run-dir DIR")
-    print(f"training {cfg.name}: {cfg.total_steps} steps on {', '.join(cfg.labels())}, learner {cfg.learner}, "
-          f"run dir {cfg.resolved_run_dir()}", flush=True)
+    print(
+        f"training {cfg.name}: {cfg.total_steps} steps on {', '.join(cfg.labels())}, learner {cfg.learner}, "
+        f"run dir {cfg.resolved_run_dir()}",
+        flush=True,
+    )
     try:
         result = train(cfg, resume=args.resume, progress=False if args.no_progress else None)
     except TrainingInterrupted as exc:
@@ -171,8 +185,14 @@ def _run_eval(args: argparse.Namespace) -> int:
 
     try:
         result = evaluate_checkpoint(
-            args.checkpoint, args.env, kwargs, episodes=args.episodes, seed=args.seed, label=label,
-            placement=args.placement, on_episode=on_episode,
+            args.checkpoint,
+            args.env,
+            kwargs,
+            episodes=args.episodes,
+            seed=args.seed,
+            label=label,
+            placement=args.placement,
+            on_episode=on_episode,
         )
     finally:
         if bar is not None:

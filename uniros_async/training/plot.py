@@ -19,8 +19,11 @@ from uniros_async.errors import ConfigError
 
 __all__ = ["plot_runs", "read_curves"]
 
-PANELS = (("length", "mean_length", "mean episode length"), ("return", "mean_return", "mean return"),
-          ("success", "success_rate", "success rate"))
+PANELS = (
+    ("length", "mean_length", "mean episode length"),
+    ("return", "mean_return", "mean return"),
+    ("success", "success_rate", "success rate"),
+)
 
 
 def _read_csv(path: Path) -> list[dict[str, str]]:
@@ -49,8 +52,10 @@ def read_curves(run_dir: str | Path) -> tuple[dict[str, dict[str, np.ndarray]], 
                 g[c].append(float(r[c]))
         return {t: {c: np.asarray(v) for c, v in g.items()} for t, g in out.items()}
 
-    return (group(eps, ("step", "return", "length", "success")),
-            group(evs, ("step", "success_rate", "mean_return", "mean_length")))
+    return (
+        group(eps, ("step", "return", "length", "success")),
+        group(evs, ("step", "success_rate", "mean_return", "mean_length")),
+    )
 
 
 def _moving(x: np.ndarray, window: int) -> np.ndarray:
@@ -104,8 +109,7 @@ def plot_runs(
                 if e is not None and len(e["step"]):
                     ax.plot(e["step"], _moving(e[col], window), color=color, lw=1.4, label=f"{lab} (train)")
                 if v is not None and len(v["step"]):
-                    ax.plot(v["step"], v[ecol], color=color, lw=0.9, ls="--", marker="o", ms=3,
-                            label=f"{lab} (eval)")
+                    ax.plot(v["step"], v[ecol], color=color, lw=0.9, ls="--", marker="o", ms=3, label=f"{lab} (eval)")
     for ax, (_, _, ylabel) in zip(axes, PANELS, strict=True):
         ax.set_xlabel("env steps")
         ax.set_ylabel(ylabel)
@@ -113,8 +117,9 @@ def plot_runs(
     axes[2].set_ylim(-0.02, 1.02)
     handles, leg = axes[2].get_legend_handles_labels()
     fig.legend(handles, leg, loc="lower center", ncol=min(4, max(1, len(leg))), fontsize=8, frameon=False)
-    fig.suptitle(title or ", ".join(names) + f"  (train: moving average of {window} episodes; eval: deterministic)",
-                 fontsize=10)
+    fig.suptitle(
+        title or ", ".join(names) + f"  (train: moving average of {window} episodes; eval: deterministic)", fontsize=10
+    )
     rows = (len(leg) + 3) // 4
     fig.tight_layout(rect=(0, 0.04 + 0.035 * rows, 1, 0.95))
     path = Path(out) if out else Path(run_dirs[0]) / "curves.png"

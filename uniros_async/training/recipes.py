@@ -137,7 +137,11 @@ def build_train_env(cfg: TrainConfig) -> tuple[TaskSamplerEnv, EnvLayout]:
         raise
     obs_size, act_size = space_sizes(sampler)
     layout = EnvLayout(
-        pad_to=pad_to, task_id_size=n_id, goal_env=goal, obs_size=obs_size, action_size=act_size,
+        pad_to=pad_to,
+        task_id_size=n_id,
+        goal_env=goal,
+        obs_size=obs_size,
+        action_size=act_size,
         labels=tuple(cfg.labels()),
     )
     return sampler, layout
@@ -269,7 +273,12 @@ def _vec_env(cfg: TrainConfig, env: gym.Env[Any, Any], layout: EnvLayout, resume
             space = vec.observation_space
             keys = [k for k in GOAL_KEYS if k in space.spaces] if isinstance(space, gym.spaces.Dict) else None
             vec = VecNormalize(
-                vec, training=True, norm_obs=True, norm_reward=False, clip_obs=OBS_CLIP, gamma=cfg.td3.gamma,
+                vec,
+                training=True,
+                norm_obs=True,
+                norm_reward=False,
+                clip_obs=OBS_CLIP,
+                gamma=cfg.td3.gamma,
                 norm_obs_keys=keys,
             )
     return vec
@@ -335,8 +344,12 @@ def _make_callback(
                 from tqdm import tqdm
 
                 self.bar = tqdm(
-                    total=cfg.total_steps, initial=self.num_timesteps, unit="step", desc=cfg.name,
-                    mininterval=2.0, dynamic_ncols=True,
+                    total=cfg.total_steps,
+                    initial=self.num_timesteps,
+                    unit="step",
+                    desc=cfg.name,
+                    mininterval=2.0,
+                    dynamic_ncols=True,
                 )
 
         def _on_step(self) -> bool:
@@ -348,8 +361,11 @@ def _make_callback(
                 task = info.get("task", layout.labels[0])
                 success = bool(info.get("is_success", False))
                 episodes_log.write(
-                    step=step, task=task, **{"return": round(float(ep.get("r", np.nan)), 4)},
-                    length=int(ep.get("l", 0)), success=int(success),
+                    step=step,
+                    task=task,
+                    **{"return": round(float(ep.get("r", np.nan)), 4)},
+                    length=int(ep.get("l", 0)),
+                    success=int(success),
                 )
                 self.windows.setdefault(task, collections.deque(maxlen=50)).append(success)
                 self.logger.record(f"train/success_rate/{task}", float(np.mean(self.windows[task])))
@@ -378,8 +394,10 @@ def _make_callback(
         def run_eval(self, model: Any, step: int) -> list[EvalResult]:
             results = _run_eval(model, step, cfg, eval_envs, eval_log, self.logger)
             if self.bar is not None:
-                self.bar.write(f"[{cfg.name}] step {step}: " + "; ".join(
-                    f"{r.label} {100 * r.success_rate:.0f}% len {r.mean_length:.1f}" for r in results))
+                self.bar.write(
+                    f"[{cfg.name}] step {step}: "
+                    + "; ".join(f"{r.label} {100 * r.success_rate:.0f}% len {r.mean_length:.1f}" for r in results)
+                )
             state["last_eval_step"] = step
             return results
 
@@ -403,8 +421,14 @@ def _run_eval(
     for label, env_id, env in eval_envs:
         r = evaluate_policy(model, env, cfg.eval.episodes, seed=cfg.seed + 10_000 + step, label=label, env_id=env_id)
         results.append(r)
-        eval_log.write(step=step, task=label, success_rate=round(r.success_rate, 4),
-                       mean_return=round(r.mean_return, 4), mean_length=round(r.mean_length, 2), episodes=r.episodes)
+        eval_log.write(
+            step=step,
+            task=label,
+            success_rate=round(r.success_rate, 4),
+            mean_return=round(r.mean_return, 4),
+            mean_length=round(r.mean_length, 2),
+            episodes=r.episodes,
+        )
         if sb3_logger is not None:
             sb3_logger.record(f"eval/success_rate/{label}", r.success_rate)
             sb3_logger.record(f"eval/mean_return/{label}", r.mean_return)
@@ -415,9 +439,16 @@ def _run_eval(
 
 def _save(model: Any, cfg: TrainConfig, run_dir: Path, layout: EnvLayout, step: int) -> Path:
     meta = CheckpointMeta(
-        step=step, obs_size=layout.obs_size, action_size=layout.action_size, goal_env=layout.goal_env,
-        pad_to=layout.pad_to, task_id_size=layout.task_id_size, algo=type(model).__name__, labels=layout.labels,
-        config=config_to_dict(cfg), drop_observation=tuple(cfg.drop_observation),
+        step=step,
+        obs_size=layout.obs_size,
+        action_size=layout.action_size,
+        goal_env=layout.goal_env,
+        pad_to=layout.pad_to,
+        task_id_size=layout.task_id_size,
+        algo=type(model).__name__,
+        labels=layout.labels,
+        config=config_to_dict(cfg),
+        drop_observation=tuple(cfg.drop_observation),
     )
     return save_checkpoint(model, run_dir, meta, keep=cfg.checkpoint.keep, replay_buffer=cfg.checkpoint.replay_buffer)
 
@@ -517,8 +548,11 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
             try:
                 if remaining > 0:
                     model.learn(
-                        total_timesteps=remaining, callback=callback, reset_num_timesteps=ckpt is None,
-                        tb_log_name="td3", log_interval=4,
+                        total_timesteps=remaining,
+                        callback=callback,
+                        reset_num_timesteps=ckpt is None,
+                        tb_log_name="td3",
+                        log_interval=4,
                     )
                 step = int(model.num_timesteps)
                 if state.get("last_eval_step") != step:

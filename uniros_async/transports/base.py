@@ -267,7 +267,9 @@ def split_uri(uri: str) -> tuple[str, str]:
         ConfigError: the URI has no scheme or an unknown one (the known ones are listed).
     """
     if "://" not in uri:
-        raise ConfigError(f"transport URI {uri!r} has no scheme; expected one of {sorted(_SCHEMES)}, e.g. tcp://127.0.0.1:0")
+        raise ConfigError(
+            f"transport URI {uri!r} has no scheme; expected one of {sorted(_SCHEMES)}, e.g. tcp://127.0.0.1:0"
+        )
     scheme = urlsplit(uri).scheme
     if scheme not in _SCHEMES:
         raise ConfigError(f"unknown transport scheme {scheme!r} in {uri!r}; known: {sorted(_SCHEMES)}")
