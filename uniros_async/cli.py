@@ -243,7 +243,7 @@ def _run_topic(args: argparse.Namespace) -> int:
 
         async def go(node: Any) -> None:
             cls = message_type(args.type)
-            msg = from_dict(cls, yaml.safe_load(args.data) or {})
+            msg: Any = from_dict(cls, yaml.safe_load(args.data) or {})
             pub = await node.create_publisher(cls, args.topic)
             try:
                 await pub.wait_for_subscribers(1, timeout_s=args.wait)

@@ -471,7 +471,10 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
     """
     if config.plot_path is not None and importlib.util.find_spec("matplotlib") is None:
         raise ConfigError("--plot needs matplotlib: pip install matplotlib (or the [bench] extra)")
-    with cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([]) as pollers:
+    awake: contextlib.AbstractContextManager[list[int]] = (
+        cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([])
+    )
+    with awake as pollers:
         cpu0 = cpu_times()
         series = run(config)
         steal = steal_percent(cpu0, cpu_times())

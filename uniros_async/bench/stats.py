@@ -32,7 +32,7 @@ def summary(samples: Sequence[float]) -> dict[str, float]:
     }
 
 
-def median_ci(samples: Sequence[float], level: float = 0.95) -> tuple[float, float]:
+def median_ci(samples: Sequence[float] | np.ndarray, level: float = 0.95) -> tuple[float, float]:
     """A distribution-free confidence interval of the median of ``samples``: the order statistics of ranks ``l`` and
     ``n + 1 - l``, ``l`` the largest rank with P(Binomial(n, 1/2) < l) <= (1 - level) / 2, so the interval holds the
     true median with probability >= ``level``. It assumes independent samples; steps timed back to back share the

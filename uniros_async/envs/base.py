@@ -217,8 +217,8 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         bounds = self._action_bounds
         if bounds is None or bounds[0] is not space:
             finite = bool(np.isfinite(space.low).all() and np.isfinite(space.high).all())
-            low, high = space.low - 1e-6, space.high + 1e-6
-            bounds = self._action_bounds = (space, low.ravel().tolist(), high.ravel().tolist(), finite)
+            lows, highs = space.low - 1e-6, space.high + 1e-6
+            bounds = self._action_bounds = (space, lows.ravel().tolist(), highs.ravel().tolist(), finite)
         _, low, high, finite = bounds
         # on Python floats (float32 converts exactly, so each comparison is numpy's): a worker wakes cold for each
         # action, and four numpy calls cost more than the loop. NaN fails these, and inf when the bounds are finite

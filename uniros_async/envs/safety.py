@@ -133,7 +133,7 @@ class SafetyChecker:
                 z = pos[g][2] - abs(m[6]) * e0 - abs(m[7]) * e1 - abs(m[8]) * e2 - r
                 if z < lowest:
                     lowest = z
-        return lowest
+        return float(lowest)
 
     def _contact_pairs(self, q: np.ndarray) -> set[tuple[int, int]]:
         d, m = self._data, self._model
@@ -211,7 +211,8 @@ class SafetyChecker:
     def limit_step(self, q_now: np.ndarray, q_target: np.ndarray) -> np.ndarray:
         """The command for this tick: ``q_target``, moved at most ``max_joint_step_rad`` per joint from ``q_now``."""
         step = self.config.max_joint_step_rad
-        return np.clip(q_target, q_now - step, q_now + step)
+        command: np.ndarray = np.clip(q_target, q_now - step, q_now + step)
+        return command
 
 
 def _model_without_near_pairs(path: str) -> mujoco.MjModel:

@@ -53,10 +53,11 @@ class NormalizeObservation(gym.ObservationWrapper[Any, Any, Any]):
         return self._scale(observation)
 
     def _scale(self, x: np.ndarray) -> np.ndarray:
-        return np.clip((x - self._mid) / self._half, -1.0, 1.0).astype(np.float32)
+        scaled: np.ndarray = np.clip((x - self._mid) / self._half, -1.0, 1.0).astype(np.float32)
+        return scaled
 
 
-class TimeLimit(gym.wrappers.TimeLimit):  # type: ignore[type-arg]
+class TimeLimit(gym.wrappers.TimeLimit):
     """gymnasium's TimeLimit that also marks a truncated episode as not successful."""
 
     def step(self, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:

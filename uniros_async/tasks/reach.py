@@ -88,7 +88,7 @@ class ReachEnv(TaskEnv):
     def __init__(self, arm: str = "rx200", **kwargs: Any) -> None:
         config, task = split_kwargs(type(self), kwargs)
         self.reward_type = task.get("reward_type", "dense")
-        self.action_mode = task.get("action_mode", "absolute")
+        self.action_mode: str = task.get("action_mode", "absolute")
         self.reach_tolerance = float(task.get("reach_tolerance", 0.02))
         box_min, box_max = GOAL_BOXES.get(arm, GOAL_BOXES["rx200"])
         self.goal_min = np.asarray(task.get("goal_min", box_min), dtype=np.float64)
@@ -229,7 +229,7 @@ class ReachEnv(TaskEnv):
             achieved_goal, desired_goal, info, reward_type=self.reward_type, reach_tolerance=self.reach_tolerance
         )
 
-    def render(self) -> np.ndarray | None:  # type: ignore[override]
+    def render(self) -> np.ndarray | None:
         """An RGB image of the arm at its newest state with the goal marker (``render_mode="rgb_array"``)."""
         if self.render_mode != "rgb_array":
             return None
@@ -249,7 +249,10 @@ class ReachGoalEnv(ReachEnv, GoalEnv):
 
     def compute_terminated(self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Any) -> np.ndarray:
         """Reaching ends the episode."""
-        return np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1) <= self.reach_tolerance
+        reached: np.ndarray = (
+            np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1) <= self.reach_tolerance
+        )
+        return reached
 
     # The goal env's ``observation`` leaves out the goal-dependent entries of the standard vector (direction to
     # the goal, distance): the goal is ``desired_goal`` alone, so HER, which relabels ``desired_goal``, never pairs a

@@ -353,7 +353,7 @@ class ShmTransport(Transport):
         self.on_shared_core(cpu - 1)  # moves this end elsewhere, if it can
         moved = _this_cpu() + 1
         self._rx_ctl[R_CPU] = moved
-        return moved == cpu
+        return bool(moved == cpu)
 
     def _spin(self, window_ns: int) -> bool:
         """Poll for data past our read position for up to ``window_ns``, yielding the CPU between polls; True if it
