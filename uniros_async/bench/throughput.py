@@ -31,7 +31,7 @@ A second table does the same for a trivial env (gymnasium's ``CartPole-v1``, ~10
 runtime costs per step when the env costs nothing. A third steps two vector envs of that env in turn, a block of
 20 steps each, as a training loop with an evaluation env does (``envs_in_turn`` in the records): a worker woken
 after its pause must not find itself sharing the agent's core. The rows of both tables are measured in one run,
-their blocks interleaved in a rotating order (``_run_trivial``), so that each meets the same moments of the host's
+their blocks interleaved in a shuffled order (``_run_trivial``), so that each meets the same moments of the host's
 load; ``steal_pct`` in their records is the hypervisor's steal over that run, printed above them. The physics
 bound on aggregate steps/s is printed beside: min(N, cores) / bare step time.
 """
@@ -57,6 +57,9 @@ IMPLS = ("uniros", "gymnasium-async", "sb3-subproc")
 ENV_ID = "uniros/Rx200Reach-v0"
 ENV_KW: dict[str, Any] = {"turn_based": True, "max_episode_steps": 10**9}
 TRIVIAL_ID = "CartPole-v1"
+QUIET_S = 0.001
+"""Untimed pause before each block of the trivial env's interleaved rows: longer than a worker's poll for its next
+request (``worker.TURN_SPIN_NS``, 200 us), so no row starts while the previous row's worker still polls."""
 TRIVIAL_STEPS = 1000
 """Steps per row of the trivial env's tables (50 rounds of every row, interleaved: ``_run_trivial``): a few
 seconds in all, in a slow hour too."""
@@ -265,11 +268,13 @@ def _run_trivial(
 ) -> list[dict[str, Any]]:
     """The trivial env's rows (one vector env of one sub-env per implementation in ``impls``, and two of them
     stepped in turn per implementation in ``in_turns``), all measured in one interleaved run: per round, in an order
-    that rotates from round to round, each row steps k..k+B-1 of the bare env back to back, then the same steps of
-    its vector env (of each of its two, in turn), the first step of each block left out as in ``_run``. Every row so
-    meets the same moments of this shared machine's load, which a row after row run does not (one row may fall in a
-    busy second of the host, the next not); then rounds of back-to-back blocks of each single vector env for
-    steps/s. Its workers idle while the other rows step, as a worker does between its env's blocks."""
+    shuffled from round to round (seeded), each row steps k..k+B-1 of the bare env back to back, then the same steps
+    of its vector env (of each of its two, in turn), the first step of each block left out as in ``_run``. Every row
+    so meets the same moments of this shared machine's load, which a row after row run does not (one row may fall in
+    a busy second of the host, the next not); then rounds of back-to-back blocks of each single vector env for
+    steps/s. Before each row's block the benchmark pauses ``QUIET_S``, so that no row starts while the previous
+    row's workers still poll for a next request (a uniros worker polls 200 us), and no row always follows the same
+    one. The workers idle while the other rows step, as a worker does between its env's blocks."""
     actions = _actions(bare.action_space, steps + block)
     rows: list[_Row] = []
     try:
@@ -282,17 +287,21 @@ def _run_trivial(
                 reset()
         bare.reset(seed=0)
         batch = [np.full(1, a) for a in actions]
-        for r, k0 in enumerate(range(0, steps, block)):
+        order = np.random.default_rng(0)
+        for k0 in range(0, steps, block):
             ks = range(k0, k0 + block)
-            for row in rows[r % len(rows) :] + rows[: r % len(rows)]:
+            for i in order.permutation(len(rows)):
+                row = rows[i]
+                time.sleep(QUIET_S)
                 b = _bare_block(bare, actions, ks)
                 for _, _, step in row.envs:
                     row.vec_t += _timed_block(step, batch, ks)[1:]
                     row.bare_t += b[1:]
         singles = [row for row in rows if len(row.envs) == 1]
-        for r, k0 in enumerate(range(0, steps, block)):
-            for row in singles[r % len(singles) :] + singles[: r % len(singles)]:
-                row.tight_t += _timed_block(row.envs[0][2], batch, range(k0, k0 + block))
+        for k0 in range(0, steps, block):
+            for i in order.permutation(len(singles)):
+                time.sleep(QUIET_S)
+                singles[i].tight_t += _timed_block(singles[i].envs[0][2], batch, range(k0, k0 + block))
     finally:
         for row in rows:
             for venv, _, _ in row.envs:
