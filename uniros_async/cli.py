@@ -85,7 +85,10 @@ def _build_parser() -> argparse.ArgumentParser:
 
     bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
     bth.add_argument("--quick", action="store_true", help="N = 1, 2, 4 and fewer steps")
-    bth.add_argument("--steps", type=int, default=100)
+    bth.add_argument("--steps", type=int, default=100, help="rx200 steps per row (default 100; --quick: 30)")
+    bth.add_argument(
+        "--n-envs", dest="n_envs", type=int, nargs="+", default=None, help="rx200 rows' env counts (default 1 2 4 8)"
+    )
     bth.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     bth.add_argument("--transport", choices=("shm", "tcp"), default="shm", help="make_vec's workers over (default shm)")
     bth.add_argument("--no-progress", action="store_true")
@@ -307,6 +310,7 @@ def _run_bench(args: argparse.Namespace) -> int:
 
         throughput.main(
             throughput.ThroughputBenchConfig(
+                **({"n_envs": tuple(args.n_envs)} if args.n_envs else {}),
                 quick=args.quick,
                 steps=args.steps,
                 json_path=args.json_path,

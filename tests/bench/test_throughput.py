@@ -60,6 +60,11 @@ def test_bad_configs_are_refused(kw: dict[str, object]) -> None:
         throughput.ThroughputBenchConfig(transport="udp")
 
 
+def test_quick_refuses_env_counts_it_would_all_drop() -> None:
+    with pytest.raises(ConfigError, match="--quick runs N <= 4 only"):
+        throughput.main(throughput.ThroughputBenchConfig(n_envs=(8,), quick=True, progress=False))
+
+
 def test_the_uniros_rows_can_run_over_tcp() -> None:
     lines: list[str] = []
     records = throughput.main(throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, transport="tcp"), log=lines.append)

@@ -387,6 +387,8 @@ def _measure(
 
 def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     ns = tuple(n for n in config.n_envs if n <= 4) if config.quick else config.n_envs
+    if not ns:
+        raise ConfigError(f"--quick runs N <= 4 only, and n_envs {config.n_envs} has none")
     steps = min(config.steps, 30) if config.quick else config.steps  # --quick: within its minute on a slow hour too
     cores = os.cpu_count() or 1
     records: list[dict[str, Any]] = []
