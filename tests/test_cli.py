@@ -97,6 +97,8 @@ async def test_introspection_commands() -> None:
 async def test_clear_errors(tmp_path) -> None:  # type: ignore[no-untyped-def]
     rc, out, err = await uniros("node", "list")
     assert rc == 2 and "UNIROS_DOMAIN" in err
+    rc, out, err = await uniros("bench", "throughput", "--quick", "--n-envs", "8")  # refused before any process starts
+    assert rc == 2 and "--quick runs N <= 4 only, and n_envs (8,) has none" in err
     async with open_domain() as domain:
         rc, out, err = await uniros("param", "get", "/missing", domain=domain.uri)
         assert rc == 2 and "/missing" in err
