@@ -4,7 +4,6 @@ progress counter."""
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -43,11 +42,13 @@ def median_ci(samples: Sequence[float] | np.ndarray, level: float = 0.95) -> tup
     tail = (1.0 - level) / 2
     total = 2**n
     rank = 0  # l
+    term = 1  # comb(n, rank), updated in place: exact integers, one multiplication a rank
     outcomes = 0  # of the 2**n, how many have at most ``rank`` successes: P(X < rank + 1) * 2**n
     while rank < n // 2:
-        outcomes += math.comb(n, rank)
+        outcomes += term
         if outcomes / total > tail:
             break
+        term = term * (n - rank) // (rank + 1)
         rank += 1
     if rank == 0:
         return float("nan"), float("nan")
