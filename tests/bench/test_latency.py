@@ -167,14 +167,17 @@ def test_sweep_scenario(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None
 
 
 @pytest.mark.slow
-def test_single_scenario_runs_both_learners(tmp_path: Path) -> None:
+def test_single_scenario_runs_both_learners(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out, plot = tmp_path / "single.json", tmp_path / "single.png"
+    sb3_logs = tmp_path / "sb3-logs"  # where SB3 would make its log folder (otherwise a /tmp/SB3-<time> per learn())
+    monkeypatch.setenv("SB3_LOGDIR", str(sb3_logs))
     cfg = latency.LatencyBenchConfig(
         scenario="single", duration_s=4.0, learning_starts=2, json_path=str(out), plot_path=str(plot), progress=False
     )
     records = latency.main(cfg, log=lambda _: None)
     _check(records, out, "single", {"rx200 sim"}, {"sb3-td3", "async-td3"})
     assert plot.exists()
+    assert not sb3_logs.exists()  # the bench leaves no SB3 log folder behind
     for learner in ("sb3-td3", "async-td3"):
         assert abs(_median(records, "rx200 sim", "actuator_cycle", learner) - 100.0) < 5.0
         assert abs(_median(records, "rx200 sim", "action_cycle", learner) - 800.0) < 50.0

@@ -304,12 +304,15 @@ def _run_learner(
     """Train learner ``name`` on ``vec`` (a UnirosVectorEnv) for one phase; the timing of each of its envs."""
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
 
     torch.set_num_threads(1)  # beside env loops on 2 cores, more threads stall updates (design.md section 9)
     cls = _learner_class(name)
     rec = _step_recorder(vec.as_sb3())
     n_actions = int(np.prod(vec.single_action_space.shape))
     model = cls("MlpPolicy", rec, **_td3_kwargs(n_actions, cfg))
+    # the bench reads nothing SB3 logs: without a logger of its own, every learn() makes a /tmp/SB3-<time> folder
+    model.set_logger(Logger(folder=None, output_formats=[]))
     steps = max(2, math.ceil(cfg.phase_s / cfg.action_cycle_s))
 
     class _Deadline(BaseCallback):
