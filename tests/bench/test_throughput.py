@@ -50,6 +50,7 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
     assert "gymnasium-async" in text and "sb3-subproc" in text and "physics bound" in text
     assert "stepped in turn" in text
     assert "95 % CI" in text and "too few steps" in text
+    assert "--n-envs 1 --steps 1500" in text  # 5 rx200 steps: the hint to pin N = 1 down
 
 
 @pytest.mark.parametrize("kw", [{"n_envs": ()}, {"n_envs": (0,)}, {"steps": 2}])
@@ -70,3 +71,12 @@ def test_the_uniros_rows_can_run_over_tcp() -> None:
     records = throughput.main(throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, transport="tcp"), log=lines.append)
     assert "make_vec's workers over tcp" in "\n".join(lines)
     assert all(r["steps_per_s"] > 0 for r in records if r["impl"] == "uniros")
+
+
+def test_the_rx200_hint_shows_only_when_the_n1_interval_is_wide() -> None:
+    def rows(ci: list[float] | None) -> list[dict[str, object]]:
+        return [{"env": throughput.ENV_ID, "n_envs": 1, "impl": "uniros", "overhead_ci_us": ci}]
+
+    assert throughput._rx200_hint(rows([10.0, 60.0])) == []
+    assert "--steps 1500" in "".join(throughput._rx200_hint(rows([-300.0, 400.0])))
+    assert "--steps 1500" in "".join(throughput._rx200_hint(rows(None)))  # too few steps for any interval

@@ -344,6 +344,23 @@ def _record(
     }
 
 
+RX200_WIDE_US = 100.0
+"""An rx200 N = 1 row whose overhead interval is wider than this (each way) gets a hint to pin it down."""
+
+
+def _rx200_hint(records: list[dict[str, Any]]) -> list[str]:
+    """A line under the rx200 table when its N = 1 uniros figure rests on too few steps to say much."""
+    for r in records:
+        if r["env"] == ENV_ID and r["n_envs"] == 1 and r["impl"] == IMPLS[0]:
+            ci = r["overhead_ci_us"]
+            if ci is None or (ci[1] - ci[0]) / 2 > RX200_WIDE_US:
+                return [
+                    "(the rx200 step scatters by milliseconds from step to step, so these overheads rest on too few",
+                    " steps: `--n-envs 1 --steps 1500` pins N = 1 down to about +-50 us in ~4 min)",
+                ]
+    return []
+
+
 def _interval(ci: list[float] | None) -> str:
     return "too few steps" if ci is None else f"{ci[0]:.0f} .. {ci[1]:.0f}"
 
@@ -420,6 +437,7 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
             if not r.get("envs_in_turn"):
                 steal = r.get("steal_pct")
                 lines += [
+                    *_rx200_hint(records),
                     "",
                     f"{TRIVIAL_ID}: {TRIVIAL_STEPS} steps per row, the rows' blocks interleaved; hypervisor steal "
                     + ("unknown" if steal is None else f"{steal:.1f} % of CPU time")
