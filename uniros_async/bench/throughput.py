@@ -208,7 +208,6 @@ def _run(
     venv, reset, step = _vector(impl, n, env_id, kwargs, transport)
     vec_t: list[float] = []
     bare_t: list[float] = []
-    tight_t: list[float] = []
     floor_t: list[float] = []
     try:
         reset()
@@ -223,19 +222,11 @@ def _run(
             _quiesce(bare)
             if floor is not None:
                 floor_t += [floor.step_s(actions[k]) for k in ks][1:]
-            v: list[float] = []
-            for k in ks:
-                t0 = time.perf_counter()
-                step(batch[k])
-                v.append(time.perf_counter() - t0)
+            v = _timed_block(step, batch, ks)
             time.sleep(TRAIL_S)  # the workers' trailing work (the next servo tick) must not overlap the bare step
             bare_t += b[1:]
             vec_t += v[1:]
-        # throughput: the vector env alone, back to back
-        for k in range(steps + 1, 2 * steps + 2):
-            t0 = time.perf_counter()
-            step(batch[k])
-            tight_t.append(time.perf_counter() - t0)
+        tight_t = _timed_block(step, batch, range(steps + 1, 2 * steps + 2))  # throughput: back to back
     finally:
         venv.close()
     record = _record(env_id, impl, n, tight_t, vec_t, bare_t)
