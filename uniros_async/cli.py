@@ -310,7 +310,7 @@ def _run_bench(args: argparse.Namespace) -> int:
 
         throughput.main(
             throughput.ThroughputBenchConfig(
-                **({"n_envs": tuple(args.n_envs)} if args.n_envs else {}),
+                n_envs=tuple(args.n_envs) if args.n_envs else throughput.ThroughputBenchConfig.n_envs,
                 quick=args.quick,
                 steps=args.steps,
                 json_path=args.json_path,
