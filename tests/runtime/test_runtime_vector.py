@@ -82,10 +82,10 @@ def test_step_async_sends_without_running_the_loop_and_falls_back_when_it_cannot
                 assert all(w.in_flight for w in workers)
                 deadline = time.monotonic() + 10.0  # accelerated workers answer on their own
                 while time.monotonic() < deadline and not all(
-                    w.transport._rx_ctl[shm.W_POS] != w.transport._rpos for w in workers
+                    w.transport._rx_ctl[shm.W_POS] != w.transport._ring.rpos for w in workers
                 ):
                     time.sleep(0.01)
-                assert all(w.transport._rx_ctl[shm.W_POS] != w.transport._rpos for w in workers), "replies due"
+                assert all(w.transport._rx_ctl[shm.W_POS] != w.transport._ring.rpos for w in workers), "replies due"
             out.append(venv.step_wait()[0])
             assert len(drives) == (0 if fast else 2)
             out.append(venv.step(rng.uniform(-1, 1, (2, 6)).astype(np.float32))[0])

@@ -9,11 +9,25 @@ import os
 import pytest
 
 from uniros_async.testing import transport_contract as contract
+from uniros_async.transports._shm_ring import PURE_PYTHON_ENV, compiled_ring_end
 from uniros_async.transports.base import TransportOptions, connect
 
-URIS = {"memory": "memory://", "shm": "shm://", "tcp": "tcp://127.0.0.1:0"}
-CROSS_PROCESS = ["shm", "tcp"]  # memory:// is in-process by definition
+# "shm-python": shm:// with the pure-Python RingEnd on both ends (the fallback where the C one is not built)
+URIS = {"memory": "memory://", "shm": "shm://", "shm-python": "shm://", "tcp": "tcp://127.0.0.1:0"}
+CROSS_PROCESS = ["shm", "shm-python", "tcp"]  # memory:// is in-process by definition
 AUTH = ["shm", "tcp"]
+
+
+@pytest.fixture(autouse=True)
+def _ring_end_of(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Which RingEnd shm:// uses in this test (spawned processes inherit the choice with the environment)."""
+    kind = request.node.callspec.params.get("kind") if hasattr(request.node, "callspec") else None
+    if kind == "shm-python":
+        monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+    else:
+        monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+        if kind == "shm":
+            assert compiled_ring_end() is not None, "the compiled RingEnd is not built: pip install -e . needs gcc"
 
 
 @pytest.mark.parametrize("check", contract.CHECKS, ids=lambda c: c.__name__.removeprefix("check_"))

@@ -17,10 +17,22 @@ import pytest
 from uniros_async.errors import ConfigError, TransportBrokenError, TransportClosedError
 from uniros_async.testing.transport_contract import open_pair
 from uniros_async.transports import shm
+from uniros_async.transports._shm_ring import PURE_PYTHON_ENV, compiled_ring_end
 from uniros_async.transports.base import TransportOptions, connect, listen
 
 T_S = 10.0
 SMALL_RING = TransportOptions(ring_bytes=4096)
+
+
+@pytest.fixture(autouse=True, params=["compiled", "python"])
+def ring_end(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Every test here runs with either RingEnd on both ends (spawned peers inherit it with the environment)."""
+    if request.param == "python":
+        monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+    else:
+        monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+        assert compiled_ring_end() is not None, "the compiled RingEnd is not built: pip install -e . needs gcc"
+    return str(request.param)
 
 
 def _dev_shm() -> set[str]:

@@ -27,19 +27,30 @@ from __future__ import annotations
 import fcntl
 import mmap
 import os
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from uniros_async.transports import base as _base
 
 __all__ = [
+    "CPU_HINT_NS",
     "CTL_BYTES",
+    "PURE_PYTHON_ENV",
+    "RESTART_BYTES",
     "R_CPU",
     "R_POS",
     "R_TICKET",
     "SKIP",
     "W_POS",
     "W_TICKET",
+    "RingEnd",
     "RingViews",
     "attach_segment",
     "create_segment",
     "round_capacity",
+    "ring_end_class",
     "segment_bytes",
 ]
 
@@ -53,6 +64,11 @@ R_CPU = 32
 SKIP = 1 << 63
 MAX_CAPACITY = 1 << 30
 _SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
+RESTART_BYTES = 4096  # a record this large restarts at offset 0 when little is in flight (RingEnd.place)
+CPU_HINT_NS = 1_000_000  # a sender says where it runs at most this often (a process seldom changes cores)
+PURE_PYTHON_ENV = "UNIROS_SHM_PURE_PYTHON"
+"""Set (to anything but "" or "0") in the environment, new connections use the pure-Python ``RingEnd`` even where
+the compiled one is built: the reference for comparisons (``uniros bench throughput --ring python``) and tests."""
 
 
 def round_capacity(ring_bytes: int) -> int:
@@ -109,3 +125,229 @@ class RingViews:
     def release(self) -> None:
         for view in (self.ctl, self.data_q, self.data_ro, self.data):
             view.release()
+
+
+# The memory barrier between publishing a position and reading the peer's ticket (and between setting a ticket and
+# re-reading the position): an uncontended lock acquire + release runs locked instructions (sem_trywait and
+# sem_post), a full fence on x86, the project's machines. Weaker memory models (aarch64) would need a real fence,
+# which the compiled RingEnd has (__atomic_thread_fence).
+_fence_lock = threading.Lock()
+fence_acquire = _fence_lock.acquire
+fence_release = _fence_lock.release
+_now_ns = time.perf_counter_ns  # CLOCK_MONOTONIC on Linux, as the compiled RingEnd's clock
+_yield = _base.spin_yield
+_this_cpu = _base.this_cpu
+_eventfd_write = os.eventfd_write
+
+
+class RingEnd:
+    """One end's side of a connection's two rings: the read side of the ring it receives on and the write side of
+    the ring it sends on, with the state of both, and the operations a frame takes on its usual (hot) path.
+
+    ``ShmTransport`` keeps everything else (waiting, streaming, errors) and reads and writes the state here. This is
+    the pure-Python reference; ``_shm_ring_c.RingEnd`` (``_shm_ring_c.c``) is the same class in C, built by
+    ``pip install`` where a C compiler is at hand, and used when it is (``ring_end_class``): the two take the same
+    arguments, have the same attributes and do the same things, which the shm tests check on both.
+
+    Attributes (read and written by the transport): ``wpos`` (bytes ever written to the tx ring), ``rpos`` (bytes
+    ever consumed from the rx ring), ``rx_released`` (bytes given back to the peer), ``signaled_reader`` and
+    ``signaled_writer`` (the peer's tickets last rung for), ``sent_since_wait``, ``cpu_said_by``, the four frame and
+    byte counters, and ``rx_fast`` / ``tx_fast`` (whether ``take_ready`` / ``try_send`` may act at all).
+    """
+
+    __slots__ = (
+        "_cap",
+        "_max_frame",
+        "_peer_doorbell",
+        "_quarter",
+        "_rx_ctl",
+        "_rx_q",
+        "_rx_ro",
+        "_tx_ctl",
+        "_tx_data",
+        "_tx_q",
+        "bytes_received",
+        "bytes_sent",
+        "cpu_said_by",
+        "frames_received",
+        "frames_sent",
+        "rpos",
+        "rx_fast",
+        "rx_released",
+        "sent_since_wait",
+        "signaled_reader",
+        "signaled_writer",
+        "tx_fast",
+        "wpos",
+    )
+
+    def __init__(self, rx: RingViews, tx: RingViews, max_frame: int, peer_doorbell: int) -> None:
+        self._cap = cap = len(rx.data)
+        if len(tx.data) != cap or cap % 8 or not cap:
+            raise ValueError(f"rings of {cap} and {len(tx.data)} bytes: expected two of one size, a multiple of 8")
+        self._max_frame = max_frame
+        self._peer_doorbell = peer_doorbell
+        self._quarter = cap >> 2
+        self._rx_ctl, self._rx_q, self._rx_ro = rx.ctl, rx.data_q, rx.data_ro
+        self._tx_ctl, self._tx_q, self._tx_data = tx.ctl, tx.data_q, tx.data
+        self.rpos = self.rx_released = rx.ctl[R_POS]
+        self.wpos = tx.ctl[W_POS]
+        self.signaled_reader = self.signaled_writer = 0
+        self.sent_since_wait = self.cpu_said_by = 0
+        self.frames_sent = self.frames_received = self.bytes_sent = self.bytes_received = 0
+        self.rx_fast = self.tx_fast = True
+
+    # ---- receiving
+
+    def take_ready(self) -> memoryview | None:
+        """The next frame if ``rx_fast`` and it is already there, whole and contiguous in the ring: a read-only view
+        into the ring; else None, and nothing is consumed. Gives the space of the previous frame back first."""
+        if not self.rx_fast:
+            return None
+        rpos = self.rpos
+        if rpos != self.rx_released:
+            self.release_rx()
+        avail = self._rx_ctl[W_POS] - rpos
+        cap = self._cap
+        if 0 < avail <= cap:
+            off = rpos % cap
+            n = self._rx_q[off >> 3]
+            if n == SKIP and avail > cap - off:
+                rpos += cap - off
+                avail -= cap - off
+                off = 0
+                n = self._rx_q[0]
+            if n <= self._max_frame:
+                rec = 8 + ((n + 7) & ~7)
+                end = off + 8 + n
+                if rec <= avail and end <= cap:
+                    self.rpos = rpos + rec
+                    self.frames_received += 1
+                    self.bytes_received += n
+                    return self._rx_ro[off + 8 : end]
+        return None
+
+    def release_rx(self) -> None:
+        """Give the space up to ``rpos`` back to the writer, and ring its doorbell if it waits for space."""
+        ctl = self._rx_ctl
+        ctl[R_POS] = self.rx_released = self.rpos
+        fence_acquire()
+        fence_release()
+        ticket = ctl[W_TICKET]
+        if ticket & 1 and ticket != self.signaled_writer:
+            self.signaled_writer = ticket
+            _eventfd_write(self._peer_doorbell, 1)
+
+    def poll(self, deadline_ns: int, look_at_ns: int) -> int:
+        """Poll for data past ``rpos``, yielding the CPU between polls: 1 when it is there, 2 once the clock
+        (``time.perf_counter_ns``) passes ``look_at_ns``, 0 once it passes ``deadline_ns``."""
+        ctl = self._rx_ctl
+        rpos = self.rpos
+        while ctl[W_POS] == rpos:
+            now = _now_ns()
+            if now > look_at_ns:
+                return 2
+            if now > deadline_ns:
+                return 0
+            _yield()
+        return 1
+
+    # ---- sending
+
+    def try_send(self, frame: Any) -> bool:
+        """Write ``frame`` (bytes, or a 1-D memoryview of bytes) and publish it, if ``tx_fast`` and that needs no
+        waiting: room in the ring, and a frame under ``max_frame_bytes`` that fits the ring whole. True if it was
+        sent; False: nothing was written."""
+        n = len(frame)
+        if not self.tx_fast or n > self._max_frame:
+            return False
+        rec = 8 + ((n + 7) & ~7)
+        if rec > self._cap or (place := self.place(rec)) is None:
+            return False
+        off, skip = place
+        data_q = self._tx_q
+        if skip:
+            data_q[off >> 3] = SKIP
+            off = 0
+        data_q[off >> 3] = n
+        start = off + 8
+        end = start + n
+        cap = self._cap
+        if start == cap:  # the header took the ring's last 8 bytes
+            start, end = 0, n
+        if end <= cap:
+            self._tx_data[start:end] = frame
+        else:  # wraps around the end of the ring (the reader copies it)
+            first = cap - start
+            view = frame if type(frame) is memoryview else memoryview(frame)
+            self._tx_data[start:] = view[:first]
+            self._tx_data[: n - first] = view[first:]
+        self.commit(n, rec, skip)
+        return True
+
+    def place(self, rec: int) -> tuple[int, int] | None:
+        """Where a record of ``rec`` bytes goes: (ring offset, bytes skipped to the end of the ring first), or None
+        while the ring lacks room."""
+        cap = self._cap
+        wpos = self.wpos
+        used = wpos - self._tx_ctl[R_POS]
+        free = cap - used
+        off = wpos % cap
+        tail = cap - off
+        if rec >= RESTART_BYTES and tail + rec <= free and used <= self._quarter:
+            # A large frame, little in flight, and room before the reader's position: restart at offset 0, so
+            # the ring reuses the same pages, still in cache (a 900 KiB copy costs 45 us hot, 70 us cold here).
+            return off, tail
+        if rec <= tail and rec <= free:
+            return off, 0
+        if tail + rec <= free:
+            return off, tail  # keep the frame contiguous (zero-copy for the reader)
+        if rec <= free:
+            return off, 0  # wrap around the end; the reader copies it
+        return None
+
+    def commit(self, n: int, rec: int, skip: int) -> None:
+        """Publish the record of an ``n``-byte frame (``rec`` bytes, after ``skip`` bytes to the ring's end) whose
+        header and data are in place, ring the reader if it sleeps, and count it. Says where this end runs (in its
+        rx ctl's ``R_CPU``, for the peer's ``ShmTransport._peer_here``) at most every ``CPU_HINT_NS``."""
+        self.publish(self.wpos + skip + rec)
+        self.sent_since_wait += n
+        self.frames_sent += 1
+        self.bytes_sent += n
+        now = _now_ns()
+        if now > self.cpu_said_by:
+            self.cpu_said_by = now + CPU_HINT_NS
+            self._rx_ctl[R_CPU] = _this_cpu() + 1
+
+    def publish(self, wpos: int) -> None:
+        """Make everything up to ``wpos`` visible to the reader, then (after the fence) wake it if it sleeps."""
+        ctl = self._tx_ctl
+        ctl[W_POS] = self.wpos = wpos
+        fence_acquire()
+        fence_release()
+        ticket = ctl[R_TICKET]
+        if ticket & 1 and ticket != self.signaled_reader:
+            self.signaled_reader = ticket
+            _eventfd_write(self._peer_doorbell, 1)
+
+    def close(self) -> None:
+        """Drop the views (the compiled class lets go of the ring's buffers); nothing may be called after it."""
+        self.rx_fast = self.tx_fast = False
+
+
+def ring_end_class() -> Callable[[RingViews, RingViews, int, int], RingEnd]:
+    """The ``RingEnd`` a new connection uses: the compiled one, unless it is not built here or ``PURE_PYTHON_ENV``
+    says otherwise."""
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return RingEnd
+    compiled = compiled_ring_end()
+    return RingEnd if compiled is None else compiled
+
+
+def compiled_ring_end() -> Any:
+    """``_shm_ring_c.RingEnd``, or None where the extension was not built (no C compiler at install time)."""
+    try:
+        from uniros_async.transports import _shm_ring_c  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    return _shm_ring_c.RingEnd

@@ -40,8 +40,8 @@ import secrets
 import select
 import socket
 import struct
-import threading
 from collections.abc import AsyncIterator, Callable, Sequence
+from typing import Any
 
 from uniros_async.errors import (
     ConfigError,
@@ -59,8 +59,19 @@ from uniros_async.transports._shm_ring import (
     W_POS,
     W_TICKET,
     RingViews,
+    ring_end_class,
 )
-from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
+from uniros_async.transports._shm_ring import fence_acquire as _fence_acquire
+from uniros_async.transports._shm_ring import fence_release as _fence_release
+from uniros_async.transports.base import (
+    Buffer,
+    Delivery,
+    Listener,
+    Transport,
+    TransportOptions,
+    TransportStats,
+    split_uri,
+)
 
 __all__ = ["ShmListener", "ShmTransport", "connect", "listen"]
 
@@ -69,14 +80,6 @@ logger = logging.getLogger(__name__)
 _ADDRESS_PREFIX = "\0uniros-shm-"
 _MAX_NAME_BYTES = 100  # sun_path holds 108 bytes, the prefix included
 
-# The memory barrier between publishing a position and reading the peer's ticket (and between setting our ticket
-# and re-reading the position): an uncontended lock acquire + release runs locked instructions (sem_trywait and
-# sem_post), a full fence on x86, the project's machines. Weaker memory models (aarch64) would need a real fence.
-_fence_lock = threading.Lock()
-_fence_acquire = _fence_lock.acquire
-_fence_release = _fence_lock.release
-
-
 # Before sleeping, receive() polls the ring for up to spin_ns, yielding the CPU between polls: in a request/reply
 # exchange the answer usually comes sooner than a sleeping process wakes up (20-46 us on an idle core here, design.md
 # section 9), and while both ends keep polling neither core halts (10 us round trips instead of 60-80 us). After
@@ -84,12 +87,10 @@ _fence_release = _fence_lock.release
 # finds nothing costs credit; without credit no spin is tried until a sleep turns out to have been short enough that
 # a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
 _now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
-_yield = _base.spin_yield
 _this_cpu = _base.this_cpu
 _SHARED_CORE_NS = 50_000  # a poll that lasts longer looks where the peer runs (_peer_here): once, ~0.3 us
-_CPU_HINT_NS = 1_000_000  # a sender says where it runs at most this often (a process seldom changes cores)
+_NEVER_NS = (1 << 63) - 1
 _SPIN_CREDIT = _base.SPIN_CREDIT
-_RESTART_BYTES = 4096
 _WAKEUP_NS = _base.SPIN_WAKEUP_NS
 _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS
 
@@ -132,21 +133,15 @@ class ShmTransport(Transport):
         self._base = memoryview(setup.mm)
         self._rx = RingViews(self._base, cap, setup.rx_index)
         self._tx = RingViews(self._base, cap, 1 - setup.rx_index)
-        # the hot paths read these directly
-        self._rx_ctl, self._rx_q, self._rx_ro = self._rx.ctl, self._rx.data_q, self._rx.data_ro
-        self._tx_ctl, self._tx_q, self._tx_data = self._tx.ctl, self._tx.data_q, self._tx.data
-        self._quarter = cap >> 2
-        self._rpos = self._rx_released = self._rx.ctl[R_POS]
-        self._wpos = self._tx.ctl[W_POS]
+        self._rx_ctl, self._tx_ctl = self._rx.ctl, self._tx.ctl
+        # positions, counters and the usual path of a frame (compiled where it is built; _shm_ring.RingEnd)
+        self._ring = ring = ring_end_class()(self._rx, self._tx, options.max_frame_bytes, setup.peer_doorbell_fd)
+        self.stats = _RingStats(ring)
         self._rx_ticket = 0
         self._tx_ticket = 0
-        self._signaled_reader = 0  # the peer's reader ticket we last rang for
-        self._signaled_writer = 0
-        self._cpu_said_by = 0  # _commit_record says again where this end runs after this time
         self._rx_waiter: asyncio.Future[None] | None = None
         self._poller: select.poll | None = None  # receive_blocking's, made on first use
         self._spin_credit = _SPIN_CREDIT if self.spin_ns > 0 else 0
-        self._sent_since_wait = 0  # bytes sent since receive() last waited: a hint of how long a reply takes
         self._tx_waiter: asyncio.Future[None] | None = None
         self._loaned = False  # a loan() block is writing the next frame in place
         self._rx_partial: _Partial | None = None
@@ -154,8 +149,8 @@ class ShmTransport(Transport):
         self._peer_gone = False
         self._broken: str | None = None
         self._closed = False
-        self._rx_fast = True  # not closed, not broken, no streamed frame half-received
-        self._tx_fast = True  # not closed, not broken, peer not gone, no streamed frame being finished
+        # ring.rx_fast: not closed, not broken, no streamed frame half-received;
+        # ring.tx_fast: not closed, not broken, peer not gone, no streamed frame being finished, no loan open
         try:
             pid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))[0]
         except OSError:
@@ -186,50 +181,23 @@ class ShmTransport(Transport):
             TransportClosedError: this end was closed.
             TransportBrokenError: the peer is gone (after every frame it sent was delivered) or broke the protocol.
         """
-        if self._rx_fast:  # the common case: a whole frame, contiguous in the ring, is already there
-            view = self._take_ready()
-            if view is not None:
-                return view
+        view = self._ring.take_ready()  # the common case: a whole frame, contiguous in the ring, is already there
+        if view is not None:
+            return view
         return await self._receive_slow()
-
-    def _take_ready(self) -> memoryview | None:
-        """The next frame if it is already there, whole and contiguous in the ring (a view), else None (nothing is
-        consumed then). Gives the space of the previous frame back to the writer first."""
-        rpos = self._rpos
-        if rpos != self._rx_released:
-            self._release_rx()
-        ctl = self._rx_ctl
-        avail = ctl[W_POS] - rpos
-        cap = self._cap
-        if 0 < avail <= cap:
-            off = rpos % cap
-            n = self._rx_q[off >> 3]
-            if n == SKIP and avail > cap - off:
-                rpos += cap - off
-                avail -= cap - off
-                off = 0
-                n = self._rx_q[0]
-            rec = 8 + ((n + 7) & ~7)
-            end = off + 8 + n
-            if n <= self._max_frame and rec <= avail and end <= cap:
-                self._rpos = rpos + rec
-                stats = self.stats
-                stats.frames_received += 1
-                stats.bytes_received += n
-                return self._rx_ro[off + 8 : end]
-        return None
 
     async def _receive_slow(self) -> memoryview:
         if self._closed:
             raise TransportClosedError(f"receive on closed transport to {self.peer}")
         if self._broken is not None:
             raise TransportBrokenError(self._broken)
-        if self._rpos != self._rx_released:
-            self._release_rx()
+        ring = self._ring
+        if ring.rpos != ring.rx_released:
+            ring.release_rx()
         ctl = self._rx.ctl
         while True:
             gone = self._peer_gone  # read before the position: the peer wrote everything before it hung up
-            avail = ctl[W_POS] - self._rpos
+            avail = ctl[W_POS] - ring.rpos
             if avail:
                 view = self._take(avail)
                 if view is not None:
@@ -246,7 +214,8 @@ class ShmTransport(Transport):
     def _take(self, avail: int) -> memoryview | None:
         """Consume what ``avail`` bytes allow: a whole frame (returned), a skip record or a streamed chunk (None)."""
         cap = self._cap
-        rpos = self._rpos
+        ring = self._ring
+        rpos = ring.rpos
         if avail > cap or avail < 0:
             raise self._fail(f"ring from {self.peer} holds {avail} bytes, more than its capacity {cap}")
         if self._rx_partial is not None:
@@ -256,7 +225,7 @@ class ShmTransport(Transport):
         if n & SKIP:
             if n != SKIP or avail < cap - off:
                 raise self._fail(f"bad skip record from {self.peer}")
-            self._rpos = rpos + cap - off
+            ring.rpos = rpos + cap - off
             return None
         if n > self._max_frame:
             self.stats.rejected += 1
@@ -264,9 +233,9 @@ class ShmTransport(Transport):
         padded = (n + 7) & ~7
         if 8 + padded > cap:  # streamed: collect the chunks in a buffer of our own
             self._rx_partial = _Partial(n, padded)
-            self._rx_fast = False
-            self._rpos = rpos + 8
-            self._release_rx()
+            ring.rx_fast = False
+            ring.rpos = rpos + 8
+            ring.release_rx()
             return None
         if avail < 8 + padded:
             raise self._fail(f"truncated record from {self.peer}: {avail} bytes of {8 + padded}")
@@ -274,9 +243,9 @@ class ShmTransport(Transport):
         if start == cap:
             start = 0
         end = start + n
-        self._rpos = rpos + 8 + padded
-        self.stats.frames_received += 1
-        self.stats.bytes_received += n
+        ring.rpos = rpos + 8 + padded
+        ring.frames_received += 1
+        ring.bytes_received += n
         if end <= cap:
             return self._rx.data_ro[start:end]  # zero-copy; released at the next receive()
         buf = bytearray(n)
@@ -284,50 +253,41 @@ class ShmTransport(Transport):
         data = self._rx.data
         buf[:first] = data[start:]
         buf[first:] = data[: n - first]
-        self._release_rx()
+        ring.release_rx()
         return memoryview(buf).toreadonly()
 
     def _take_chunk(self, avail: int) -> memoryview | None:
         part = self._rx_partial
         assert part is not None
+        ring = self._ring
         take = min(avail, part.padded - part.got)
         lo, hi = part.got, min(part.got + take, part.n)
         if hi > lo:  # the rest of the chunk is padding
             cap = self._cap
             data = self._rx.data
             dst = part.view
-            pos = self._rpos % cap
+            pos = ring.rpos % cap
             first = min(hi - lo, cap - pos)
             dst[lo : lo + first] = data[pos : pos + first]
             if first < hi - lo:
                 dst[lo + first : hi] = data[: hi - lo - first]
         part.got += take
-        self._rpos += take
-        self._release_rx()
+        ring.rpos += take
+        ring.release_rx()
         if part.got < part.padded:
             return None
         self._rx_partial = None
-        self._rx_fast = self._broken is None and not self._closed
-        self.stats.frames_received += 1
-        self.stats.bytes_received += part.n
+        ring.rx_fast = self._broken is None and not self._closed
+        ring.frames_received += 1
+        ring.bytes_received += part.n
         return part.view.toreadonly()
-
-    def _release_rx(self) -> None:
-        """Give the space up to our read position back to the writer, and wake it if it waits for space."""
-        ctl = self._rx.ctl
-        ctl[R_POS] = self._rx_released = self._rpos
-        _fence_acquire()
-        _fence_release()
-        ticket = ctl[W_TICKET]
-        if ticket & 1 and ticket != self._signaled_writer:
-            self._signaled_writer = ticket
-            os.eventfd_write(self._peer_doorbell, 1)
 
     def _window_ns(self) -> int:
         """How long to poll for the next frame: ``spin_ns``, plus, after a large send, the time the peer needs to
         read it (~0.1 ns per byte across cores) before it can answer."""
-        window_ns = self.spin_ns + min(self._sent_since_wait // 10, _SPIN_EXTRA_NS)
-        self._sent_since_wait = 0
+        ring = self._ring
+        window_ns = self.spin_ns + min(ring.sent_since_wait // 10, _SPIN_EXTRA_NS)
+        ring.sent_since_wait = 0
         return window_ns
 
     def _peer_here(self) -> bool:
@@ -356,25 +316,21 @@ class ShmTransport(Transport):
         return bool(moved == cpu)
 
     def _spin(self, window_ns: int) -> bool:
-        """Poll for data past our read position for up to ``window_ns``, yielding the CPU between polls; True if it
-        came. Keeps the spin credit (see ``_SPIN_CREDIT``)."""
-        ctl = self._rx_ctl
-        rpos = self._rpos
+        """Poll for data past our read position for up to ``window_ns``, yielding the CPU between polls
+        (``RingEnd.poll``); True if it came. Looks where the peer runs once the poll has lasted ``_SHARED_CORE_NS``
+        (``_peer_here``) and gives up at once if it shares this core. Keeps the spin credit (see ``_SPIN_CREDIT``)."""
         start = _now_ns()
         deadline = start + window_ns
-        look_at = start + _SHARED_CORE_NS
-        while ctl[W_POS] == rpos:
-            now = _now_ns()
-            if now > look_at:  # a poll this long: is the peer waiting for this very core?
-                look_at = deadline
-                if self._peer_here():
-                    return False
-            if now > deadline:
-                self._spin_credit -= 1
+        got = self._ring.poll(deadline, start + _SHARED_CORE_NS)
+        if got == 2:  # a poll this long: is the peer waiting for this very core?
+            if self._peer_here():
                 return False
-            _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin (if it agrees)
-        self._spin_credit = _SPIN_CREDIT
-        return True
+            got = self._ring.poll(deadline, _NEVER_NS)
+        if got == 1:
+            self._spin_credit = _SPIN_CREDIT
+            return True
+        self._spin_credit -= 1
+        return False
 
     def _slept(self, t0: int, window_ns: int) -> None:
         if self._spin_credit == 0 and self._spin_allowed and self.spin_ns and _now_ns() - t0 < window_ns + _WAKEUP_NS:
@@ -389,7 +345,7 @@ class ShmTransport(Transport):
         _fence_acquire()
         _fence_release()
         try:
-            if ctl[W_POS] == self._rpos and not self._peer_gone:  # re-check after the fence: no lost wakeup
+            if ctl[W_POS] == self._ring.rpos and not self._peer_gone:  # re-check after the fence: no lost wakeup
                 fut = self._rx_waiter = self._loop.create_future()
                 t0 = _now_ns()
                 try:
@@ -415,18 +371,19 @@ class ShmTransport(Transport):
         around the ring's end or streamed), or this end is closed or broken. Nothing was consumed then, and
         ``receive`` must be awaited (it delivers the frame or raises what is wrong).
         """
-        if not self._rx_fast:
+        ring = self._ring
+        if not ring.rx_fast:
             return None
-        view = self._take_ready()
+        view = ring.take_ready()
         if view is not None:
             return view
-        if self._rx_ctl[W_POS] != self._rpos:  # it came just now, or it is something only the slow path takes
-            return self._take_ready()
+        ctl = self._rx_ctl
+        if ctl[W_POS] != ring.rpos:  # it came just now, or it is something only the slow path takes
+            return ring.take_ready()
         deadline = _now_ns() + int(timeout_s * 1e9)
         window_ns = self._window_ns()
-        ctl = self._rx_ctl
         if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
-            return self._take_ready()
+            return ring.take_ready()
         poller = self._poller
         if poller is None:
             poller = self._poller = select.poll()
@@ -438,7 +395,7 @@ class ShmTransport(Transport):
         _fence_release()
         t0 = _now_ns()
         try:
-            while ctl[W_POS] == self._rpos:  # re-checked after the fence: no lost wakeup
+            while ctl[W_POS] == ring.rpos:  # re-checked after the fence: no lost wakeup
                 left_ns = deadline - _now_ns()
                 if left_ns <= 0:
                     return None
@@ -454,7 +411,7 @@ class ShmTransport(Transport):
             self._rx_ticket = ticket + 1
             if not self._closed:
                 ctl[R_TICKET] = ticket + 1
-        return self._take_ready()
+        return ring.take_ready()
 
     # -------------------------------------------------------------------------------------------------- sending
 
@@ -480,7 +437,10 @@ class ShmTransport(Transport):
         else:
             one, parts = None, _as_parts(frame)
             n = sum(len(p) for p in parts)
-        if not self._tx_fast:
+        ring = self._ring
+        if one is not None and ring.try_send(one):  # the usual case: room, a healthy end, a frame that fits
+            return
+        if not ring.tx_fast:
             await self._send_checks()
         if n > self._max_frame:
             raise FrameTooLargeError(f"frame of {n} bytes exceeds max_frame_bytes={self._max_frame}")
@@ -489,9 +449,9 @@ class ShmTransport(Transport):
         if rec > cap:
             await self._send_streamed(parts if one is None else (one,), n)
             return
-        while (place := self._place(rec)) is None:
+        while (place := ring.place(rec)) is None:
             await self._wait_writable(rec)
-            if not self._tx_fast:
+            if not ring.tx_fast:
                 await self._send_checks()
         self._write(one, parts, n, rec, *place)
 
@@ -500,14 +460,7 @@ class ShmTransport(Transport):
         connection, a frame that fits the ring); True if it was sent. False: nothing was sent, ``send`` must do it
         (it waits for room, or raises what is wrong). Lets a caller outside the event loop send without running it.
         """
-        n = len(frame)
-        if not self._tx_fast or n > self._max_frame:
-            return False
-        rec = 8 + ((n + 7) & ~7)
-        if rec > self._cap or (place := self._place(rec)) is None:
-            return False
-        self._write(frame, (), n, rec, *place)
-        return True
+        return self._ring.try_send(frame)
 
     @contextlib.asynccontextmanager
     async def loan(self, nbytes: int) -> AsyncIterator[memoryview]:
@@ -519,7 +472,8 @@ class ShmTransport(Transport):
         Raises:
             TransportClosedError, TransportBrokenError, FrameTooLargeError: as ``send``.
         """
-        if not self._tx_fast:
+        ring = self._ring
+        if not ring.tx_fast:
             await self._send_checks()
         if nbytes < 0 or nbytes > self._max_frame:
             raise FrameTooLargeError(f"frame of {nbytes} bytes exceeds max_frame_bytes={self._max_frame}")
@@ -528,60 +482,41 @@ class ShmTransport(Transport):
             async with super().loan(nbytes) as view:
                 yield view
             return
-        while (place := self._place(rec)) is None:
+        while (place := ring.place(rec)) is None:
             await self._wait_writable(rec)
-            if not self._tx_fast:
+            if not ring.tx_fast:
                 await self._send_checks()
         off, skip = place
         start = (0 if skip else off) + 8
-        view = self._tx_data[start : start + nbytes]
+        view = self._tx.data[start : start + nbytes]
         self._loaned = True
-        self._tx_fast = False
+        ring.tx_fast = False
         try:
             yield view
         finally:
             self._loaned = False
-            self._tx_fast = not (self._closed or self._broken is not None or self._peer_gone)
+            ring.tx_fast = not (self._closed or self._broken is not None or self._peer_gone)
             with contextlib.suppress(BufferError):  # the caller still holds views of it: theirs to drop
                 view.release()
-        if not self._tx_fast:
+        if not ring.tx_fast:
             await self._send_checks()  # closed or broken during the block: raises, nothing is sent
+        data_q = self._tx.data_q
         if skip:
-            self._tx_q[off >> 3] = SKIP
+            data_q[off >> 3] = SKIP
             off = 0
-        self._tx_q[off >> 3] = nbytes
-        self._commit_record(nbytes, rec, skip)
-
-    def _place(self, rec: int) -> tuple[int, int] | None:
-        """Where a record of ``rec`` bytes goes: (ring offset, bytes skipped to the end of the ring first), or None
-        while the ring lacks room."""
-        cap = self._cap
-        wpos = self._wpos
-        used = wpos - self._tx_ctl[R_POS]
-        free = cap - used
-        off = wpos % cap
-        tail = cap - off
-        if rec >= _RESTART_BYTES and tail + rec <= free and used <= self._quarter:
-            # A large frame, little in flight, and room before the reader's position: restart at offset 0, so
-            # the ring reuses the same pages, still in cache (a 900 KiB copy costs 45 us hot, 70 us cold here).
-            return off, tail
-        if rec <= tail and rec <= free:
-            return off, 0
-        if tail + rec <= free:
-            return off, tail  # keep the frame contiguous (zero-copy for the reader)
-        if rec <= free:
-            return off, 0  # wrap around the end; the reader copies it
-        return None
+        data_q[off >> 3] = nbytes
+        ring.commit(nbytes, rec, skip)
 
     def _write(self, one: Buffer | None, parts: Sequence[Buffer], n: int, rec: int, off: int, skip: int) -> None:
-        """Copy the frame (``one`` buffer, or ``parts``) to its place, publish it, and ring the reader if it sleeps."""
+        """Copy the frame (``one`` buffer, or ``parts``) to the place ``RingEnd.place`` gave, publish it, and ring
+        the reader if it sleeps."""
         cap = self._cap
-        data_q = self._tx_q
+        data_q = self._tx.data_q
         if skip:
             data_q[off >> 3] = SKIP
             off = 0
         data_q[off >> 3] = n
-        data = self._tx_data
+        data = self._tx.data
         if one is not None and off + rec <= cap:
             data[off + 8 : off + 8 + n] = one
         else:
@@ -600,20 +535,7 @@ class ShmTransport(Transport):
                     data[pos:] = view[:first]
                     data[: k - first] = view[first:]
                     pos = k - first
-        self._commit_record(n, rec, skip)
-
-    def _commit_record(self, n: int, rec: int, skip: int) -> None:
-        """Publish the record of an ``n``-byte frame (``rec`` bytes, after ``skip`` bytes to the ring's end) whose
-        header and data are in place, and ring the reader if it sleeps."""
-        self._publish(self._wpos + skip + rec)
-        self._sent_since_wait += n
-        stats = self.stats
-        stats.frames_sent += 1
-        stats.bytes_sent += n
-        now = _now_ns()
-        if now > self._cpu_said_by:  # where this end runs, for the peer's _peer_here: at most every _CPU_HINT_NS
-            self._cpu_said_by = now + _CPU_HINT_NS
-            self._rx_ctl[R_CPU] = _this_cpu() + 1
+        self._ring.commit(n, rec, skip)
 
     async def _send_checks(self) -> None:
         """The slow path of send(): finish a cancelled streamed frame, then raise if the connection is unusable."""
@@ -630,17 +552,6 @@ class ShmTransport(Transport):
         if self._peer_gone:
             raise TransportBrokenError(f"peer {self.peer} closed the connection")
 
-    def _publish(self, wpos: int) -> None:
-        """Make everything up to ``wpos`` visible to the reader, then (after the fence) wake it if it sleeps."""
-        ctl = self._tx_ctl
-        ctl[W_POS] = self._wpos = wpos
-        _fence_acquire()
-        _fence_release()
-        ticket = ctl[R_TICKET]
-        if ticket & 1 and ticket != self._signaled_reader:
-            self._signaled_reader = ticket
-            os.eventfd_write(self._peer_doorbell, 1)
-
     async def _wait_writable(self, need: int) -> None:
         """Sleep until the reader leaves ``need`` bytes free (or hangs up, or we close)."""
         ctl = self._tx.ctl
@@ -649,7 +560,7 @@ class ShmTransport(Transport):
         _fence_acquire()
         _fence_release()
         try:
-            if self._cap - (self._wpos - ctl[R_POS]) < need and not self._peer_gone:
+            if self._cap - (self._ring.wpos - ctl[R_POS]) < need and not self._peer_gone:
                 fut = self._tx_waiter = self._loop.create_future()
                 try:
                     await fut
@@ -672,7 +583,7 @@ class ShmTransport(Transport):
                 # buffers once we return), in a task that aclose() cancels.
                 out.detach()
                 self._tx_stream = self._loop.create_task(self._stream(out), name=f"{self.peer} stream rest")
-                self._tx_fast = False
+                self._ring.tx_fast = False
                 self._tx_stream.add_done_callback(_retrieve)
             raise
 
@@ -680,15 +591,16 @@ class ShmTransport(Transport):
         cap = self._cap
         ctl = self._tx.ctl
         data = self._tx.data
+        ring = self._ring
         while out.left:
-            free = cap - (self._wpos - ctl[R_POS])
+            free = cap - (ring.wpos - ctl[R_POS])
             need = 8 if not out.header_sent else min(cap // 4, out.left)
             if free < need:
                 if self._peer_gone:
                     raise TransportBrokenError(f"peer {self.peer} closed the connection")
                 await self._wait_writable(need)
                 continue
-            wpos = self._wpos
+            wpos = ring.wpos
             if not out.header_sent:
                 self._tx.data_q[(wpos % cap) >> 3] = out.n
                 wpos += 8
@@ -696,10 +608,10 @@ class ShmTransport(Transport):
                 out.header_sent = True
             k = min(free, out.left)
             out.copy_into(data, wpos % cap, k)
-            self._publish(wpos + k)
-        self._sent_since_wait += out.n
-        self.stats.frames_sent += 1
-        self.stats.bytes_sent += out.n
+            ring.publish(wpos + k)
+        ring.sent_since_wait += out.n
+        ring.frames_sent += 1
+        ring.bytes_sent += out.n
 
     async def _join_stream(self) -> None:
         """Wait for a streamed frame whose send was cancelled to be finished in the background."""
@@ -707,7 +619,7 @@ class ShmTransport(Transport):
         assert task is not None
         await asyncio.wait({task})  # not cancelled with us: the frame must be finished before the next one
         self._tx_stream = None  # its error, if any, left state (peer gone, closed) that send() reports
-        self._tx_fast = not (self._closed or self._broken is not None or self._peer_gone)
+        self._ring.tx_fast = not (self._closed or self._broken is not None or self._peer_gone)
 
     # --------------------------------------------------------------------------------------- events and closing
 
@@ -729,7 +641,7 @@ class ShmTransport(Transport):
             self._fail(f"peer {self.peer} sent {len(data)} unexpected bytes on the control socket")
             return
         self._peer_gone = True
-        self._tx_fast = False
+        self._ring.tx_fast = False
         self._loop.remove_reader(self._sock.fileno())
         self._wake()
 
@@ -741,7 +653,7 @@ class ShmTransport(Transport):
     def _fail(self, reason: str) -> TransportBrokenError:
         """Mark the connection broken (the peer broke the protocol) and tell the peer by hanging up."""
         self._broken = reason
-        self._rx_fast = self._tx_fast = False
+        self._ring.rx_fast = self._ring.tx_fast = False
         logger.warning("%s", reason)
         try:
             self._sock.shutdown(socket.SHUT_RDWR)
@@ -756,7 +668,7 @@ class ShmTransport(Transport):
         if self._closed:
             return
         self._closed = True
-        self._rx_fast = self._tx_fast = False
+        self._ring.close()  # (also stops its fast paths)
         self._loop.remove_reader(self._doorbell)
         if not self._peer_gone:
             self._loop.remove_reader(self._sock.fileno())
@@ -777,6 +689,19 @@ class ShmTransport(Transport):
                 mm.close()
         except BufferError:
             pass  # a frame view handed out by receive() is still alive; the mapping goes with the last one
+
+
+class _RingStats(TransportStats):
+    """An shm end's counters: the four frame and byte counts are its ``RingEnd``'s, which its hot paths keep."""
+
+    def __init__(self, ring: Any) -> None:  # (no dataclass __init__: the counts are properties)
+        self._ring = ring
+        self.rejected = 0
+
+    frames_sent = property(lambda self: self._ring.frames_sent)
+    frames_received = property(lambda self: self._ring.frames_received)
+    bytes_sent = property(lambda self: self._ring.bytes_sent)
+    bytes_received = property(lambda self: self._ring.bytes_received)
 
 
 class _Partial:
