@@ -199,7 +199,9 @@ class ShmTransport(Transport):
             gone = self._peer_gone  # read before the position: the peer wrote everything before it hung up
             avail = ctl[W_POS] - ring.rpos
             if avail:
-                view = self._take(avail)
+                view = ring.take_ready()  # the usual frame, taken by the ring end; else the cases _take handles
+                if view is None:
+                    view = self._take(avail)
                 if view is not None:
                     return view
             elif gone:
