@@ -51,6 +51,7 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
     assert "stepped in turn" in text
     assert "95 % CI" in text and "too few steps" in text
     assert "--n-envs 1 --steps 1500" in text  # 5 rx200 steps: the hint to pin N = 1 down
+    assert "make_vec's workers over shm (ring end: compiled)" in text  # which shm ring end the rows ran on
 
 
 @pytest.mark.parametrize("kw", [{"n_envs": ()}, {"n_envs": (0,)}, {"steps": 2}])

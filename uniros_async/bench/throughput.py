@@ -50,6 +50,7 @@ import numpy as np
 
 from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
 from uniros_async.errors import ConfigError
+from uniros_async.transports._shm_ring import describe_ring_end
 
 __all__ = ["IMPLS", "ThroughputBenchConfig", "main"]
 
@@ -414,7 +415,8 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     )
     lines = [
         f"{ENV_ID} (turn-based, accelerated), {steps} steps per row, bare step {bare_ms:.2f} ms median, {cores} cores;"
-        f" make_vec's workers over {config.transport}",
+        f" make_vec's workers over {config.transport}"
+        + (f" (ring end: {describe_ring_end()})" if config.transport == "shm" else ""),
         head,
         "-" * len(head),
     ]

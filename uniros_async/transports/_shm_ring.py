@@ -50,6 +50,8 @@ __all__ = [
     "attach_segment",
     "create_segment",
     "round_capacity",
+    "compiled_ring_end",
+    "describe_ring_end",
     "ring_end_class",
     "segment_bytes",
 ]
@@ -351,3 +353,16 @@ def compiled_ring_end() -> Any:
     except ImportError:
         return None
     return _shm_ring_c.RingEnd
+
+
+def describe_ring_end() -> str:
+    """Which ``RingEnd`` new connections use here, and why, in a few words (the benchmarks print it)."""
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return f"pure Python ({PURE_PYTHON_ENV} is set)"
+    if compiled_ring_end() is None:
+        return "pure Python (_shm_ring_c is not built: reinstall with a C compiler for the compiled one)"
+    return "compiled"
+
+
+if __name__ == "__main__":  # python -m uniros_async.transports._shm_ring
+    print(f"shm:// ring end: {describe_ring_end()}")
