@@ -44,14 +44,14 @@ def test_the_compiled_ring_end_is_built_and_shares_the_layout() -> None:
 class _Pair:
     """Two ends (``a`` sends, ``b`` receives) of one segment, with a RingEnd class, and their doorbells."""
 
-    def __init__(self, cls: Any) -> None:
+    def __init__(self, cls: Any, cls_b: Any = None) -> None:
         self.fd, self.mm = create_segment(CAP)
         base = memoryview(self.mm)
         self.views = [RingViews(base, CAP, 0), RingViews(base, CAP, 1)]
         self.bell_a, self.bell_b = os.eventfd(0, os.EFD_NONBLOCK), os.eventfd(0, os.EFD_NONBLOCK)
         # a receives on ring 0 and sends on ring 1; each rings the other's doorbell
         self.a = cls(self.views[0], self.views[1], 1 << 20, self.bell_b)
-        self.b = cls(self.views[1], self.views[0], 1 << 20, self.bell_a)
+        self.b = (cls_b or cls)(self.views[1], self.views[0], 1 << 20, self.bell_a)
         self.base = base
 
     def rings(self, fd: int) -> int:
@@ -72,15 +72,16 @@ class _Pair:
 
 
 @contextlib.contextmanager
-def _pairs() -> Iterator[tuple[_Pair, _Pair]]:
+def _pairs() -> Iterator[tuple[_Pair, ...]]:
+    """Both ends compiled, both Python, and a compiled sender with a Python receiver (one layout, two languages)."""
     compiled = compiled_ring_end()
     assert compiled is not None
-    c, p = _Pair(compiled), _Pair(RingEnd)
+    pairs = (_Pair(compiled), _Pair(RingEnd), _Pair(compiled, RingEnd))
     try:
-        yield c, p
+        yield pairs
     finally:
-        c.close()
-        p.close()
+        for pair in pairs:
+            pair.close()
 
 
 STATE = ("wpos", "rpos", "rx_released", "signaled_reader", "signaled_writer", "sent_since_wait")
@@ -102,15 +103,16 @@ ops = st.lists(
 @settings(max_examples=300, deadline=None)
 @given(ops)
 def test_compiled_and_python_ring_ends_agree_operation_by_operation(seq: list[tuple[str, int]]) -> None:
-    """The same operations on both classes give the same results, state, counters and doorbell rings; and every
-    frame taken is the frame sent, in order (frames wrap around the ring's end, skip to its start, fill it)."""
-    with _pairs() as (c, p):
+    """The same operations on both classes, and on a compiled sender with a Python receiver, give the same results,
+    state, counters and doorbell rings; and every frame taken is the frame sent, in order (frames wrap around the
+    ring's end, skip to its start, fill it)."""
+    with _pairs() as pairs:
         sent: list[bytes] = []
         taken = 0
         tickets = [0, 0]
         for step, (op, arg) in enumerate(seq):
             got = []
-            for pair in (c, p):
+            for pair in pairs:
                 if op == "send":
                     frame = bytes((step + i) % 251 for i in range(arg))
                     got.append(pair.a.try_send(frame))
@@ -133,8 +135,9 @@ def test_compiled_and_python_ring_ends_agree_operation_by_operation(seq: list[tu
                 tickets[0] += 1
             if op == "writer_sleeps":
                 tickets[1] += 1
-            half = len(got) // 2
-            assert got[:half] == got[half:], f"step {step} ({op} {arg}): compiled {got[:half]} python {got[half:]}"
+            k = len(got) // len(pairs)
+            each = [got[i * k : i * k + k] for i in range(len(pairs))]
+            assert each[0] == each[1] == each[2], f"step {step} ({op} {arg}): compiled, python, mixed: {each}"
             if op == "send" and got[0]:
                 sent.append(bytes((step + i) % 251 for i in range(arg)))
             if op == "take" and got[0] is not None:
