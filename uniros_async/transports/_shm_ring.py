@@ -231,14 +231,21 @@ class RingEnd:
 
     def release_rx(self) -> None:
         """Give the space up to ``rpos`` back to the writer, and ring its doorbell if it waits for space."""
-        ctl = self._rx_ctl
-        ctl[R_POS] = self.rx_released = self.rpos
+        self.rx_released = rpos = self.rpos
+        self.signaled_writer = self._store_and_wake(self._rx_ctl, R_POS, rpos, W_TICKET, self.signaled_writer)
+
+    def _store_and_wake(self, ctl: memoryview, word: int, value: int, ticket_word: int, signaled: int) -> int:
+        """Store a position, then, after the fence, ring the peer if its ticket says it sleeps and it was not rung
+        for that ticket yet (``signaled``): the store-fence-load that no lost wake-up rests on
+        (``ShmTransport._wait_readable``). Returns the ticket last rung for."""
+        ctl[word] = value
         fence_acquire()
         fence_release()
-        ticket = ctl[W_TICKET]
-        if ticket & 1 and ticket != self.signaled_writer:
-            self.signaled_writer = ticket
+        ticket = ctl[ticket_word]
+        if ticket & 1 and ticket != signaled:
             _eventfd_write(self._peer_doorbell, 1)
+            return int(ticket)
+        return signaled
 
     def poll(self, deadline_ns: int, look_at_ns: int) -> int:
         """Poll for data past ``rpos``, yielding the CPU between polls: 1 when it is there, 2 once the clock
@@ -323,14 +330,8 @@ class RingEnd:
 
     def publish(self, wpos: int) -> None:
         """Make everything up to ``wpos`` visible to the reader, then (after the fence) wake it if it sleeps."""
-        ctl = self._tx_ctl
-        ctl[W_POS] = self.wpos = wpos
-        fence_acquire()
-        fence_release()
-        ticket = ctl[R_TICKET]
-        if ticket & 1 and ticket != self.signaled_reader:
-            self.signaled_reader = ticket
-            _eventfd_write(self._peer_doorbell, 1)
+        self.wpos = wpos
+        self.signaled_reader = self._store_and_wake(self._tx_ctl, W_POS, wpos, R_TICKET, self.signaled_reader)
 
     def close(self) -> None:
         """Drop the views (the compiled class lets go of the ring's buffers); nothing may be called after it."""

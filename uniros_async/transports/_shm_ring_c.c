@@ -100,30 +100,31 @@ static int ring_doorbell(RingEnd *self) /* os.eventfd_write(peer_doorbell, 1) */
     }
 }
 
-static int release_rx_impl(RingEnd *self)
+/* Store a position (release), then, after a full fence, ring the peer if its ticket says it sleeps and it was not
+ * rung for that ticket yet: the store-fence-load that no lost wake-up rests on (ShmTransport._wait_readable). */
+static int store_and_wake(RingEnd *self, uint64_t *pos, uint64_t value, uint64_t *ticket_word,
+                          unsigned long long *signaled)
 {
-    store_release(&self->rx_ctl[R_POS], self->rpos);
-    self->rx_released = self->rpos;
+    store_release(pos, value);
     full_fence();
-    uint64_t ticket = load_acquire(&self->rx_ctl[W_TICKET]);
-    if ((ticket & 1) && ticket != self->signaled_writer) {
-        self->signaled_writer = ticket;
+    uint64_t ticket = load_acquire(ticket_word);
+    if ((ticket & 1) && ticket != *signaled) {
+        *signaled = ticket;
         return ring_doorbell(self);
     }
     return 0;
 }
 
-static int publish_impl(RingEnd *self, uint64_t wpos)
+static int release_rx_impl(RingEnd *self) /* give the space up to rpos back; wake a writer waiting for space */
 {
-    store_release(&self->tx_ctl[W_POS], wpos);
+    self->rx_released = self->rpos;
+    return store_and_wake(self, &self->rx_ctl[R_POS], self->rpos, &self->rx_ctl[W_TICKET], &self->signaled_writer);
+}
+
+static int publish_impl(RingEnd *self, uint64_t wpos) /* make the tx ring visible up to wpos; wake a sleeping reader */
+{
     self->wpos = wpos;
-    full_fence();
-    uint64_t ticket = load_acquire(&self->tx_ctl[R_TICKET]);
-    if ((ticket & 1) && ticket != self->signaled_reader) {
-        self->signaled_reader = ticket;
-        return ring_doorbell(self);
-    }
-    return 0;
+    return store_and_wake(self, &self->tx_ctl[W_POS], wpos, &self->tx_ctl[R_TICKET], &self->signaled_reader);
 }
 
 static int commit_impl(RingEnd *self, uint64_t n, uint64_t rec, uint64_t skip)
