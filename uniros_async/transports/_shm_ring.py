@@ -1,4 +1,5 @@
-"""Shared-memory layout of one ``shm://`` connection: a sealed memfd holding two single-producer rings.
+"""Shared-memory layout of one ``shm://`` connection (a sealed memfd holding two single-producer rings), and
+``RingEnd``, one end's side of the two rings with a frame's usual path (its compiled twin: ``_shm_ring_c.c``).
 
 The segment is an anonymous memfd (``os.memfd_create``), never a name in /dev/shm: the listener creates it, passes
 the descriptor to the peer over the Unix socket (SCM_RIGHTS), and both map it. The memory goes away when the last
@@ -28,7 +29,6 @@ import fcntl
 import mmap
 import os
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -70,7 +70,7 @@ RESTART_BYTES = 4096  # a record this large restarts at offset 0 when little is 
 CPU_HINT_NS = 1_000_000  # a sender says where it runs at most this often (a process seldom changes cores)
 PURE_PYTHON_ENV = "UNIROS_SHM_PURE_PYTHON"
 """Set (to anything but "" or "0") in the environment, new connections use the pure-Python ``RingEnd`` even where
-the compiled one is built: the reference for comparisons (``uniros bench throughput --ring python``) and tests."""
+the compiled one is built: the reference for comparisons (``benchmarks/ab_shm_ring.py``) and tests."""
 
 
 def round_capacity(ring_bytes: int) -> int:
@@ -136,7 +136,7 @@ class RingViews:
 _fence_lock = threading.Lock()
 fence_acquire = _fence_lock.acquire
 fence_release = _fence_lock.release
-_now_ns = time.perf_counter_ns  # CLOCK_MONOTONIC on Linux, as the compiled RingEnd's clock
+_now_ns = _base.spin_clock_ns  # time.perf_counter_ns: CLOCK_MONOTONIC on Linux, the compiled RingEnd's clock
 _yield = _base.spin_yield
 _this_cpu = _base.this_cpu
 _eventfd_write = os.eventfd_write
@@ -334,17 +334,22 @@ class RingEnd:
         self.signaled_reader = self._store_and_wake(self._tx_ctl, W_POS, wpos, R_TICKET, self.signaled_reader)
 
     def close(self) -> None:
-        """Drop the views (the compiled class lets go of the ring's buffers); nothing may be called after it."""
+        """Stop both fast paths (``take_ready`` and ``try_send`` then do nothing); the compiled class also lets go of
+        the ring's buffers, after which its other methods raise ValueError."""
         self.rx_fast = self.tx_fast = False
 
 
 def ring_end_class() -> Callable[[RingViews, RingViews, int, int], RingEnd]:
     """The ``RingEnd`` a new connection uses: the compiled one, unless it is not built here or ``PURE_PYTHON_ENV``
     says otherwise."""
-    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+    if _pure_python_asked():
         return RingEnd
     compiled = compiled_ring_end()
     return RingEnd if compiled is None else compiled
+
+
+def _pure_python_asked() -> bool:
+    return os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0")
 
 
 def compiled_ring_end() -> Any:
@@ -358,7 +363,7 @@ def compiled_ring_end() -> Any:
 
 def describe_ring_end() -> str:
     """Which ``RingEnd`` new connections use here, and why, in a few words (the benchmarks print it)."""
-    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+    if _pure_python_asked():
         return f"pure Python ({PURE_PYTHON_ENV} is set)"
     if compiled_ring_end() is None:
         return "pure Python (_shm_ring_c is not built: reinstall with a C compiler for the compiled one)"
