@@ -442,7 +442,8 @@ static PyMethodDef RingEnd_methods[] = {
     {"commit", (PyCFunction)(void (*)(void))RingEnd_commit, METH_FASTCALL,
      "commit(n, rec, skip): publish a record that is in place, ring the reader if it sleeps, count it."},
     {"publish", (PyCFunction)RingEnd_publish, METH_O, "publish(wpos): make everything up to wpos visible."},
-    {"close", (PyCFunction)RingEnd_close, METH_NOARGS, "Let go of the ring's buffers; nothing may be called after."},
+    {"close", (PyCFunction)RingEnd_close, METH_NOARGS,
+     "Stop both fast paths and let go of the ring's buffers; the other methods then raise ValueError."},
     {NULL, NULL, 0, NULL},
 };
 
