@@ -222,8 +222,10 @@ def test_real_time_mixed_placements() -> None:
         from uniros_async.envs.robot import TICK_OFFSET_NS
         from uniros_async.runtime.worker import LOOP_PHASE_STEP_NS
 
+        # (the earliest tick, not the median: a tick is never early, the WallClock spins to its deadline, but on a
+        # loaded 2-core machine most of a few ticks can be late by more than the tolerance)
         for snap, period, rank in zip(venv.call("timing_snapshot"), (40_000_000, 100_000_000), (1, 0), strict=True):
-            offset = np.median([t % period for t in snap["tick_ns"]])
+            offset = min(t % period for t in snap["tick_ns"])
             assert abs(offset - (TICK_OFFSET_NS + rank * LOOP_PHASE_STEP_NS)) < 400_000, (rank, offset)
     finally:
         venv.close()
