@@ -9,6 +9,7 @@ import os
 import random
 import signal
 import socket
+import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 
@@ -469,3 +470,36 @@ async def test_loan_writes_in_the_ring_and_guards_its_frame() -> None:
                     buf[:] = bytes(100)
                     await a.aclose()
             assert a.stats.frames_sent == 3
+
+
+@pytest.mark.parametrize("where", ["spinning", "sleeping"])
+async def test_aclose_while_another_thread_waits_in_receive_blocking(ring_end: str, where: str) -> None:
+    """Closing is not meant to race a ``receive_blocking`` in another thread, but it must not fail, hang or crash.
+    While that thread spins, the compiled ring end (whose poll runs without the GIL) keeps the ring's buffers until
+    its poll ends, ``aclose`` leaves them to it, and the poll then gives up (None); the Python ring end's poll stops
+    at the released views (ValueError). While it sleeps in poll(2), the closed doorbell wakes it (None)."""
+    async with open_pair("shm://") as (_, b, _):
+        assert isinstance(b, shm.ShmTransport)
+        if where == "spinning":  # a 0.3 s poll (in one process an end does not spin unless told to)
+            b.spin_ns = 300_000_000
+            b._spin_allowed, b._spin_credit = True, 4
+        out: list[object] = []
+
+        def wait() -> None:
+            try:
+                out.append(b.receive_blocking(1.0))
+            except ValueError as exc:  # "operation forbidden on released memoryview object"
+                out.append(exc)
+
+        thread = threading.Thread(target=wait)
+        thread.start()
+        await asyncio.sleep(0.05)
+        await b.aclose()  # raised BufferError while the compiled ring end's poll held the views
+        await asyncio.to_thread(thread.join, 5.0)
+        assert not thread.is_alive()
+        if where == "spinning" and ring_end == "python":
+            assert len(out) == 1 and isinstance(out[0], ValueError)
+        else:
+            assert out == [None]  # nothing to return: receive() says why
+        with pytest.raises(TransportClosedError):
+            await b.receive()

@@ -386,6 +386,8 @@ class ShmTransport(Transport):
         window_ns = self._window_ns()
         if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
             return ring.take_ready()
+        if not ring.rx_fast:  # closed (or broken) while it polled
+            return None
         poller = self._poller
         if poller is None:
             poller = self._poller = select.poll()
@@ -402,8 +404,8 @@ class ShmTransport(Transport):
                 if left_ns <= 0:
                     return None
                 for fd, _ in poller.poll(-(-left_ns // 1_000_000)):
-                    if fd != self._doorbell:
-                        return None  # the control socket: EOF or stray bytes, which _on_socket handles
+                    if fd != self._doorbell or self._closed:
+                        return None  # the control socket (EOF or stray bytes, which _on_socket handles), or closed
                     try:
                         os.eventfd_read(fd)
                     except BlockingIOError:
@@ -682,9 +684,10 @@ class ShmTransport(Transport):
         self._sock.close()
         os.close(self._doorbell)
         os.close(self._peer_doorbell)
-        self._rx.release()
-        self._tx.release()
-        self._base.release()
+        with contextlib.suppress(BufferError):  # the ring end still holds them: a receive_blocking in another
+            self._rx.release()  # thread is polling (RingEnd.close leaves them to it); they go with the last user
+            self._tx.release()
+            self._base.release()
         mm, self._mm = self._mm, None
         try:
             if mm is not None:
