@@ -457,7 +457,7 @@ class ShmTransport(Transport):
             await self._wait_writable(rec)
             if not ring.tx_fast:
                 await self._send_checks()
-        self._write(one, parts, n, rec, *place)
+        self._write(parts if one is None else (one,), n, rec, *place)
 
     def try_send(self, frame: bytes) -> bool:
         """Send ``frame`` at once if that needs no waiting (the common case: room in the ring, an open and healthy
@@ -511,9 +511,9 @@ class ShmTransport(Transport):
         data_q[off >> 3] = nbytes
         ring.commit(nbytes, rec, skip)
 
-    def _write(self, one: Buffer | None, parts: Sequence[Buffer], n: int, rec: int, off: int, skip: int) -> None:
-        """Copy the frame (``one`` buffer, or ``parts``) to the place ``RingEnd.place`` gave, publish it, and ring
-        the reader if it sleeps."""
+    def _write(self, parts: Sequence[Buffer], n: int, rec: int, off: int, skip: int) -> None:
+        """Copy the frame's ``parts`` to the place ``RingEnd.place`` gave, publish it, and ring the reader if it
+        sleeps. (A single buffer that has room at once goes through ``RingEnd.try_send`` instead.)"""
         cap = self._cap
         data_q = self._tx.data_q
         if skip:
@@ -521,24 +521,21 @@ class ShmTransport(Transport):
             off = 0
         data_q[off >> 3] = n
         data = self._tx.data
-        if one is not None and off + rec <= cap:
-            data[off + 8 : off + 8 + n] = one
-        else:
-            pos = off + 8
-            for part in parts if one is None else (one,):
-                if pos == cap:
-                    pos = 0
-                k = len(part)
-                end = pos + k
-                if end <= cap:
-                    data[pos:end] = part
-                    pos = end
-                else:
-                    first = cap - pos
-                    view = part if type(part) is memoryview else memoryview(part)
-                    data[pos:] = view[:first]
-                    data[: k - first] = view[first:]
-                    pos = k - first
+        pos = off + 8
+        for part in parts:
+            if pos == cap:
+                pos = 0
+            k = len(part)
+            end = pos + k
+            if end <= cap:
+                data[pos:end] = part
+                pos = end
+            else:
+                first = cap - pos
+                view = part if type(part) is memoryview else memoryview(part)
+                data[pos:] = view[:first]
+                data[: k - first] = view[first:]
+                pos = k - first
         self._ring.commit(n, rec, skip)
 
     async def _send_checks(self) -> None:
