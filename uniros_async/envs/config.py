@@ -21,8 +21,13 @@ class EnvConfig:
     Attributes:
         robot: where the arm is: ``"sim"`` (servo sim in the env's own process, memory transport),
             ``"sim-process"`` (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as
-            a tcp service in its own process), or ``"tcp://host:port"`` (the domain of an arm served elsewhere,
-            e.g. by ``uniros robot serve``).
+            a tcp service in its own process), ``"tcp://host:port"`` (the domain of an arm served elsewhere,
+            e.g. by ``uniros robot serve`` or ``uniros robot bridge``), or ``"ros1://host:port"`` (an arm whose
+            driver is a ROS 1 node, reached through that ROS master by a bridge in the env's process:
+            ``adapters/ros1_bridge.py``).
+        ros1: with ``robot="ros1://..."``: settings of the bridge (``Ros1BridgeConfig`` fields ``joint_states``,
+            ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``); None: the robot's
+            defaults (``ROS1_DEFAULTS``).
         clock: ``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``,
             or ``robot="emulated-real"``, which then runs the same emulation model (perturbed dynamics, sensor
             noise, command and state latency in sim time) in the env's process instead of behind tcp).
@@ -65,10 +70,23 @@ class EnvConfig:
     settle_tol_rad: float = 0.02
     emulation_seed: int = 0
     unsafe_action: str = "hold"
+    ros1: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
-        if self.robot not in ROBOT_PLACEMENTS and not self.robot.startswith("tcp://"):
-            raise ConfigError(f"robot must be one of {ROBOT_PLACEMENTS} or a tcp://host:port URI, got {self.robot!r}")
+        if self.robot not in ROBOT_PLACEMENTS and not self.robot.startswith(("tcp://", "ros1://")):
+            raise ConfigError(
+                f"robot must be one of {ROBOT_PLACEMENTS}, a tcp://host:port URI or a ros1://host:port ROS master, "
+                f"got {self.robot!r}"
+            )
+        if self.robot.startswith("ros1://"):
+            from uniros_async.adapters.ros1_bridge import ROS1_SETTINGS, parse_ros1_uri
+
+            parse_ros1_uri(self.robot)
+            unknown = sorted(set(self.ros1 or {}) - set(ROS1_SETTINGS))
+            if unknown:
+                raise ConfigError(f"ros1: unknown setting(s) {unknown}; expected some of {list(ROS1_SETTINGS)}")
+        elif self.ros1 is not None:
+            raise ConfigError(f"ros1 settings apply only to robot='ros1://HOST:PORT', got robot={self.robot!r}")
         if self.clock is None:
             object.__setattr__(self, "clock", "sim" if self.turn_based else "wall")
         if self.clock not in CLOCKS:

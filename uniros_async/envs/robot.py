@@ -184,6 +184,19 @@ class RobotEnv(BaseEnv):
                             transport=transport,
                         )
                     )
+                elif cfg.robot.startswith("ros1://"):
+                    from uniros_async.adapters.ros1_bridge import (
+                        Ros1BridgeConfig,
+                        open_ros1_bridge,
+                        parse_ros1_uri,
+                    )
+
+                    # a ROS 1 arm: the bridge runs in this process, the env reaches it over memory like the sim
+                    domain = await stack.enter_async_context(open_domain("memory://"))
+                    bridge_cfg = Ros1BridgeConfig(
+                        robot=spec.name, master_uri=parse_ros1_uri(cfg.robot), **(cfg.ros1 or {})
+                    )
+                    await stack.enter_async_context(open_ros1_bridge(bridge_cfg, domain=domain))
                 else:
                     domain, transport = cfg.robot, "tcp"
                 node = await stack.enter_async_context(

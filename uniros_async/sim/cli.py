@@ -1,6 +1,7 @@
 """``uniros robot ...``: serve, render and view simulated arms (wired into uniros_async/cli.py).
 
     uniros robot serve rx200 --port 0 --emulate-real   # prints the domain URI, serves until SIGINT/SIGTERM
+    uniros robot bridge rx200 --ros-master http://robot-pc:11311/   # a ROS 1 arm on the bus; prints the URI
     uniros robot render rx200 --out pic.png --goal 0.3 0.1 0.25
     uniros robot view rx200                            # needs a display
 
@@ -27,7 +28,7 @@ logger = logging.getLogger(__name__)
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``robot`` command to the ``uniros`` subparsers; returns its parser."""
     robot: argparse.ArgumentParser = subparsers.add_parser(
-        "robot", help="simulated and emulated arms: serve, render, view"
+        "robot", help="simulated, emulated and ROS 1 arms: serve, bridge, render, view"
     )
     actions = robot.add_subparsers(dest="robot_action", required=True)
 
@@ -57,6 +58,31 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     serve.add_argument("--markers", action="store_true", help="publish EE and goal markers on ROBOT/markers")
 
+    bridge = actions.add_parser(
+        "bridge",
+        help="put an arm whose driver is a ROS 1 node on the bus (adapters/ros1_bridge.py); prints the domain URI",
+    )
+    bridge.add_argument("robot", help="robot name (rx200, ned2)")
+    bridge.add_argument(
+        "--ros-master", default=None, help="the ROS master, http://HOST:PORT/ (default $ROS_MASTER_URI, else :11311)"
+    )
+    bridge.add_argument("--joint-states", default=None, help="the driver's sensor_msgs/JointState topic")
+    # dest: "command" is the uniros subcommand's own
+    bridge.add_argument("--command", dest="command_topic", default=None, help="the driver's command topic")
+    bridge.add_argument(
+        "--command-type",
+        default=None,
+        help="interbotix_xs_msgs/JointGroupCommand, trajectory_msgs/JointTrajectory or std_msgs/Float64MultiArray",
+    )
+    bridge.add_argument("--group", default="arm", help="joint group of a JointGroupCommand (default %(default)s)")
+    bridge.add_argument("--ros-host", default="127.0.0.1", help="address ROS peers reach this process at")
+    bridge.add_argument("--host", default="127.0.0.1", help="bind host of the domain (default %(default)s)")
+    bridge.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
+    bridge.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
+    bridge.add_argument(
+        "--state-timeout", type=float, default=10.0, help="seconds to wait for the driver's first joint state"
+    )
+
     render = actions.add_parser("render", help="render the arm to a PNG offscreen")
     render.add_argument("robot", help="robot name (rx200, ned2)")
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
@@ -80,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
     action = args.robot_action
     if action == "serve":
         return _serve(args)
+    if action == "bridge":
+        return _bridge(args)
     if action == "render":
         from uniros_async.sim.render import render_png
 
@@ -100,6 +128,44 @@ def run(args: argparse.Namespace) -> int:
         view(args.robot)
         return 0
     raise AssertionError(f"unknown robot action {action!r}")
+
+
+def _bridge(args: argparse.Namespace) -> int:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, serve_ros1_bridge
+
+    cfg = Ros1BridgeConfig(
+        robot=args.robot,
+        master_uri=args.ros_master,
+        joint_states=args.joint_states,
+        command=args.command_topic,
+        command_type=args.command_type,
+        group=args.group,
+        ros_host=args.ros_host,
+        state_timeout_s=args.state_timeout,
+    )
+
+    def ready(uri: str) -> None:
+        sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join
+        sys.stdout.flush()
+
+    async def main() -> None:
+        cancel_on_signals(signal.SIGINT, signal.SIGTERM)
+        await serve_ros1_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=ready)
+
+    from uniros_async.errors import UnirosError
+
+    try:
+        asyncio.run(main())
+    except asyncio.CancelledError:  # SIGINT/SIGTERM: an orderly stop
+        logger.info("stopped")
+    except BaseExceptionGroup as group:  # a task group's wrapping of one clear error: report that error
+        mine = group.subgroup(UnirosError)
+        if mine is None:
+            raise
+        while isinstance(mine, BaseExceptionGroup):
+            mine = mine.exceptions[0]
+        raise mine from None
+    return 0
 
 
 def _serve(args: argparse.Namespace) -> int:

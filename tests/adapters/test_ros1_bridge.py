@@ -1,0 +1,314 @@
+"""The ROS 1 bridge against a real rosmaster and a real rospy node in the driver's place.
+
+No physical arm is attached here, so ``ros1_fake_arm.py`` (real rospy, run by the system Python) stands in for the
+arm's ROS 1 driver: it publishes sensor_msgs/JointState at the hardware rate, moves toward the commands it gets and
+prints each command it received as a JSON line, which these tests check. Everything on our side is the real code:
+the bridge, our asyncio ROS 1 client, the bus, and in the last tests a real-time env and the ``uniros`` CLI.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from uniros_async.bus import open_domain, open_node
+from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
+from uniros_async.errors import ConfigError, RobotError
+from uniros_async.robots import get_robot_spec
+from uniros_async.testing.ros1 import kill_process, rospy_process, wait_for_line
+
+FAKE_ARM = Path(__file__).with_name("ros1_fake_arm.py")
+
+
+def _md5() -> str:
+    from uniros_async.adapters.ros1 import msgs
+
+    return msgs.JointGroupCommand._md5sum
+
+
+@pytest.fixture
+def fake_arm(ros_master: str, tmp_path: Path) -> Iterator[Callable[..., subprocess.Popen[str]]]:
+    """Starts the stand-in driver for a robot with its default ROS topics (``ROS1_DEFAULTS``), or others."""
+    from uniros_async.adapters.ros1_bridge import ROS1_DEFAULTS
+
+    with contextlib.ExitStack() as stack:
+
+        def start(robot: str, *, drop_joint: str = "", **topics: str) -> subprocess.Popen[str]:
+            spec = get_robot_spec(robot)
+            t = {**ROS1_DEFAULTS[robot], **topics}
+            proc = stack.enter_context(
+                rospy_process(
+                    FAKE_ARM,
+                    "--joints",
+                    ",".join(spec.joint_state_names),
+                    "--arm",
+                    str(len(spec.arm_joint_names)),
+                    "--joint-states",
+                    t["joint_states"],
+                    "--command",
+                    t["command"],
+                    "--command-type",
+                    t["command_type"],
+                    "--rate",
+                    str(spec.hardware_rate_hz),
+                    "--md5",
+                    _md5(),
+                    "--drop-joint",
+                    drop_joint,
+                    master_uri=ros_master,
+                    tmp_path=tmp_path,
+                )
+            )
+            wait_for_line(proc, "ready", timeout_s=30.0)
+            return proc
+
+        yield start
+
+
+async def _command_line(proc: subprocess.Popen[str], timeout_s: float = 10.0) -> dict[str, Any]:
+    line = await asyncio.to_thread(wait_for_line, proc, "{", timeout_s=timeout_s)
+    return json.loads(line)
+
+
+def _cmd(q: list[float], duration_s: float = 0.0) -> JointCommand:
+    return JointCommand(header=Header(), position=np.asarray(q, dtype=np.float64), duration_s=duration_s)
+
+
+async def test_rx200_states_and_interbotix_commands(ros_master: str, fake_arm: Any) -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+
+    arm = fake_arm("rx200")
+    spec = get_robot_spec("rx200")
+    cfg = Ros1BridgeConfig(robot="rx200", master_uri=ros_master)
+    async with (
+        open_domain("memory://") as dom,
+        open_ros1_bridge(cfg, domain=dom) as bridge,
+        open_node("env", domain=dom, namespace="/rx200") as env,
+    ):
+        js = await env.create_subscription(JointState, "joint_states")
+        cmd = await env.create_publisher(JointCommand, "command")
+        await cmd.wait_for_subscribers(1, timeout_s=5.0)
+        first = await asyncio.wait_for(js.receive(), 5.0)
+        assert first.name == spec.joint_state_names
+        np.testing.assert_allclose(first.position, 0.0)
+
+        target = [0.3, -0.2, 0.25, 0.1, -0.15]
+        cmd.publish(_cmd(target))
+        got = await _command_line(arm)
+        assert got["type"] == "interbotix_xs_msgs/JointGroupCommand"
+        assert got["group"] == "arm"
+        np.testing.assert_allclose(got["positions"], target, atol=1e-6)  # float32 on the wire
+
+        # the stand-in moves at 1 rad/s at 10 Hz: within 1 s every joint is there, and we see it in our order
+        deadline = time.monotonic() + 5.0
+        while True:
+            state = await asyncio.wait_for(js.receive(), 5.0)
+            if np.allclose(state.position[:5], target, atol=1e-4) or time.monotonic() > deadline:
+                break
+        np.testing.assert_allclose(state.position[:5], target, atol=1e-4)
+        assert state.header.seq > first.header.seq
+        assert bridge.stats.commands_out == 1 and bridge.stats.states_in >= 5
+
+
+async def test_unsafe_and_malformed_commands_are_not_sent(ros_master: str, fake_arm: Any) -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+
+    arm = fake_arm("rx200")
+    cfg = Ros1BridgeConfig(robot="rx200", master_uri=ros_master)
+    async with (
+        open_domain("memory://") as dom,
+        open_ros1_bridge(cfg, domain=dom),
+        open_node("env", domain=dom, namespace="/rx200") as env,
+    ):
+        cmd = await env.create_publisher(JointCommand, "command")
+        stats = env.create_client(Empty, Data, "stats")
+        hold = env.create_client(Empty, Trigger, "hold")
+        await cmd.wait_for_subscribers(1, timeout_s=5.0)
+        cmd.publish(_cmd([0.0, 2.5, 0.0, 0.0, 0.0]))  # shoulder beyond +113 deg
+        await asyncio.sleep(0.05)
+        cmd.publish(_cmd([0.1, 0.2]))  # two values for five joints
+        await asyncio.sleep(0.05)
+        cmd.publish(_cmd([0.0, 0.1, 0.0, 0.0, math.nan]))
+        await asyncio.sleep(0.05)
+        cmd.publish(_cmd([0.05, 0.0, 0.0, 0.0, 0.0]))
+        got = await _command_line(arm)  # the first command the driver sees is the last, valid one
+        np.testing.assert_allclose(got["positions"], [0.05, 0.0, 0.0, 0.0, 0.0], atol=1e-6)
+        counts = (await stats.call(Empty(), timeout_s=5.0)).value
+        assert counts["commands_rejected"] == 3 and counts["commands_out"] == 1
+        reply = await hold.call(Empty(), timeout_s=5.0)
+        assert reply.success, reply.message
+        held = await _command_line(arm)  # hold: the newest measured position, which is still near home
+        assert len(held["positions"]) == 5 and max(abs(v) for v in held["positions"]) < 0.06
+
+
+async def test_ned2_joint_trajectory_commands(ros_master: str, fake_arm: Any) -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+
+    arm = fake_arm("ned2")
+    cfg = Ros1BridgeConfig(robot="ned2", master_uri=ros_master)
+    async with (
+        open_domain("memory://") as dom,
+        open_ros1_bridge(cfg, domain=dom),
+        open_node("env", domain=dom, namespace="/ned2") as env,
+    ):
+        cmd = await env.create_publisher(JointCommand, "command")
+        await cmd.wait_for_subscribers(1, timeout_s=5.0)
+        cmd.publish(_cmd([0.1, 0.2, -0.3, 0.0, 0.1, 0.0]))
+        got = await _command_line(arm)
+        assert got["type"] == "trajectory_msgs/JointTrajectory"
+        assert got["joint_names"] == ["joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6"]
+        np.testing.assert_allclose(got["positions"], [0.1, 0.2, -0.3, 0.0, 0.1, 0.0])
+        assert got["time_from_start_s"] == pytest.approx(0.04)  # one 25 Hz period: as soon as the servos can
+        cmd.publish(_cmd([0.0] * 6, duration_s=1.5))
+        got = await _command_line(arm)
+        assert got["time_from_start_s"] == pytest.approx(1.5)
+
+
+async def test_float64_multi_array_and_a_missing_finger(ros_master: str, fake_arm: Any) -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+
+    topics = {"command": "/arm_controller/command", "command_type": "std_msgs/Float64MultiArray"}
+    arm = fake_arm("rx200", drop_joint="left_finger", **topics)
+    cfg = Ros1BridgeConfig(robot="rx200", master_uri=ros_master, **topics)
+    async with (
+        open_domain("memory://") as dom,
+        open_ros1_bridge(cfg, domain=dom),
+        open_node("env", domain=dom, namespace="/rx200") as env,
+    ):
+        js = await env.create_subscription(JointState, "joint_states")
+        state = await asyncio.wait_for(js.receive(), 5.0)
+        assert state.name[6] == "left_finger" and state.position[6] == 0.0  # absent: reads 0.0
+        cmd = await env.create_publisher(JointCommand, "command")
+        await cmd.wait_for_subscribers(1, timeout_s=5.0)
+        cmd.publish(_cmd([0.0, 0.1, 0.2, 0.3, 0.4]))
+        got = await _command_line(arm)
+        assert got["type"] == "std_msgs/Float64MultiArray"
+        np.testing.assert_allclose(got["positions"], [0.0, 0.1, 0.2, 0.3, 0.4])
+
+
+async def test_missing_arm_joint_or_silent_driver_is_a_clear_error(ros_master: str, fake_arm: Any) -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+
+    fake_arm("rx200", drop_joint="elbow")
+    cfg = Ros1BridgeConfig(robot="rx200", master_uri=ros_master, state_timeout_s=1.5)
+    async with open_domain("memory://") as dom:
+        with pytest.raises((RobotError, BaseExceptionGroup)) as err:
+            async with open_ros1_bridge(cfg, domain=dom):
+                pass
+        text = _message(err.value)
+        assert "/rx200/joint_states" in text and "within 1.5 s" in text
+        # nothing is published on the other robot's topic: the same clear error, naming that topic
+        cfg2 = Ros1BridgeConfig(robot="ned2", master_uri=ros_master, state_timeout_s=0.5)
+        with pytest.raises((RobotError, BaseExceptionGroup)) as err:
+            async with open_ros1_bridge(cfg2, domain=dom):
+                pass
+        assert "/joint_states" in _message(err.value) and "driver running" in _message(err.value)
+
+
+def _message(exc: BaseException) -> str:
+    while isinstance(exc, BaseExceptionGroup):
+        exc = exc.exceptions[0]
+    assert isinstance(exc, RobotError), repr(exc)
+    return str(exc)
+
+
+def test_bad_settings_are_refused_before_anything_starts() -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, parse_ros1_uri
+
+    with pytest.raises(ConfigError, match="command_type must be one of"):
+        Ros1BridgeConfig(robot="rx200", command_type="std_msgs/String")
+    with pytest.raises(ConfigError, match="absolute ROS topic"):
+        Ros1BridgeConfig(robot="rx200", joint_states="joint_states")
+    with pytest.raises(ConfigError, match="rx200"):  # the error lists the known robots
+        Ros1BridgeConfig(robot="ur5")
+    assert parse_ros1_uri("ros1://10.0.0.2:11311") == "http://10.0.0.2:11311/"
+    for bad in ("ros1://host", "ros1://:11311", "http://host:11311", "ros1://host:99999"):
+        with pytest.raises(ConfigError, match="ros1://HOST:PORT"):
+            parse_ros1_uri(bad)
+    import gymnasium as gym
+
+    import uniros_async  # noqa: F401
+
+    with pytest.raises(ConfigError, match="unknown setting"):
+        gym.make("uniros/Rx200Reach-v0", robot="ros1://127.0.0.1:11311", ros1={"topic": "/x"})
+    with pytest.raises(ConfigError, match="only to robot='ros1"):
+        gym.make("uniros/Rx200Reach-v0", robot="sim", ros1={"command": "/x"})
+
+
+@pytest.mark.slow
+def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> None:
+    """The same TaskEnv as on the sim, on the ROS 1 arm: reset walks it home, and one step's env loop re-sends
+    the action at the hardware rate (action repeat), every command reaching the driver."""
+    import gymnasium as gym
+
+    import uniros_async  # noqa: F401
+
+    arm = fake_arm("rx200")
+    port = ros_master.rstrip("/").rsplit(":", 1)[1]
+    env = gym.make("uniros/Rx200Reach-v0", robot=f"ros1://127.0.0.1:{port}", reward_type="dense")
+    try:
+        obs, info = env.reset(seed=0)
+        assert np.all(np.isfinite(obs))
+        action = np.array([0.2, 0.1, 0.1, 0.1, 0.0], dtype=np.float32)  # an absolute target clear of the table
+        env.step(action)  # the first step after a reset ends on the action-cycle grid: 0.1 to 0.9 s
+        t0 = time.monotonic()
+        obs, reward, terminated, truncated, info = env.step(action)
+        assert 0.7 < time.monotonic() - t0 < 0.9  # one 0.8 s action cycle, in real time
+        assert np.all(np.isfinite(obs)) and math.isfinite(reward)
+        assert "unsafe_reason" not in info, info
+    finally:
+        env.close()
+    lines = []
+    with contextlib.suppress(TimeoutError):
+        while True:
+            lines.append(json.loads(wait_for_line(arm, "{", timeout_s=0.5)))
+    moved = [ln for ln in lines if any(abs(v) > 1e-4 for v in ln["positions"])]
+    assert len(moved) >= 9, lines  # the action re-sent tick after tick: 10 Hz over the two steps (>= 0.9 s)
+
+
+@pytest.mark.slow
+def test_cli_bridge_serves_a_domain_until_sigint(ros_master: str, fake_arm: Any, tmp_path: Path) -> None:
+    fake_arm("rx200")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "uniros_async.cli", "robot", "bridge", "rx200", "--ros-master", ros_master],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        uri = wait_for_line(proc, "tcp://", timeout_s=60.0)
+
+        async def one_state() -> JointState:
+            async with open_node("probe", domain=uri, namespace="/rx200", transport="tcp") as node:
+                sub = await node.create_subscription(JointState, "joint_states")
+                return await asyncio.wait_for(sub.receive(), 10.0)
+
+        state = asyncio.run(one_state())
+        assert state.name[:5] == get_robot_spec("rx200").arm_joint_names
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=15.0) == 0
+    finally:
+        kill_process(proc)
+
+
+def test_cli_bridge_reports_an_unreachable_master() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "uniros_async.cli", "robot", "bridge", "rx200", "--ros-master", "http://127.0.0.1:9/"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "http://127.0.0.1:9/" in proc.stderr and "Traceback" not in proc.stderr

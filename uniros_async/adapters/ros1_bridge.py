@@ -1,0 +1,388 @@
+"""The ROS 1 bridge: an arm whose driver is a ROS 1 node, on the uniros bus, with no rospy in this process.
+
+    uniros robot bridge rx200 --ros-master http://robot-pc:11311/   # prints the domain URI, serves until SIGINT
+    env = gym.make("uniros/Rx200Reach-v0", robot="tcp://127.0.0.1:PORT")        # that URI
+    env = gym.make("uniros/Rx200Reach-v0", robot="ros1://robot-pc:11311")       # or the bridge in the env's process
+
+The bridge is to a real arm what the servo sim node is to a simulated one, its hardware interface on the bus: in
+namespace ``/<robot>`` it publishes ``joint_states`` (our ``JointState``, in the robot's ``joint_state_names``
+order, stamped on arrival) for every ``sensor_msgs/JointState`` the driver publishes, and turns every ``command``
+(our ``JointCommand``) into one message on the driver's command topic. The env reaches the arm only through those
+two topics (``envs/robot.py``), so the same TaskEnv code runs on the sim, the emulated real arm and a ROS 1 arm.
+
+Command types (``command_type``), each what a common ROS 1 arm driver listens to:
+
+- ``interbotix_xs_msgs/JointGroupCommand`` on ``/<robot>/commands/joint_group``: the Interbotix X-series SDK
+  (``xs_sdk``) of the ReactorX-200; ``name`` is the joint group (``arm``), ``cmd`` the positions. The rx200's
+  default: the servos' time-based profile (2 s moves) then shapes the motion, as in our servo sim.
+- ``trajectory_msgs/JointTrajectory`` on a ros_control JointTrajectoryController's ``command`` topic: one point,
+  reached ``max(duration_s, one hardware period)`` from now. The Ned2's default
+  (``/niryo_robot_follow_joint_trajectory_controller/command``).
+- ``std_msgs/Float64MultiArray`` on a ros_control JointGroupPositionController's ``command`` topic: the positions.
+
+The env already refuses unsafe targets; the bridge checks joint limits once more (a command outside them, or of
+the wrong length, is dropped and counted, never sent) and serves ``hold`` (command the newest measured position)
+and ``stats`` (counters), like the servo sim. Joint states that lack an arm joint are dropped and counted (the
+first such message logs which names were missing and which came); a missing non-arm joint (a gripper finger) reads
+0.0, logged once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import time
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+import numpy as np
+
+from uniros_async.bus import open_domain, open_node
+from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
+from uniros_async.bus.qos import latest
+from uniros_async.errors import ConfigError, RobotError
+from uniros_async.robots import get_robot_spec
+from uniros_async.robots.spec import RobotSpec
+
+__all__ = [
+    "COMMAND_TYPES",
+    "ROS1_DEFAULTS",
+    "ROS1_SETTINGS",
+    "Ros1Bridge",
+    "Ros1BridgeConfig",
+    "open_ros1_bridge",
+    "parse_ros1_uri",
+    "serve_ros1_bridge",
+]
+
+logger = logging.getLogger(__name__)
+
+COMMAND_TYPES = (
+    "interbotix_xs_msgs/JointGroupCommand",
+    "trajectory_msgs/JointTrajectory",
+    "std_msgs/Float64MultiArray",
+)
+
+ROS1_DEFAULTS: dict[str, dict[str, str]] = {
+    # Interbotix xs_sdk: joint_states and the group command in the robot's own namespace
+    "rx200": {
+        "joint_states": "/rx200/joint_states",
+        "command": "/rx200/commands/joint_group",
+        "command_type": "interbotix_xs_msgs/JointGroupCommand",
+    },
+    # Niryo's ned_ros stack: a ros_control JointTrajectoryController
+    "ned2": {
+        "joint_states": "/joint_states",
+        "command": "/niryo_robot_follow_joint_trajectory_controller/command",
+        "command_type": "trajectory_msgs/JointTrajectory",
+    },
+}
+"""Per robot: the driver's joint-state topic, its command topic and that topic's type."""
+
+LIMIT_TOL_RAD = 1e-6
+ROS1_SETTINGS = ("joint_states", "command", "command_type", "group", "ros_host", "state_timeout_s")
+"""The bridge settings an env takes in its ``ros1`` dict (``EnvConfig.ros1``)."""
+
+
+def parse_ros1_uri(uri: str) -> str:
+    """``ros1://HOST:PORT`` (an env's ``robot``) -> the master's XML-RPC URI ``http://HOST:PORT/``.
+
+    Raises:
+        ConfigError: not of that form.
+    """
+    rest = uri.removeprefix("ros1://").rstrip("/")
+    host, sep, port = rest.rpartition(":")
+    if not uri.startswith("ros1://") or not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"expected a ROS 1 master as ros1://HOST:PORT (e.g. ros1://127.0.0.1:11311), got {uri!r}")
+    return f"http://{host}:{int(port)}/"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Ros1BridgeConfig:
+    """What the bridge connects: a robot of ours to the topics of its ROS 1 driver.
+
+    Attributes:
+        robot: robot name (``rx200``, ``ned2``); its spec gives the joint names, order and limits.
+        master_uri: the ROS master (``http://HOST:PORT/``); None: ``$ROS_MASTER_URI``, else
+            ``http://127.0.0.1:11311/``.
+        joint_states: the driver's ``sensor_msgs/JointState`` topic; None: ``ROS1_DEFAULTS``.
+        command: the driver's command topic; None: ``ROS1_DEFAULTS``.
+        command_type: one of ``COMMAND_TYPES``; None: ``ROS1_DEFAULTS``.
+        group: the joint group of a ``JointGroupCommand`` (Interbotix: ``arm``).
+        ros_host: the address ROS peers reach this process at (its XML-RPC and TCPROS servers).
+        state_timeout_s: how long to wait for the driver's first joint state before giving up.
+        node_name: the bridge's name, on the ROS graph and on the bus.
+    """
+
+    robot: str
+    master_uri: str | None = None
+    joint_states: str | None = None
+    command: str | None = None
+    command_type: str | None = None
+    group: str = "arm"
+    ros_host: str = "127.0.0.1"
+    state_timeout_s: float = 10.0
+    node_name: str = "ros1_bridge"
+
+    def __post_init__(self) -> None:
+        spec = get_robot_spec(self.robot)  # ConfigError listing the robots
+        defaults = ROS1_DEFAULTS.get(spec.name, {})
+        for key in ("joint_states", "command", "command_type"):
+            if getattr(self, key) is None:
+                if key not in defaults:
+                    raise ConfigError(f"Ros1BridgeConfig: robot {self.robot!r} has no default {key}; give one")
+                object.__setattr__(self, key, defaults[key])
+        if self.command_type not in COMMAND_TYPES:
+            raise ConfigError(
+                f"Ros1BridgeConfig.command_type must be one of {COMMAND_TYPES}, got {self.command_type!r}"
+            )
+        for key in ("joint_states", "command"):
+            topic = getattr(self, key)
+            if not isinstance(topic, str) or not topic.startswith("/") or len(topic) < 2:
+                raise ConfigError(f"Ros1BridgeConfig.{key} must be an absolute ROS topic name like /a/b, got {topic!r}")
+        if not self.state_timeout_s > 0:
+            raise ConfigError(f"Ros1BridgeConfig.state_timeout_s must be > 0, got {self.state_timeout_s}")
+
+    @property
+    def spec(self) -> RobotSpec:
+        return get_robot_spec(self.robot)
+
+
+@dataclasses.dataclass
+class BridgeStats:
+    """Counters of one bridge (the ``stats`` service returns them)."""
+
+    states_in: int = 0
+    states_dropped: int = 0
+    commands_out: int = 0
+    commands_rejected: int = 0
+
+
+class Ros1Bridge:
+    """The translation both ways, for one arm (built by ``open_ros1_bridge``)."""
+
+    def __init__(
+        self,
+        config: Ros1BridgeConfig,
+        send: Callable[[Any], None],
+        publish: Callable[[JointState], None],
+        now_ns: Callable[[], int],
+    ) -> None:
+        from uniros_async.adapters.ros1 import msgs
+
+        self.config = config
+        self.spec = spec = config.spec
+        self.stats = BridgeStats()
+        self._send = send
+        self._publish = publish
+        self._now_ns = now_ns
+        self._msgs = msgs
+        self._n_arm = len(spec.arm_joint_names)
+        self._lower = np.asarray(spec.joint_lower_rad) - LIMIT_TOL_RAD
+        self._upper = np.asarray(spec.joint_upper_rad) + LIMIT_TOL_RAD
+        self._index_cache: dict[tuple[str, ...], np.ndarray | None] = {}
+        self._warned_missing: set[str] = set()
+        self._seq = 0
+        self.first_state = asyncio.Event()
+        self.last_q: np.ndarray | None = None  # newest measured arm positions
+        self.period_s = 1.0 / spec.hardware_rate_hz
+
+    # ------------------------------------------------------------------------------------------- ROS -> bus
+
+    def _index(self, names: tuple[str, ...]) -> np.ndarray | None:
+        """Where each of our ``joint_state_names`` sits in a ROS message with ``names`` (-1: absent), or None when
+        an arm joint is absent."""
+        try:
+            return self._index_cache[names]
+        except KeyError:
+            pass
+        where = {n: i for i, n in enumerate(names)}
+        idx = np.array([where.get(n, -1) for n in self.spec.joint_state_names], dtype=np.intp)
+        missing_arm = [n for n, i in zip(self.spec.arm_joint_names, idx, strict=False) if i < 0]
+        if missing_arm:
+            logger.error(
+                "%s: joint states on %s lack the arm joint(s) %s (they name %s); dropping such messages",
+                self.spec.name,
+                self.config.joint_states,
+                missing_arm,
+                list(names),
+            )
+            self._index_cache[names] = None
+            return None
+        for n, i in zip(self.spec.joint_state_names, idx, strict=True):
+            if i < 0 and n not in self._warned_missing:
+                self._warned_missing.add(n)
+                logger.warning(
+                    "%s: joint states on %s have no %r; it reads 0.0", self.spec.name, self.config.joint_states, n
+                )
+        self._index_cache[names] = idx
+        return idx
+
+    def on_ros_state(self, msg: Any) -> None:
+        """A ``sensor_msgs/JointState`` from the driver: republish it as ours, in our joint order."""
+        idx = self._index(tuple(msg.name))
+        if idx is None:
+            self.stats.states_dropped += 1
+            return
+        n = len(self.spec.joint_state_names)
+        fields = []
+        for arr in (msg.position, msg.velocity, msg.effort):
+            a = np.asarray(arr, dtype=np.float64)
+            out = np.zeros(n)
+            if a.shape == (len(msg.name),):  # ROS allows empty velocity / effort arrays
+                present = idx >= 0
+                out[present] = a[idx[present]]
+            fields.append(out)
+        if not np.all(np.isfinite(fields[0])):
+            self.stats.states_dropped += 1
+            logger.warning("%s: dropped a joint state with non-finite positions %s", self.spec.name, fields[0])
+            return
+        self._seq += 1
+        self.stats.states_in += 1
+        self.last_q = fields[0][: self._n_arm].copy()
+        self._publish(
+            JointState(
+                header=Header(stamp_ns=self._now_ns(), seq=self._seq, frame_id=msg.header.frame_id),
+                name=self.spec.joint_state_names,
+                position=fields[0],
+                velocity=fields[1],
+                effort=fields[2],
+            )
+        )
+        self.first_state.set()
+
+    # ------------------------------------------------------------------------------------------- bus -> ROS
+
+    def on_command(self, cmd: JointCommand) -> None:
+        """One of our ``JointCommand``: checked, then sent as one message of the driver's command type."""
+        q = np.asarray(cmd.position, dtype=np.float64)
+        if q.shape != (self._n_arm,) or not np.all(np.isfinite(q)):
+            self._reject(f"expected {self._n_arm} finite positions {self.spec.arm_joint_names}, got {q.tolist()}")
+            return
+        outside = (q < self._lower) | (q > self._upper)
+        if outside.any():
+            bad = {j: round(float(v), 4) for j, v, o in zip(self.spec.arm_joint_names, q, outside, strict=True) if o}
+            self._reject(f"outside the joint limits: {bad}")
+            return
+        self._send(self.ros_command(q, cmd.duration_s))
+        self.stats.commands_out += 1
+
+    def ros_command(self, q: np.ndarray, duration_s: float = 0.0) -> Any:
+        """The driver's command message for arm positions ``q``."""
+        m, kind = self._msgs, self.config.command_type
+        if kind == "interbotix_xs_msgs/JointGroupCommand":
+            return m.JointGroupCommand(name=self.config.group, cmd=q.astype(np.float32))
+        if kind == "std_msgs/Float64MultiArray":
+            return m.Float64MultiArray(data=q.astype(np.float64))
+        t_ns = round(max(float(duration_s), self.period_s) * 1e9)
+        empty = np.zeros(0)
+        point = m.JointTrajectoryPoint(
+            positions=q.astype(np.float64), velocities=empty, accelerations=empty, effort=empty, time_from_start_ns=t_ns
+        )
+        header = m.RosHeader(seq=0, stamp_ns=0, frame_id="")  # stamp 0: start at once (ros_control's convention)
+        return m.JointTrajectory(header=header, joint_names=list(self.spec.arm_joint_names), points=[point])
+
+    def _reject(self, why: str) -> None:
+        self.stats.commands_rejected += 1
+        logger.warning("%s: command not sent to %s: %s", self.spec.name, self.config.command, why)
+
+    # ------------------------------------------------------------------------------------------- services
+
+    def srv_hold(self, req: Empty) -> Trigger:
+        if self.last_q is None:
+            return Trigger(success=False, message="no joint state from the driver yet")
+        self._send(self.ros_command(self.last_q))
+        self.stats.commands_out += 1
+        return Trigger(success=True, message=f"holding at {np.round(self.last_q, 4).tolist()}")
+
+    def srv_stats(self, req: Empty) -> Data:
+        return Data(value=dataclasses.asdict(self.stats))
+
+
+@contextlib.asynccontextmanager
+async def open_ros1_bridge(
+    config: Ros1BridgeConfig, *, domain: Any, namespace: str | None = None, transport: str = "auto"
+) -> AsyncIterator[Ros1Bridge]:
+    """Run the bridge for ``config.robot`` as a node of ``domain`` (an open Domain or a URI) until the block ends.
+
+    Returns once the driver's first joint state has been republished, so an env joining next finds the arm.
+
+    Raises:
+        ConfigError: bad settings, or the master cannot be reached (says where and what to start).
+        RobotError: no joint state on ``config.joint_states`` within ``config.state_timeout_s``.
+    """
+    from uniros_async.adapters.ros1 import msgs, open_ros1_node
+
+    spec = config.spec
+    assert config.command_type is not None  # filled in by Ros1BridgeConfig
+    cmd_cls = msgs.MESSAGE_TYPES[config.command_type]
+    ns = namespace or f"/{spec.name}"
+    async with contextlib.AsyncExitStack() as stack:
+        ros = await stack.enter_async_context(
+            open_ros1_node(
+                f"/uniros_{config.node_name}_{spec.name}", master_uri=config.master_uri, host=config.ros_host
+            )
+        )
+        node = await stack.enter_async_context(
+            open_node(config.node_name, domain=domain, namespace=ns, transport=transport)
+        )
+        pub = await node.create_publisher(JointState, "joint_states", qos=latest())
+        ros_pub = await ros.advertise(config.command, cmd_cls)
+        bridge = Ros1Bridge(config, ros_pub.publish, pub.publish, node.now_ns)
+        await node.create_subscription(JointCommand, "command", bridge.on_command, qos=latest())
+        await node.create_service(Empty, Trigger, "hold", bridge.srv_hold)
+        await node.create_service(Empty, Data, "stats", bridge.srv_stats)
+        await ros.subscribe(config.joint_states, msgs.JointState, bridge.on_ros_state)
+        t0 = time.monotonic()
+        try:
+            await asyncio.wait_for(bridge.first_state.wait(), config.state_timeout_s)
+        except TimeoutError:
+            raise RobotError(
+                f"{spec.name}: no sensor_msgs/JointState on {config.joint_states} from the ROS master "
+                f"{ros.master_uri} within {config.state_timeout_s} s (is the arm's driver running? `rostopic list` "
+                f"on that master shows its topics; Ros1BridgeConfig.joint_states / --joint-states picks another)"
+            ) from None
+        try:  # the driver connects to our command topic once the master told it we publish: not before now
+            await ros_pub.wait_for_subscribers(1, timeout_s=max(config.state_timeout_s - (time.monotonic() - t0), 0.5))
+        except TimeoutError:
+            raise RobotError(
+                f"{spec.name}: nothing on the ROS master {ros.master_uri} subscribes to {config.command} "
+                f"({config.command_type}), so commands would go nowhere (is that the driver's command topic? "
+                f"`rostopic info {config.command}` shows its subscribers; Ros1BridgeConfig.command / --command "
+                f"picks another)"
+            ) from None
+        logger.info(
+            "%s: bridged %s -> %s/joint_states and %s/command -> %s (%s) in %.2f s",
+            spec.name,
+            config.joint_states,
+            ns,
+            ns,
+            config.command,
+            config.command_type,
+            time.monotonic() - t0,
+        )
+        yield bridge
+
+
+async def serve_ros1_bridge(
+    config: Ros1BridgeConfig,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    namespace: str | None = None,
+    on_ready: Callable[[str], Any] | None = None,
+) -> None:
+    """Run the bridge in an own tcp domain on ``host:port`` until cancelled (``uniros robot bridge``).
+
+    Args:
+        on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
+    """
+    async with (
+        open_domain(f"tcp://{host}:{port}") as dom,
+        open_ros1_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
+    ):
+        if on_ready is not None:
+            on_ready(dom.uri)
+        await asyncio.Event().wait()  # until cancelled
