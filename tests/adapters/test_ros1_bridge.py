@@ -312,3 +312,35 @@ def test_cli_bridge_reports_an_unreachable_master() -> None:
     )
     assert proc.returncode == 2, proc.stderr
     assert "http://127.0.0.1:9/" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.slow
+def test_make_vec_mixes_a_ros_arm_with_a_sim_arm(ros_master: str, fake_arm: Any) -> None:
+    """One vector env, two worker processes: the rx200 behind ROS 1 (the bridge runs in its worker) and a sim rx200."""
+    from uniros_async.runtime import make_vec
+
+    arm = fake_arm("rx200")
+    port = ros_master.rstrip("/").rsplit(":", 1)[1]
+    venv = make_vec(
+        [("uniros/Rx200Reach-v0", {"robot": f"ros1://127.0.0.1:{port}"}), "uniros/Rx200Reach-v0"],
+        reward_type="dense",
+    )
+    try:
+        obs, _ = venv.reset(seed=0)
+        assert obs.shape[0] == 2 and np.all(np.isfinite(obs))
+        action = np.array([[0.2, 0.1, 0.1, 0.1, 0.0]] * 2, dtype=np.float32)
+        for _ in range(2):
+            obs, reward, terminated, truncated, infos = venv.step(action)
+        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
+        # both arms were driven toward the same target (the stand-in at 1 rad/s, the sim servos on their 2 s
+        # profile): the arm joints (entries 7-11, after EE, direction and distance) and EE (0-2) agree closely
+        assert np.abs(obs[0, 7:12] - obs[1, 7:12]).max() < 0.1, obs[:, 7:12]
+        assert np.abs(obs[0, :3] - obs[1, :3]).max() < 0.03, obs[:, :3]
+        assert np.abs(obs[0, 7:12]).max() > 0.1  # and the ROS arm did move
+    finally:
+        venv.close()
+    lines = []
+    with contextlib.suppress(TimeoutError):
+        while True:
+            lines.append(json.loads(wait_for_line(arm, "{", timeout_s=0.5)))
+    assert sum(any(abs(v) > 1e-4 for v in ln["positions"]) for ln in lines) >= 9, lines
