@@ -344,3 +344,16 @@ def test_make_vec_mixes_a_ros_arm_with_a_sim_arm(ros_master: str, fake_arm: Any)
         while True:
             lines.append(json.loads(wait_for_line(arm, "{", timeout_s=0.5)))
     assert sum(any(abs(v) > 1e-4 for v in ln["positions"]) for ln in lines) >= 9, lines
+
+
+def test_ros_host_follows_ros_ip_then_ros_hostname(monkeypatch: pytest.MonkeyPatch) -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig
+
+    monkeypatch.delenv("ROS_IP", raising=False)
+    monkeypatch.delenv("ROS_HOSTNAME", raising=False)
+    assert Ros1BridgeConfig(robot="rx200").ros_host == "127.0.0.1"
+    monkeypatch.setenv("ROS_HOSTNAME", "trainer.lab")
+    assert Ros1BridgeConfig(robot="rx200").ros_host == "trainer.lab"
+    monkeypatch.setenv("ROS_IP", "10.1.2.3")
+    assert Ros1BridgeConfig(robot="rx200").ros_host == "10.1.2.3"
+    assert Ros1BridgeConfig(robot="rx200", ros_host="192.168.1.20").ros_host == "192.168.1.20"

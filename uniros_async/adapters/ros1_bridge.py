@@ -33,6 +33,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import os
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -111,7 +112,8 @@ class Ros1BridgeConfig:
         command: the driver's command topic; None: ``ROS1_DEFAULTS``.
         command_type: one of ``COMMAND_TYPES``; None: ``ROS1_DEFAULTS``.
         group: the joint group of a ``JointGroupCommand`` (Interbotix: ``arm``).
-        ros_host: the address ROS peers reach this process at (its XML-RPC and TCPROS servers).
+        ros_host: the address ROS peers reach this process at (its XML-RPC and TCPROS servers); None:
+            ``$ROS_IP``, else ``$ROS_HOSTNAME`` (as rospy reads them), else ``127.0.0.1``.
         state_timeout_s: how long to wait for the driver's first joint state before giving up.
         node_name: the bridge's name, on the ROS graph and on the bus.
     """
@@ -122,7 +124,7 @@ class Ros1BridgeConfig:
     command: str | None = None
     command_type: str | None = None
     group: str = "arm"
-    ros_host: str = "127.0.0.1"
+    ros_host: str | None = None
     state_timeout_s: float = 10.0
     node_name: str = "ros1_bridge"
 
@@ -142,6 +144,9 @@ class Ros1BridgeConfig:
             topic = getattr(self, key)
             if not isinstance(topic, str) or not topic.startswith("/") or len(topic) < 2:
                 raise ConfigError(f"Ros1BridgeConfig.{key} must be an absolute ROS topic name like /a/b, got {topic!r}")
+        if self.ros_host is None:
+            host = os.environ.get("ROS_IP") or os.environ.get("ROS_HOSTNAME") or "127.0.0.1"
+            object.__setattr__(self, "ros_host", host)
         if not self.state_timeout_s > 0:
             raise ConfigError(f"Ros1BridgeConfig.state_timeout_s must be > 0, got {self.state_timeout_s}")
 
@@ -322,7 +327,7 @@ async def open_ros1_bridge(
     async with contextlib.AsyncExitStack() as stack:
         ros = await stack.enter_async_context(
             open_ros1_node(
-                f"/uniros_{config.node_name}_{spec.name}", master_uri=config.master_uri, host=config.ros_host
+                f"/uniros_{config.node_name}_{spec.name}", master_uri=config.master_uri, host=str(config.ros_host)
             )
         )
         node = await stack.enter_async_context(

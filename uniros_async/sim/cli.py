@@ -75,7 +75,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         help="interbotix_xs_msgs/JointGroupCommand, trajectory_msgs/JointTrajectory or std_msgs/Float64MultiArray",
     )
     bridge.add_argument("--group", default="arm", help="joint group of a JointGroupCommand (default %(default)s)")
-    bridge.add_argument("--ros-host", default="127.0.0.1", help="address ROS peers reach this process at")
+    bridge.add_argument(
+        "--ros-host",
+        default=None,
+        help="address ROS peers reach this process at (default $ROS_IP, else $ROS_HOSTNAME, else 127.0.0.1)",
+    )
     bridge.add_argument("--host", default="127.0.0.1", help="bind host of the domain (default %(default)s)")
     bridge.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     bridge.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
