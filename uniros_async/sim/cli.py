@@ -57,6 +57,14 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         help="watchdog: hold after this many seconds without a command; 0 disables",
     )
     serve.add_argument("--markers", action="store_true", help="publish EE and goal markers on ROBOT/markers")
+    serve.add_argument(
+        "--ros1-master",
+        default=None,
+        metavar="URI",
+        help="serve the arm as a ROS 1 driver on this master (the real driver's topics and messages, "
+        "adapters/ros1_driver.py) instead of in a uniros domain; prints the master's URI",
+    )
+    serve.add_argument("--ros-host", default=None, help="with --ros1-master: address ROS peers reach this process at")
 
     bridge = actions.add_parser(
         "bridge",
@@ -148,21 +156,47 @@ def _bridge(args: argparse.Namespace) -> int:
         state_timeout_s=args.state_timeout,
     )
 
-    def ready(uri: str) -> None:
-        sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join
-        sys.stdout.flush()
+    serve = serve_ros1_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready)
+    return _run_until_signal(serve)
+
+
+def _serve_ros1(args: argparse.Namespace) -> int:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig
+    from uniros_async.adapters.ros1_driver import serve_ros1_driver
+    from uniros_async.sim.emulated import EmulationConfig
+    from uniros_async.sim.servo import ServoSimConfig
+
+    if args.sim_time or args.markers or args.namespace is not None:
+        from uniros_async.errors import ConfigError
+
+        raise ConfigError(
+            "--ros1-master serves on the ROS graph in wall time: --sim-time, --markers and --namespace do not apply"
+        )
+    cfg = Ros1BridgeConfig(robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host)
+    emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
+    servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
+    return _run_until_signal(serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
+
+
+def _print_ready(uri: str) -> None:
+    sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join, or the ROS master
+    sys.stdout.flush()
+
+
+def _run_until_signal(serve: Any) -> int:
+    """Run ``serve`` (a coroutine) until SIGINT/SIGTERM; a task group's wrapping of one clear error comes out as
+    that error (the ``uniros`` entry point reports it)."""
+    from uniros_async.errors import UnirosError
 
     async def main() -> None:
         cancel_on_signals(signal.SIGINT, signal.SIGTERM)
-        await serve_ros1_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=ready)
-
-    from uniros_async.errors import UnirosError
+        await serve
 
     try:
         asyncio.run(main())
     except asyncio.CancelledError:  # SIGINT/SIGTERM: an orderly stop
         logger.info("stopped")
-    except BaseExceptionGroup as group:  # a task group's wrapping of one clear error: report that error
+    except BaseExceptionGroup as group:
         mine = group.subgroup(UnirosError)
         if mine is None:
             raise
@@ -177,6 +211,8 @@ def _serve(args: argparse.Namespace) -> int:
     from uniros_async.sim.serve import ServeConfig, serve_servo_sim
     from uniros_async.sim.servo import ServoSimConfig
 
+    if args.ros1_master is not None:
+        return _serve_ros1(args)
     cfg = ServeConfig(
         robot=args.robot,
         host=args.host,
@@ -188,20 +224,7 @@ def _serve(args: argparse.Namespace) -> int:
         time_scale=args.time_scale or None,
         publish_markers=args.markers,
     )
-
-    def ready(uri: str) -> None:
-        sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join
-        sys.stdout.flush()
-
-    async def main() -> None:
-        cancel_on_signals(signal.SIGINT, signal.SIGTERM)
-        await serve_servo_sim(cfg, on_ready=ready)
-
-    try:
-        asyncio.run(main())
-    except asyncio.CancelledError:  # SIGINT/SIGTERM: an orderly stop
-        logger.info("stopped")
-    return 0
+    return _run_until_signal(serve_servo_sim(cfg, on_ready=_print_ready))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
