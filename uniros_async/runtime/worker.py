@@ -80,7 +80,7 @@ LOOP_PHASE_STEP_NS = 1_000_000
 highest-ranked last. On one instant, four workers on 2 cores ran in priority order anyway, and the later ones
 started whenever the others' variable work let them: the last reply, which the agent waits for, came 2.1 ms after
 the deadline with an IQR of 0.43 ms. Staggered, each runs alone and the last reply comes from the worker with the
-highest priority: IQR 0.1 ms (docs/performance.md). 1 ms is well above a worker's tick or return (0.2-0.4 ms when
+highest priority: IQR 0.1 ms (docs/perf/history.md). 1 ms is well above a worker's tick or return (0.2-0.4 ms when
 its caches are cold); the first member's returns wait up to ``(n - 1)`` ms longer for the agent."""
 
 
@@ -617,7 +617,7 @@ def turn_spin_ns(transport: Any) -> int:
     the waker is about to sleep), which places a woken worker on its agent's core, and tcp carries no hint of where
     the peer runs for a poll to see (shm's ``ShmTransport._peer_here``). There a 200 us poll held the agent off its
     own core for the whole window: two tcp vector envs stepped in turn took ~400 us a step, ~140 us with 50 us
-    polls, while one env's steps cost the same with either (docs/performance.md). A worker on another host never
+    polls, while one env's steps cost the same with either (docs/perf/history.md). A worker on another host never
     shares its agent's core and keeps the longer poll."""
     if getattr(transport, "scheme", None) == "tcp":
         try:

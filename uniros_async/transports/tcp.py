@@ -37,7 +37,7 @@ rate). A frame sent after a ``receive`` that waited is a reply and goes out at o
 corked to the end of the loop iteration cost the echo ~30 us per round trip.
 
 Measured on the project's 2-core VM (echo server in another process, quiet machine, ``uniros bench transport``,
-docs/performance.md): 277 B round trip p50 20-24 us with the default 50 us poll, against 62-99 us without it and
+docs/perf/history.md): 277 B round trip p50 20-24 us with the default 50 us poll, against 62-99 us without it and
 79-108 us for pyzmq tcp; 64 KiB 66-75 us (pyzmq 114-163 us). Raw Python sockets in the same hour: 28 us blocking,
 12 us busy-polling; each wake-up of a halted core costs 10-25 us here, which is what the poll saves. An earlier
 poll that turned the event loop (``asyncio.sleep(0)``) instead of reading the socket reached 26-30 us on uvloop
