@@ -145,12 +145,16 @@ async def test_unsafe_and_malformed_commands_are_not_sent(ros_master: str, fake_
         cmd.publish(_cmd([0.05, 0.0, 0.0, 0.0, 0.0]))
         got = await _command_line(arm)  # the first command the driver sees is the last, valid one
         np.testing.assert_allclose(got["positions"], [0.05, 0.0, 0.0, 0.0, 0.0], atol=1e-6)
+        elbow_max = get_robot_spec("rx200").joint_upper_rad[2]
+        cmd.publish(_cmd([0.05, 0.0, elbow_max + 0.01, 0.0, 0.0]))  # a hair past: clamped to the limit, as servos do
+        got = await _command_line(arm)
+        np.testing.assert_allclose(got["positions"], [0.05, 0.0, elbow_max, 0.0, 0.0], atol=1e-6)
         counts = (await stats.call(Empty(), timeout_s=5.0)).value
-        assert counts["commands_rejected"] == 3 and counts["commands_out"] == 1
+        assert counts["commands_rejected"] == 3 and counts["commands_out"] == 2 and counts["commands_clamped"] == 1
         reply = await hold.call(Empty(), timeout_s=5.0)
         assert reply.success, reply.message
-        held = await _command_line(arm)  # hold: the newest measured position, which is still near home
-        assert len(held["positions"]) == 5 and max(abs(v) for v in held["positions"]) < 0.06
+        held = await _command_line(arm)  # hold: the newest measured position, between home and that target
+        assert len(held["positions"]) == 5 and abs(held["positions"][0]) < 0.06 and held["positions"][2] < 1.63
 
 
 async def test_ned2_joint_trajectory_commands(ros_master: str, fake_arm: Any) -> None:

@@ -20,11 +20,11 @@ Command types (``command_type``), each what a common ROS 1 arm driver listens to
   (``/niryo_robot_follow_joint_trajectory_controller/command``).
 - ``std_msgs/Float64MultiArray`` on a ros_control JointGroupPositionController's ``command`` topic: the positions.
 
-The env already refuses unsafe targets; the bridge checks joint limits once more (a command outside them, or of
-the wrong length, is dropped and counted, never sent) and serves ``hold`` (command the newest measured position)
-and ``stats`` (counters), like the servo sim. Joint states that lack an arm joint are dropped and counted (the
-first such message logs which names were missing and which came); a missing non-arm joint (a gripper finger) reads
-0.0, logged once.
+The env already refuses unsafe targets; the bridge checks joint limits once more. A command a hair past a limit
+(``LIMIT_CLAMP_RAD``) is clamped to it, as the servos would; one further out, or of the wrong length, is dropped and
+counted, never sent. It serves ``hold`` (command the newest measured position) and ``stats`` (counters), like the
+servo sim. Joint states that lack an arm joint are dropped and counted (the first such message logs which names
+were missing and which came); a missing non-arm joint (a gripper finger) reads 0.0, logged once.
 """
 
 from __future__ import annotations
@@ -82,7 +82,11 @@ ROS1_DEFAULTS: dict[str, dict[str, str]] = {
 }
 """Per robot: the driver's joint-state topic, its command topic and that topic's type."""
 
-LIMIT_TOL_RAD = 1e-6
+LIMIT_CLAMP_RAD = 0.05
+"""How far beyond a joint limit a command may reach and still be sent, clamped to the limit (counted in
+``commands_clamped``), as the servo sim and the servos themselves clip it: holding where the arm measures itself
+(the env's hold) can ask for a hair past a limit the arm sits at, through sensor noise or overshoot. Further out,
+a command is refused."""
 ROS1_SETTINGS = ("joint_states", "command", "command_type", "group", "ros_host", "state_timeout_s")
 """The bridge settings an env takes in its ``ros1`` dict (``EnvConfig.ros1``)."""
 
@@ -162,6 +166,7 @@ class BridgeStats:
     states_in: int = 0
     states_dropped: int = 0
     commands_out: int = 0
+    commands_clamped: int = 0
     commands_rejected: int = 0
 
 
@@ -185,8 +190,8 @@ class Ros1Bridge:
         self._now_ns = now_ns
         self._msgs = msgs
         self._n_arm = len(spec.arm_joint_names)
-        self._lower = np.asarray(spec.joint_lower_rad) - LIMIT_TOL_RAD
-        self._upper = np.asarray(spec.joint_upper_rad) + LIMIT_TOL_RAD
+        self._lower = np.asarray(spec.joint_lower_rad, dtype=np.float64)
+        self._upper = np.asarray(spec.joint_upper_rad, dtype=np.float64)
         self._index_cache: dict[tuple[str, ...], np.ndarray | None] = {}
         self._warned_missing: set[str] = set()
         self._seq = 0
@@ -266,12 +271,19 @@ class Ros1Bridge:
         if q.shape != (self._n_arm,) or not np.all(np.isfinite(q)):
             self._reject(f"expected {self._n_arm} finite positions {self.spec.arm_joint_names}, got {q.tolist()}")
             return
-        outside = (q < self._lower) | (q > self._upper)
+        outside = (q < self._lower - LIMIT_CLAMP_RAD) | (q > self._upper + LIMIT_CLAMP_RAD)
         if outside.any():
-            bad = {j: round(float(v), 4) for j, v, o in zip(self.spec.arm_joint_names, q, outside, strict=True) if o}
-            self._reject(f"outside the joint limits: {bad}")
+            bad = {
+                j: f"{v:.4f} not in [{lo:.4f}, {hi:.4f}]"
+                for j, v, lo, hi, o in zip(self.spec.arm_joint_names, q, self._lower, self._upper, outside, strict=True)
+                if o
+            }
+            self._reject(f"beyond the joint limits (by more than {LIMIT_CLAMP_RAD} rad): {bad}")
             return
-        self._send(self.ros_command(q, cmd.duration_s))
+        clamped = np.clip(q, self._lower, self._upper)
+        if not np.array_equal(clamped, q):
+            self.stats.commands_clamped += 1
+        self._send(self.ros_command(clamped, cmd.duration_s))
         self.stats.commands_out += 1
 
     def ros_command(self, q: np.ndarray, duration_s: float = 0.0) -> Any:
