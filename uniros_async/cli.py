@@ -93,6 +93,11 @@ def _build_parser() -> argparse.ArgumentParser:
     bth.add_argument("--transport", choices=("shm", "tcp"), default="shm", help="make_vec's workers over (default shm)")
     bth.add_argument("--no-progress", action="store_true")
 
+    br = bench.add_parser("ros1", help="ROS 1 round trips: our asyncio client against rospy (needs ROS 1 installed)")
+    br.add_argument("--blocks", type=int, default=11, help="blocks per client, in turns; the first is warm-up")
+    br.add_argument("--per-block", type=int, default=500, help="round trips per block (default %(default)s)")
+    br.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+    br.add_argument("--no-progress", action="store_true")
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0)
     bs.add_argument("--episodes", type=int, default=3)
@@ -315,6 +320,17 @@ def _run_bench(args: argparse.Namespace) -> int:
                 steps=args.steps,
                 json_path=args.json_path,
                 transport=args.transport,
+                progress=not args.no_progress,
+            )
+        )
+    elif args.scenario == "ros1":
+        from uniros_async.bench import ros1
+
+        ros1.main(
+            ros1.Ros1BenchConfig(
+                blocks=args.blocks,
+                per_block=args.per_block,
+                json_path=args.json_path,
                 progress=not args.no_progress,
             )
         )

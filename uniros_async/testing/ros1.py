@@ -27,14 +27,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import pytest
-
 __all__ = [
     "ROS1_INSTALL_HINT",
     "kill_process",
     "open_rosmaster",
     "open_rosmaster_process",
-    "requires_ros1",
     "ros1_missing",
     "ros1_python",
     "ros_env",
@@ -81,7 +78,14 @@ def ros1_missing() -> str | None:
     return None
 
 
-requires_ros1 = pytest.mark.skipif(ros1_missing() is not None, reason=ros1_missing() or "")
+def __getattr__(name: str) -> Any:
+    # ``requires_ros1``, a pytest mark, made on first use: the benchmarks use this module without pytest, and
+    # without probing for ROS 1 when it is imported
+    if name == "requires_ros1":
+        import pytest
+
+        return pytest.mark.skipif(ros1_missing() is not None, reason=ros1_missing() or "")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def ros_env(master_uri: str, *, home: str | os.PathLike[str] | None = None) -> dict[str, str]:
