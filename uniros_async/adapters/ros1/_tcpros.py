@@ -9,16 +9,17 @@ from __future__ import annotations
 import asyncio
 import socket
 import struct
+from collections.abc import Callable
 
 from uniros_async.errors import CodecError
 
 __all__ = [
+    "FrameReader",
     "MAX_FRAME_BYTES",
     "MAX_HEADER_BYTES",
     "decode_header",
     "encode_header",
     "frame",
-    "read_frame",
     "read_header",
     "set_nodelay",
 ]
@@ -80,24 +81,103 @@ async def read_header(reader: asyncio.StreamReader) -> dict[str, str]:
     return decode_header(await reader.readexactly(n))
 
 
-async def read_frame(reader: asyncio.StreamReader) -> bytes:
-    """Read one message body (the length prefix is stripped).
-
-    Raises:
-        asyncio.IncompleteReadError: the peer closed the connection (at a frame boundary: ``partial`` is empty).
-        CodecError: the length prefix is over MAX_FRAME_BYTES.
-    """
-    n = await _read_length(reader, MAX_FRAME_BYTES, "frame")
-    return await reader.readexactly(n)
-
-
 def frame(body: bytes) -> bytes:
     """``body`` with its 4-byte length prefix."""
     return _U32.pack(len(body)) + body
 
 
-def set_nodelay(writer: asyncio.StreamWriter) -> None:
+def set_nodelay(writer: asyncio.StreamWriter | asyncio.BaseTransport) -> None:
     """TCP_NODELAY: small control messages must not wait for Nagle's algorithm."""
     sock = writer.get_extra_info("socket")
     if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+class FrameReader(asyncio.Protocol):
+    """A subscriber's TCPROS connection, read by the event loop itself: ``header()`` awaits the publisher's
+    connection header; after ``start(on_frame)`` every message body goes to ``on_frame`` from ``data_received``, in
+    the loop's own callback, so no task has to wake for each message (a StreamReader's reading task costs one
+    event-loop round per message). ``wait_closed()`` returns when the connection ends.
+
+    Frames that arrive with the header wait in the buffer until ``start``. ``on_frame`` must not raise.
+    """
+
+    def __init__(self) -> None:
+        loop = asyncio.get_running_loop()
+        self.transport: asyncio.Transport | None = None
+        self._buf = bytearray()
+        self._header: asyncio.Future[dict[str, str]] = loop.create_future()
+        self._closed: asyncio.Future[None] = loop.create_future()
+        self._on_frame: Callable[[bytes], None] | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+
+    def data_received(self, data: bytes) -> None:
+        buf = self._buf
+        buf += data
+        try:
+            while len(buf) >= 4:
+                (n,) = _U32.unpack_from(buf)
+                if not self._header.done():
+                    if n > MAX_HEADER_BYTES:
+                        raise CodecError(f"TCPROS header announces {n} bytes, over the limit of {MAX_HEADER_BYTES}")
+                    if len(buf) < 4 + n:
+                        return
+                    fields = decode_header(bytes(buf[4 : 4 + n]))
+                    del buf[: 4 + n]
+                    self._header.set_result(fields)
+                    continue
+                if self._on_frame is None:
+                    return  # frames wait for start()
+                if n > MAX_FRAME_BYTES:
+                    raise CodecError(f"TCPROS frame announces {n} bytes, over the limit of {MAX_FRAME_BYTES}")
+                if len(buf) < 4 + n:
+                    return
+                body = bytes(buf[4 : 4 + n])
+                del buf[: 4 + n]
+                self._on_frame(body)
+        except CodecError as exc:
+            self._fail(exc)
+
+    def _fail(self, exc: BaseException) -> None:
+        for fut in (self._header, self._closed):
+            if not fut.done():
+                fut.set_exception(exc)
+        if self.transport is not None:
+            self.transport.close()
+
+    def start(self, on_frame: Callable[[bytes], None]) -> None:
+        """Hand every frame, from now on and those already here, to ``on_frame``."""
+        self._on_frame = on_frame
+        if self._buf:
+            self.data_received(b"")
+
+    async def header(self) -> dict[str, str]:
+        """The publisher's connection header.
+
+        Raises:
+            asyncio.IncompleteReadError: the peer closed the connection first.
+            CodecError: the header is malformed or longer than MAX_HEADER_BYTES.
+        """
+        return await asyncio.shield(self._header)
+
+    async def wait_closed(self) -> None:
+        """Return when the connection ends.
+
+        Raises:
+            asyncio.IncompleteReadError: the peer closed it.
+            OSError: it failed.
+            CodecError: a frame's length prefix was corrupt.
+        """
+        await asyncio.shield(self._closed)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        eof = asyncio.IncompleteReadError(bytes(self._buf), None)
+        for fut in (self._header, self._closed):
+            if not fut.done():
+                fut.set_exception(exc if exc is not None else eof)
+        for fut in (self._header, self._closed):  # nobody may be waiting any more: no "never retrieved" warnings
+            if fut.done() and not fut.cancelled():
+                fut.exception()

@@ -69,13 +69,24 @@ class _Reader:
     def unpack(self, st: struct.Struct, what: str) -> tuple[Any, ...]:
         return st.unpack_from(self.buf, self._take(st.size, what))
 
-    def string(self, what: str) -> str:
-        n = self.u32(f"{what} length")
-        start = self._take(n, what)
-        try:
-            return self.buf[start : start + n].decode()
-        except UnicodeDecodeError as exc:
-            raise CodecError(f"{self.type_name}: {what} at byte {start} is not UTF-8 ({exc.reason})") from exc
+    def string(self, what: str, index: int | None = None) -> str:
+        # The field's name is formatted only on an error: a JointState has a dozen strings, and building their
+        # names for every message cost more than reading them.
+        buf, pos = self.buf, self.pos
+        if len(buf) - pos >= 4:
+            (n,) = _U32.unpack_from(buf, pos)
+            end = pos + 4 + n
+            if end <= len(buf):
+                self.pos = end
+                try:
+                    return buf[pos + 4 : end].decode()
+                except UnicodeDecodeError as exc:
+                    name = what if index is None else f"{what}[{index}]"
+                    raise CodecError(f"{self.type_name}: {name} at byte {pos + 4} is not UTF-8 ({exc.reason})") from exc
+        name = what if index is None else f"{what}[{index}]"
+        n = self.u32(f"{name} length")
+        self._take(n, name)  # raises: this is where it runs short
+        raise AssertionError("unreachable")
 
     def count(self, what: str, min_item_bytes: int) -> int:
         n = self.u32(f"{what} length")
@@ -88,7 +99,7 @@ class _Reader:
         return n
 
     def strings(self, what: str) -> list[str]:
-        return [self.string(f"{what}[{i}]") for i in range(self.count(what, 4))]
+        return [self.string(what, i) for i in range(self.count(what, 4))]
 
     def array(self, dtype: np.dtype[Any], what: str) -> np.ndarray:
         n = self.count(what, dtype.itemsize)

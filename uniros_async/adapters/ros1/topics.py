@@ -145,11 +145,12 @@ class _Subscription:
         )
         if code != 1 or not isinstance(proto, list) or len(proto) < 3 or proto[0] != "TCPROS":
             raise ConnectionRefusedError(f"requestTopic answered {code}, {status!r}, {proto!r}")
+        loop = asyncio.get_running_loop()
         async with asyncio.timeout(node.timeout_s):
-            reader, writer = await asyncio.open_connection(str(proto[1]), int(proto[2]))
+            transport, reader = await loop.create_connection(_tcpros.FrameReader, str(proto[1]), int(proto[2]))
         try:
-            _tcpros.set_nodelay(writer)
-            writer.write(
+            _tcpros.set_nodelay(transport)
+            transport.write(
                 _tcpros.encode_header(
                     {
                         "callerid": node.name,
@@ -162,8 +163,7 @@ class _Subscription:
                 )
             )
             async with asyncio.timeout(node.timeout_s):
-                await writer.drain()
-                header = await _tcpros.read_header(reader)
+                header = await reader.header()
             peer = f"publisher {header.get('callerid', uri)}"
             if "error" in header:
                 await self._explain_refusal(proto[1], int(proto[2]), peer, header["error"])
@@ -173,25 +173,29 @@ class _Subscription:
                 logger.warning(_type_mismatch(self.topic, peer, their_type, their_md5, ours))
                 return False
             conn = _PublisherConn(uri, header.get("callerid", ""))
+
+            def on_frame(body: bytes) -> None:  # in the event loop's read callback: no task wakes per message
+                conn.bytes += len(body) + 4
+                conn.count += 1
+                try:
+                    msg = ours.deserialize(body)
+                except CodecError as exc:
+                    if _log_limit(f"decode {self.topic}"):
+                        logger.warning("%s: dropped a message from %s: %s", self.topic, peer, exc)
+                    return
+                self._deliver(msg)
+
             self.connected[uri] = conn
             self.changed.notify()
             try:
-                while True:
-                    body = await _tcpros.read_frame(reader)
-                    conn.bytes += len(body) + 4
-                    conn.count += 1
-                    try:
-                        msg = ours.deserialize(body)
-                    except CodecError as exc:
-                        if _log_limit(f"decode {self.topic}"):
-                            logger.warning("%s: dropped a message from %s: %s", self.topic, peer, exc)
-                        continue
-                    self._deliver(msg)
+                reader.start(on_frame)
+                await reader.wait_closed()
             finally:
                 del self.connected[uri]
                 self.changed.notify()
         finally:
-            writer.close()
+            transport.close()
+        return True
 
     async def _explain_refusal(self, host: str, port: int, peer: str, error: str) -> None:
         """Log why a publisher refused us. rospy's error text may omit the md5s, so ask once more with md5 "*" (as
@@ -327,6 +331,14 @@ class _SubscriberLink:
         self.dropped = 0
 
     def put(self, frame: bytes) -> None:
+        transport = self.writer.transport
+        if not self.queue and not transport.is_closing() and transport.get_write_buffer_size() == 0:
+            # nothing waits and the socket takes it: written now, in the publisher's frame (rospy's queue_size=None),
+            # not one event-loop round later by the write task
+            self.writer.write(frame)
+            self.bytes += len(frame)
+            self.count += 1
+            return
         if len(self.queue) >= self.pub.queue_size:
             # A slow subscriber loses its oldest frames, so it neither blocks the others nor grows memory.
             self.queue.popleft()
