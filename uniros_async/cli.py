@@ -58,6 +58,9 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
     be.add_argument("--robot", default="sim", help="sim, sim-process, emulated-real, or tcp://host:port")
     be.add_argument("--concurrent", action="store_true", help="run the arms at the same time")
+    be.add_argument(
+        "--think-ms", type=float, default=50.0, help="the agent thinks a random 0 to this many ms before each step"
+    )
     be.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     be.add_argument("--no-progress", action="store_true")
 
@@ -368,6 +371,7 @@ def _run_bench(args: argparse.Namespace) -> int:
                 action_cycle_s=args.action_cycle,
                 robot=args.robot,
                 concurrent=args.concurrent,
+                think_ms=args.think_ms,
                 json_path=args.json_path,
                 progress=not args.no_progress,
             )

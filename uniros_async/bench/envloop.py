@@ -79,7 +79,9 @@ def _run_one(arm: str, cfg: EnvLoopBenchConfig, out: dict[str, Series], bar: Any
             learner="scripted",
             samples=loop_metrics(snap, reset_after=reset_after, recv_ns=recv_ns),
             period_ms=1e3 / u.env_loop_rate_hz,
-            action_cycle_ms=cfg.action_cycle_s * 1e3,
+            # the action cycle is the period between actions reaching the loop: an agent that thinks a random
+            # 0-think_ms before each step spreads it by that much, so its goal applies only to an agent that does not
+            action_cycle_ms=cfg.action_cycle_s * 1e3 if cfg.think_ms == 0 else None,
             step_overruns=int(snap["step_overruns"]),
         )
     finally:
@@ -120,5 +122,11 @@ def main(config: EnvLoopBenchConfig, *, log: Callable[[str], None] = print) -> l
         bar.close()
     series = [results[arm] for arm in config.arms]
     records = to_records("envloop-concurrent" if config.concurrent else "envloop", series)
-    report(format_table(series, records), records, config.json_path, log)
+    table = format_table(series, records)
+    if config.think_ms > 0:
+        table += (
+            f"\naction cycle: spread by the agent's random 0-{config.think_ms:g} ms of thinking before each step (no "
+            "goal shown; --think-ms 0 for an agent that acts at once, or `uniros bench latency` for real learners)"
+        )
+    report(table, records, config.json_path, log)
     return records
