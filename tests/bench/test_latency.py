@@ -6,6 +6,7 @@ cycle near the loop period), never performance: the figures are the benchmark's 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -206,6 +207,15 @@ def test_envloop_bench_uses_the_same_metrics(tmp_path: Path) -> None:
 
     out = tmp_path / "envloop.json"
     cfg = envloop.EnvLoopBenchConfig(duration_s=2.5, arms=("ned2",), think_ms=20.0, json_path=str(out), progress=False)
-    records = envloop.main(cfg, log=lambda _: None)
+    printed: list[str] = []
+    records = envloop.main(cfg, log=printed.append)
     _check(records, out, "envloop", {"ned2 sim"}, {"scripted"})
     assert abs(_median(records, "ned2 sim", "actuator_cycle") - 40.0) < 5.0
+    # a thinking agent spreads the action cycle: no goal beside it, and the table says why
+    table = printed[0]
+    (row,) = [ln for ln in table.splitlines() if " action_cycle " in ln]
+    assert "+- 0.5" not in row and "random 0-20 ms of thinking" in table
+    printed.clear()
+    envloop.main(dataclasses.replace(cfg, think_ms=0.0, duration_s=2.0, json_path=None), log=printed.append)
+    (row,) = [ln for ln in printed[0].splitlines() if " action_cycle " in ln]
+    assert row.endswith("800 +- 0.5, IQR < 1") and "of thinking" not in printed[0]
