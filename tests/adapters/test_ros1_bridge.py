@@ -361,3 +361,29 @@ def test_ros_host_follows_ros_ip_then_ros_hostname(monkeypatch: pytest.MonkeyPat
     monkeypatch.setenv("ROS_IP", "10.1.2.3")
     assert Ros1BridgeConfig(robot="rx200").ros_host == "10.1.2.3"
     assert Ros1BridgeConfig(robot="rx200", ros_host="192.168.1.20").ros_host == "192.168.1.20"
+
+
+async def test_two_bridges_to_one_arm_do_not_unseat_each_other(ros_master: str, fake_arm: Any) -> None:
+    """A training and an evaluation env on one arm each run a bridge: both keep their ROS registrations."""
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+
+    fake_arm("rx200")
+    cfg = Ros1BridgeConfig(robot="rx200", master_uri=ros_master)
+    async with (
+        open_domain("memory://") as dom1,
+        open_domain("memory://") as dom2,
+        open_ros1_bridge(cfg, domain=dom1) as first,
+        open_ros1_bridge(cfg, domain=dom2) as second,
+    ):
+        n1, n2 = first.stats.states_in, second.stats.states_in
+        await asyncio.sleep(0.5)  # 10 Hz: both still receive the driver's joint states
+        assert first.stats.states_in >= n1 + 3 and second.stats.states_in >= n2 + 3
+        import xmlrpc.client
+
+        def system_state() -> Any:
+            with xmlrpc.client.ServerProxy(ros_master) as master:
+                return master.getSystemState("/probe")
+
+        state = await asyncio.to_thread(system_state)
+        subscribers = dict((topic, nodes) for topic, nodes in state[2][1])["/rx200/joint_states"]
+        assert len([n for n in subscribers if n.startswith("/uniros_ros1_bridge_rx200")]) == 2, subscribers

@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import itertools
 import logging
 import os
 import time
@@ -87,6 +88,7 @@ LIMIT_CLAMP_RAD = 0.05
 ``commands_clamped``), as the servo sim and the servos themselves clip it: holding where the arm measures itself
 (the env's hold) can ask for a hair past a limit the arm sits at, through sensor noise or overshoot. Further out,
 a command is refused."""
+_instances = itertools.count(1)
 ROS1_SETTINGS = ("joint_states", "command", "command_type", "group", "ros_host", "state_timeout_s")
 """The bridge settings an env takes in its ``ros1`` dict (``EnvConfig.ros1``)."""
 
@@ -338,8 +340,12 @@ async def open_ros1_bridge(
     ns = namespace or f"/{spec.name}"
     async with contextlib.AsyncExitStack() as stack:
         ros = await stack.enter_async_context(
+            # a name of its own (as rospy's anonymous=True): a second node of the same name would make the master
+            # shut this one down, e.g. a training and an evaluation env on one arm
             open_ros1_node(
-                f"/uniros_{config.node_name}_{spec.name}", master_uri=config.master_uri, host=str(config.ros_host)
+                f"/uniros_{config.node_name}_{spec.name}_{os.getpid()}_{next(_instances)}",
+                master_uri=config.master_uri,
+                host=str(config.ros_host),
             )
         )
         node = await stack.enter_async_context(
