@@ -12,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from uniros_async.adapters.ros1 import msgs
 from uniros_async.adapters.ros1.msgs import (
     MESSAGE_TYPES,
     Float64MultiArray,
@@ -265,3 +266,33 @@ def test_random_bytes_decode_or_raise_codec_error(data: bytes, cls: type[Ros1Mes
 def test_unencodable_fields_are_codec_errors(msg: Ros1Message, match: str) -> None:
     with pytest.raises(CodecError, match=match):
         msg.serialize()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    names=st.lists(st.text(max_size=12), max_size=10),
+    frame_id=st.text(max_size=20),
+    seq=st.integers(0, 2**32 - 1),
+    data=st.data(),
+)
+def test_joint_state_fast_read_matches_the_checked_one(names: list[str], frame_id: str, seq: int, data: Any) -> None:
+    """JointState.deserialize reads a well-formed body straight through; it must give what the field-by-field reader
+    gives, and leave every malformed body (a cut anywhere) to that reader's precise error."""
+    n = len(names)
+    arrays = [np.asarray(data.draw(st.lists(st.floats(allow_nan=False), min_size=k, max_size=k))) for k in (n, n, 0)]
+    msg = msgs.JointState(
+        header=msgs.RosHeader(seq=seq, stamp_ns=123_456_789_012, frame_id=frame_id),
+        name=names,
+        position=arrays[0],
+        velocity=arrays[1],
+        effort=arrays[2],
+    )
+    body = msg.serialize()
+    fast, checked = msgs.JointState.deserialize(body), msgs.JointState._checked(body)
+    assert fast.header == checked.header and fast.name == checked.name
+    for field in ("position", "velocity", "effort"):
+        np.testing.assert_array_equal(getattr(fast, field), getattr(checked, field))
+    cut = data.draw(st.integers(0, len(body) - 1))
+    assert msgs._joint_state_fast(msgs.JointState, body[:cut]) is None
+    with pytest.raises(CodecError, match="sensor_msgs/JointState"):
+        msgs.JointState.deserialize(body[:cut])
