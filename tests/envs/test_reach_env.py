@@ -435,3 +435,18 @@ def test_unsafe_action_projected_sends_its_safe_part(action_mode: str) -> None:
 def test_unsafe_action_setting_is_checked() -> None:
     with pytest.raises(ConfigError, match=r"unsafe_action must be one of \('hold', 'project'\)"):
         gym.make("uniros/Rx200Reach-v0", unsafe_action="clip")
+
+
+def test_a_hold_never_commands_past_a_joint_limit() -> None:
+    """The arm holds where it measures itself; sensor noise or overshoot can put a joint a hair past a limit it sits
+    at, and the hold target is then that limit (a real driver may refuse a command past it)."""
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim")
+    try:
+        u = env.unwrapped
+        lo, hi = u.safety.lower, u.safety.upper
+        measured = np.array([hi[0] + 3e-3, lo[1] - 1e-4, 0.2, hi[3] + 1e-6, 0.0])
+        hold = u._hold_target(measured)
+        np.testing.assert_array_equal(hold, [hi[0], lo[1], 0.2, hi[3], 0.0])
+        assert u.safety.check(hold) is None or "limit" not in u.safety.check(hold)
+    finally:
+        env.close()

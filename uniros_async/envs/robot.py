@@ -239,8 +239,9 @@ class RobotEnv(BaseEnv):
         # (no action yet) the old goal may still be passed
         if returns[2] and self._action is not None and not self.config.turn_based:
             self._ended = True
-            self._target, self._target_unsafe, self._action_t_ns = q_arm.copy(), None, None
-            self._send(q_arm, now)
+            hold = self._hold_target(q_arm)
+            self._target, self._target_unsafe, self._action_t_ns = hold, None, None
+            self._send(hold, now)
             return
         if self._relative_action and self._action is not None and not self.config.turn_based:
             self._apply_action(self._action, q_arm, now, first=False)
@@ -251,6 +252,11 @@ class RobotEnv(BaseEnv):
         if self._action_t_ns is not None:
             self.timing.action_latency_ns.append(now - self._action_t_ns)
             self._action_t_ns = None
+
+    def _hold_target(self, q_arm: np.ndarray) -> np.ndarray:
+        """Where to hold the arm: where it measures itself, inside the joint limits. Sensor noise or overshoot can put
+        a joint a hair past a limit it sits at, and a real driver may refuse a command out there (the sims clip)."""
+        return np.clip(q_arm, self.safety.lower, self.safety.upper)
 
     def _send(self, q: np.ndarray, now: int) -> None:
         self._cmd_seq += 1
@@ -322,9 +328,10 @@ class RobotEnv(BaseEnv):
         if why is not None:
             if first:
                 self.unsafe_actions += 1
+            hold = self._hold_target(q_arm)
             if self._relative_action:
-                self._target = q_arm.copy()  # the next delta starts from where the arm holds
-            self._send(q_arm, now)  # hold where it is
+                self._target = hold  # the next delta starts from where the arm holds
+            self._send(hold, now)  # hold where it is
             self._action_t_ns = None
 
     async def _astep(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
