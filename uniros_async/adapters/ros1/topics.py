@@ -335,9 +335,7 @@ class _SubscriberLink:
         if not self.queue and not transport.is_closing() and transport.get_write_buffer_size() == 0:
             # nothing waits and the socket takes it: written now, in the publisher's frame (rospy's queue_size=None),
             # not one event-loop round later by the write task
-            self.writer.write(frame)
-            self.bytes += len(frame)
-            self.count += 1
+            self._write(frame)
             return
         if len(self.queue) >= self.pub.queue_size:
             # A slow subscriber loses its oldest frames, so it neither blocks the others nor grows memory.
@@ -351,16 +349,18 @@ class _SubscriberLink:
         self.queue.append(frame)
         self.ready.set()
 
+    def _write(self, frame: bytes) -> None:
+        self.writer.write(frame)
+        self.bytes += len(frame)
+        self.count += 1
+
     async def write_loop(self) -> None:
         try:
             while True:
                 await self.ready.wait()
                 self.ready.clear()
                 while self.queue:
-                    frame = self.queue.popleft()
-                    self.writer.write(frame)
-                    self.bytes += len(frame)
-                    self.count += 1
+                    self._write(self.queue.popleft())
                     await self.writer.drain()
         except OSError as exc:
             logger.debug("%s: subscriber %s went away (%r)", self.pub.topic, self.callerid, exc)
