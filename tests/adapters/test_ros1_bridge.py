@@ -261,7 +261,9 @@ def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> Non
 
     arm = fake_arm("rx200")
     port = ros_master.rstrip("/").rsplit(":", 1)[1]
-    env = gym.make("uniros/Rx200Reach-v0", robot=f"ros1://127.0.0.1:{port}", reward_type="dense")
+    env = gym.make(
+        "uniros/Rx200Reach-v0", robot=f"ros1://127.0.0.1:{port}", reward_type="dense", action_mode="absolute"
+    )
     try:
         obs, info = env.reset(seed=0)
         assert np.all(np.isfinite(obs))

@@ -31,7 +31,9 @@ def drive_to_goal(env: gym.Env, seed: int, max_steps: int) -> tuple[float, dict]
 
 
 def ik_action(env: gym.Env) -> np.ndarray:
+    """The goal's IK solution as an absolute joint-target action (for envs made with ``action_mode="absolute"``)."""
     u = env.unwrapped
+    assert u.action_mode == "absolute", "ik_action is a joint target: make the env with action_mode='absolute'"
     q, ok = u.kin.ik(u.goal)
     assert ok, f"goal {u.goal} unreachable"
     return (2 * (q - u._lower) / (u._upper - u._lower) - 1).astype(np.float32)
@@ -52,7 +54,7 @@ def test_gymnasium_and_sb3_checkers(env_id: str, reward_type: str) -> None:
 
 @pytest.mark.parametrize("env_id", ["uniros/Rx200Reach-v0", "uniros/Ned2ReachGoal-v0"])
 def test_ik_action_reaches_the_goal_in_real_time(env_id: str) -> None:
-    env = gym.make(env_id, action_cycle_s=0.4)
+    env = gym.make(env_id, action_cycle_s=0.4, action_mode="absolute")
     try:
         reward, info = drive_to_goal(env, seed=3, max_steps=10)
         assert info["is_success"], info
@@ -135,7 +137,7 @@ def test_bad_actions_and_call_order() -> None:
 
 
 def test_unsafe_action_is_not_sent() -> None:
-    env = gym.make("uniros/Rx200Reach-v0", action_cycle_s=0.2, clock="sim")
+    env = gym.make("uniros/Rx200Reach-v0", action_cycle_s=0.2, clock="sim", action_mode="absolute")
     u = env.unwrapped
     try:
         env.reset(seed=0)
@@ -163,7 +165,7 @@ def test_unknown_kwargs_are_a_clear_error() -> None:
 
 
 def test_same_task_on_the_emulated_real_arm_over_tcp() -> None:
-    env = gym.make("uniros/Rx200Reach-v0", robot="emulated-real", action_cycle_s=0.4)
+    env = gym.make("uniros/Rx200Reach-v0", robot="emulated-real", action_cycle_s=0.4, action_mode="absolute")
     try:
         _, info = drive_to_goal(env, seed=5, max_steps=12)
         assert info["is_success"], info
@@ -175,7 +177,7 @@ def test_accelerated_emulated_real_arm_differs_from_the_nominal_sim() -> None:
     """robot="emulated-real" with clock="sim": the emulation model in sim time, in process (for training)."""
     finals = {}
     for robot in ("sim", "emulated-real"):
-        env = gym.make("uniros/Rx200Reach-v0", robot=robot, clock="sim", emulation_seed=3)
+        env = gym.make("uniros/Rx200Reach-v0", robot=robot, clock="sim", emulation_seed=3, action_mode="absolute")
         try:
             _, info = drive_to_goal(env, seed=5, max_steps=12)
             assert info["is_success"], (robot, info)
@@ -202,7 +204,7 @@ def test_a_robot_that_stops_publishing_is_reported() -> None:
 
 
 def test_turn_based_baseline_returns_fresh_observations() -> None:
-    env = gym.make("uniros/Rx200Reach-v0", turn_based=True)
+    env = gym.make("uniros/Rx200Reach-v0", turn_based=True, action_mode="absolute")
     try:
         u = env.unwrapped
         assert u.config.clock == "sim", "turn-based mode pauses the world, so it runs on the sim clock"
@@ -312,7 +314,7 @@ def test_wall_clock_members_meet_on_one_deadline_after_a_reset(phase_ns: int) ->
 
 def test_wall_clock_turn_based_is_a_loopless_real_arm_baseline() -> None:
     """turn_based=True with clock="wall": one command per step, no env loop, returns from the newest state."""
-    env = gym.make("uniros/Rx200Reach-v0", turn_based=True, clock="wall", action_cycle_s=0.4)
+    env = gym.make("uniros/Rx200Reach-v0", turn_based=True, clock="wall", action_cycle_s=0.4, action_mode="absolute")
     try:
         u = env.unwrapped
         assert u.config.clock == "wall"
@@ -349,7 +351,7 @@ def test_goal_env_observation_holds_no_goal() -> None:
 def test_goal_reached_mid_cycle_ends_the_episode_at_that_tick() -> None:
     # a long action cycle: the IK target is reached well before the step's deadline; the tick that finds the EE
     # within tolerance ends the episode there (UniROS's real-time envs), not the end of the cycle
-    env = gym.make("uniros/Rx200Reach-v0", clock="sim", action_cycle_s=3.0)
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim", action_cycle_s=3.0, action_mode="absolute")
     u = env.unwrapped
     try:
         env.reset(seed=3)
@@ -387,7 +389,9 @@ def test_delta_action_is_applied_on_every_tick_in_real_time(turn_based: bool) ->
 def test_reset_after_success_moves_an_arm_home_that_cannot_be_teleported() -> None:
     # the emulated arm walks home; while it does, the old goal is still set and may be passed again: that must not
     # end an episode (the arm would hold where it is and never settle home)
-    env = gym.make("uniros/Rx200Reach-v0", robot="emulated-real", clock="sim", action_cycle_s=0.8)
+    env = gym.make(
+        "uniros/Rx200Reach-v0", robot="emulated-real", clock="sim", action_cycle_s=0.8, action_mode="absolute"
+    )
     u = env.unwrapped
     try:
         for seed in (3, 4):
@@ -448,5 +452,64 @@ def test_a_hold_never_commands_past_a_joint_limit() -> None:
         hold = u._hold_target(measured)
         np.testing.assert_array_equal(hold, [hi[0], lo[1], 0.2, hi[3], 0.0])
         assert u.safety.check(hold) is None or "limit" not in u.safety.check(hold)
+    finally:
+        env.close()
+
+
+def test_registered_defaults_are_joint_deltas_and_uniros_goal_box() -> None:
+    """``gym.make(id)`` gives joint-delta actions, the dense reward and UniROS's goal box (the defaults that learn,
+    docs/results.md); UniROS's absolute joint targets stay one keyword away."""
+    from uniros_async.tasks.reach import GOAL_BOXES
+
+    for env_id, arm in (("uniros/Rx200Reach-v0", "rx200"), ("uniros/Ned2Reach-v0", "ned2")):
+        env = gym.make(env_id, clock="sim")
+        try:
+            u = env.unwrapped
+            assert (u.action_mode, u.reward_type, u.goal_space) == ("delta", "dense", "uniros-box")
+            np.testing.assert_array_equal(u.goal_min, GOAL_BOXES[arm][0])
+            np.testing.assert_array_equal(u.goal_max, GOAL_BOXES[arm][1])
+        finally:
+            env.close()
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim", action_mode="absolute")
+    try:
+        assert env.unwrapped.action_mode == "absolute"
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", ["uniros/Rx200Reach-v0", "uniros/Ned2ReachGoal-v0"])
+def test_workspace_goals_cover_the_reachable_workspace(env_id: str) -> None:
+    """``goal_space="workspace"``: goals spread over the whole workspace box (far beyond UniROS's box), each one
+    the arm can reach (its IK solution is safe and puts the EE on the goal)."""
+    from uniros_async.tasks.reach import GOAL_BOXES, WORKSPACE_BOXES
+
+    arm = "rx200" if "Rx200" in env_id else "ned2"
+    env = gym.make(env_id, clock="sim", goal_space="workspace")
+    try:
+        u = env.unwrapped
+        np.testing.assert_array_equal(u.goal_min, WORKSPACE_BOXES[arm][0])
+        np.testing.assert_array_equal(u.goal_max, WORKSPACE_BOXES[arm][1])
+        rng = np.random.default_rng(0)
+        goals = np.array([u.sample_goal(rng) for _ in range(60)])
+        assert np.all(goals >= u.goal_min) and np.all(goals <= u.goal_max)
+        uniros_max = np.asarray(GOAL_BOXES[arm][1])
+        assert np.any(goals[:, 0] > uniros_max[0] + 0.05) and np.any(np.abs(goals[:, 1]) > uniros_max[1] + 0.1)
+        for g in goals[:10]:
+            q, ok = u.kin.ik(g, rng=rng)
+            assert ok and u.safety.check(q) is None
+            assert np.linalg.norm(u.kin.ee_position(q) - g) < 1e-3
+        env.reset(seed=1)
+        assert np.all(u.goal >= u.goal_min) and np.all(u.goal <= u.goal_max)
+    finally:
+        env.close()
+
+
+def test_goal_space_and_an_unreachable_box_are_clear_errors() -> None:
+    with pytest.raises(ConfigError, match=r"goal_space must be one of \('uniros-box', 'workspace'\), got 'room'"):
+        gym.make("uniros/Rx200Reach-v0", clock="sim", goal_space="room")
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim", goal_min=[2.0, 2.0, 2.0], goal_max=[2.1, 2.1, 2.1])
+    try:
+        with pytest.raises(ConfigError, match="no reachable goal in the box"):
+            env.unwrapped.sample_goal(np.random.default_rng(0), max_tries=5)
     finally:
         env.close()

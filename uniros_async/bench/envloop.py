@@ -55,7 +55,9 @@ def _run_one(arm: str, cfg: EnvLoopBenchConfig, out: dict[str, Series], bar: Any
     import uniros_async  # noqa: F401
 
     agent = ScriptedReachAgent(arm, think_ms=cfg.think_ms, seed=cfg.seed)
-    env = gym.make(ENVS[arm], robot=cfg.robot, action_cycle_s=cfg.action_cycle_s, max_episode_steps=10**9)
+    env = gym.make(  # absolute targets: the scripted agent's actions are joint targets
+        ENVS[arm], robot=cfg.robot, action_cycle_s=cfg.action_cycle_s, action_mode="absolute", max_episode_steps=10**9
+    )
     try:
         env.reset(seed=cfg.seed)
         u: Any = env.unwrapped  # a ReachEnv

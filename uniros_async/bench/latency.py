@@ -361,7 +361,12 @@ def _run_learner_scenario(
     from uniros_async.runtime import make_vec
 
     labels = [(_env_label(e, r), _env_label(e, r)) for e, r in specs]
-    vec = make_vec([(e, {"robot": r}) for e, r in specs], action_cycle_s=cfg.action_cycle_s, call_timeout_s=60.0)
+    vec = make_vec(  # absolute targets, as the recorded figures were measured (the task default is deltas)
+        [(e, {"robot": r}) for e, r in specs],
+        action_cycle_s=cfg.action_cycle_s,
+        action_mode="absolute",
+        call_timeout_s=60.0,
+    )
     try:
         out: list[Series] = []
         for name in cfg.run_learners:
@@ -381,7 +386,8 @@ def _run_scripted(
     from uniros_async.runtime import make
 
     agent = ScriptedReachAgent("rx200", think_ms=cfg.think_ms, seed=cfg.seed)
-    env: Any = make(RX200, **env_kwargs)  # a ProxyEnv: its call() reaches the env in the worker
+    # a ProxyEnv (its call() reaches the env in the worker); absolute targets: the scripted agent aims at points
+    env: Any = make(RX200, **{"action_mode": "absolute", **env_kwargs})
     try:
         env.reset(seed=cfg.seed)
         env.call("timing_snapshot", clear=True)

@@ -74,7 +74,7 @@ def _episodes(n: int) -> list[float]:
 
     import uniros_async  # noqa: F401
 
-    env = gym.make("uniros/Rx200Reach-v0", clock="sim", max_episode_steps=10**9)
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim", action_mode="absolute", max_episode_steps=10**9)
     out = []
     try:
         env.reset(seed=0)

@@ -56,7 +56,8 @@ __all__ = ["IMPLS", "ThroughputBenchConfig", "main"]
 
 IMPLS = ("uniros", "gymnasium-async", "sb3-subproc")
 ENV_ID = "uniros/Rx200Reach-v0"
-ENV_KW: dict[str, Any] = {"turn_based": True, "max_episode_steps": 10**9}
+# absolute joint targets: the action mode the recorded figures were measured with (the task default is deltas)
+ENV_KW: dict[str, Any] = {"turn_based": True, "action_mode": "absolute", "max_episode_steps": 10**9}
 TRIVIAL_ID = "CartPole-v1"
 QUIET_S = 0.001
 """Untimed pause before each block of the trivial env's interleaved rows: longer than a worker's poll for its next
