@@ -4,7 +4,7 @@
     uniros train --env uniros/Rx200Reach-v0 --steps 10000 [--env-kwargs '{reward_type: dense}']
     uniros train --resume --run-dir runs/NAME            (the run's own config.yaml)
     uniros eval CHECKPOINT --env ID [--robot emulated-real] [--env-kwargs YAML] --episodes 200 [--json PATH]
-    uniros plot RUN_DIR [RUN_DIR ...] [--out PNG] [--labels ...]
+    uniros plot RUN_DIR [RUN_DIR ...] [--out PNG] [--labels ...] [--x steps|minutes]
 
 ``main`` functions take parsed values, not argparse (house style: the bench CLI keeps ``main(config)`` apart).
 """
@@ -77,6 +77,12 @@ def add_parsers(subparsers: Any) -> None:
     p.add_argument("--labels", nargs="+", default=None, help="one legend label per run")
     p.add_argument("--window", type=int, default=20, help="episodes per moving average (default 20)")
     p.add_argument("--title", default=None)
+    p.add_argument(
+        "--x",
+        choices=("steps", "minutes"),
+        default="steps",
+        help="x axis: env steps (default) or wall-clock minutes since training started (real-time runs)",
+    )
 
 
 def _yaml_value(text: str, what: str) -> Any:
@@ -213,7 +219,7 @@ def _run_eval(args: argparse.Namespace) -> int:
 def _run_plot(args: argparse.Namespace) -> int:
     from uniros_async.training.plot import plot_runs
 
-    out = plot_runs(args.run_dirs, out=args.out, labels=args.labels, window=args.window, title=args.title)
+    out = plot_runs(args.run_dirs, out=args.out, labels=args.labels, window=args.window, title=args.title, x=args.x)
     print(f"wrote {out}")
     return 0
 

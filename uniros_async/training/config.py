@@ -160,10 +160,12 @@ class AsyncLearnerConfig:
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class EvalConfig:
-    """Periodic evaluation (deterministic policy) on every training env, or on ``envs`` if given."""
+    """Periodic evaluation (deterministic policy) on every training env, or on ``envs`` if given; the evaluation at
+    the end of the run takes ``final_episodes`` episodes per env (default: ``episodes``)."""
 
     every_steps: int = 1000
     episodes: int = 20
+    final_episodes: int | None = None
     envs: tuple[EnvEntry, ...] = ()
 
     def __post_init__(self) -> None:
@@ -171,6 +173,8 @@ class EvalConfig:
             raise ConfigError(f"eval.every_steps must be >= 0 (0: never), got {self.every_steps}")
         if self.episodes < 1:
             raise ConfigError(f"eval.episodes must be >= 1, got {self.episodes}")
+        if self.final_episodes is not None and self.final_episodes < 1:
+            raise ConfigError(f"eval.final_episodes must be >= 1 (or absent), got {self.final_episodes}")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -200,6 +204,11 @@ class TrainConfig:
         placement: ``inprocess`` (envs in the agent's process: fastest with accelerated sim) or ``workers``
             (each env in a worker process through ``uniros_async.make``).
         learner: ``sync`` (SB3 TD3: collect, then update) or ``async`` (AsyncTD3: updates beside collection).
+        concurrent: every env acts in every step (training/concurrent.py): the envs run as one vector env over
+            worker processes (needs ``placement: workers``), each step gives every env an action, all their
+            transitions go to the one replay buffer, and evaluation steps them all at once; for real-time
+            (``clock: wall``) envs, where sampling one env per episode leaves the other arms idle. Off: one env
+            sampled per episode (the paper's Algorithm 1).
         replay_buffer: ``auto`` (HER for goal envs, plain replay otherwise), ``standard`` or ``her``.
         task_id_in_obs: append a one-hot env index to observations (multi-task only; off as in the paper).
         drop_observation: indices of the vector observation (the ``observation`` key of a goal env) to remove
@@ -210,6 +219,8 @@ class TrainConfig:
             ``achieved_goal`` and ``desired_goal`` keys), clipped to +-10 std; rewards are not normalised. The
             replay buffer keeps raw observations (normalised when sampled); the statistics are saved with every
             checkpoint, restored on resume and used, frozen, by every evaluation. Off by default.
+        max_wall_s: stop training after this many seconds of wall time (then evaluate and save as at
+            ``total_steps``): the budget of a real-time run, whose steps per hour depend on the learner.
         torch_threads: torch intra-op threads (1: envs share the machine; design.md section 9).
         run_dir: where logs and checkpoints go (default ``runs/<name>``).
     """
@@ -221,6 +232,7 @@ class TrainConfig:
     env_defaults: dict[str, Any] = dataclasses.field(default_factory=lambda: {"clock": "sim"})
     placement: str = "inprocess"
     learner: str = "sync"
+    concurrent: bool = False
     replay_buffer: str = "auto"
     task_id_in_obs: bool = False
     drop_observation: tuple[int, ...] = ()
@@ -230,6 +242,7 @@ class TrainConfig:
     async_learner: AsyncLearnerConfig = dataclasses.field(default_factory=AsyncLearnerConfig)
     eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
     checkpoint: CheckpointConfig = dataclasses.field(default_factory=CheckpointConfig)
+    max_wall_s: float | None = None
     torch_threads: int = 1
     run_dir: str | None = None
     progress_bar: bool = True
@@ -248,6 +261,8 @@ class TrainConfig:
                 raise ConfigError(f"{key} must be one of {choices}, got {getattr(self, key)!r}")
         if not isinstance(self.env_defaults, dict):
             raise ConfigError(f"env_defaults must be a mapping, got {type(self.env_defaults).__name__}")
+        if self.max_wall_s is not None and not (isinstance(self.max_wall_s, int | float) and self.max_wall_s > 0):
+            raise ConfigError(f"max_wall_s must be a number of seconds > 0 (or absent), got {self.max_wall_s!r}")
         if self.torch_threads < 1:
             raise ConfigError(f"torch_threads must be >= 1, got {self.torch_threads}")
         labels = self.labels()
@@ -261,6 +276,19 @@ class TrainConfig:
             raise ConfigError(f"normalize_obs must be true or false, got {self.normalize_obs!r}")
         if self.task_id_in_obs and len(self.envs) < 2:
             raise ConfigError("task_id_in_obs needs two or more envs")
+        if not isinstance(self.concurrent, bool):
+            raise ConfigError(f"concurrent must be true or false, got {self.concurrent!r}")
+        if self.concurrent:
+            if self.placement != "workers":
+                raise ConfigError(
+                    f"concurrent: true steps the envs as one vector env over worker processes; it needs "
+                    f"placement: workers, got placement: {self.placement}"
+                )
+            for key in ("task_id_in_obs", "drop_observation"):
+                if getattr(self, key):
+                    raise ConfigError(f"concurrent: true does not support {key} (the envs are padded alike)")
+            if self.eval.envs:
+                raise ConfigError("concurrent: true evaluates on the training envs; remove eval.envs")
         if self.async_learner.action_l2 and self.learner != "async":
             raise ConfigError(
                 f"async_learner.action_l2={self.async_learner.action_l2} needs learner: async (AsyncTD3's update; "

@@ -1,5 +1,6 @@
 """Learning curves of runs, as in the UniROS paper's figures: mean episode length, mean return and success rate
-against env steps, one panel each, written to PNG.
+against env steps (or, ``x="minutes"``, against wall-clock minutes since training started: real-time runs), one
+panel each, written to PNG.
 
 Training curves are moving averages over ``window`` training episodes (episodes.csv, with exploration noise);
 evaluation points (eval.csv: the deterministic policy on fresh episodes) are drawn as dots joined by a dashed
@@ -19,6 +20,7 @@ from uniros_async.errors import ConfigError
 
 __all__ = ["plot_runs", "read_curves"]
 
+X_AXES = {"steps": ("step", 1.0), "minutes": ("wall_s", 1 / 60)}  # x: the logs' column and its scale
 PANELS = (
     ("length", "mean_length", "mean episode length"),
     ("return", "mean_return", "mean return"),
@@ -49,12 +51,12 @@ def read_curves(run_dir: str | Path) -> tuple[dict[str, dict[str, np.ndarray]], 
         for r in rows:
             g = out.setdefault(r["task"], {c: [] for c in cols})
             for c in cols:
-                g[c].append(float(r[c]))
+                g[c].append(float(r[c]) if r.get(c) not in (None, "") else np.nan)  # runs older than a column
         return {t: {c: np.asarray(v) for c, v in g.items()} for t, g in out.items()}
 
     return (
-        group(eps, ("step", "return", "length", "success")),
-        group(evs, ("step", "success_rate", "mean_return", "mean_length")),
+        group(eps, ("step", "return", "length", "success", "wall_s")),
+        group(evs, ("step", "success_rate", "mean_return", "mean_length", "wall_s")),
     )
 
 
@@ -73,6 +75,7 @@ def plot_runs(
     labels: Sequence[str] | None = None,
     window: int = 20,
     title: str | None = None,
+    x: str = "steps",
 ) -> Path:
     """Draw the three panels for every run (and task) into one PNG; returns its path.
 
@@ -80,9 +83,12 @@ def plot_runs(
         out: PNG path; default ``<first run>/curves.png``.
         labels: a legend label per run (default: the directory names).
         window: training episodes per moving average.
+        x: ``"steps"`` (env steps, summed over the envs of a run) or ``"minutes"`` (wall-clock minutes since
+            training started, from the logs' ``wall_s``).
 
     Raises:
-        ConfigError: a directory without logs, or a label count that does not match the runs.
+        ConfigError: a directory without logs, a label count that does not match the runs, or ``x="minutes"`` for
+            a run whose logs have no wall-clock times.
     """
     import matplotlib
 
@@ -93,8 +99,15 @@ def plot_runs(
         raise ConfigError(f"--labels: {len(labels)} labels for {len(run_dirs)} runs")
     if window < 1:
         raise ConfigError(f"window must be >= 1, got {window}")
+    if x not in X_AXES:
+        raise ConfigError(f"x must be one of {tuple(X_AXES)}, got {x!r}")
+    xcol, xscale = X_AXES[x]
     names = list(labels) if labels else [Path(r).name for r in run_dirs]
     curves = [read_curves(r) for r in run_dirs]
+    if x == "minutes":
+        for run, (eps, evs) in zip(run_dirs, curves, strict=True):
+            if any(np.isnan(g["wall_s"]).any() for g in [*eps.values(), *evs.values()]):
+                raise ConfigError(f"{str(run)!r}: its logs have no wall_s column (a run older than it); use x='steps'")
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
     colors: Any = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     k = 0
@@ -107,11 +120,13 @@ def plot_runs(
             e, v = eps.get(task), evs.get(task)
             for ax, (col, ecol, _) in zip(axes, PANELS, strict=True):
                 if e is not None and len(e["step"]):
-                    ax.plot(e["step"], _moving(e[col], window), color=color, lw=1.4, label=f"{lab} (train)")
+                    ex = e[xcol] * xscale
+                    ax.plot(ex, _moving(e[col], window), color=color, lw=1.4, label=f"{lab} (train)")
                 if v is not None and len(v["step"]):
-                    ax.plot(v["step"], v[ecol], color=color, lw=0.9, ls="--", marker="o", ms=3, label=f"{lab} (eval)")
+                    vx = v[xcol] * xscale
+                    ax.plot(vx, v[ecol], color=color, lw=0.9, ls="--", marker="o", ms=3, label=f"{lab} (eval)")
     for ax, (_, _, ylabel) in zip(axes, PANELS, strict=True):
-        ax.set_xlabel("env steps")
+        ax.set_xlabel("env steps" if x == "steps" else "wall-clock minutes")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[2].set_ylim(-0.02, 1.02)

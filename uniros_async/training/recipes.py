@@ -4,14 +4,20 @@ evaluation, TensorBoard logs, CSV learning curves and atomic checkpoints; ``trai
 A run directory holds::
 
     config.yaml      the resolved config (``uniros train --resume --run-dir DIR`` reads it back)
-    episodes.csv     one row per training episode: step, task, return, length, success
-    eval.csv         one row per evaluation and env: step, task, success_rate, mean_return, mean_length, episodes
+    episodes.csv     one row per training episode: step, task, return, length, success, wall_s
+    eval.csv         one row per evaluation and env: step, task, success_rate, mean_return, mean_length, episodes,
+                     wall_s (seconds since training started, for curves against wall-clock time)
     final_eval.json  the last evaluation, per env
+    timing.csv       (``concurrent`` runs) per timing window and env: the action cycle, actuator cycle and
+                     observation age (median, IQR, p99, count, in ms) while training
+    timing.json      (``concurrent`` runs) the same over the whole run, env steps and env steps per wall hour
     tb/              TensorBoard (SB3's scalars plus train/success_rate/<env> and eval/*/<env>)
     checkpoints/     see checkpoint.py
 
 Every env goes through ``TaskSamplerEnv`` (multitask.py): with one env it only tags infos; with several it is the
-paper's Algorithm 1 (an env sampled per episode, one replay buffer, one policy). Interruption (Ctrl-C, SIGTERM,
+paper's Algorithm 1 (an env sampled per episode, one replay buffer, one policy). With ``concurrent: true`` the envs
+instead run as one vector env over worker processes (concurrent.py): every env acts in every step, and the
+evaluation steps them all at once. Interruption (Ctrl-C, SIGTERM,
 a dead worker) stops the run and leaves the last checkpoint intact; ``train(cfg, resume=True)`` continues from it
 (model, optimisers, step counter, action noise and replay buffer; the env starts a fresh episode).
 
@@ -30,11 +36,12 @@ import dataclasses
 import json
 import logging
 import signal
+import sys
 import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -54,15 +61,22 @@ from uniros_async.training.checkpoint import (
     save_checkpoint,
 )
 from uniros_async.training.config import TrainConfig, config_to_dict
-from uniros_async.training.evaluate import EvalResult, evaluate_policy
+from uniros_async.training.evaluate import EvalResult, evaluate_policy, evaluate_vec_policy
 from uniros_async.training.multitask import TaskIdObservation, TaskSamplerEnv, build_env, space_sizes
+
+if TYPE_CHECKING:
+    from uniros_async.training.concurrent import ConcurrentVecEnv
 
 __all__ = ["TrainResult", "TrainingInterrupted", "build_model", "build_train_env", "train"]
 
 logger = logging.getLogger(__name__)
 
-EPISODE_FIELDS = ("step", "task", "return", "length", "success")
-EVAL_FIELDS = ("step", "task", "success_rate", "mean_return", "mean_length", "episodes")
+EPISODE_FIELDS = ("step", "task", "return", "length", "success", "wall_s")
+EVAL_FIELDS = ("step", "task", "success_rate", "mean_return", "mean_length", "episodes", "wall_s")
+TIMING_FIELDS = ("step", "wall_s", "task", "metric", "median_ms", "iqr_ms", "p99_ms", "count")
+# vector steps between two reads of the envs' timing records in a concurrent run (200 s at 0.8 s per step); the
+# read, a round trip per worker, falls between two steps whose period is in neither window
+TIMING_WINDOW_STEPS = 250
 
 
 class TrainingInterrupted(UnirosError):
@@ -94,6 +108,7 @@ class EnvLayout:
     obs_size: int
     action_size: int
     labels: tuple[str, ...]
+    n_envs: int = 1
 
 
 # ---------------------------------------------------------------- envs
@@ -147,6 +162,35 @@ def build_train_env(cfg: TrainConfig) -> tuple[TaskSamplerEnv, EnvLayout]:
     return sampler, layout
 
 
+def build_concurrent_env(cfg: TrainConfig) -> tuple[ConcurrentVecEnv, EnvLayout]:
+    """The training envs as one ConcurrentVecEnv over worker processes (``concurrent: true``) and their layout.
+
+    Raises:
+        ConfigError: unknown ids or arguments, or mixed goal and standard envs.
+        WorkerError: a worker failed to start.
+    """
+    from uniros_async.training.concurrent import open_concurrent_env
+
+    venv = open_concurrent_env(cfg.env_specs())
+    try:
+        goal = isinstance(venv.observation_space, gym.spaces.Dict)
+        box = venv.observation_space["observation"] if goal else venv.observation_space  # type: ignore[index]
+        obs_size, act_size = int(box.shape[0]), int(venv.action_space.shape[0])  # type: ignore[index]
+    except BaseException:
+        venv.close()
+        raise
+    layout = EnvLayout(
+        pad_to=(obs_size, act_size) if len(cfg.envs) > 1 else None,
+        task_id_size=0,
+        goal_env=goal,
+        obs_size=obs_size,
+        action_size=act_size,
+        labels=tuple(cfg.labels()),
+        n_envs=venv.num_envs,
+    )
+    return venv, layout
+
+
 def build_eval_envs(cfg: TrainConfig, layout: EnvLayout) -> list[tuple[str, str, gym.Env[Any, Any]]]:
     """(label, id, env) for every evaluation env, shaped as the training envs."""
     from uniros_async.envs.wrappers import PadSpaces
@@ -190,7 +234,7 @@ def _use_her(cfg: TrainConfig, layout: EnvLayout) -> bool:
 def _algo_class(cfg: TrainConfig) -> type:
     if cfg.learner == "async":
         try:
-            from uniros_async.training.async_td3 import AsyncTD3  # lazy: another module of issue 6
+            from uniros_async.training.async_td3 import AsyncTD3  # lazy: it imports torch at once
         except ImportError as exc:
             raise ConfigError(f"learner: async needs uniros_async.training.async_td3 ({exc})") from exc
         return AsyncTD3
@@ -201,9 +245,14 @@ def _algo_class(cfg: TrainConfig) -> type:
 
 def model_kwargs(cfg: TrainConfig, layout: EnvLayout, run_dir: Path) -> dict[str, Any]:
     """SB3 TD3 constructor arguments from the config (the policy and env excluded)."""
-    from stable_baselines3.common.noise import NormalActionNoise
+    from stable_baselines3.common.noise import NormalActionNoise, VectorizedActionNoise
 
     t = cfg.td3
+    noise: Any = None
+    if t.action_noise_std > 0:
+        noise = NormalActionNoise(np.zeros(layout.action_size), np.full(layout.action_size, t.action_noise_std))
+        if layout.n_envs > 1:  # a draw of its own for every env (one noise broadcast to all would be correlated)
+            noise = VectorizedActionNoise(noise, layout.n_envs)
     kw: dict[str, Any] = {
         "learning_rate": t.learning_rate,
         "buffer_size": t.buffer_size,
@@ -217,11 +266,7 @@ def model_kwargs(cfg: TrainConfig, layout: EnvLayout, run_dir: Path) -> dict[str
         "target_policy_noise": t.target_policy_noise,
         "target_noise_clip": t.target_noise_clip,
         "policy_kwargs": {"net_arch": list(t.net_arch)},
-        "action_noise": (
-            NormalActionNoise(np.zeros(layout.action_size), np.full(layout.action_size, t.action_noise_std))
-            if t.action_noise_std > 0
-            else None
-        ),
+        "action_noise": noise,
         "tensorboard_log": str(run_dir / "tb"),
         "seed": cfg.seed,
         "device": "cpu",
@@ -251,13 +296,16 @@ GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
 OBS_CLIP = 10.0  # VecNormalize's default, rl-baselines3-zoo's with ``normalize: true``
 
 
-def _vec_env(cfg: TrainConfig, env: gym.Env[Any, Any], layout: EnvLayout, resume_from: Path | None = None) -> Any:
+def _vec_env(cfg: TrainConfig, env: Any, layout: EnvLayout, resume_from: Path | None = None) -> Any:
     """The training VecEnv: Monitor, DummyVecEnv, local HER rewards for workers, and with ``normalize_obs`` a
     VecNormalize on top (fresh, or the statistics of the checkpoint ``resume_from``)."""
     from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize
 
-    vec: Any = DummyVecEnv([lambda: Monitor(env, info_keywords=("is_success",))])
+    if cfg.concurrent:
+        vec: Any = VecMonitor(env, info_keywords=("is_success",))
+    else:
+        vec = DummyVecEnv([lambda: Monitor(env, info_keywords=("is_success",))])
     if cfg.placement == "workers" and _use_her(cfg, layout):
         # HER relabels batches of goals through env_method("compute_reward"): answer it here, not in the workers
         try:
@@ -304,6 +352,8 @@ class _CsvLog:
         if keep_until_step is not None and path.is_file():
             with open(path, newline="") as f:
                 rows = [r for r in csv.DictReader(f) if int(float(r["step"])) <= keep_until_step]
+        self.kept_wall_s = [float(r["wall_s"]) for r in rows if r.get("wall_s")]
+        """The ``wall_s`` of the rows kept (a resumed run's wall clock goes on from their largest)."""
         self._f = open(path, "w", newline="")  # noqa: SIM115 (closed in close())
         self._w = csv.DictWriter(self._f, fieldnames=list(fields))
         self._w.writeheader()
@@ -319,27 +369,189 @@ class _CsvLog:
         self._f.close()
 
 
-def _make_callback(
-    cfg: TrainConfig,
-    run_dir: Path,
-    layout: EnvLayout,
-    eval_envs: list[tuple[str, str, gym.Env[Any, Any]]],
-    episodes_log: _CsvLog,
-    eval_log: _CsvLog,
-    state: dict[str, Any],
-    progress: bool,
-) -> Any:
+class _Run:
+    """What the callback and ``train`` share: the logs, the evaluation, the wall clock and (concurrent runs) the
+    envs' timing."""
+
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        run_dir: Path,
+        layout: EnvLayout,
+        eval_envs: list[tuple[str, str, gym.Env[Any, Any]]],
+        concurrent: ConcurrentVecEnv | None,
+        episodes_log: _CsvLog,
+        eval_log: _CsvLog,
+        timing_log: _CsvLog | None,
+        wall_offset_s: float,
+    ) -> None:
+        self.cfg = cfg
+        self.run_dir = run_dir
+        self.layout = layout
+        self.eval_envs = eval_envs
+        self.concurrent = concurrent
+        self.episodes_log = episodes_log
+        self.eval_log = eval_log
+        self.timing_log = timing_log
+        self.wall_offset_s = wall_offset_s
+        self.t0 = time.monotonic()
+        self.eval_s = 0.0  # wall time spent evaluating
+        self.checkpoint: Path | None = None
+        self.last_eval: list[EvalResult] = []
+        self.last_eval_step: int | None = None
+        self.windows: dict[str, collections.deque[bool]] = {lab: collections.deque(maxlen=50) for lab in layout.labels}
+
+    def wall_s(self) -> float:
+        """Seconds of training so far (on resume, counted on from the kept rows)."""
+        return self.wall_offset_s + time.monotonic() - self.t0
+
+    def evaluate(self, model: Any, step: int, sb3_logger: Any, *, training_goes_on: bool = True) -> list[EvalResult]:
+        """Evaluate (``_run_eval``) and remember the results."""
+        self.last_eval = _run_eval(model, step, self, sb3_logger, training_goes_on=training_goes_on)
+        self.last_eval_step = step
+        return self.last_eval
+
+    def timing(self, step: int) -> dict[str, dict[str, list[float]]]:
+        """Close the concurrent envs' timing window: one timing.csv row per env and metric."""
+        if self.concurrent is None or self.timing_log is None:
+            return {}
+        from uniros_async.bench.stats import summary
+
+        window = self.concurrent.timing_window()
+        wall = round(self.wall_s(), 1)
+        for label, metrics in window.items():
+            for metric, samples in metrics.items():
+                st = summary(samples)
+                self.timing_log.write(
+                    step=step,
+                    wall_s=wall,
+                    task=label,
+                    metric=metric,
+                    median_ms=_num(st["p50"]),
+                    iqr_ms=_num(st["iqr"]),
+                    p99_ms=_num(st["p99"]),
+                    count=int(st["count"]),
+                )
+        return window
+
+    def progress_line(self, step: int, window: dict[str, dict[str, list[float]]]) -> str:
+        """One line: steps, wall time, env steps per hour, success per env (last 50 training episodes), action
+        cycle per env (this window's median and IQR)."""
+        from uniros_async.bench.stats import summary
+
+        wall = self.wall_s()
+        per_h = step / wall * 3600 if wall > 0 else 0.0
+        parts = [f"[{self.cfg.name}] step {step}, {wall / 60:.1f} min, {per_h:.0f} env steps/h"]
+        for label in self.layout.labels:
+            w = self.windows.get(label)
+            ok = f"{100 * np.mean(w):.0f}%" if w else "-"
+            cyc = summary(window.get(label, {}).get("action_cycle", []))
+            cycle = f", cycle {cyc['p50']:.1f}/{cyc['iqr']:.2f} ms" if cyc["count"] else ""
+            parts.append(f"{label} {ok}{cycle}")
+        return "; ".join(parts)
+
+    def write_timing_summary(self, step: int) -> None:
+        """timing.json: env steps, wall time, env steps per wall hour and each env's timing over the run."""
+        if self.concurrent is None:
+            return
+        from uniros_async.bench.stats import summary
+
+        wall = self.wall_s()
+        out = {
+            "env_steps": step,
+            "wall_s": round(wall, 1),
+            "eval_wall_s": round(self.eval_s, 1),
+            "env_steps_per_wall_hour": round(step / wall * 3600, 1) if wall > 0 else None,
+            "learner": self.cfg.learner,
+            "envs": {
+                label: {
+                    "step_overruns": self.concurrent.step_overruns[label],
+                    **{
+                        metric: {k: _num(v) for k, v in summary(samples).items()}
+                        for metric, samples in self.concurrent.samples[label].items()
+                    },
+                }
+                for label in self.concurrent.labels
+            },
+        }
+        (self.run_dir / "timing.json").write_text(json.dumps(out, indent=2))
+
+
+def _run_eval(model: Any, step: int, run: _Run, sb3_logger: Any, *, training_goes_on: bool = True) -> list[EvalResult]:
+    """Evaluate on every eval env (concurrent runs: on the training envs, all at once, then, if
+    ``training_goes_on``, reset them for training); rows to eval.csv, scalars to TensorBoard (when ``sb3_logger``
+    is given)."""
+    t0 = time.monotonic()
+    seed = run.cfg.seed + 10_000 + step
+    episodes = run.cfg.eval.episodes
+    if not training_goes_on and run.cfg.eval.final_episodes is not None:
+        episodes = run.cfg.eval.final_episodes
+    if run.concurrent is not None:
+        run.timing(step)  # the training window ends here: the evaluation's steps are not training's
+        results = evaluate_vec_policy(
+            model,
+            run.concurrent.venv,
+            episodes,
+            run.concurrent.labels,
+            seed=seed,
+            env_ids=[i for _, i, _ in run.cfg.env_specs()],
+        )
+        if training_goes_on:
+            _restart_training_episodes(model)
+    else:
+        results = [
+            evaluate_policy(model, env, episodes, seed=seed, label=label, env_id=env_id)
+            for label, env_id, env in run.eval_envs
+        ]
+    run.eval_s += time.monotonic() - t0
+    wall = round(run.wall_s(), 1)
+    for r in results:
+        run.eval_log.write(
+            step=step,
+            task=r.label,
+            success_rate=round(r.success_rate, 4),
+            mean_return=round(r.mean_return, 4),
+            mean_length=round(r.mean_length, 2),
+            episodes=r.episodes,
+            wall_s=wall,
+        )
+        if sb3_logger is not None:
+            sb3_logger.record(f"eval/success_rate/{r.label}", r.success_rate)
+            sb3_logger.record(f"eval/mean_return/{r.label}", r.mean_return)
+            sb3_logger.record(f"eval/mean_ep_length/{r.label}", r.mean_length)
+        logger.info("step %d eval %s", step, r.summary())
+    return results
+
+
+def _num(x: float) -> float | None:
+    return round(float(x), 4) if np.isfinite(x) else None
+
+
+def _restart_training_episodes(model: Any) -> None:
+    """After an evaluation on the training envs: reset them (through the model's wrappers, so VecMonitor's
+    episode counters start afresh) and start the next transition from there."""
+    env = model.get_env()
+    model._last_obs = env.reset()
+    vec_norm = model.get_vec_normalize_env()
+    if vec_norm is not None:
+        model._last_original_obs = vec_norm.get_original_obs()
+    model._last_episode_starts = np.ones((env.num_envs,), dtype=bool)
+    if model.action_noise is not None:
+        model.action_noise.reset()
+
+
+def _make_callback(run: _Run, progress: bool) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
+    cfg, layout = run.cfg, run.layout
+
     class TrainingCallback(BaseCallback):
-        """Episode rows, success per env, progress bar, periodic evaluation and checkpoints."""
+        """Episode rows, success per env, progress, periodic evaluation, timing windows and checkpoints."""
 
         def _on_training_start(self) -> None:
-            self.windows: dict[str, collections.deque[bool]] = {
-                lab: collections.deque(maxlen=50) for lab in layout.labels
-            }
             self.bar = None
             self.last_step = self.num_timesteps
+            self.vector_steps = 0
             if progress:
                 from tqdm import tqdm
 
@@ -354,87 +566,63 @@ def _make_callback(
 
         def _on_step(self) -> bool:
             step = self.num_timesteps
+            wall = round(run.wall_s(), 1)
             for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
                 if not done:
                     continue
                 ep = info.get("episode", {})
                 task = info.get("task", layout.labels[0])
                 success = bool(info.get("is_success", False))
-                episodes_log.write(
+                run.episodes_log.write(
                     step=step,
                     task=task,
                     **{"return": round(float(ep.get("r", np.nan)), 4)},
                     length=int(ep.get("l", 0)),
                     success=int(success),
+                    wall_s=wall,
                 )
-                self.windows.setdefault(task, collections.deque(maxlen=50)).append(success)
-                self.logger.record(f"train/success_rate/{task}", float(np.mean(self.windows[task])))
+                run.windows.setdefault(task, collections.deque(maxlen=50)).append(success)
+                self.logger.record(f"train/success_rate/{task}", float(np.mean(run.windows[task])))
             if self.bar is not None:
-                self.bar.update(1)
-                if step % 200 == 0:
+                self.bar.update(step - self.bar.n)
+                if step % 200 < layout.n_envs:
                     self.bar.set_postfix_str(
-                        " ".join(f"{k}:{100 * np.mean(v):.0f}%" for k, v in self.windows.items() if v), refresh=False
+                        " ".join(f"{k}:{100 * np.mean(v):.0f}%" for k, v in run.windows.items() if v), refresh=False
                     )
-            return True
+            return cfg.max_wall_s is None or run.wall_s() < cfg.max_wall_s
 
         def _on_rollout_end(self) -> None:
             # here, not in _on_step: SB3 stores a step's transition after its callbacks ran, so a checkpoint
             # written at the end of the rollout holds every transition up to its step
             step = self.num_timesteps
             last, self.last_step = self.last_step, step
+            self.vector_steps += 1
+            if run.concurrent is not None and self.vector_steps % TIMING_WINDOW_STEPS == 0:
+                self.write(run.progress_line(step, run.timing(step)))
             if cfg.eval.every_steps and step // cfg.eval.every_steps > last // cfg.eval.every_steps:
-                state["last_eval"] = self.run_eval(self.model, step)
+                self.run_eval(self.model, step)
             if cfg.checkpoint.every_steps and step // cfg.checkpoint.every_steps > last // cfg.checkpoint.every_steps:
-                state["checkpoint"] = self.write_checkpoint(self.model, step)
+                run.checkpoint = _save(self.model, cfg, run.run_dir, layout, step)
 
         def _on_training_end(self) -> None:
             if self.bar is not None:
                 self.bar.close()
 
+        def write(self, line: str) -> None:
+            from tqdm import tqdm
+
+            tqdm.write(line, file=sys.stderr) if self.bar is None else self.bar.write(line, file=sys.stderr)
+
         def run_eval(self, model: Any, step: int) -> list[EvalResult]:
-            results = _run_eval(model, step, cfg, eval_envs, eval_log, self.logger)
-            if self.bar is not None:
-                self.bar.write(
-                    f"[{cfg.name}] step {step}: "
+            results = run.evaluate(model, step, self.logger)
+            if progress or run.concurrent is not None:
+                self.write(
+                    f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: "
                     + "; ".join(f"{r.label} {100 * r.success_rate:.0f}% len {r.mean_length:.1f}" for r in results)
                 )
-            state["last_eval_step"] = step
             return results
 
-        def write_checkpoint(self, model: Any, step: int) -> Path:
-            return _save(model, cfg, run_dir, layout, step)
-
-    cb = TrainingCallback()
-    return cb
-
-
-def _run_eval(
-    model: Any,
-    step: int,
-    cfg: TrainConfig,
-    eval_envs: list[tuple[str, str, gym.Env[Any, Any]]],
-    eval_log: _CsvLog,
-    sb3_logger: Any,
-) -> list[EvalResult]:
-    """Evaluate on every eval env; rows to eval.csv, scalars to TensorBoard (when ``sb3_logger`` is given)."""
-    results = []
-    for label, env_id, env in eval_envs:
-        r = evaluate_policy(model, env, cfg.eval.episodes, seed=cfg.seed + 10_000 + step, label=label, env_id=env_id)
-        results.append(r)
-        eval_log.write(
-            step=step,
-            task=label,
-            success_rate=round(r.success_rate, 4),
-            mean_return=round(r.mean_return, 4),
-            mean_length=round(r.mean_length, 2),
-            episodes=r.episodes,
-        )
-        if sb3_logger is not None:
-            sb3_logger.record(f"eval/success_rate/{label}", r.success_rate)
-            sb3_logger.record(f"eval/mean_return/{label}", r.mean_return)
-            sb3_logger.record(f"eval/mean_ep_length/{label}", r.mean_length)
-        logger.info("step %d eval %s", step, r.summary())
-    return results
+    return TrainingCallback()
 
 
 def _save(model: Any, cfg: TrainConfig, run_dir: Path, layout: EnvLayout, step: int) -> Path:
@@ -508,13 +696,17 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
     progress = cfg.progress_bar if progress is None else progress
     t0 = time.monotonic()
 
-    env, layout = build_train_env(cfg)
+    env: Any
+    if cfg.concurrent:
+        env, layout = build_concurrent_env(cfg)
+    else:
+        env, layout = build_train_env(cfg)
     eval_envs: list[tuple[str, str, gym.Env[Any, Any]]] = []
     logs: list[_CsvLog] = []
-    state: dict[str, Any] = {"checkpoint": ckpt}
     model: Any = None
     try:
-        eval_envs = build_eval_envs(cfg, layout)
+        if not cfg.concurrent:
+            eval_envs = build_eval_envs(cfg, layout)
         if ckpt is not None:
             meta = read_meta(ckpt)
             check_sizes(meta, layout.obs_size, layout.action_size, layout.goal_env, f"the envs of {cfg.name}")
@@ -542,7 +734,23 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
         logs.append(episodes_log)
         eval_log = _CsvLog(run_dir / "eval.csv", EVAL_FIELDS, keep_until_step=keep)
         logs.append(eval_log)
-        callback = _make_callback(cfg, run_dir, layout, eval_envs, episodes_log, eval_log, state, progress)
+        timing_log = None
+        if cfg.concurrent:
+            timing_log = _CsvLog(run_dir / "timing.csv", TIMING_FIELDS, keep_until_step=keep)
+            logs.append(timing_log)
+        run = _Run(
+            cfg,
+            run_dir,
+            layout,
+            eval_envs,
+            env if cfg.concurrent else None,
+            episodes_log,
+            eval_log,
+            timing_log,
+            wall_offset_s=max([0.0, *episodes_log.kept_wall_s, *eval_log.kept_wall_s]),
+        )
+        run.checkpoint = ckpt
+        callback = _make_callback(run, progress)
         remaining = cfg.total_steps - start
         with _sigterm_as_interrupt():
             try:
@@ -555,15 +763,19 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
                         log_interval=4,
                     )
                 step = int(model.num_timesteps)
-                if state.get("last_eval_step") != step:
+                final_n = cfg.eval.final_episodes
+                if run.last_eval_step != step or (final_n is not None and final_n != cfg.eval.episodes):
                     sb3_logger = getattr(model, "_logger", None)
-                    state["last_eval"] = _run_eval(model, step, cfg, eval_envs, eval_log, sb3_logger)
+                    run.evaluate(model, step, sb3_logger, training_goes_on=False)
                     if sb3_logger is not None:
                         sb3_logger.dump(step)
-                final_ckpt = state["checkpoint"]
+                final_ckpt = run.checkpoint
                 if final_ckpt is None or read_meta(final_ckpt).step != step:
                     final_ckpt = _save(model, cfg, run_dir, layout, step)
+                run.write_timing_summary(step)
             except KeyboardInterrupt as exc:
+                with contextlib.suppress(Exception):  # the run's timing so far; the interruption is what to report
+                    run.write_timing_summary(int(model.num_timesteps))
                 last = latest_checkpoint(run_dir)
                 then = (
                     f"last checkpoint: {last}; continue with `uniros train --resume --run-dir {run_dir}`"
@@ -573,7 +785,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
                 raise TrainingInterrupted(
                     f"{cfg.name} interrupted at step {int(model.num_timesteps)} ({exc or 'Ctrl-C'}); {then}", last
                 ) from None
-        results: list[EvalResult] = state["last_eval"]
+        results: list[EvalResult] = run.last_eval
         (run_dir / "final_eval.json").write_text(
             json.dumps({"step": step, "results": [r.to_dict() for r in results]}, indent=2)
         )

@@ -1,0 +1,109 @@
+"""Real-time concurrent multi-task training end to end, a few steps on the wall clock (not a benchmark: it asserts
+the pipeline, not timing figures): every env acts in every step, the transitions go to one replay buffer, the
+evaluation steps the envs at once, and the run records wall times and the envs' action-cycle statistics."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from uniros_async.errors import ConfigError
+from uniros_async.training.config import train_config_from_dict
+from uniros_async.training.recipes import train
+
+pytestmark = pytest.mark.slow
+
+EPISODE_STEPS = 4
+VECTOR_STEPS = 6
+CYCLE_S = 0.4
+
+
+def _cfg(run_dir: Path, learner: str, **over: Any) -> Any:
+    return train_config_from_dict(
+        {
+            "name": run_dir.name,
+            "run_dir": str(run_dir),
+            "total_steps": 2 * VECTOR_STEPS,
+            "envs": [
+                {"id": "uniros/Rx200Reach-v0", "name": "rx200_sim"},
+                {"id": "uniros/Ned2Reach-v0", "name": "ned2_real", "kwargs": {"robot": "emulated-real"}},
+            ],
+            # short episodes, so that every env ends one within the run and the evaluation is quick
+            "env_defaults": {"clock": "wall", "action_cycle_s": CYCLE_S, "max_episode_steps": EPISODE_STEPS},
+            "placement": "workers",
+            "concurrent": True,
+            "learner": learner,
+            "td3": {"learning_starts": 4, "buffer_size": 1000, "batch_size": 8, "net_arch": [16, 16]},
+            "eval": {"every_steps": 0, "episodes": 1, "final_episodes": 2},
+            "checkpoint": {"every_steps": 0},
+            "progress_bar": False,
+            **over,
+        }
+    )
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("learner", ["async", "sync"])
+def test_four_arms_train_at_once_in_real_time(tmp_path: Path, learner: str) -> None:
+    run = tmp_path / f"rt_{learner}"
+    result = train(_cfg(run, learner))
+    assert result.steps == 2 * VECTOR_STEPS
+
+    # both envs acted in every step: each ended its first episode in the same vector step (2 transitions a step)
+    episodes = _rows(run / "episodes.csv")
+    firsts = {r["task"]: r for r in reversed(episodes)}
+    assert set(firsts) == {"rx200_sim", "ned2_real"}
+    assert {int(r["step"]) for r in firsts.values()} == {2 * EPISODE_STEPS}
+    assert all(int(r["length"]) == EPISODE_STEPS for r in firsts.values())
+    # on the wall clock: the episode took its action cycles of real time
+    assert all(float(r["wall_s"]) >= (EPISODE_STEPS - 1) * CYCLE_S for r in firsts.values())
+
+    # the final evaluation ran both envs at once, its episode count per env
+    final = json.loads((run / "final_eval.json").read_text())
+    assert [(r["label"], r["episodes"]) for r in final["results"]] == [("rx200_sim", 2), ("ned2_real", 2)]
+    evals = _rows(run / "eval.csv")
+    assert {r["task"] for r in evals} == {"rx200_sim", "ned2_real"} and all(float(r["wall_s"]) > 0 for r in evals)
+
+    # the action cycle of every env was recorded while training, and env steps per wall hour
+    timing = json.loads((run / "timing.json").read_text())
+    assert timing["learner"] == learner and timing["env_steps"] == 2 * VECTOR_STEPS
+    assert timing["env_steps_per_wall_hour"] > 0
+    for label in ("rx200_sim", "ned2_real"):
+        cycle = timing["envs"][label]["action_cycle"]
+        assert cycle["count"] >= 1 and cycle["p50"] is not None
+    assert {r["metric"] for r in _rows(run / "timing.csv")} >= {"action_cycle", "actuator_cycle"}
+
+    # one replay buffer held both envs' transitions (padded to the larger sizes: ned2's 6 actions, rx200's 28 obs)
+    from uniros_async.training.checkpoint import read_meta
+
+    meta = read_meta(result.checkpoint)
+    assert (meta.obs_size, meta.action_size, meta.pad_to) == (28, 6, (28, 6))
+
+
+def test_wall_budget_stops_a_run(tmp_path: Path) -> None:
+    run = tmp_path / "budget"
+    result = train(_cfg(run, "async", total_steps=10_000, max_wall_s=3 * CYCLE_S))
+    assert 2 <= result.steps < 10_000
+
+
+@pytest.mark.parametrize(
+    ("over", "match"),
+    [
+        ({"placement": "inprocess"}, "needs placement: workers"),
+        ({"task_id_in_obs": True}, "does not support task_id_in_obs"),
+        ({"eval": {"envs": ["uniros/Rx200Reach-v0"]}}, "remove eval.envs"),
+        ({"max_wall_s": 0}, "max_wall_s must be a number of seconds > 0"),
+        ({"eval": {"final_episodes": 0}}, "final_episodes must be >= 1"),
+    ],
+)
+def test_concurrent_settings_are_checked(tmp_path: Path, over: dict[str, Any], match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        _cfg(tmp_path / "bad", "async", **over)

@@ -1,0 +1,112 @@
+"""Concurrent multi-task training (``concurrent: true``): every env acts in every action cycle.
+
+``TaskSamplerEnv`` (multitask.py) steps one env per episode, the paper's Algorithm 1: right for accelerated sim,
+where an env costs only the compute it takes, but in real time it leaves every other arm standing idle. Here the
+training envs run as one vector env over worker processes (``uniros_async.make_vec``, padded to common sizes):
+each step sends an action to every env at once and returns when all of them have ended their action cycle, so
+four arms give four transitions per 0.8 s cycle, all into the one replay buffer of the one policy.
+
+``ConcurrentVecEnv`` is the SB3 VecEnv wrapper the learner steps. It tags every info with its env's label
+(``info["task"]``, ``info["task_index"]``), records when the agent received each step's returns and which steps
+ended an episode, and on ``timing_window()`` reads every env's timing records from its worker (cleared after the
+read) and turns them into the action-cycle statistics of ``uniros bench latency`` (``bench.looptiming``): the
+period between the agent's actions reaching each env loop, periods spanning a reset left out. The evaluation
+(``evaluate.evaluate_vec_policy``) steps the same envs, all four at once, between two training windows.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+
+from uniros_async.errors import ConfigError
+
+__all__ = ["ConcurrentVecEnv", "open_concurrent_env"]
+
+TIMING_METRICS = ("action_cycle", "actuator_cycle", "observation_age")
+
+
+def open_concurrent_env(
+    specs: Sequence[tuple[str, str, dict[str, Any]]], *, start_timeout_s: float = 120.0
+) -> ConcurrentVecEnv:
+    """The envs ``specs`` (label, id, kwargs) as one ``ConcurrentVecEnv`` over worker processes (padded).
+
+    Raises:
+        ConfigError: an unknown id or keyword argument, or spaces that cannot be padded together.
+        WorkerError: a worker failed to start.
+    """
+    from uniros_async.runtime import make_vec
+
+    vec = make_vec([(env_id, dict(kw)) for _, env_id, kw in specs], pad=True, start_timeout_s=start_timeout_s)
+    try:
+        return ConcurrentVecEnv(vec.as_sb3(), [label for label, _, _ in specs])
+    except BaseException:
+        vec.close()
+        raise
+
+
+class ConcurrentVecEnv(VecEnvWrapper):
+    """Labels, receive times and action-cycle statistics of a vector env's steps; see the module docstring.
+
+    Args:
+        venv: the SB3 VecEnv over the workers (``make_vec(...).as_sb3()``).
+        labels: one label per sub-env, in order.
+    """
+
+    def __init__(self, venv: VecEnv, labels: Sequence[str]) -> None:
+        if len(labels) != venv.num_envs:
+            raise ConfigError(f"ConcurrentVecEnv: {len(labels)} labels for {venv.num_envs} envs")
+        super().__init__(venv)
+        self.labels = list(labels)
+        self._recv_ns: list[int] = []
+        self._reset_after: set[int] = set()
+        self.samples: dict[str, dict[str, list[float]]] = {lab: {m: [] for m in TIMING_METRICS} for lab in labels}
+        """Every window's samples so far, per env label and metric (ms)."""
+        self.step_overruns = dict.fromkeys(self.labels, 0)
+
+    def reset(self) -> Any:
+        """Reset every env and start a new timing window (what the reset itself recorded is dropped)."""
+        obs = self.venv.reset()
+        self.restart_window()
+        return obs
+
+    def step_wait(self) -> Any:
+        """The vector step's returns, infos tagged with the env's label."""
+        obs, rewards, dones, infos = self.venv.step_wait()
+        self._recv_ns.append(time.monotonic_ns())
+        if bool(np.any(dones)):
+            self._reset_after.add(len(self._recv_ns) - 1)
+        for i, info in enumerate(infos):
+            info["task"] = self.labels[i]
+            info["task_index"] = i
+        return obs, rewards, dones, infos
+
+    def restart_window(self) -> None:
+        """Drop the timing recorded so far (e.g. an evaluation's, or a reset's) and start a new window."""
+        self.venv.env_method("timing_snapshot", clear=True)
+        self._recv_ns.clear()
+        self._reset_after.clear()
+
+    def timing_window(self) -> dict[str, dict[str, list[float]]]:
+        """The timing samples (ms) of every env since the window started, per label and metric; starts the next.
+
+        Call it between steps (after a step's returns, before the next actions): the next window then starts with
+        the next step, whose period from this one is in neither window.
+        """
+        from uniros_async.bench.looptiming import loop_metrics
+
+        snaps = self.venv.env_method("timing_snapshot", clear=True)
+        out: dict[str, dict[str, list[float]]] = {}
+        for label, snap in zip(self.labels, snaps, strict=True):
+            m = loop_metrics(snap, reset_after=self._reset_after, recv_ns=self._recv_ns)
+            out[label] = {k: m[k] for k in TIMING_METRICS}
+            for k in TIMING_METRICS:
+                self.samples[label][k].extend(m[k])
+            self.step_overruns[label] += int(snap.get("step_overruns", 0))
+        self._recv_ns.clear()
+        self._reset_after.clear()
+        return out
