@@ -87,6 +87,17 @@ def test_four_arms_train_at_once_in_real_time(tmp_path: Path, learner: str) -> N
     meta = read_meta(result.checkpoint)
     assert (meta.obs_size, meta.action_size, meta.pad_to) == (28, 6, (28, 6))
 
+    # success against wall-clock minutes; a run whose logs have no wall times is refused for that axis
+    from uniros_async.training.plot import plot_runs
+
+    assert plot_runs([run], out=tmp_path / "minutes.png", x="minutes").stat().st_size > 0
+    old = tmp_path / "old_run"
+    old.mkdir()
+    (old / "eval.csv").write_text("step,task,success_rate,mean_return,mean_length,episodes\n100,a,0.5,1.0,10,5\n")
+    with pytest.raises(ConfigError, match="no wall_s column"):
+        plot_runs([old], out=tmp_path / "old.png", x="minutes")
+    assert plot_runs([old], out=tmp_path / "old_steps.png").is_file()
+
 
 def test_wall_budget_stops_a_run(tmp_path: Path) -> None:
     run = tmp_path / "budget"

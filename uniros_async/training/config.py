@@ -221,7 +221,8 @@ class TrainConfig:
             checkpoint, restored on resume and used, frozen, by every evaluation. Off by default.
         max_wall_s: stop training after this many seconds of wall time (then evaluate and save as at
             ``total_steps``): the budget of a real-time run, whose steps per hour depend on the learner.
-        torch_threads: torch intra-op threads (1: envs share the machine; design.md section 9).
+        torch_threads: torch intra-op threads (1: beside env loops on a shared machine, more threads stall the
+            updates).
         run_dir: where logs and checkpoints go (default ``runs/<name>``).
     """
 
