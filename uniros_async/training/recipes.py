@@ -10,7 +10,8 @@ A run directory holds::
     final_eval.json  the last evaluation, per env
     timing.csv       (``concurrent`` runs) per timing window and env: the action cycle, actuator cycle and
                      observation age (median, IQR, p99, count, in ms) while training
-    timing.json      (``concurrent`` runs) the same over the whole run, env steps and env steps per wall hour
+    timing.json      (``concurrent`` runs) the same over the whole run, env steps, env steps per wall hour (and per
+                     hour of training: without the evaluations)
     tb/              TensorBoard (SB3's scalars plus train/success_rate/<env> and eval/*/<env>)
     checkpoints/     see checkpoint.py
 
@@ -457,11 +458,14 @@ class _Run:
         from uniros_async.bench.stats import summary
 
         wall = self.wall_s()
+        train_s = wall - self.eval_s
         out = {
             "env_steps": step,
             "wall_s": round(wall, 1),
             "eval_wall_s": round(self.eval_s, 1),
             "env_steps_per_wall_hour": round(step / wall * 3600, 1) if wall > 0 else None,
+            # the same without the evaluations' wall time (they step the same envs, but store nothing)
+            "env_steps_per_training_hour": round(step / train_s * 3600, 1) if train_s > 0 else None,
             "learner": self.cfg.learner,
             "envs": {
                 label: {
