@@ -422,6 +422,8 @@ class _Run:
         wall = round(self.wall_s(), 1)
         for label, metrics in window.items():
             for metric, samples in metrics.items():
+                if not samples:  # a window closed right after another (an evaluation after a progress line)
+                    continue
                 st = summary(samples)
                 self.timing_log.write(
                     step=step,
