@@ -1,17 +1,8 @@
 """Network transport: length-prefixed frames over TCP, ``tcp://HOST:PORT``.
 
-Wire format (little-endian)::
-
-    hello   client -> listener   HELLO = MAGIC(8s) version(u16) flags(u16) max_frame_bytes(u64) nonce(32s)
-            listener -> client   HELLO, then proof(32s) if flags has FLAG_AUTH
-            client -> listener   proof(32s)                                     (only with FLAG_AUTH)
-    frame   either way           length(u32) payload(length bytes)
-
-With a shared ``auth_key`` each side proves knowledge of it without sending it: the listener sends
-HMAC-SHA256(key, b"uniros-tcp listener" + client_nonce + listener_nonce), the client answers with the same over
-b"uniros-tcp client"; both are checked with hmac.compare_digest. Fresh random nonces on both sides defeat replay,
-and the two labels defeat reflection. Both ends refuse a peer whose key setting differs from their own. Each side
-announces its ``max_frame_bytes``, so ``send`` refuses (FrameTooLargeError) what the peer would refuse.
+Wire format: after the handshake (``_tcp_handshake``: HELLO both ways, then with an ``auth_key`` an HMAC proof
+both ways), each frame is ``length(u32, little-endian) payload(length bytes)``. Each side announces its
+``max_frame_bytes`` in its HELLO, so ``send`` refuses (FrameTooLargeError) what the peer would refuse.
 
 Receiving: an asyncio.BufferedProtocol reads straight into a preallocated stream buffer; frames under 16 KiB are
 copied out of it (cheaper than any bookkeeping), larger ones are read straight into a buffer of their own from a
@@ -59,8 +50,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import hashlib
-import hmac
 import logging
 import os
 import select
@@ -80,6 +69,14 @@ from uniros_async.errors import (
     TransportClosedError,
 )
 from uniros_async.transports import base as _base
+from uniros_async.transports._tcp_handshake import (
+    FLAG_AUTH,
+    HELLO,
+    MAGIC,
+    PROOF_BYTES,
+    PROTOCOL_VERSION,
+    TcpHandshake,
+)
 from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
 
 __all__ = [
@@ -95,16 +92,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-MAGIC = b"\x89UNIROS\n"
-"""First bytes of every uniros tcp connection (high bit and newline catch 7-bit and text-mode mangling)."""
-PROTOCOL_VERSION = 1
-FLAG_AUTH = 1
-HELLO = struct.Struct("<8sHHQ32s")
-"""magic, version, flags, max_frame_bytes, nonce."""
-PROOF_BYTES = 32
-_LISTENER_LABEL = b"uniros-tcp listener"
-_CLIENT_LABEL = b"uniros-tcp client"
 
 _HEADER = struct.Struct("<I")
 _pack_header = _HEADER.pack
@@ -144,10 +131,6 @@ _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS  # at most this much longer after a large s
 _SELECTOR_COPIES = sys.version_info < (3, 12)
 
 _HANDSHAKE, _FRAMES, _DEAD = 0, 1, 2
-
-
-def _proof(key: bytes, label: bytes, client_nonce: bytes, listener_nonce: bytes) -> bytes:
-    return hmac.new(key, label + client_nonce + listener_nonce, hashlib.sha256).digest()
 
 
 def _unexported(buf: bytearray) -> bool:
@@ -256,10 +239,10 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._lost: asyncio.Future[None] = self._loop.create_future()
         self._ready: asyncio.Future[None] = self._loop.create_future()  # handshake done (client side)
         self._ready.add_done_callback(_consume_exception)
-        self._hs_step = 0
+        self._hs = TcpHandshake(
+            key=self._key, listener=listener is not None, max_frame_bytes=self._recv_limit, peer=self._peer
+        )
         self._hs_timer: asyncio.TimerHandle | None = None
-        self._nonce = os.urandom(32)
-        self._peer_nonce = b""
 
     # ------------------------------------------------------------------------------------------ public API
 
@@ -539,8 +522,8 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._stdlib = type(tr).__module__ == "asyncio.selector_events"
         self._copies_on_write = self._stdlib and _SELECTOR_COPIES
         self._vectored = not self._copies_on_write
-        flags = FLAG_AUTH if self._key is not None else 0
-        tr.write(HELLO.pack(MAGIC, PROTOCOL_VERSION, flags, self._recv_limit, self._nonce))
+        self._hs.peer = self._peer
+        tr.write(self._hs.hello())
         if self._listener is not None:
             self._listener._handshaking.add(self)
             self._hs_timer = self._loop.call_later(self._options.connect_timeout_s, self._handshake_expired)
@@ -733,87 +716,25 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     # ------------------------------------------------------------------------------------------ handshake
 
     def _handshake_data(self) -> None:
-        view = self._rview
-        while True:
-            pos, avail = self._rpos, self._rend - self._rpos
-            if self._hs_step == 0:
-                check = min(avail, len(MAGIC))
-                if view[pos : pos + check] != MAGIC[:check]:
-                    head = bytes(view[pos : pos + min(avail, 16)])
-                    self._handshake_failed(
-                        TransportBrokenError(f"{self._peer} is not a uniros tcp peer: it sent {head!r}")
-                    )
-                    return
-                if avail < HELLO.size:
-                    return
-                _, version, flags, max_frame, nonce = HELLO.unpack_from(self._rbuf, pos)
-                self._rpos = pos + HELLO.size
-                if not self._hello_received(version, flags, max_frame, nonce):
-                    return
-            elif self._hs_step == 1:
-                if avail < PROOF_BYTES:
-                    return
-                proof = bytes(view[pos : pos + PROOF_BYTES])
-                self._rpos = pos + PROOF_BYTES
-                if not self._proof_received(proof):
-                    return
-            else:
-                return
-
-    def _hello_received(self, version: int, flags: int, max_frame: int, nonce: bytes) -> bool:
-        tr = self._tr
-        assert tr is not None
-        if version != PROTOCOL_VERSION:
-            self._handshake_failed(
-                TransportBrokenError(f"{self._peer} speaks uniros tcp version {version}, we speak {PROTOCOL_VERSION}")
-            )
-            return False
-        if bool(flags & FLAG_AUTH) != (self._key is not None):
-            if self._key is None:
-                msg = f"{self._peer} requires an auth_key and we have none"
-            else:
-                msg = f"{self._peer} does not authenticate (no auth_key) but ours is set"
-            self._handshake_failed(AuthenticationError(msg))
-            return False
-        if max_frame < self._send_limit:
-            self._send_limit = max_frame
-            self._send_limit_is_peers = True
-        self._peer_nonce = nonce
-        if self._listener is not None:
-            if self._key is not None:
-                tr.write(_proof(self._key, _LISTENER_LABEL, nonce, self._nonce))
-                self._hs_step = 1
-                return True
+        pos = self._rpos
+        try:
+            used, reply = self._hs.feed(self._rview[pos : self._rend])
+        except (TransportBrokenError, AuthenticationError) as exc:
+            self._handshake_failed(exc)
+            return
+        self._rpos = pos + used
+        if reply and self._tr is not None:
+            self._tr.write(reply)
+        if self._hs.done:
+            peer_max = self._hs.peer_max_frame_bytes
+            if peer_max is not None and peer_max < self._send_limit:
+                self._send_limit = peer_max
+                self._send_limit_is_peers = True
             self._handshake_done()
-            return False
-        if self._key is not None:
-            self._hs_step = 1
-            return True
-        self._handshake_done()
-        return False
-
-    def _proof_received(self, proof: bytes) -> bool:
-        assert self._key is not None and self._tr is not None
-        if self._listener is not None:
-            expected = _proof(self._key, _CLIENT_LABEL, self._peer_nonce, self._nonce)
-            if not hmac.compare_digest(proof, expected):
-                self._handshake_failed(AuthenticationError(f"{self._peer} failed to prove the shared auth_key"))
-                return False
-        else:
-            expected = _proof(self._key, _LISTENER_LABEL, self._nonce, self._peer_nonce)
-            if not hmac.compare_digest(proof, expected):
-                self._handshake_failed(
-                    AuthenticationError(f"listener {self._peer} failed to prove the shared auth_key (keys differ)")
-                )
-                return False
-            self._tr.write(_proof(self._key, _CLIENT_LABEL, self._nonce, self._peer_nonce))
-        self._handshake_done()
-        return False
 
     def _handshake_done(self) -> None:
         self._state = _FRAMES
         self._ok = True
-        self._hs_step = 2
         if self._hs_timer is not None:
             self._hs_timer.cancel()
             self._hs_timer = None
