@@ -61,6 +61,7 @@ from collections.abc import Sequence
 from typing import cast
 from urllib.parse import urlsplit
 
+from uniros_async.backoff import Backoff
 from uniros_async.errors import (
     AuthenticationError,
     ConfigError,
@@ -110,8 +111,6 @@ _RX_HIGH_BYTES = 8 * 1024 * 1024  # pause reading while more than this is queued
 _RX_LOW_BYTES = 2 * 1024 * 1024  # resume below this
 _TX_HIGH_BYTES = 1024 * 1024  # send() waits while the event loop holds more than this unsent
 _TX_LOW_BYTES = 256 * 1024
-_BACKOFF_FIRST_S = 0.005
-_BACKOFF_MAX_S = 0.5
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
 
 # Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
@@ -984,7 +983,7 @@ async def connect(uri: str, options: TransportOptions) -> TcpTransport:
     loop = asyncio.get_running_loop()
     timeout_s = options.connect_timeout_s
     deadline = loop.time() + timeout_s
-    delay = _BACKOFF_FIRST_S
+    backoff = Backoff(first_s=0.005, max_s=0.5)
     last: OSError | None = None
     while True:
         try:
@@ -998,8 +997,7 @@ async def connect(uri: str, options: TransportOptions) -> TcpTransport:
             remaining = deadline - loop.time()
             if remaining <= 0:
                 raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {exc})") from exc
-            await asyncio.sleep(min(delay, remaining))
-            delay = min(delay * 2, _BACKOFF_MAX_S)
+            await backoff.sleep(limit_s=remaining)
     try:
         async with asyncio.timeout_at(deadline):
             await asyncio.shield(t._ready)
