@@ -62,6 +62,7 @@ class ServeConfig:
         transport: the node's transport choice; ``auto`` uses shm to peers on the same machine.
         publish_markers: publish EE and goal markers.
         auth_key: shared key of the domain, or None.
+        insecure: allow a non-loopback ``host`` without ``auth_key`` (else the domain refuses to start).
     """
 
     robot: str
@@ -77,6 +78,7 @@ class ServeConfig:
     transport: str = "auto"
     publish_markers: bool = False
     auth_key: bytes | None = None
+    insecure: bool = False
 
     def __post_init__(self) -> None:
         if self.clock not in CLOCKS:
@@ -90,7 +92,7 @@ class ServeConfig:
             )
 
     def options(self) -> TransportOptions:
-        return TransportOptions(bind_host=self.host, auth_key=self.auth_key)
+        return TransportOptions(bind_host=self.host, auth_key=self.auth_key, insecure=self.insecure)
 
     def make_clock(self) -> Clock | None:
         return SimClock(time_scale=self.time_scale) if self.clock == "sim" else None

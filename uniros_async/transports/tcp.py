@@ -51,13 +51,15 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+import mmap
 import os
 import select
 import socket
+import ssl
 import struct
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import cast
 from urllib.parse import urlsplit
 
@@ -79,6 +81,7 @@ from uniros_async.transports._tcp_handshake import (
     TcpHandshake,
 )
 from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
+from uniros_async.transports.exposure import check_exposure, is_loopback
 
 __all__ = [
     "FLAG_AUTH",
@@ -89,6 +92,7 @@ __all__ = [
     "TcpListener",
     "TcpTransport",
     "connect",
+    "is_loopback",
     "listen",
 ]
 
@@ -99,7 +103,7 @@ _pack_header = _HEADER.pack
 _unpack_header = _HEADER.unpack_from
 _WIRE_MAX_FRAME = 2**32 - 1  # what a u32 length prefix can announce
 
-_STREAM_BYTES = 256 * 1024  # preallocated receive buffer of each connection
+_STREAM_BYTES = 256 * 1024  # receive buffer of each connection: anonymous memory, only touched pages are resident
 _READ_BYTES = 64 * 1024  # at most this much per read into the stream buffer (bounds the copy of a large frame's start)
 _SMALL_FRAME_BYTES = 16 * 1024  # smaller frames are copied out of the stream buffer; larger get their own buffer
 _JOIN_MAX_BYTES = 16 * 1024  # smaller frames are sent as one joined bytes object
@@ -184,6 +188,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     delivery = Delivery.RELIABLE
     scheme = "tcp"
+    _encrypted = False  # TlsTransport: True (the socket carries ciphertext; receive never reads it itself)
     spin_ns: int = 50_000
     """When ``receive`` may be waiting for an answer (this end sent a frame since it last received one), it reads
     the socket itself for up to this long before it sleeps in the event loop, yielding the CPU between reads, while
@@ -204,7 +209,10 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._send_limit = self._recv_limit
         self._send_limit_is_peers = False
         # receive side
-        self._rbuf = bytearray(_STREAM_BYTES)
+        # An anonymous mapping, not a bytearray: a bytearray is zero-filled (all 256 KiB resident at once), while
+        # a mapping's pages become resident only when data lands in them. A connection that sees small frames
+        # (or only a handshake) keeps its reads in the first pages: ~4 KiB resident instead of 256 KiB.
+        self._rbuf = mmap.mmap(-1, _STREAM_BYTES)
         self._rview = memoryview(self._rbuf)
         self._rhead = self._rview[:_READ_BYTES]  # what get_buffer hands out when the stream buffer is empty
         self._rpos = 0  # start of unparsed bytes
@@ -265,8 +273,11 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         return self._error is not None or bool(self._frames)
 
     def fileno(self) -> int:
-        """The connection's socket descriptor (-1 before connecting or once closed): a caller outside the event
-        loop can ``select`` on it to learn, without reading, whether the peer sent data the loop has not taken."""
+        """The connection's socket descriptor (-1 before connecting, once closed, or under TLS, where readable
+        ciphertext says nothing about whole frames): a caller outside the event loop can ``select`` on it to learn,
+        without reading, whether the peer sent data the loop has not taken."""
+        if self._encrypted:
+            return -1
         sock = self._tr.get_extra_info("socket") if self._tr is not None else None
         return sock.fileno() if sock is not None else -1
 
@@ -512,11 +523,11 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         sock = tr.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        if sock is not None and hasattr(os, "readv"):
-            self._fd = sock.fileno()
+        if sock is not None and hasattr(os, "readv") and not self._encrypted:
+            self._fd = sock.fileno()  # under TLS the socket carries ciphertext: only the event loop reads it
         peer = tr.get_extra_info("peername")
         if peer:
-            self._peer = _format_uri(peer[0], peer[1])
+            self._peer = _format_uri(peer[0], peer[1], self.scheme)
         tr.set_write_buffer_limits(high=_TX_HIGH_BYTES, low=_TX_LOW_BYTES)
         self._stdlib = type(tr).__module__ == "asyncio.selector_events"
         self._copies_on_write = self._stdlib and _SELECTOR_COPIES
@@ -524,8 +535,8 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._hs.peer = self._peer
         tr.write(self._hs.hello())
         if self._listener is not None:
-            self._listener._handshaking.add(self)
-            self._hs_timer = self._loop.call_later(self._options.connect_timeout_s, self._handshake_expired)
+            self._hs_timer = self._loop.call_later(self._options.handshake_timeout_s, self._handshake_expired)
+            self._listener._handshake_started(self)
 
     def get_buffer(self, sizehint: int) -> memoryview:
         if self._big is not None:
@@ -572,6 +583,8 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._fd = -1  # the event loop closes the socket; its number may soon name another file
+        if self._listener is not None:
+            self._listener._open -= 1
         if self._state == _HANDSHAKE:
             self._handshake_failed(
                 TransportBrokenError(f"connection to {self._peer} lost during the handshake: {exc or 'closed'}"),
@@ -764,7 +777,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     def _handshake_expired(self) -> None:
         self._hs_timer = None
-        timeout_s = self._options.connect_timeout_s
+        timeout_s = self._options.handshake_timeout_s
         msg = f"{self._peer} did not complete the handshake within {timeout_s} s"
         self._handshake_failed(TransportBrokenError(msg))
 
@@ -844,7 +857,13 @@ def _consume_exception(fut: asyncio.Future[None]) -> None:
 
 
 class TcpListener(Listener):
-    """Accepts TCP connections; each peer that passes the handshake is handed out by ``accept``."""
+    """Accepts TCP connections; each peer that passes the handshake is handed out by ``accept``.
+
+    Caps (``TransportOptions``): at most ``max_connections`` open at once (a connection beyond it is closed as soon
+    as it is accepted, before any byte is read or any buffer allocated), at most ``max_handshakes`` unfinished (a new
+    connection beyond it evicts the oldest unfinished one), and each handshake must finish within
+    ``handshake_timeout_s``. Every refusal is counted in ``rejected`` and logged at most once a second.
+    """
 
     def __init__(self, options: TransportOptions) -> None:
         self._options = options
@@ -853,7 +872,8 @@ class TcpListener(Listener):
         self._address: tuple[str, int] = ("", 0)
         self._ready: collections.deque[TcpTransport] = collections.deque()
         self._accept_waiter: asyncio.Future[None] | None = None
-        self._handshaking: set[TcpTransport] = set()
+        self._handshaking: dict[TcpTransport, None] = {}  # insertion order: the oldest is evicted first
+        self._open = 0  # connections made and not yet lost, accepted ones included
         self._rejected = 0
         self._closed = False
         self._log = _LogThrottle()
@@ -870,6 +890,16 @@ class TcpListener(Listener):
     @property
     def rejected(self) -> int:
         return self._rejected
+
+    @property
+    def open_connections(self) -> int:
+        """Connections open now (handshaking, waiting for ``accept``, and accepted)."""
+        return self._open
+
+    @property
+    def handshaking(self) -> int:
+        """Connections whose handshake is unfinished."""
+        return len(self._handshaking)
 
     async def accept(self) -> TcpTransport:
         """Wait for the next peer that completed the handshake. Cancelling loses no peer.
@@ -907,8 +937,26 @@ class TcpListener(Listener):
         for t in pending:
             await t.aclose()
 
+    def _protocol(self, make: Callable[[], TcpTransport]) -> asyncio.BaseProtocol:
+        """The protocol for a connection just accepted: a transport, or a refusal once ``max_connections`` are
+        open."""
+        if self._open >= self._options.max_connections:
+            return _Refusal(self)
+        self._open += 1
+        return make()
+
+    def _handshake_started(self, t: TcpTransport) -> None:
+        handshaking = self._handshaking
+        handshaking[t] = None
+        if len(handshaking) > self._options.max_handshakes:
+            oldest = next(iter(handshaking))
+            limit = self._options.max_handshakes
+            oldest._handshake_failed(
+                TransportBrokenError(f"{oldest.peer} evicted: more than max_handshakes={limit} unfinished handshakes")
+            )
+
     def _handshake_succeeded(self, t: TcpTransport) -> None:
-        self._handshaking.discard(t)
+        self._handshaking.pop(t, None)
         if self._closed:
             t._tr.close()  # type: ignore[union-attr]
             return
@@ -917,7 +965,7 @@ class TcpListener(Listener):
             self._accept_waiter.set_result(None)
 
     def _handshake_rejected(self, t: TcpTransport, reason: str) -> None:
-        self._handshaking.discard(t)
+        self._handshaking.pop(t, None)
         if not self._closed:
             self._count_rejection(t.peer, reason)
 
@@ -926,42 +974,78 @@ class TcpListener(Listener):
         self._log.warning("tcp listener %s rejected %s: %s", self._uri, peer, reason)
 
 
-def _host_port(uri: str, default_host: str) -> tuple[str, int]:
-    scheme, _ = split_uri(uri)
-    if scheme != "tcp":
-        raise ConfigError(f"expected a tcp:// URI, got {uri!r}")
+class _Refusal(asyncio.Protocol):
+    """Closes a connection over ``max_connections`` as soon as it is made: no buffer, no handshake, no timer."""
+
+    def __init__(self, listener: TcpListener) -> None:
+        self._listener = listener
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        peer = transport.get_extra_info("peername")
+        cast(asyncio.Transport, transport).abort()
+        limit = self._listener._options.max_connections
+        self._listener._count_rejection(str(peer), f"over max_connections={limit}")
+
+
+def _host_port(uri: str, default_host: str, scheme: str = "tcp") -> tuple[str, int]:
+    got, _ = split_uri(uri)
+    if got != scheme:
+        raise ConfigError(f"expected a {scheme}:// URI, got {uri!r}")
     parts = urlsplit(uri)
     if parts.path not in ("", "/") or parts.query or parts.fragment:
-        raise ConfigError(f"expected tcp://HOST:PORT, got {uri!r}")
+        raise ConfigError(f"expected {scheme}://HOST:PORT, got {uri!r}")
     try:
         port = parts.port or 0
     except ValueError as exc:
-        raise ConfigError(f"expected tcp://HOST:PORT with a port in 0..65535, got {uri!r}") from exc
+        raise ConfigError(f"expected {scheme}://HOST:PORT with a port in 0..65535, got {uri!r}") from exc
     return parts.hostname or default_host, port
 
 
-def _format_uri(host: str, port: int) -> str:
-    return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
+def _format_uri(host: str, port: int, scheme: str = "tcp") -> str:
+    return f"{scheme}://[{host}]:{port}" if ":" in host else f"{scheme}://{host}:{port}"
 
 
 async def listen(uri: str, options: TransportOptions) -> TcpListener:
     """Listen at ``tcp://HOST:PORT``; port 0 picks a free port and ``uri`` of the result reports it.
 
-    HOST is the interface bound; without one (``tcp://:0``), ``options.bind_host`` (loopback by default).
-    A peer has ``options.connect_timeout_s`` to complete the handshake.
+    HOST is the interface bound; without one (``tcp://:0``), ``options.bind_host`` (loopback by default). A
+    non-loopback HOST needs ``options.auth_key`` (or ``options.insecure``). The listener's caps are
+    ``options.max_connections``, ``max_handshakes`` and ``handshake_timeout_s`` (see ``TcpListener``).
 
     Raises:
-        ConfigError: the URI is malformed.
+        ConfigError: the URI is malformed, or a non-loopback HOST without auth_key and without insecure.
         OSError: the address cannot be bound (in use, no such interface).
     """
-    host, port = _host_port(uri, options.bind_host)
+    return await open_listener(uri, options, TcpTransport)
+
+
+async def open_listener(
+    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
+) -> TcpListener:
+    """``listen`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.listen`` uses it)."""
+    host, port = _host_port(uri, options.bind_host, cls.scheme)
+    if ssl_context is None:
+        check_exposure(
+            uri,
+            host,
+            authenticated=options.auth_key is not None,
+            insecure=options.insecure,
+            how="Set an auth_key (TransportOptions(auth_key=...)) or use tls:// with client certificates",
+        )
     lst = TcpListener(options)
     loop = asyncio.get_running_loop()
-    server = await loop.create_server(lambda: TcpTransport(options, listener=lst), host, port, reuse_address=True)
+    server = await loop.create_server(
+        lambda: lst._protocol(lambda: cls(options, listener=lst)),
+        host,
+        port,
+        reuse_address=True,
+        ssl=ssl_context,
+        ssl_handshake_timeout=options.handshake_timeout_s if ssl_context is not None else None,
+    )
     lst._server = server
     sockname = server.sockets[0].getsockname()
     lst._address = (sockname[0], sockname[1])
-    lst._uri = _format_uri(sockname[0], sockname[1])
+    lst._uri = _format_uri(sockname[0], sockname[1], cls.scheme)
     return lst
 
 
@@ -977,9 +1061,16 @@ async def connect(uri: str, options: TransportOptions) -> TcpTransport:
         AuthenticationError: the key settings differ or the listener failed to prove the shared key.
         TransportBrokenError: the peer is not a uniros listener (or speaks another version).
     """
-    host, port = _host_port(uri, "")
+    return await open_connection(uri, options, TcpTransport)
+
+
+async def open_connection(
+    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
+) -> TcpTransport:
+    """``connect`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.connect`` uses it)."""
+    host, port = _host_port(uri, "", cls.scheme)
     if not host or not port:
-        raise ConfigError(f"connect needs tcp://HOST:PORT with a nonzero port, got {uri!r}")
+        raise ConfigError(f"connect needs {cls.scheme}://HOST:PORT with a nonzero port, got {uri!r}")
     loop = asyncio.get_running_loop()
     timeout_s = options.connect_timeout_s
     deadline = loop.time() + timeout_s
@@ -988,10 +1079,18 @@ async def connect(uri: str, options: TransportOptions) -> TcpTransport:
     while True:
         try:
             async with asyncio.timeout_at(deadline):
-                _, t = await loop.create_connection(lambda: TcpTransport(options, uri=uri), host, port)
+                _, t = await loop.create_connection(
+                    lambda: cls(options, uri=uri),
+                    host,
+                    port,
+                    ssl=ssl_context,
+                    server_hostname=host if ssl_context is not None else None,
+                )
             break
         except TimeoutError:
             raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {last})") from last
+        except ssl.SSLError as exc:  # a certificate refused: retrying cannot help
+            raise AuthenticationError(f"TLS handshake with {uri} failed: {exc}") from exc
         except OSError as exc:  # refused while the listener starts, unreachable, ... : retry until the deadline
             last = exc
             remaining = deadline - loop.time()

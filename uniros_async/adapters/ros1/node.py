@@ -36,6 +36,7 @@ from uniros_async.adapters.ros1.topics import (
 )
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.errors import CodecError, ConfigError, RobotError, TransportClosedError
+from uniros_async.transports.exposure import check_exposure
 
 __all__ = ["DEFAULT_MASTER_URI", "Ros1Node", "Ros1Publisher", "Ros1Subscriber", "open_ros1_node"]
 
@@ -362,6 +363,7 @@ async def open_ros1_node(
     master_uri: str | None = None,
     host: str = "127.0.0.1",
     timeout_s: float = 5.0,
+    insecure: bool = False,
 ) -> AsyncIterator[Ros1Node]:
     """Run a ROS 1 node called ``name`` for the duration of the block.
 
@@ -371,10 +373,12 @@ async def open_ros1_node(
         master_uri: the rosmaster's URI; default ``$ROS_MASTER_URI``, else ``http://127.0.0.1:11311/``.
         host: the address this node listens on and tells peers (must be reachable by the driver's machine).
         timeout_s: bound on every call to the master or a peer, and on unregistering at close.
+        insecure: allow a ``host`` beyond loopback. ROS 1 cannot authenticate peers: whoever reaches the node's
+            XML-RPC and TCPROS ports may publish to its subscribers and read its topics.
 
     Raises:
         RobotError: the master is unreachable (the message names the URI and how to start one).
-        ConfigError: ``name`` is not a valid ROS 1 node name.
+        ConfigError: ``name`` is not a valid ROS 1 node name, or ``host`` is beyond loopback without ``insecure``.
 
     Leaving the block (also by cancellation) unregisters every topic from the master within ``timeout_s`` (a dead
     master costs at most that), then closes the XML-RPC server and every TCPROS connection.
@@ -383,6 +387,14 @@ async def open_ros1_node(
         raise ConfigError(f"{name!r} is not a valid ROS 1 node name (letters, digits, _ and /, e.g. /uniros_bridge)")
     if timeout_s <= 0:
         raise ConfigError(f"timeout_s={timeout_s}: expected > 0")
+    check_exposure(
+        f"{host} (ROS 1 node {name}: XML-RPC and TCPROS)",
+        host,
+        authenticated=False,
+        insecure=insecure,
+        how="ROS 1 cannot authenticate its peers: keep the ROS graph on a trusted network and say so with "
+        "insecure=True (--insecure, or insecure: true in the env's ros1 settings)",
+    )
     uri = master_uri or os.environ.get("ROS_MASTER_URI") or DEFAULT_MASTER_URI
     node = Ros1Node(name if name.startswith("/") else f"/{name}", uri, host, timeout_s)
     async with unwrap_task_group() as tg:
