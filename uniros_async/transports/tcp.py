@@ -1030,7 +1030,8 @@ async def open_listener(
             host,
             authenticated=options.auth_key is not None,
             insecure=options.insecure,
-            how="Set an auth_key (TransportOptions(auth_key=...)) or use tls:// with client certificates",
+            how="Set an auth_key (TransportOptions(auth_key=...); `uniros robot serve`: $UNIROS_AUTH_KEY or "
+            "--auth-key-env) or use tls:// with client certificates",
         )
     lst = TcpListener(options)
     loop = asyncio.get_running_loop()
