@@ -23,6 +23,7 @@ import uuid
 from collections.abc import AsyncIterator
 from typing import Any
 
+from uniros_async._log_throttle import LogThrottle
 from uniros_async.bus.codec import decode_plain, encode_plain
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.errors import CodecError, TransportBrokenError, TransportClosedError
@@ -66,6 +67,7 @@ class Domain:
         self._services: dict[str, tuple[_Participant, dict[str, Any]]] = {}
         self.params: dict[str, Any] = dict(params or {})
         self.rejected_requests = 0
+        self._log = LogThrottle(logger)  # peers choose how many bad requests they send: one warning a second
         self._pending_notify: set[str] = set()  # topics whose subscribers must hear of publisher changes
 
     @property
@@ -95,7 +97,7 @@ class Domain:
                         raise CodecError(f"expected a request map with 'op', got {type(req).__name__}")
                 except CodecError as exc:
                     self.rejected_requests += 1
-                    logger.warning("domain %s: rejected a malformed request from %s: %s", self.uri, conn.peer, exc)
+                    self._log.warning("domain %s: rejected a malformed request from %s: %s", self.uri, conn.peer, exc)
                     continue
                 rid = req.get("id")
                 try:

@@ -27,6 +27,7 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+from uniros_async._log_throttle import LogThrottle
 from uniros_async.bus import codec
 from uniros_async.bus._local import (
     _HELLO_TIMEOUT_S,
@@ -102,6 +103,7 @@ class Node:
         self._timers: list[Timer] = []
         self._clients: list[ServiceClient[Any, Any]] = []
         self.rejected_connections = 0
+        self._log = LogThrottle(logger)  # peers choose how many bad connections they make: one warning a second
 
     @property
     def _allows_memory(self) -> bool:
@@ -180,7 +182,7 @@ class Node:
                 raise CodecError(f"unknown hello op {op!r}")
         except (CodecError, KeyError, TimeoutError, ConfigError) as exc:
             self.rejected_connections += 1
-            logger.warning("%s: rejected a connection from %s: %r", self.name, conn.peer, exc)
+            self._log.warning("%s: rejected a connection from %s: %r", self.name, conn.peer, exc)
             await conn.aclose()
         except (TransportBrokenError, TransportClosedError):
             await conn.aclose()

@@ -63,6 +63,7 @@ from collections.abc import Callable, Sequence
 from typing import cast
 from urllib.parse import urlsplit
 
+from uniros_async._log_throttle import LogThrottle
 from uniros_async.backoff import Backoff
 from uniros_async.errors import (
     AuthenticationError,
@@ -156,27 +157,7 @@ def _as_bytes_view(part: Buffer) -> memoryview:
     return view
 
 
-class _LogThrottle:
-    """At most one warning per second per listener; the next one says how many were not logged."""
-
-    def __init__(self) -> None:
-        self._next_s = 0.0
-        self._suppressed = 0
-
-    def warning(self, msg: str, *args: object) -> None:
-        now = time.monotonic()
-        if now < self._next_s:
-            self._suppressed += 1
-            return
-        self._next_s = now + 1.0
-        if self._suppressed:
-            msg += " (%d similar messages suppressed)"
-            args = (*args, self._suppressed)
-            self._suppressed = 0
-        logger.warning(msg, *args)
-
-
-_client_log = _LogThrottle()
+_client_log = LogThrottle(logger)
 
 
 class TcpTransport(Transport, asyncio.BufferedProtocol):
@@ -876,7 +857,7 @@ class TcpListener(Listener):
         self._open = 0  # connections made and not yet lost, accepted ones included
         self._rejected = 0
         self._closed = False
-        self._log = _LogThrottle()
+        self._log = LogThrottle(logger)
 
     @property
     def uri(self) -> str:

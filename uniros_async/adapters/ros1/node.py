@@ -268,7 +268,8 @@ class Ros1Node:
         ours = pub.msg_type
         if md5 not in ("*", ours._md5sum):
             callerid = header.get("callerid", "?")
-            logger.warning(_type_mismatch(topic, f"subscriber {callerid}", header.get("type", ""), md5, ours))
+            if _log_limit(f"mismatch {self.name}"):
+                logger.warning(_type_mismatch(topic, f"subscriber {callerid}", header.get("type", ""), md5, ours))
             # rospy's own words (rospy/impl/tcpros_pubsub.py), so ROS users recognise the failure
             if header.get("type", ours._type) != ours._type:
                 return f"topic types do not match: [{header['type']}] vs. [{ours._type}]"
@@ -303,7 +304,8 @@ class Ros1Node:
         except (OSError, TimeoutError) as exc:
             logger.debug("TCPROS connection from %s ended: %r", peer, exc)
         except Exception:  # a peer's bad input must not take the node (and its TaskGroup) down
-            logger.exception("TCPROS connection from %s failed; dropped it", peer)
+            if _log_limit(f"tcpros failed {self.name}"):
+                logger.exception("TCPROS connection from %s failed; dropped it", peer)
         finally:
             self._tcpros_writers.discard(writer)
             writer.close()
@@ -327,7 +329,8 @@ class Ros1Node:
 
     def _shutdown_request(self, caller_id: str, msg: str = "") -> list[Any]:
         # The master sends this when another node registers our name. We keep running: the caller owns our life.
-        logger.warning("%s: %s asked this ROS 1 node to shut down (%s); ignoring", self.name, caller_id, msg)
+        if _log_limit(f"shutdown {self.name}"):
+            logger.warning("%s: %s asked this ROS 1 node to shut down (%s); ignoring", self.name, caller_id, msg)
         return [1, "", 0]
 
     @staticmethod
