@@ -154,7 +154,8 @@ class XmlRpcServer:
     def _dispatch(self, body: bytes) -> bytes:
         try:
             params, method = xmlrpc.client.loads(body)
-        except (xmlrpc.client.ResponseError, ExpatError, ValueError, TypeError) as exc:
+        # xmlrpc.client raises IndexError, KeyError, ... as well as its own errors on malformed documents
+        except (xmlrpc.client.ResponseError, ExpatError, ValueError, TypeError, IndexError, KeyError) as exc:
             return xmlrpc.client.dumps(xmlrpc.client.Fault(-32700, f"parse error: {exc}")).encode()
         handler = self._methods.get(method or "")
         if handler is None:
