@@ -47,6 +47,7 @@ def _start_serve(log: Path) -> tuple[subprocess.Popen[str], str]:
     if not line.startswith("tcp://"):
         proc.kill()
         proc.wait()
+        proc.stdout.close()
         raise AssertionError(f"robot serve printed {line!r}; its log:\n{log.read_text()[-2000:]}")
     return proc, line
 
@@ -120,6 +121,8 @@ async def test_domain_and_served_arm_keep_serving_under_attack(tmp_path: Path) -
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
     lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
     # one line a second per listener and per domain at most: far fewer than the thousands of refusals
     assert len(lines) <= 4 * elapsed + 20, f"{len(lines)} log lines in {elapsed:.0f} s:\n" + "\n".join(lines[:40])
