@@ -4,7 +4,7 @@ Wire format: after the handshake (``_tcp_handshake``: HELLO both ways, then with
 both ways), each frame is ``length(u32, little-endian) payload(length bytes)``. Each side announces its
 ``max_frame_bytes`` in its HELLO, so ``send`` refuses (FrameTooLargeError) what the peer would refuse.
 
-Receiving: an asyncio.BufferedProtocol reads straight into a preallocated stream buffer; frames under 16 KiB are
+Receiving: an asyncio.BufferedProtocol reads straight into the connection's stream buffer; frames under 16 KiB are
 copied out of it (cheaper than any bookkeeping), larger ones are read straight into a buffer of their own from a
 per-connection pool, so an image is copied once (kernel to that buffer) and ``receive`` returns a view of it. A pool
 buffer is reused only once no view of it is alive any more (a caller's, or an event loop still sending it back), so
@@ -27,13 +27,14 @@ receiver that only listens never polls (reading each frame as it lands cost a st
 rate). A frame sent after a ``receive`` that waited is a reply and goes out at once, never into a burst: a reply
 corked to the end of the loop iteration cost the echo ~30 us per round trip.
 
-Measured on the project's 2-core VM (echo server in another process, quiet machine, ``uniros bench transport``,
-docs/perf/history.md): 277 B round trip p50 20-24 us with the default 50 us poll, against 62-99 us without it and
-79-108 us for pyzmq tcp; 64 KiB 66-75 us (pyzmq 114-163 us). Raw Python sockets in the same hour: 28 us blocking,
-12 us busy-polling; each wake-up of a halted core costs 10-25 us here, which is what the poll saves. An earlier
-poll that turned the event loop (``asyncio.sleep(0)``) instead of reading the socket reached 26-30 us on uvloop
-only and took the CPU its peer needed under load, so it was opt-in. 640x480x3 images one way: 4,150-4,950/s
-(pyzmq PUSH/PULL 2,900-3,300/s).
+Why the poll: each wake-up of a halted core costs 10-25 us on the project's 2-core machines, more than the rest of a
+small round trip; reading the socket itself (not turning the event loop, which also takes the CPU a peer on the
+same core needs) keeps the receiving core awake just long enough. Figures: docs/performance.md.
+
+Limits, for peers that are not trusted (docs/security.md): a listener holds at most ``max_connections``
+connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest), each of which must finish
+within ``handshake_timeout_s``. The stream buffer is anonymous memory, resident only where data has landed, so an
+idle connection costs a few KiB; refusals are counted in ``rejected`` and logged at most once a second.
 
 Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, and ``receive_blocking``
 reads the socket in the caller's thread (the poll's reads, then ``poll(2)``), for a caller in the loop's thread while
@@ -41,9 +42,10 @@ the loop is not running (the supervisor between calls). Whatever they cannot do 
 ``receive``, having taken nothing.
 
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
-(the bus) closes it and calls ``connect`` again, which retries with exponential backoff (5 ms doubling to 500 ms)
-until ``connect_timeout_s``; frames that were in flight when the connection broke are lost, as on any TCP link.
-There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe and re-send.
+(the bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``,
+5 ms doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost,
+as on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe
+and re-send.
 """
 
 from __future__ import annotations
