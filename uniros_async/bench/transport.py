@@ -287,7 +287,7 @@ class _ZmqClient(_Client):
         big = len(payload) > 16384
         for _ in range(n):
             t0 = clock()
-            s.send(payload, copy=not big)
+            s.send(payload, copy=not big)  # type: ignore[call-overload]  # pyzmq's stubs want a literal for copy
             s.recv(copy=not big)
             out.append((clock() - t0) / 1e3)
         return out
@@ -298,7 +298,7 @@ class _ZmqClient(_Client):
         t0 = time.perf_counter()
         s.send(_count_frame(n))
         for _ in range(n):
-            s.send(payload, copy=not big)
+            s.send(payload, copy=not big)  # type: ignore[call-overload]  # pyzmq's stubs want a literal for copy
         s.recv()
         return n / (time.perf_counter() - t0)
 
@@ -365,9 +365,9 @@ class _ZenohClient(_Client):
         self._proc.join(10)
         if self._proc.is_alive():
             self._proc.kill()
-        self._sub.undeclare()
-        self._pub.undeclare()
-        self._session.close()
+        self._sub.undeclare()  # type: ignore[no-untyped-call]  # zenoh ships no annotations for these
+        self._pub.undeclare()  # type: ignore[no-untyped-call]  # zenoh ships no annotations for these
+        self._session.close()  # type: ignore[no-untyped-call]  # zenoh ships no annotations for these
 
 
 def _make_client(kind: str) -> _Client:
