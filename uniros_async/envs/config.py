@@ -26,7 +26,8 @@ class EnvConfig:
             driver is a ROS 1 node, reached through that ROS master by a bridge in the env's process:
             ``adapters/ros1_bridge.py``).
         ros1: with ``robot="ros1://..."``: settings of the bridge (``Ros1BridgeConfig`` fields ``joint_states``,
-            ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``); None: the robot's
+            ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``, ``insecure``: a
+            ``ros_host`` beyond loopback needs it, ROS 1 cannot authenticate); None: the robot's
             defaults (``ROS1_DEFAULTS``).
         clock: ``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``,
             or ``robot="emulated-real"``, which then runs the same emulation model (perturbed dynamics, sensor
