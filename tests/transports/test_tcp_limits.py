@@ -211,3 +211,15 @@ def test_robot_serve_refuses_a_network_host_without_a_key() -> None:
     )
     assert proc.returncode != 0
     assert "refusing to listen on tcp://0.0.0.0" in proc.stderr and "--insecure" in proc.stderr
+
+
+async def test_domains_and_nodes_take_the_key_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    from uniros_async.bus import open_domain, open_node
+
+    monkeypatch.setenv("UNIROS_AUTH_KEY", "from-the-environment")
+    async with asyncio.timeout(T_S), open_domain("tcp://127.0.0.1:0") as dom:
+        async with open_node("keyed", domain=dom.uri) as node:
+            await node.set_parameter("/k", 1)
+        with pytest.raises(AuthenticationError, match="auth_key"):
+            async with open_node("keyless", domain=dom.uri, options=TransportOptions(connect_timeout_s=2.0)):
+                pass

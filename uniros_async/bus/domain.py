@@ -27,7 +27,7 @@ from uniros_async._log_throttle import LogThrottle
 from uniros_async.bus.codec import decode_plain, encode_plain
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.errors import CodecError, TransportBrokenError, TransportClosedError
-from uniros_async.transports.base import Listener, Transport, TransportOptions, listen
+from uniros_async.transports.base import Listener, Transport, TransportOptions, listen, options_from_environ
 
 __all__ = ["Domain", "open_domain"]
 
@@ -325,12 +325,13 @@ async def open_domain(
         uri: where to listen: ``tcp://127.0.0.1:0`` (a free port, reachable from other processes) or
             ``memory://`` (this process only).
         params: initial parameters, nested mappings flattened to absolute ``/a/b`` names.
-        options: transport options (``auth_key`` makes every node prove the shared key).
+        options: transport options (``auth_key`` makes every node prove the shared key); None: defaults, with
+            ``auth_key`` from ``$UNIROS_AUTH_KEY`` when set.
 
     Yields:
         The running Domain; ``domain.uri`` is what nodes join.
     """
-    listener = await listen(uri, options or TransportOptions())
+    listener = await listen(uri, options or options_from_environ())
     flat: dict[str, Any] = {}
     for k, v in (params or {}).items():
         flat.update(_flatten(k if k.startswith("/") else "/" + k, v))

@@ -55,7 +55,7 @@ from uniros_async.errors import (
     TransportClosedError,
     TransportError,
 )
-from uniros_async.transports.base import Listener, Transport, TransportOptions, connect, listen
+from uniros_async.transports.base import Listener, Transport, TransportOptions, connect, listen, options_from_environ
 
 __all__ = ["Node", "Publisher", "Service", "ServiceClient", "Subscription", "Timer", "open_node"]
 
@@ -362,14 +362,15 @@ async def open_node(
         namespace: prefix of the node's relative names (``/rx200_1``).
         clock: the domain's clock (default: the wall clock); timers and stamps follow it.
         transport: ``auto`` (in-process, then shm on one machine, else tcp), or force ``memory``, ``shm``, ``tcp``.
-        options: transport options (``auth_key`` must match the domain's and the peers').
+        options: transport options (``auth_key`` must match the domain's and the peers'); None: defaults, with
+            ``auth_key`` from ``$UNIROS_AUTH_KEY`` when set.
         registry_timeout_s: bound on every request to the registry.
 
     Raises:
         DomainError: the domain is unreachable within ``options.connect_timeout_s``.
         NameConflictError: the node name is taken.
     """
-    options = options or TransportOptions()
+    options = options or options_from_environ()
     uri = _domain_uri(domain)
     node = Node(name, namespace, clock or wall_clock(), transport, options)
     async with unwrap_task_group() as tg:

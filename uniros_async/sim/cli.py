@@ -26,7 +26,8 @@ __all__ = ["add_parser", "main", "run"]
 logger = logging.getLogger(__name__)
 
 AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
-"""Where ``uniros robot serve`` and ``bridge`` read the domain's shared key by default."""
+"""Where ``uniros robot serve`` and ``bridge`` read the domain's shared key by default (as domains and nodes do:
+``transports.base.options_from_environ``)."""
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:

@@ -40,6 +40,7 @@ __all__ = [
     "connect",
     "frame_nbytes",
     "listen",
+    "options_from_environ",
     "register_scheme",
     "split_uri",
 ]
@@ -140,6 +141,17 @@ class TransportOptions:
             )
         if self.handshake_timeout_s <= 0:
             raise ConfigError(f"handshake_timeout_s must be > 0, got {self.handshake_timeout_s}")
+
+
+AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
+"""The shared key ``options_from_environ`` reads: domains, nodes and ``uniros robot serve`` use it when no options
+are given, so every process of one setup only needs the variable set."""
+
+
+def options_from_environ() -> TransportOptions:
+    """Default options, with ``auth_key`` from ``$UNIROS_AUTH_KEY`` when it is set and not empty."""
+    key = os.environ.get(AUTH_KEY_ENV, "")
+    return TransportOptions(auth_key=key.encode() if key else None)
 
 
 @dataclasses.dataclass
