@@ -223,3 +223,18 @@ async def test_domains_and_nodes_take_the_key_from_the_environment(monkeypatch: 
         with pytest.raises(AuthenticationError, match="auth_key"):
             async with open_node("keyless", domain=dom.uri, options=TransportOptions(connect_timeout_s=2.0)):
                 pass
+
+
+async def test_failed_tls_handshakes_free_their_connection_slots(tls_files: TlsFiles) -> None:
+    import ssl
+
+    opts = tls_files.options(TransportOptions(max_connections=3, handshake_timeout_s=0.5))
+    async with asyncio.timeout(T_S), _listening("tls://127.0.0.1:0", opts) as lst:
+        ctx = ssl.create_default_context(cafile=tls_files.ca_file)  # no client certificate: the listener refuses
+        for _ in range(5):
+            reader, writer = await asyncio.open_connection(*lst.address, ssl=ctx, server_hostname="127.0.0.1")
+            with contextlib.suppress(ssl.SSLError, ConnectionResetError):
+                await reader.read()
+            writer.close()
+        await _until(lambda: lst.open_connections == 0)
+        await _round_trip(lst, opts)

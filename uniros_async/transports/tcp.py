@@ -233,6 +233,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             key=self._key, listener=listener is not None, max_frame_bytes=self._recv_limit, peer=self._peer
         )
         self._hs_timer: asyncio.TimerHandle | None = None
+        self._counted = listener is not None  # in the listener's open connections until connection_lost
+        self._unmade_timer: asyncio.TimerHandle | None = None
+        if listener is not None and self._encrypted:
+            # Under TLS the event loop makes this protocol before the TLS handshake and never tells it when that
+            # handshake fails (no connection_made, no connection_lost); the handshake is bounded by
+            # handshake_timeout_s, so a connection not made a second after that never will be: stop counting it.
+            self._unmade_timer = self._loop.call_later(options.handshake_timeout_s + 1.0, self._uncount)
 
     # ------------------------------------------------------------------------------------------ public API
 
@@ -503,6 +510,9 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         tr = cast(asyncio.Transport, transport)  # uvloop's transports do not subclass asyncio's
         self._tr = tr
+        if self._unmade_timer is not None:
+            self._unmade_timer.cancel()
+            self._unmade_timer = None
         sock = tr.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -566,8 +576,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._fd = -1  # the event loop closes the socket; its number may soon name another file
-        if self._listener is not None:
-            self._listener._open -= 1
+        self._uncount()
         if self._state == _HANDSHAKE:
             self._handshake_failed(
                 TransportBrokenError(f"connection to {self._peer} lost during the handshake: {exc or 'closed'}"),
@@ -676,6 +685,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             if frames or not self._ok:
                 self._spin_credit = _SPIN_CREDIT
                 return
+
+    def _uncount(self) -> None:
+        """Leave the listener's count of open connections (once)."""
+        if self._counted and self._listener is not None:
+            self._counted = False
+            self._listener._open -= 1
+        self._unmade_timer = None
 
     def _take_buffer(self, n: int) -> memoryview:
         """A buffer for a large frame: a pooled one that nobody holds any more, or a new one."""
