@@ -100,7 +100,7 @@ async def test_connections_over_the_cap_are_closed_at_once() -> None:
         await _round_trip(lst, opts)  # room again
 
 
-async def test_unfinished_handshakes_over_the_cap_evict_the_oldest() -> None:
+async def test_unfinished_handshakes_over_the_cap_are_refused_then_evicted() -> None:
     opts = TransportOptions(max_handshakes=4)
     async with asyncio.timeout(T_S), _listening("tcp://127.0.0.1:0", opts) as lst:
         silent = [await asyncio.open_connection(*lst.address) for _ in range(10)]
@@ -238,3 +238,34 @@ async def test_failed_tls_handshakes_free_their_connection_slots(tls_files: TlsF
             writer.close()
         await _until(lambda: lst.open_connections == 0)
         await _round_trip(lst, opts)
+
+
+async def test_a_burst_of_peers_beyond_max_handshakes_all_get_in() -> None:
+    opts = TransportOptions(max_handshakes=4, connect_timeout_s=T_S)
+    n = 120
+    async with asyncio.timeout(T_S * 2), _listening("tcp://127.0.0.1:0", opts) as lst:
+        clients = await asyncio.gather(*(connect(lst.uri, opts) for _ in range(n)))
+        servers = [await lst.accept() for _ in range(n)]
+        for c in clients:
+            await c.send(b"in")
+        assert all([bytes(await s.receive()) == b"in" for s in servers])
+        for t in (*clients, *servers):
+            await t.aclose()
+
+
+async def test_connect_to_a_full_listener_waits_for_a_free_slot() -> None:
+    opts = TransportOptions(max_connections=2, connect_timeout_s=0.5)
+    async with asyncio.timeout(T_S), _listening("tcp://127.0.0.1:0", opts) as lst:
+        held = [await connect(lst.uri, opts) for _ in range(2)]
+        accepted = [await lst.accept() for _ in range(2)]
+        with pytest.raises(TimeoutError, match="could not connect"):
+            await connect(lst.uri, opts)
+        late = asyncio.ensure_future(connect(lst.uri, TransportOptions(connect_timeout_s=T_S)))
+        await held[0].aclose()
+        await accepted[0].aclose()
+        client = await late  # retried until the slot was free
+        server = await lst.accept()
+        await client.send(b"x")
+        assert bytes(await server.receive()) == b"x"
+        for t in (client, server, held[1], accepted[1]):
+            await t.aclose()

@@ -104,7 +104,8 @@ class TransportOptions:
         max_connections: for listeners on the network: connections open at once (handshaking, waiting for
             ``accept`` and accepted); a connection beyond it is closed at once, before any byte is read.
         max_handshakes: for listeners on the network: unfinished handshakes at once; a new connection beyond it
-            evicts the oldest unfinished one (a stranger holding connections open cannot lock peers out).
+            evicts the oldest unfinished one if that has waited 1 s (a stranger holding connections open cannot
+            lock peers out), else it is refused before the handshake (a burst of peers: ``connect`` retries).
         handshake_timeout_s: for listeners on the network: a peer that has not completed the handshake this long
             after connecting is dropped.
         tls_cert_file: for ``tls://``: this end's certificate chain (PEM).

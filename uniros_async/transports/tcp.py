@@ -32,9 +32,10 @@ small round trip; reading the socket itself (not turning the event loop, which a
 same core needs) keeps the receiving core awake just long enough. Figures: docs/performance.md.
 
 Limits, for peers that are not trusted (docs/security.md): a listener holds at most ``max_connections``
-connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest), each of which must finish
-within ``handshake_timeout_s``. The stream buffer is anonymous memory, resident only where data has landed, so an
-idle connection costs a few KiB; refusals are counted in ``rejected`` and logged at most once a second.
+connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest once that waited 1 s, else
+it is reset and ``connect`` retries), each of which must finish within ``handshake_timeout_s``. The stream buffer
+is anonymous memory, resident only where data has landed, so an idle connection costs a few KiB; refusals are
+counted in ``rejected`` and logged at most once a second.
 
 Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, and ``receive_blocking``
 reads the socket in the caller's thread (the poll's reads, then ``poll(2)``), for a caller in the loop's thread while
@@ -119,6 +120,7 @@ _RX_LOW_BYTES = 2 * 1024 * 1024  # resume below this
 _TX_HIGH_BYTES = 1024 * 1024  # send() waits while the event loop holds more than this unsent
 _TX_LOW_BYTES = 256 * 1024
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
+_EVICT_AFTER_S = 1.0  # beyond max_handshakes, an unfinished handshake this old gives way to a newcomer
 
 # Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
 # reads (ShmTransport's rule): in a request/reply exchange the answer usually comes sooner than a sleeping process
@@ -233,6 +235,8 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             key=self._key, listener=listener is not None, max_frame_bytes=self._recv_limit, peer=self._peer
         )
         self._hs_timer: asyncio.TimerHandle | None = None
+        self._hs_started_s = 0.0
+        self._hs_dropped = False  # the peer hung up (or reset) during the handshake: a full listener does that
         self._counted = listener is not None  # in the listener's open connections until connection_lost
         self._unmade_timer: asyncio.TimerHandle | None = None
         if listener is not None and self._encrypted:
@@ -526,10 +530,15 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._copies_on_write = self._stdlib and _SELECTOR_COPIES
         self._vectored = not self._copies_on_write
         self._hs.peer = self._peer
-        tr.write(self._hs.hello())
         if self._listener is not None:
+            if not self._listener._handshake_started(self):
+                self._state = _DEAD
+                self._set_error(f"{self._peer} refused: too many unfinished handshakes")
+                tr.abort()  # before our HELLO: the peer sees a reset, not a finished handshake, and retries
+                return
+            self._hs_started_s = self._loop.time()
             self._hs_timer = self._loop.call_later(self._options.handshake_timeout_s, self._handshake_expired)
-            self._listener._handshake_started(self)
+        tr.write(self._hs.hello())
 
     def get_buffer(self, sizehint: int) -> memoryview:
         if self._big is not None:
@@ -563,6 +572,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     def eof_received(self) -> bool:
         if self._state == _HANDSHAKE:
+            self._hs_dropped = self._retryable_drop()
             self._handshake_failed(TransportBrokenError(f"{self._peer} closed the connection during the handshake"))
         elif self._error is None:
             if self._big is not None or self._rend > self._rpos:
@@ -578,6 +588,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._fd = -1  # the event loop closes the socket; its number may soon name another file
         self._uncount()
         if self._state == _HANDSHAKE:
+            self._hs_dropped = (exc is None or isinstance(exc, ConnectionError)) and self._retryable_drop()
             self._handshake_failed(
                 TransportBrokenError(f"connection to {self._peer} lost during the handshake: {exc or 'closed'}"),
                 cause=exc,
@@ -685,6 +696,12 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             if frames or not self._ok:
                 self._spin_credit = _SPIN_CREDIT
                 return
+
+    def _retryable_drop(self) -> bool:
+        """Whether a hang-up during the handshake may be a full listener (worth a retry). Under TLS a listener
+        that refuses our certificate hangs up too, before its HELLO: only a drop after the HELLO (an eviction)
+        counts there."""
+        return not self._encrypted or self._hs.peer_max_frame_bytes is not None
 
     def _uncount(self) -> None:
         """Leave the listener's count of open connections (once)."""
@@ -860,7 +877,8 @@ class TcpListener(Listener):
 
     Caps (``TransportOptions``): at most ``max_connections`` open at once (a connection beyond it is closed as soon
     as it is accepted, before any byte is read or any buffer allocated), at most ``max_handshakes`` unfinished (a new
-    connection beyond it evicts the oldest unfinished one), and each handshake must finish within
+    connection beyond it evicts the oldest unfinished one if that waited 1 s, else is refused and retries), and each
+    handshake must finish within
     ``handshake_timeout_s``. Every refusal is counted in ``rejected`` and logged at most once a second.
     """
 
@@ -944,15 +962,27 @@ class TcpListener(Listener):
         self._open += 1
         return make()
 
-    def _handshake_started(self, t: TcpTransport) -> None:
+    def _handshake_started(self, t: TcpTransport) -> bool:
+        """Admit ``t`` among the unfinished handshakes; False: refuse it (the caller drops it before its HELLO).
+
+        Beyond ``max_handshakes`` the oldest unfinished one is evicted if it has waited at least
+        ``_EVICT_AFTER_S`` (a stranger holding connections open), else the newcomer is refused (a burst of peers,
+        whose handshakes are about to finish: they retry)."""
         handshaking = self._handshaking
-        handshaking[t] = None
-        if len(handshaking) > self._options.max_handshakes:
+        limit = self._options.max_handshakes
+        if len(handshaking) >= limit:
             oldest = next(iter(handshaking))
-            limit = self._options.max_handshakes
+            waited_s = asyncio.get_running_loop().time() - oldest._hs_started_s
+            if waited_s < min(_EVICT_AFTER_S, self._options.handshake_timeout_s / 2):
+                self._count_rejection(t.peer, f"over max_handshakes={limit}")
+                return False
             oldest._handshake_failed(
-                TransportBrokenError(f"{oldest.peer} evicted: more than max_handshakes={limit} unfinished handshakes")
+                TransportBrokenError(
+                    f"{oldest.peer} evicted after {waited_s:.1f} s: more than max_handshakes={limit} unfinished"
+                )
             )
+        handshaking[t] = None
+        return True
 
     def _handshake_succeeded(self, t: TcpTransport) -> None:
         self._handshaking.pop(t, None)
@@ -1052,8 +1082,10 @@ async def open_listener(
 async def connect(uri: str, options: TransportOptions) -> TcpTransport:
     """Connect to a listener at ``tcp://HOST:PORT`` and complete the handshake.
 
-    Refused connections (a listener still starting) are retried with backoff from 5 ms doubling to 500 ms, until
-    ``options.connect_timeout_s`` has passed since the call, handshake included. Cancelling leaves nothing open.
+    Refused connections (a listener still starting), and connections the listener drops during the handshake (it
+    is at ``max_connections``, or evicted us among more than ``max_handshakes`` at once), are retried with backoff
+    from 5 ms doubling to 500 ms, until ``options.connect_timeout_s`` has passed since the call, handshake included.
+    Cancelling leaves nothing open.
 
     Raises:
         ConfigError: the URI has no host or port.
@@ -1075,7 +1107,7 @@ async def open_connection(
     timeout_s = options.connect_timeout_s
     deadline = loop.time() + timeout_s
     backoff = Backoff(first_s=0.005, max_s=0.5)
-    last: OSError | None = None
+    last: Exception | None = None
     while True:
         try:
             async with asyncio.timeout_at(deadline):
@@ -1086,26 +1118,33 @@ async def open_connection(
                     ssl=ssl_context,
                     server_hostname=host if ssl_context is not None else None,
                 )
-            break
         except TimeoutError:
             raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {last})") from last
         except ssl.SSLError as exc:  # a certificate refused: retrying cannot help
             raise AuthenticationError(f"TLS handshake with {uri} failed: {exc}") from exc
         except OSError as exc:  # refused while the listener starts, unreachable, ... : retry until the deadline
             last = exc
-            remaining = deadline - loop.time()
-            if remaining <= 0:
-                raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {exc})") from exc
-            await backoff.sleep(limit_s=remaining)
-    try:
-        async with asyncio.timeout_at(deadline):
-            await asyncio.shield(t._ready)
-    except TimeoutError as exc:
-        await t.aclose()
-        raise TimeoutError(
-            f"{uri} accepted the connection but did not complete the handshake within {timeout_s} s"
-        ) from exc
-    except BaseException:
-        await t.aclose()
-        raise
-    return t
+        else:
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await asyncio.shield(t._ready)
+                return t
+            except TimeoutError as exc:
+                await t.aclose()
+                raise TimeoutError(
+                    f"{uri} accepted the connection but did not complete the handshake within {timeout_s} s"
+                ) from exc
+            except TransportBrokenError as exc:
+                await t.aclose()
+                if not t._hs_dropped:
+                    raise
+                # The listener hung up mid-handshake: it is at max_connections, or evicted us among too many
+                # unfinished handshakes (a burst of connections). Both pass: retry until the deadline.
+                last = exc
+            except BaseException:
+                await t.aclose()
+                raise
+        remaining = deadline - loop.time()
+        if remaining <= 0:
+            raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {last})") from last
+        await backoff.sleep(limit_s=remaining)
