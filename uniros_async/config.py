@@ -427,37 +427,39 @@ def _model_in(hint: Any, *, index: bool) -> Any:
 
 
 def markdown_table(cls: type[pydantic.BaseModel], *, prefix: str = "") -> str:
-    """A Markdown table of ``cls``'s keys: key, type, default and the first sentence of its description."""
+    """A Markdown table of ``cls``'s keys: key, type (with its bounds), default and description."""
     rows = ["| key | type | default | meaning |", "|---|---|---|---|"]
     for name, field in cls.model_fields.items():
-        default = field.get_default(call_default_factory=True)
-        if isinstance(default, pydantic.BaseModel):
+        default = None if field.is_required() else field.get_default(call_default_factory=True)
+        if field.is_required():
+            shown = "required"
+        elif isinstance(default, pydantic.BaseModel):
             shown = "see below"
-        elif isinstance(default, tuple):
-            shown = f"`{list(default)}`" if default else "`[]`"
-        elif isinstance(default, str):
-            shown = f"`{default}`"
-        elif default is None:
-            shown = "`null`"
-        elif isinstance(default, bool):
-            shown = f"`{str(default).lower()}`"
         else:
-            shown = f"`{default!r}`"
-        desc = " ".join((field.description or "").split())
+            dumped = yaml.safe_dump(_plain(default), default_flow_style=True, width=1000)
+            shown = f"`{dumped.removesuffix(chr(10)).removesuffix('...').strip()}`"
+        desc = " ".join((field.description or "").split()).replace("|", "\\|")
         rows.append(f"| `{prefix}{name}` | {_type_name(field.annotation, field.metadata)} | {shown} | {desc} |")
     return "\n".join(rows) + "\n"
 
 
 def _type_name(hint: Any, metadata: Sequence[Any] = ()) -> str:
-    name = _hint_name(hint)
+    return _with_bounds(_hint_name(hint), metadata)
+
+
+def _with_bounds(name: str, metadata: Sequence[Any]) -> str:
     bounds = []
-    for m in metadata:
+    flat = [x for m in metadata for x in (m.metadata if isinstance(m, pydantic.fields.FieldInfo) else [m])]
+    for m in flat:
         for attr, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
             v = getattr(m, attr, None)
             if v is not None:
                 bounds.append(f"{op} {v:g}")
         if getattr(m, "min_length", None):
-            bounds.append(f"at least {m.min_length} item(s)")
+            if m.min_length == 1 and (name == "string" or name.startswith("list of")):
+                name = f"non-empty {name}"
+            else:
+                bounds.append(f"at least {m.min_length} item(s)")
     return name + (f" ({', '.join(bounds)})" if bounds else "")
 
 
@@ -467,7 +469,7 @@ def _hint_name(hint: Any) -> str:
         return names[hint]
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin is Annotated:
-        return _hint_name(args[0])
+        return _with_bounds(_hint_name(args[0]), args[1:])
     if origin is typing.Literal:
         return " \\| ".join(f"`{a}`" for a in args)
     if origin in (typing.Union, types.UnionType):

@@ -52,7 +52,8 @@ class ReachConfig(ConfigModel):
     model_config = pydantic.ConfigDict(use_attribute_docstrings=True)
 
     reward_type: Literal["dense", "sparse"] = "dense"
-    """UniROS's rewards (see the module docstring)."""
+    """UniROS's: ``dense`` is +20 on reaching, else -2 x distance - 0.5, with -2 at a joint limit and -5 for an
+    action that could not be executed; ``sparse`` is +1 on reaching, else -1."""
     action_mode: Literal["absolute", "delta"] = "absolute"
     """Actions are joint targets over the joint range (``absolute``) or joint deltas (``delta``)."""
     reach_tolerance: Float = Field(default=0.02, gt=0)

@@ -152,9 +152,9 @@ class AsyncLearnerConfig(ConfigModel):
     model_config = _ATTRIBUTE_DOCS
 
     updates_per_step: Float = Field(default=1.0, gt=0)
-    """Gradient updates per env step, on average."""
+    """Gradient updates per collected transition; the learner never runs ahead of this x transitions."""
     sync_every: Int = Field(default=2, ge=1)
-    """Updates between copies of the actor's weights to the acting side."""
+    """Updates between two swaps of the actor's weights the acting side uses."""
     real_time_actor: Bool | None = None
     """AsyncTD3's ``real_time_actor``; unset: on when any training env runs on the wall clock."""
     action_l2: Float = Field(default=0.0, ge=0)
@@ -237,7 +237,7 @@ class TrainConfig(ConfigModel):
     run_dir: Str | None = None
     """Where logs and checkpoints go; unset: ``runs/<name>``."""
     progress_bar: Bool = True
-    """Show a progress bar (on a terminal)."""
+    """Show a progress bar of the run's steps (``uniros train --no-progress`` turns it off)."""
 
     @pydantic.model_validator(mode="after")
     def _check(self) -> TrainConfig:
