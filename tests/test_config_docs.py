@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from uniros_async.config import ConfigModel, markdown_table
+from uniros_async.config import ConfigModel, attribute_docs, markdown_table
 from uniros_async.envs.config import EnvConfig
 from uniros_async.tasks.reach import ReachConfig
 from uniros_async.training.config import (
@@ -53,7 +53,7 @@ def test_docs_list_every_key_as_the_models_declare_it() -> None:
 
 
 def test_every_key_of_every_model_has_a_description() -> None:
-    missing = [f"{m.__name__}.{k}" for _, m, _ in SECTIONS for k, f in m.model_fields.items() if not f.description]
+    missing = [f"{m.__name__}.{k}" for _, m, _ in SECTIONS for k in m.model_fields if not attribute_docs(m).get(k)]
     assert missing == []
 
 

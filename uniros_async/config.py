@@ -20,9 +20,12 @@ rule that spans fields); the docs table (docs/configuration.md) is generated fro
 
 from __future__ import annotations
 
+import ast
 import difflib
+import inspect
 import math
 import re
+import textwrap
 import types
 import typing
 from collections.abc import Iterable, Sequence
@@ -35,6 +38,7 @@ from pydantic import BeforeValidator, ConfigDict, Strict, ValidationError
 from pydantic_core import PydanticCustomError
 
 from uniros_async.errors import ConfigError
+from uniros_async.yamlio import load_yaml
 
 __all__ = [
     "Bool",
@@ -49,43 +53,13 @@ __all__ = [
     "key_error",
     "load_config",
     "load_yaml",
+    "attribute_docs",
     "markdown_table",
     "prefixed",
     "problems_error",
 ]
 
 M = TypeVar("M", bound="ConfigModel")
-
-
-# ---- YAML
-
-
-class _Loader(yaml.SafeLoader):  # type: ignore[misc]
-    """yaml.SafeLoader that also reads YAML 1.2 floats (``3e-4``, ``1e4``, ``1E+6``: no dot needed) as floats."""
-
-
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789"),
-)
-
-
-def load_yaml(path: str | Path) -> Any:
-    """Read a YAML file (safe loading; ``3e-4`` and ``1e4`` are numbers); errors name the path.
-
-    Raises:
-        ConfigError: the file cannot be read or is not valid YAML.
-    """
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ConfigError(f"cannot read config file {str(p)!r}: {exc.strerror}") from exc
-    try:
-        return yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader subclass)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{str(p)!r} is not valid YAML: {exc}") from exc
 
 
 # ---- field types
@@ -429,6 +403,7 @@ def _model_in(hint: Any, *, index: bool) -> Any:
 def markdown_table(cls: type[pydantic.BaseModel], *, prefix: str = "") -> str:
     """A Markdown table of ``cls``'s keys: key, type (with its bounds), default and description."""
     rows = ["| key | type | default | meaning |", "|---|---|---|---|"]
+    docs = attribute_docs(cls)
     for name, field in cls.model_fields.items():
         default = None if field.is_required() else field.get_default(call_default_factory=True)
         if field.is_required():
@@ -438,9 +413,37 @@ def markdown_table(cls: type[pydantic.BaseModel], *, prefix: str = "") -> str:
         else:
             dumped = yaml.safe_dump(_plain(default), default_flow_style=True, width=1000)
             shown = f"`{dumped.removesuffix(chr(10)).removesuffix('...').strip()}`"
-        desc = " ".join((field.description or "").split()).replace("|", "\\|")
+        desc = " ".join((field.description or docs.get(name, "")).split()).replace("|", "\\|")
         rows.append(f"| `{prefix}{name}` | {_type_name(field.annotation, field.metadata)} | {shown} | {desc} |")
     return "\n".join(rows) + "\n"
+
+
+def attribute_docs(cls: type) -> dict[str, str]:
+    """The docstring under each annotated attribute of ``cls`` and its bases (read from the source, for docs).
+
+    The models document each key this way rather than with pydantic's ``use_attribute_docstrings``, which parses
+    the source whenever a model class is created, i.e. in every process that imports one (~70 ms once per process
+    here); the docs need it only when they are generated.
+    """
+    out: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if klass in (object, pydantic.BaseModel, ConfigModel):
+            continue
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for stmt, nxt in zip(body, body[1:], strict=False):
+            if (
+                isinstance(stmt, ast.AnnAssign)
+                and isinstance(stmt.target, ast.Name)
+                and isinstance(nxt, ast.Expr)
+                and isinstance(nxt.value, ast.Constant)
+                and isinstance(nxt.value.value, str)
+            ):
+                out[stmt.target.id] = inspect.cleandoc(nxt.value.value)
+    return out
 
 
 def _type_name(hint: Any, metadata: Sequence[Any] = ()) -> str:

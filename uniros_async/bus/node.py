@@ -45,7 +45,7 @@ from uniros_async.bus.services import Service, ServiceClient
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.bus.timer import Timer
 from uniros_async.clock import Clock, wall_clock
-from uniros_async.config import load_yaml
+from uniros_async.yamlio import load_yaml
 from uniros_async.errors import (
     CodecError,
     ConfigError,

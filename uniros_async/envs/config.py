@@ -39,8 +39,6 @@ def _latency_input(v: Any) -> float | str:
 class EnvConfig(ConfigModel):
     """Runtime settings shared by every task (each key's meaning is documented where it is declared)."""
 
-    model_config = pydantic.ConfigDict(use_attribute_docstrings=True)
-
     robot: Str = "sim"
     """Where the arm is: ``"sim"`` (servo sim in the env's own process, memory transport), ``"sim-process"``
     (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as a tcp service in its own

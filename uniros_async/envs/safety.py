@@ -19,8 +19,6 @@ __all__ = ["SafetyChecker", "SafetyConfig"]
 class SafetyConfig(ConfigModel):
     """Limits of what the env loop will send."""
 
-    model_config = pydantic.ConfigDict(use_attribute_docstrings=True)
-
     table_margin_m: Float = 0.01
     """Every link surface must stay this far above the table plane (z = 0)."""
     workspace_min_m: Vec3 = (-0.05, -0.6, 0.02)

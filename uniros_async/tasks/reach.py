@@ -49,8 +49,6 @@ ACTION_MODES = ("absolute", "delta")
 class ReachConfig(ConfigModel):
     """The reach task's keyword arguments (besides EnvConfig's), checked when the env is built."""
 
-    model_config = pydantic.ConfigDict(use_attribute_docstrings=True)
-
     reward_type: Literal["dense", "sparse"] = "dense"
     """UniROS's: ``dense`` is +20 on reaching, else -2 x distance - 0.5, with -2 at a joint limit and -5 for an
     action that could not be executed; ``sparse`` is +1 on reaching, else -1."""

@@ -53,7 +53,6 @@ PLACEMENTS = ("inprocess", "workers")
 REPLAY_BUFFERS = ("auto", "standard", "her")
 GOAL_STRATEGIES = ("future", "final", "episode")
 _NAME_PATTERN = r"^[A-Za-z0-9_.+-]+$"
-_ATTRIBUTE_DOCS = pydantic.ConfigDict(use_attribute_docstrings=True)
 
 Name = Annotated[Str, Field(pattern=_NAME_PATTERN)]
 """A run or env name: letters, digits and ``_ . + -`` (it becomes part of file names)."""
@@ -61,8 +60,6 @@ Name = Annotated[Str, Field(pattern=_NAME_PATTERN)]
 
 class EnvEntry(ConfigModel):
     """One env of a run (in YAML: a mapping, or just the id)."""
-
-    model_config = _ATTRIBUTE_DOCS
 
     id: Annotated[Str, Field(min_length=1)]
     """A registered id, e.g. ``uniros/Rx200Reach-v0``."""
@@ -98,8 +95,6 @@ Index = Annotated[Int, Field(ge=0)]
 
 class TD3Config(ConfigModel):
     """TD3 hyperparameters (SB3 names; defaults from the paper)."""
-
-    model_config = _ATTRIBUTE_DOCS
 
     learning_rate: Float = Field(default=3e-4, gt=0)
     """Adam's learning rate of actor and critics."""
@@ -138,8 +133,6 @@ class TD3Config(ConfigModel):
 class HerConfig(ConfigModel):
     """Hindsight experience replay (SB3 HerReplayBuffer)."""
 
-    model_config = _ATTRIBUTE_DOCS
-
     n_sampled_goal: Int = Field(default=4, ge=1)
     """Relabelled goals per real transition."""
     goal_selection_strategy: Literal["future", "final", "episode"] = "future"
@@ -148,8 +141,6 @@ class HerConfig(ConfigModel):
 
 class AsyncLearnerConfig(ConfigModel):
     """Settings of the asynchronous learner (``learner: async``, training/async_td3.py)."""
-
-    model_config = _ATTRIBUTE_DOCS
 
     updates_per_step: Float = Field(default=1.0, gt=0)
     """Gradient updates per collected transition; the learner never runs ahead of this x transitions."""
@@ -164,8 +155,6 @@ class AsyncLearnerConfig(ConfigModel):
 class EvalConfig(ConfigModel):
     """Periodic evaluation (deterministic policy) on every training env, or on ``envs`` if given."""
 
-    model_config = _ATTRIBUTE_DOCS
-
     every_steps: Int = Field(default=1000, ge=0)
     """Env steps between evaluations (0: never)."""
     episodes: Int = Field(default=20, ge=1)
@@ -177,8 +166,6 @@ class EvalConfig(ConfigModel):
 class CheckpointConfig(ConfigModel):
     """Checkpoints: model and replay buffer every ``every_steps`` (and at the end), the last ``keep`` kept."""
 
-    model_config = _ATTRIBUTE_DOCS
-
     every_steps: Int = Field(default=2000, ge=0)
     """Env steps between checkpoints (0: only at the end)."""
     keep: Int = Field(default=2, ge=1)
@@ -189,8 +176,6 @@ class CheckpointConfig(ConfigModel):
 
 class TrainConfig(ConfigModel):
     """One training run (see the module docstring)."""
-
-    model_config = _ATTRIBUTE_DOCS
 
     name: Name = "run"
     """Run name; the run directory defaults to ``runs/<name>``."""
