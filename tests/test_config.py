@@ -117,8 +117,8 @@ def test_any_positive_float_as_python_writes_it_loads_as_that_float(
         ({"inner": {"mode": "fats"}}, "inner.mode: expected one of 'fast', 'slow', got 'fats'; did you mean 'fast'?"),
         ({"inner": 3}, "inner: expected a mapping, got 3"),
         ({"items": [{}, {"count": 2.5}]}, "items[1].count: expected an integer, got 2.5"),
-        ({"items": [{}, {"cuont": 2}]}, "items[1].cuont: unknown key; did you mean 'count'? (valid keys: count, mode)"),
-        ({"inner": {"cont": 2}}, "inner.cont: unknown key; did you mean 'count'? (valid keys: count, mode)"),
+        ({"items": [{}, {"cuont": 2}]}, "items[1].cuont: unknown key; did you mean 'count'?"),
+        ({"inner": {"cont": 2}}, "inner.cont: unknown key; did you mean 'count'?"),
         ({"zzz": 2}, "zzz: unknown key (valid keys: rate, flag, label, point, inner, items)"),
     ],
 )
@@ -201,7 +201,7 @@ def test_env_and_safety_configs_are_frozen_models_with_their_attribute_names() -
     [
         (
             {"rewrd_type": "sparse"},
-            "ReachEnv: rewrd_type: unknown keyword argument; did you mean 'reward_type'? (valid: ",
+            "ReachEnv: rewrd_type: unknown keyword argument; did you mean 'reward_type'?",
         ),
         (
             {"reward_type": "spars"},

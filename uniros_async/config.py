@@ -320,12 +320,10 @@ def _describe(err: Any, root: type[pydantic.BaseModel] | None) -> list[tuple[str
     ctx: dict[str, Any] = err.get("ctx") or {}
     if kind == "extra_forbidden":
         valid = _keys_at(root, loc[:-1])
-        msg = "unknown key"
-        if valid:
-            near = closest(str(loc[-1]), valid)
-            msg += f"; did you mean {near!r}?" if near else ""
-            msg += f" (valid keys: {', '.join(valid)})"
-        return [(_path(loc), msg)]
+        near = closest(str(loc[-1]), valid) if valid else None
+        if near:
+            return [(_path(loc), f"unknown key; did you mean {near!r}?")]
+        return [(_path(loc), f"unknown key (valid keys: {', '.join(valid)})" if valid else "unknown key")]
     if kind == "missing":
         return [(_path(loc), "missing (required)")]
     if kind == "uniros":

@@ -156,7 +156,7 @@ def test_unsafe_action_is_not_sent() -> None:
 
 
 def test_unknown_kwargs_are_a_clear_error() -> None:
-    with pytest.raises(ConfigError, match=r"^ReachEnv: colour: unknown keyword argument \(valid: .*action_cycle_s"):
+    with pytest.raises(ConfigError, match=r"^ReachEnv: colour: unknown keyword argument; valid: .*action_cycle_s"):
         gym.make("uniros/Rx200Reach-v0", colour="red")
     with pytest.raises(ConfigError, match=r"^ReachEnv: reward_type: expected one of 'dense', 'sparse', got 'shaped'$"):
         gym.make("uniros/Rx200Reach-v0", reward_type="shaped")

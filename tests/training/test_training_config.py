@@ -132,8 +132,7 @@ def test_bad_value_names_its_key_path(data: dict, message: str) -> None:
 def test_unknown_key_names_the_closest_valid_one(data: dict, message: str) -> None:
     with pytest.raises(ConfigError) as e:
         train_config_from_dict(data)
-    assert str(e.value).startswith(message), str(e.value)
-    assert len(str(e.value).splitlines()) == 1
+    assert str(e.value) == message
 
 
 def test_every_problem_is_reported_on_its_own_line(tmp_path: Path) -> None:

@@ -38,8 +38,8 @@ def parse_kwargs(task_cls: type, kwargs: dict[str, Any]) -> tuple[EnvConfig, Any
         if key not in env_keys and key not in task_keys:
             valid = sorted({*task_keys, *env_keys})
             near = closest(key, valid)
-            hint = f"; did you mean {near!r}?" if near else ""
-            problems.append((str(key), f"unknown keyword argument{hint} (valid: {', '.join(valid)})"))
+            hint = f"did you mean {near!r}?" if near else f"valid: {', '.join(valid)}"
+            problems.append((str(key), f"unknown keyword argument; {hint}"))
     config: EnvConfig | None = None
     task: Any = {k: v for k, v in kwargs.items() if k in task_keys and k not in env_keys}
     try:

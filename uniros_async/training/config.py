@@ -2,8 +2,11 @@
 
 The defaults are the UniROS paper's (TD3 with 400-300 networks, lr 3e-4, buffer 1e6, batch 256, tau 0.005,
 gamma 0.99, policy delay 2, target noise 0.2 clipped at 0.5; HER with the ``future`` strategy and 4 sampled
-goals). Every key is checked before anything starts: unknown keys (with the valid ones listed), impossible
-values, unknown env ids and env keyword arguments all raise ConfigError::
+goals). Every key is checked before anything starts (pydantic models, uniros_async/config.py): an unknown key
+(with the closest valid one), a wrong type or an impossible value raises ConfigError with one line per problem,
+each naming the key's path (``td3.batch_size: expected an integer, got 128.5``); ``check_envs`` checks the env
+ids and keyword arguments the same way (``envs[1].kwargs.reward_type: ...``). Every key, its type and default:
+docs/configuration.md. ::
 
     name: rx200_reach_dense
     seed: 0
