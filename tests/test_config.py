@@ -258,3 +258,15 @@ def test_make_and_make_vec_raise_the_same_error_in_the_caller_before_any_process
     ):
         make_vec([RX], clock="sim", delta_cof=0.1)
     assert set(multiprocessing.active_children()) == before
+
+
+def test_numpy_scalars_and_arrays_are_numbers_but_numpy_bools_are_not() -> None:
+    import numpy as np
+
+    cfg = EnvConfig(emulation_seed=np.int64(3), action_cycle_s=np.float32(0.5))  # type: ignore[arg-type]
+    assert (cfg.emulation_seed, cfg.action_cycle_s) == (3, 0.5) and type(cfg.emulation_seed) is int
+    assert ReachConfig(goal_min=np.array([0.1, 0.0, 0.1])).goal_min == (0.1, 0.0, 0.1)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"^emulation_seed: expected an integer, got np\.True_$"):
+        EnvConfig(emulation_seed=np.bool_(True))  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"^emulation_seed: expected an integer, got np\.float64\(2\.5\)$"):
+        EnvConfig(emulation_seed=np.float64(2.5))  # type: ignore[arg-type]

@@ -7,8 +7,9 @@ refuse what is plainly a mistake: ``batch_size: 128.5`` or ``batch_size: true`` 
 and the number types accept numeric strings as well, so a quoted ``"1e4"`` works too). A bad config raises
 ``ConfigError`` with one line per problem, each naming the key's path and what was expected::
 
-    ConfigError: td3.batch_size: expected an integer, got 128.5
+    td3.batch_size: expected an integer, got 128.5
     envs[1].kwargs.reward_type: expected one of 'dense', 'sparse', got 'spars'; did you mean 'sparse'?
+    td3.lr: unknown key; did you mean 'learning_rate'?
 
 Validation runs once, when a config is built; the values are then plain attributes (the env loop reads them
 without pydantic in the way). Hot-path records (bus messages, sim state) stay dataclasses.
@@ -24,6 +25,7 @@ import ast
 import difflib
 import inspect
 import math
+import numbers
 import re
 import textwrap
 import types
@@ -32,6 +34,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
+import numpy as np
 import pydantic
 import yaml
 from pydantic import BeforeValidator, ConfigDict, Strict, ValidationError
@@ -45,15 +48,15 @@ __all__ = [
     "ConfigModel",
     "Float",
     "Int",
+    "KeyProblem",
     "Str",
     "Vec3",
-    "KeyProblem",
+    "attribute_docs",
     "closest",
     "config_error",
     "key_error",
     "load_config",
     "load_yaml",
-    "attribute_docs",
     "markdown_table",
     "prefixed",
     "problems_error",
@@ -70,8 +73,10 @@ def _problem(message: str, value: Any) -> PydanticCustomError:
 
 
 def _int_input(v: Any) -> Any:
-    if isinstance(v, bool):
+    if isinstance(v, bool | np.bool_):
         raise _problem("expected an integer", v)
+    if isinstance(v, numbers.Integral):  # numpy integers too
+        return int(v)
     number = v
     if isinstance(v, str):
         try:
@@ -82,17 +87,18 @@ def _int_input(v: Any) -> Any:
             number = float(v.strip())  # "1e4"
         except ValueError:
             raise _problem("expected an integer", v) from None
-    if isinstance(number, float):
-        if math.isfinite(number) and number.is_integer():
-            return int(number)
+    if isinstance(number, numbers.Real):
+        f = float(number)
+        if math.isfinite(f) and f.is_integer():
+            return int(f)
         raise _problem("expected an integer", v)
     return v
 
 
 def _float_input(v: Any) -> Any:
-    if isinstance(v, bool):
+    if isinstance(v, bool | np.bool_):
         raise _problem("expected a number", v)
-    number = v
+    number = float(v) if isinstance(v, numbers.Real) else v  # numpy scalars too
     if isinstance(v, str):
         try:
             number = float(v.strip())  # "3e-4", "1_000", "inf"
@@ -106,13 +112,8 @@ def _float_input(v: Any) -> Any:
 def _vec3_input(v: Any) -> Any:
     if isinstance(v, list | tuple) and len(v) == 3:
         return tuple(v)
-    try:  # a numpy array
-        import numpy as np
-
-        if isinstance(v, np.ndarray) and v.shape == (3,):
-            return tuple(v.tolist())
-    except ImportError:  # pragma: no cover (numpy is a dependency)
-        pass
+    if isinstance(v, np.ndarray) and v.shape == (3,):
+        return tuple(v.tolist())
     raise _problem("expected 3 numbers [x, y, z]", v)
 
 
@@ -138,7 +139,7 @@ class ConfigModel(pydantic.BaseModel):
     module docstring), never pydantic's ValidationError.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=False, arbitrary_types_allowed=False)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     def __init__(self, **data: Any) -> None:
         """Validate ``data``; see the class docstring.
