@@ -98,7 +98,7 @@ def _int_input(v: Any) -> Any:
 def _float_input(v: Any) -> Any:
     if isinstance(v, bool | np.bool_):
         raise _problem("expected a number", v)
-    number = float(v) if isinstance(v, numbers.Real) else v  # numpy scalars too
+    number = float(v) if isinstance(v, numbers.Real) and not isinstance(v, int | float) else v  # numpy scalars
     if isinstance(v, str):
         try:
             number = float(v.strip())  # "3e-4", "1_000", "inf"
