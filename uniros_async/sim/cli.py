@@ -200,9 +200,10 @@ def _run_until_signal(serve: Any) -> int:
         mine = group.subgroup(UnirosError)
         if mine is None:
             raise
-        while isinstance(mine, BaseExceptionGroup):
-            mine = mine.exceptions[0]
-        raise mine from None
+        first: BaseException = mine
+        while isinstance(first, BaseExceptionGroup):
+            first = first.exceptions[0]
+        raise first from None
     return 0
 
 
