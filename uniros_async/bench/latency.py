@@ -306,7 +306,7 @@ def _run_learner(
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import Logger
 
-    torch.set_num_threads(1)  # beside env loops on 2 cores, more threads stall updates (design.md section 9)
+    torch.set_num_threads(1)  # beside env loops on 2 cores, more threads stall updates
     cls = _learner_class(name)
     rec = _step_recorder(vec.as_sb3())
     n_actions = int(np.prod(vec.single_action_space.shape))
