@@ -100,8 +100,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
     render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
     render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
-    render.add_argument("--width", type=int, default=640)
-    render.add_argument("--height", type=int, default=480)
+    render.add_argument("--width", type=int, default=640, help="pixels (default %(default)s)")
+    render.add_argument("--height", type=int, default=480, help="pixels (default %(default)s)")
     render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")

@@ -39,8 +39,13 @@ def add_parsers(subparsers: Any) -> None:
         "--env-kwargs", default=None, metavar="YAML", help="kwargs for every --env, e.g. '{reward_type: sparse}'"
     )
     t.add_argument("--steps", type=int, default=None, help="total env steps")
-    t.add_argument("--seed", type=int, default=None)
-    t.add_argument("--learner", choices=("sync", "async"), default=None)
+    t.add_argument("--seed", type=int, default=None, help="the run's seed (default: the config's)")
+    t.add_argument(
+        "--learner",
+        choices=("sync", "async"),
+        default=None,
+        help="SB3's TD3 or the asynchronous learner (default: the config's)",
+    )
     t.add_argument(
         "--set",
         action="append",
@@ -64,19 +69,24 @@ def add_parsers(subparsers: Any) -> None:
     e.add_argument(
         "--clock", default="sim", choices=("sim", "wall"), help="sim: accelerated (default); wall: real time"
     )
-    e.add_argument("--episodes", type=int, default=200)
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--episodes", type=int, default=200, help="episodes to run (default %(default)s)")
+    e.add_argument("--seed", type=int, default=0, help="seeds the env and its goals (default %(default)s)")
     e.add_argument("--label", default=None, help="training label of the env (task-indexed multi-task policies)")
-    e.add_argument("--placement", choices=("inprocess", "workers"), default="inprocess")
+    e.add_argument(
+        "--placement",
+        choices=("inprocess", "workers"),
+        default="inprocess",
+        help="the env in this process (default) or in a worker process",
+    )
     e.add_argument("--json", dest="json_path", default=None, metavar="PATH", help="also write the result as JSON")
-    e.add_argument("--no-progress", action="store_true")
+    e.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     p = subparsers.add_parser("plot", help="learning curves (episode length, return, success rate) to PNG")
-    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories of `uniros train`")
     p.add_argument("--out", default=None, help="PNG path (default RUN_DIR/curves.png)")
     p.add_argument("--labels", nargs="+", default=None, help="one legend label per run")
     p.add_argument("--window", type=int, default=20, help="episodes per moving average (default 20)")
-    p.add_argument("--title", default=None)
+    p.add_argument("--title", default=None, help="figure title")
 
 
 def _yaml_value(text: str, what: str) -> Any:
