@@ -179,7 +179,15 @@ def _serve_ros1(args: argparse.Namespace) -> int:
 
 
 def _print_ready(uri: str) -> None:
-    sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join, or the ROS master
+    """Say on stdout how to reach what now serves: a shell line to paste (or ``eval``) elsewhere, then a hint.
+
+    The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, or ``export ROS_MASTER_URI=http://...``
+    when a ROS 1 master carries the arm; scripts read the URI after the ``=``.
+    """
+    if uri.startswith("http://"):
+        sys.stdout.write(f"export ROS_MASTER_URI={uri}\n# the arm serves a ROS 1 driver's topics on this master\n")
+    else:
+        sys.stdout.write(f"export UNIROS_DOMAIN={uri}\n# in another shell, the line above, then: uniros topic list\n")
     sys.stdout.flush()
 
 
