@@ -186,9 +186,9 @@ def _run_eval(args: argparse.Namespace) -> int:
         nonlocal bar
         wins[0] += ok
         if bar is None and not args.no_progress:  # created here: errors found before the first episode print alone
-            from tqdm import tqdm
+            from uniros_async._progress import progress_bar
 
-            bar = tqdm(total=args.episodes, initial=0, unit="ep", desc=label, mininterval=1.0, file=sys.stderr)
+            bar = progress_bar(total=args.episodes, unit="ep", desc=label, mininterval=1.0)
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(f"success {100 * wins[0] / (i + 1):.1f}%", refresh=False)

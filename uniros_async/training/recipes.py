@@ -341,9 +341,9 @@ def _make_callback(
             self.bar = None
             self.last_step = self.num_timesteps
             if progress:
-                from tqdm import tqdm
+                from uniros_async._progress import progress_bar
 
-                self.bar = tqdm(
+                self.bar = progress_bar(
                     total=cfg.total_steps,
                     initial=self.num_timesteps,
                     unit="step",
