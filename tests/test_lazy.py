@@ -51,3 +51,23 @@ def test_the_gymnasium_ids_are_registered_whichever_is_imported_first(order: str
         "assert 'SourceFileLoader' in type(gymnasium.__loader__).__name__, gymnasium.__loader__  # not our wrapper\n"
     )
     subprocess.run([sys.executable, "-W", "error", "-c", code], check=True, timeout=120)
+
+
+@pytest.mark.slow
+def test_the_core_runs_an_env_without_the_train_extra() -> None:
+    """`pip install .` without extras has no torch, SB3, tensorboard, tqdm or matplotlib: an env still runs."""
+    code = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('torch', 'stable_baselines3', 'tensorboard', 'tqdm', 'matplotlib'):\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r} (not installed without extras)')\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import gymnasium as gym, uniros_async\n"
+        "env = gym.make('uniros/Rx200Reach-v0', clock='sim')\n"
+        "env.reset(seed=0)\n"
+        "obs, reward, *_ = env.step(env.action_space.sample())\n"
+        "env.close()\n"
+        "assert obs.shape == (28,) and isinstance(reward, float), (obs.shape, reward)\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
