@@ -52,6 +52,20 @@ def test_docs_list_every_key_as_the_models_declare_it() -> None:
     assert _generated(DOC.read_text()) == reference().strip("\n"), "run: python tests/test_config_docs.py"
 
 
+def test_the_example_config_loads_and_its_envs_check(tmp_path: Path) -> None:
+    import re
+
+    from uniros_async.training.config import load_train_config
+
+    example = re.search(r"```yaml\n(.*?)```", DOC.read_text(), re.S)
+    assert example is not None
+    path = tmp_path / "example.yaml"
+    path.write_text(example.group(1))
+    cfg = load_train_config(path)
+    cfg.check_envs()
+    assert cfg.total_steps == 10_000 and cfg.labels() == ["Rx200Reach", "ned2_real"]
+
+
 def test_every_key_of_every_model_has_a_description() -> None:
     missing = [f"{m.__name__}.{k}" for _, m, _ in SECTIONS for k in m.model_fields if not attribute_docs(m).get(k)]
     assert missing == []
