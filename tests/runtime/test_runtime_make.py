@@ -72,7 +72,7 @@ def test_env_construction_error_comes_back_with_traceback() -> None:
     with pytest.raises(WorkerError) as e:
         make("uniros/Rx200Reach-v0", clock="sim", goal_min=[0.3, 0.0, 0.1])  # above the arm's default goal_max
     assert e.value.index == 0
-    assert "goal_min/goal_max must be 3 numbers with min <= max" in str(e.value)
+    assert "goal_min/goal_max: min must be <= max on every axis" in str(e.value)
     assert "ConfigError" in e.value.remote_traceback and "reach.py" in e.value.remote_traceback
     assert multiprocessing.active_children() == []
 

@@ -27,7 +27,7 @@ def parse_kwargs(task_cls: type, kwargs: dict[str, Any]) -> tuple[EnvConfig, Any
     model; a task with only ``TASK_KEYS`` gets the dict of the keys given.
 
     Raises:
-        ConfigError: one line per problem: an unknown keyword argument (with the closest valid one and the list of
+        ConfigError: one line per problem: an unknown keyword argument (with the closest valid one, or the list of
             all), or a bad value (the key, what was expected, what was given).
     """
     task_model: type[ConfigModel] | None = getattr(task_cls, "TASK_CONFIG", None)

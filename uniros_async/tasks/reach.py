@@ -128,9 +128,10 @@ class ReachEnv(TaskEnv):
         self.goal_max = np.asarray(box_max if task.goal_max is None else task.goal_max, dtype=np.float64)
         self.delta_coeff = task.delta_coeff
         self.render_mode = task.render_mode
-        if np.any(self.goal_min > self.goal_max):
+        if np.any(self.goal_min > self.goal_max):  # one of them given, the other the arm's default
             raise ConfigError(
-                f"goal_min/goal_max must be 3 numbers with min <= max, got {self.goal_min}, {self.goal_max}"
+                f"goal_min/goal_max: min must be <= max on every axis, got {self.goal_min.tolist()} and "
+                f"{self.goal_max.tolist()} (the {arm} goal box gives the one not set)"
             )
         super().__init__(arm, config)
         spec = self.robot_spec
