@@ -2,7 +2,7 @@
 
 These are the keyword arguments every task takes (``gym.make("uniros/Rx200Reach-v0", clock="sim", ...)``); a
 task's own settings are its ``TASK_CONFIG`` (tasks/reach.py). Both are validated once, when the env is built
-(``split_kwargs`` in envs/task.py), and read as plain attributes afterwards.
+(``parse_kwargs`` in envs/task.py), and read as plain attributes afterwards.
 """
 
 from __future__ import annotations
