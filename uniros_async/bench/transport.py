@@ -288,7 +288,7 @@ class _ZmqClient(_Client):
         big = len(payload) > 16384
         for _ in range(n):
             t0 = clock()
-            s.send(payload, copy=not big)  # type: ignore[call-overload]  # pyzmq's stubs want a literal for copy
+            s.send(payload, copy=not big)
             s.recv(copy=not big)
             out.append((clock() - t0) / 1e3)
         return out
@@ -299,7 +299,7 @@ class _ZmqClient(_Client):
         t0 = time.perf_counter()
         s.send(_count_frame(n))
         for _ in range(n):
-            s.send(payload, copy=not big)  # type: ignore[call-overload]  # pyzmq's stubs want a literal for copy
+            s.send(payload, copy=not big)
         s.recv()
         return n / (time.perf_counter() - t0)
 
