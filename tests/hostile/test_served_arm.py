@@ -44,6 +44,7 @@ def _start_serve(log: Path) -> tuple[subprocess.Popen[str], str]:
     assert proc.stdout is not None
     ready, _, _ = select.select([proc.stdout], [], [], 60)
     line = proc.stdout.readline().strip() if ready else ""
+    line = line.removeprefix("export UNIROS_DOMAIN=")  # the served arm prints the line a shell would run
     if not line.startswith("tcp://"):
         proc.kill()
         proc.wait()
