@@ -111,8 +111,8 @@ def test_wall_budget_stops_a_run(tmp_path: Path) -> None:
         ({"placement": "inprocess"}, "needs placement: workers"),
         ({"task_id_in_obs": True}, "does not support task_id_in_obs"),
         ({"eval": {"envs": ["uniros/Rx200Reach-v0"]}}, "remove eval.envs"),
-        ({"max_wall_s": 0}, "max_wall_s must be a number of seconds > 0"),
-        ({"eval": {"final_episodes": 0}}, "final_episodes must be >= 1"),
+        ({"max_wall_s": 0}, "max_wall_s: must be > 0, got 0"),
+        ({"eval": {"final_episodes": 0}}, "eval.final_episodes: must be >= 1, got 0"),
     ],
 )
 def test_concurrent_settings_are_checked(tmp_path: Path, over: dict[str, Any], match: str) -> None:

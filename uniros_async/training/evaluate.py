@@ -219,7 +219,7 @@ def frozen_obs_stats(vec_normalize: Any) -> Any:
 
 def _algo_class(name: str) -> type:
     if name == "AsyncTD3":
-        from uniros_async.training.async_td3 import AsyncTD3  # lazy: only its checkpoints need it
+        from uniros_async.training.async_td3 import AsyncTD3  # lazy: it imports torch and SB3
 
         return AsyncTD3
     if name == "TD3":
