@@ -2,6 +2,7 @@
 
     uniros robot serve rx200 --port 0 --emulate-real   # prints the domain URI, serves until SIGINT/SIGTERM
     uniros robot bridge rx200 --ros-master http://robot-pc:11311/   # a ROS 1 arm on the bus; prints the URI
+    uniros robot bridge rx200 --ros2 0                 # a ROS 2 arm (domain 0) on the bus; prints the URI
     uniros robot render rx200 --out pic.png --goal 0.3 0.1 0.25
     uniros robot view rx200                            # needs a display
 
@@ -28,7 +29,7 @@ logger = logging.getLogger(__name__)
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``robot`` command to the ``uniros`` subparsers; returns its parser."""
     robot: argparse.ArgumentParser = subparsers.add_parser(
-        "robot", help="simulated, emulated and ROS 1 arms: serve, bridge, render, view"
+        "robot", help="simulated, emulated, ROS 1 and ROS 2 arms: serve, bridge, render, view"
     )
     actions = robot.add_subparsers(dest="robot_action", required=True)
 
@@ -65,10 +66,20 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "adapters/ros1_driver.py) instead of in a uniros domain; prints the master's URI",
     )
     serve.add_argument("--ros-host", default=None, help="with --ros1-master: address ROS peers reach this process at")
+    serve.add_argument(
+        "--ros2",
+        nargs="?",
+        const="ros2://",
+        default=None,
+        metavar="URI",
+        help="serve the arm as a ROS 2 driver (the real driver's topics, messages and QoS, adapters/ros2_driver.py) "
+        "instead of in a uniros domain: ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet] or a "
+        "domain id (default $ROS_DOMAIN_ID, else 0); prints the ros2:// URI to drive it by",
+    )
 
     bridge = actions.add_parser(
         "bridge",
-        help="put an arm whose driver is a ROS 1 node on the bus (adapters/ros1_bridge.py); prints the domain URI",
+        help="put an arm whose driver is a ROS 1 (or, with --ros2, ROS 2) node on the bus; prints the domain URI",
     )
     bridge.add_argument("robot", help="robot name (rx200, ned2)")
     bridge.add_argument(
@@ -81,6 +92,16 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "--command-type",
         default=None,
         help="interbotix_xs_msgs/JointGroupCommand, trajectory_msgs/JointTrajectory or std_msgs/Float64MultiArray",
+    )
+    bridge.add_argument(
+        "--ros2",
+        nargs="?",
+        const="ros2://",
+        default=None,
+        metavar="URI",
+        help="the driver is a ROS 2 node (adapters/ros2_bridge.py): ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&"
+        "discovery=localhost|subnet] or a domain id (default $ROS_DOMAIN_ID, else 0); --ros-master and --ros-host "
+        "do not apply",
     )
     bridge.add_argument("--group", default="arm", help="joint group of a JointGroupCommand (default %(default)s)")
     bridge.add_argument(
@@ -142,8 +163,33 @@ def run(args: argparse.Namespace) -> int:
     raise AssertionError(f"unknown robot action {action!r}")
 
 
+def _ros2_uri(value: str) -> str:
+    return f"ros2://{value}" if value.isdigit() else value
+
+
+def _bridge_ros2(args: argparse.Namespace) -> int:
+    from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig, serve_ros2_bridge
+    from uniros_async.errors import ConfigError
+
+    if args.ros_master is not None or args.ros_host is not None:
+        raise ConfigError("--ros2 bridges a ROS 2 driver: --ros-master and --ros-host are ROS 1's")
+    settings = {
+        "joint_states": args.joint_states,
+        "command": args.command_topic,
+        "command_type": args.command_type,
+        "group": args.group,
+        "state_timeout_s": args.state_timeout,
+    }
+    cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), **settings)
+    serve = serve_ros2_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready)
+    return _run_until_signal(serve)
+
+
 def _bridge(args: argparse.Namespace) -> int:
     from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, serve_ros1_bridge
+
+    if args.ros2 is not None:
+        return _bridge_ros2(args)
 
     cfg = Ros1BridgeConfig(
         robot=args.robot,
@@ -176,6 +222,24 @@ def _serve_ros1(args: argparse.Namespace) -> int:
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
     return _run_until_signal(serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
+
+
+def _serve_ros2(args: argparse.Namespace) -> int:
+    from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig
+    from uniros_async.adapters.ros2_driver import serve_ros2_driver
+    from uniros_async.errors import ConfigError
+    from uniros_async.sim.emulated import EmulationConfig
+    from uniros_async.sim.servo import ServoSimConfig
+
+    if args.sim_time or args.markers or args.namespace is not None or args.ros1_master is not None:
+        raise ConfigError(
+            "--ros2 serves on a ROS 2 domain in wall time: --sim-time, --markers, --namespace (give it in the URI) "
+            "and --ros1-master do not apply"
+        )
+    cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2))
+    emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
+    servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
+    return _run_until_signal(serve_ros2_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
 
 
 def _print_ready(uri: str) -> None:
@@ -211,6 +275,8 @@ def _serve(args: argparse.Namespace) -> int:
     from uniros_async.sim.serve import ServeConfig, serve_servo_sim
     from uniros_async.sim.servo import ServoSimConfig
 
+    if args.ros2 is not None:
+        return _serve_ros2(args)
     if args.ros1_master is not None:
         return _serve_ros1(args)
     cfg = ServeConfig(
