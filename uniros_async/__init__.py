@@ -13,6 +13,7 @@ from uniros_async.errors import (
     UnirosError,
     WorkerError,
 )
+from uniros_async.placements import register_placement
 
 __version__ = "0.1.0"
 
@@ -27,6 +28,7 @@ __all__ = [
     "__version__",
     "make",
     "make_vec",
+    "register_placement",
 ]
 
 # Register the gymnasium ids ("uniros/Rx200Reach-v0", ...) on import, as gymnasium-robotics does.
