@@ -389,6 +389,12 @@ def _register_builtins() -> None:
         check="uniros_async.adapters.ros1_bridge:check_ros1_placement",
         description="an arm whose driver is a ROS 1 node, through a bridge in the env's process",
     )
+    register_placement(
+        "ros2://",
+        "uniros_async.adapters.ros2_bridge:open_ros2_placement",
+        check="uniros_async.adapters.ros2_bridge:check_ros2_placement",
+        description="an arm whose driver is a ROS 2 node, through a bridge in the env's process",
+    )
 
 
 _register_builtins()

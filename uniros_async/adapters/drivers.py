@@ -201,5 +201,37 @@ def _register_builtins() -> None:
         command_type="trajectory_msgs/JointTrajectory",
     )
 
+    # ROS 2 (adapters/ros2_bridge.py). ``namespace`` is the prefix the driver's topics share: a ros2:// URI with
+    # another namespace moves them there. Interbotix xs_sdk: topics in the robot's own namespace.
+    register_ros_driver(
+        "ros2",
+        "rx200",
+        driver="xs_sdk",
+        joint_states="/rx200/joint_states",
+        command="/rx200/commands/joint_group",
+        command_type="interbotix_xs_msgs/JointGroupCommand",
+        settings={"group": "arm", "namespace": "/rx200"},
+    )
+    # ros2_control: joint_state_broadcaster's /joint_states; the controllers' ~/joint_trajectory and ~/commands
+    for robot in ("ned2", "rx200"):
+        register_ros_driver(
+            "ros2",
+            robot,
+            driver="joint_trajectory_controller",
+            joint_states="/joint_states",
+            command="/joint_trajectory_controller/joint_trajectory",
+            command_type="trajectory_msgs/JointTrajectory",
+            settings={"namespace": "/"},
+        )
+        register_ros_driver(
+            "ros2",
+            robot,
+            driver="forward_position_controller",
+            joint_states="/joint_states",
+            command="/forward_position_controller/commands",
+            command_type="std_msgs/Float64MultiArray",
+            settings={"namespace": "/"},
+        )
+
 
 _register_builtins()

@@ -9,24 +9,26 @@ hair past a joint limit is clamped, one further out refused and counted, never s
 services; ``Ros2Bridge`` inherits them and only builds ROS 2 messages. The ROS side is a DDS participant
 (``adapters/ros2``): joint states are read best effort (matching any driver's publisher), commands sent reliable.
 
-Where the driver is: ``ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet]``.
+Where the driver is: ``ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet&SETTING=VALUE]``.
 
 - ``DOMAIN_ID``: the ROS 2 domain (``ROS_DOMAIN_ID``); empty: ``$ROS_DOMAIN_ID``, else 0.
-- ``NAMESPACE``: the driver's namespace, which its relative topics resolve in; empty: the driver's default
-  (``/rx200`` for the rx200's xs_sdk, ``/`` for a ros2_control arm).
-- ``driver``: one of ``ROS2_DRIVERS``; empty: the robot's default (``ROS2_DEFAULTS``).
+- ``NAMESPACE``: the driver's namespace: its default topics move there from the driver's own (``/rx200`` for the
+  rx200's xs_sdk, ``/`` for ros2_control); empty: the driver's own.
+- ``driver``: one of the robot's ROS 2 drivers registered in ``adapters.drivers``; empty: the robot's default.
 - ``discovery``: ``localhost`` (default: this host only, as ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) or
   ``subnet`` (a driver on another machine).
+- any of ``ROS2_SETTINGS`` (``joint_states``, ``command``, ``command_type``, ``group``, ``state_timeout_s``).
 
-Drivers (``ROS2_DRIVERS``), with their topics relative to the namespace:
+The built-in drivers (``adapters/drivers.py``), for the rx200 and the Ned2:
 
-- ``xs_sdk``: Interbotix X-series SDK for ROS 2 (Humble / Jazzy), the ReactorX-200's: ``joint_states`` and
-  ``commands/joint_group`` (``interbotix_xs_msgs/msg/JointGroupCommand``; ``name`` the group, ``cmd`` positions).
-- ``joint_trajectory_controller``: any ros2_control arm: ``/joint_states`` (joint_state_broadcaster) and
-  ``joint_trajectory_controller/joint_trajectory`` (``trajectory_msgs/msg/JointTrajectory``, one point reached
-  ``max(duration_s, one hardware period)`` from now). The Ned2's default.
+- ``xs_sdk`` (the rx200's default): the Interbotix X-series SDK for ROS 2 (Humble / Jazzy):
+  ``/rx200/joint_states`` and ``/rx200/commands/joint_group`` (``interbotix_xs_msgs/msg/JointGroupCommand``;
+  ``name`` the group, ``cmd`` the positions).
+- ``joint_trajectory_controller`` (the Ned2's default): any ros2_control arm: ``/joint_states``
+  (joint_state_broadcaster) and ``/joint_trajectory_controller/joint_trajectory``
+  (``trajectory_msgs/msg/JointTrajectory``: one point reached ``max(duration_s, one hardware period)`` from now).
 - ``forward_position_controller``: ros2_control's position forwarder: ``/joint_states`` and
-  ``forward_position_controller/commands`` (``std_msgs/msg/Float64MultiArray``).
+  ``/forward_position_controller/commands`` (``std_msgs/msg/Float64MultiArray``).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import logging
 import time
 import urllib.parse
 from collections.abc import AsyncIterator, Callable
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -50,14 +52,18 @@ from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
 from uniros_async.robots.spec import RobotSpec
 
+if TYPE_CHECKING:
+    from uniros_async.envs.config import EnvConfig
+    from uniros_async.placements import ArmLink, PlacementRequest
+
 __all__ = [
     "COMMAND_TYPES",
-    "ROS2_DEFAULTS",
-    "ROS2_DRIVERS",
     "ROS2_SETTINGS",
     "Ros2Bridge",
     "Ros2BridgeConfig",
+    "check_ros2_placement",
     "open_ros2_bridge",
+    "open_ros2_placement",
     "parse_ros2_uri",
     "serve_ros2_bridge",
 ]
@@ -70,75 +76,62 @@ COMMAND_TYPES = (
     "std_msgs/msg/Float64MultiArray",
 )
 
-ROS2_DRIVERS: dict[str, dict[str, str]] = {
-    # Interbotix xs_sdk (ROS 2): topics in the robot's own namespace
-    "xs_sdk": {
-        "joint_states": "joint_states",
-        "command": "commands/joint_group",
-        "command_type": "interbotix_xs_msgs/msg/JointGroupCommand",
-    },
-    # ros2_control: joint_state_broadcaster publishes /joint_states; the controller listens on ~/joint_trajectory
-    "joint_trajectory_controller": {
-        "joint_states": "joint_states",
-        "command": "joint_trajectory_controller/joint_trajectory",
-        "command_type": "trajectory_msgs/msg/JointTrajectory",
-    },
-    # ros2_control's forward_command_controller as a position forwarder: ~/commands
-    "forward_position_controller": {
-        "joint_states": "joint_states",
-        "command": "forward_position_controller/commands",
-        "command_type": "std_msgs/msg/Float64MultiArray",
-    },
-}
-"""Per driver: its joint-state topic, command topic and command type (topics relative to the namespace)."""
-
-ROS2_DEFAULTS: dict[str, dict[str, str]] = {
-    "rx200": {"driver": "xs_sdk", "namespace": "/rx200"},
-    "ned2": {"driver": "joint_trajectory_controller", "namespace": "/"},
-}
-"""Per robot: its usual ROS 2 driver and that driver's namespace."""
-
-ROS2_SETTINGS = ("joint_states", "command", "command_type", "group", "state_timeout_s")
-"""The bridge settings an env takes in its ``ros2`` dict (``EnvConfig.ros2``); the URI gives the rest."""
+ROS2_SETTINGS = ("driver", "joint_states", "command", "command_type", "group", "state_timeout_s")
+"""The bridge settings a ``ros2://`` URI takes as query parameters, besides ``discovery``."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Ros2Uri:
-    """A parsed ``ros2://`` URI (``parse_ros2_uri``); None: the default."""
+    """A parsed ``ros2://`` URI (``parse_ros2_uri``); None: the default.
+
+    Attributes:
+        domain_id: the ROS 2 domain id.
+        namespace: the driver's namespace.
+        localhost_only: discovery on this host only.
+        settings: bridge settings from the query (``ROS2_SETTINGS``), as strings but ``state_timeout_s``.
+    """
 
     domain_id: int | None
     namespace: str | None
-    driver: str | None
     localhost_only: bool
+    settings: dict[str, Any]
+
+
+_URI_FORM = (
+    "ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet&...] (e.g. ros2://0, ros2://3/arm1 or "
+    "ros2://0?driver=forward_position_controller)"
+)
 
 
 def parse_ros2_uri(uri: str) -> Ros2Uri:
-    """``ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet]`` -> its parts.
+    """``ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet&SETTING=VALUE]`` -> its parts.
 
     Raises:
         ConfigError: not of that form (says what is expected).
     """
-    form = "ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet] (e.g. ros2://0 or ros2://3/arm1)"
-    if not uri.startswith("ros2://"):
-        raise ConfigError(f"expected a ROS 2 arm as {form}, got {uri!r}")
+    if not isinstance(uri, str) or not uri.startswith("ros2://"):
+        raise ConfigError(f"expected a ROS 2 arm as {_URI_FORM}, got {uri!r}")
     rest, _, query = uri.removeprefix("ros2://").partition("?")
     head, slash, ns = rest.partition("/")
     if head and (not head.isdigit() or not 0 <= int(head) <= 232):
-        raise ConfigError(f"{uri!r}: the domain id must be an integer in 0..232; expected {form}")
-    namespace = "/" + ns.strip("/") if slash and ns.strip("/") else ("/" if slash and not ns.strip("/") else None)
+        raise ConfigError(f"{uri!r}: the domain id must be an integer in 0..232; expected {_URI_FORM}")
+    namespace = ("/" + ns.strip("/")) if slash else None
     if namespace is not None and ("//" in namespace or " " in namespace):
-        raise ConfigError(f"{uri!r}: bad namespace {namespace!r}; expected {form}")
-    params = urllib.parse.parse_qs(query, keep_blank_values=True) if query else {}
-    unknown = sorted(set(params) - {"driver", "discovery"})
+        raise ConfigError(f"{uri!r}: bad namespace {namespace!r}; expected {_URI_FORM}")
+    params = {k: v[-1] for k, v in urllib.parse.parse_qs(query, keep_blank_values=True).items()} if query else {}
+    unknown = sorted(set(params) - {"discovery", *ROS2_SETTINGS})
     if unknown:
-        raise ConfigError(f"{uri!r}: unknown parameter(s) {unknown}; expected {form}")
-    driver = params.get("driver", [None])[-1]
-    if driver is not None and driver not in ROS2_DRIVERS:
-        raise ConfigError(f"{uri!r}: driver must be one of {sorted(ROS2_DRIVERS)}, got {driver!r}")
-    discovery = params.get("discovery", ["localhost"])[-1]
+        raise ConfigError(f"{uri!r}: unknown parameter(s) {unknown}; expected some of {['discovery', *ROS2_SETTINGS]}")
+    discovery = params.pop("discovery", "localhost")
     if discovery not in ("localhost", "subnet"):
         raise ConfigError(f"{uri!r}: discovery must be localhost or subnet, got {discovery!r}")
-    return Ros2Uri(int(head) if head else None, namespace, driver, discovery == "localhost")
+    settings: dict[str, Any] = dict(params)
+    if "state_timeout_s" in settings:
+        try:
+            settings["state_timeout_s"] = float(settings["state_timeout_s"])
+        except ValueError:
+            raise ConfigError(f"{uri!r}: state_timeout_s must be a number, got {params['state_timeout_s']!r}") from None
+    return Ros2Uri(int(head) if head else None, namespace, discovery == "localhost", settings)
 
 
 def _resolve(topic: str, namespace: str) -> str:
@@ -152,13 +145,15 @@ class Ros2BridgeConfig:
     Attributes:
         robot: robot name (``rx200``, ``ned2``); its spec gives the joint names, order and limits.
         domain_id: the ROS 2 domain; None: ``$ROS_DOMAIN_ID``, else 0.
-        namespace: the driver's namespace; None: ``ROS2_DEFAULTS`` (``/`` for a robot without one).
-        driver: one of ``ROS2_DRIVERS``; None: ``ROS2_DEFAULTS``.
-        joint_states: the driver's ``sensor_msgs/msg/JointState`` topic (relative: in ``namespace``); None: the
-            driver's.
-        command: the driver's command topic (relative: in ``namespace``); None: the driver's.
-        command_type: one of ``COMMAND_TYPES``; None: the driver's.
-        group: the joint group of a ``JointGroupCommand`` (Interbotix: ``arm``).
+        namespace: the driver's namespace: the driver's default topics move from its own namespace (its
+            ``namespace`` setting: ``/rx200`` for xs_sdk, ``/`` for ros2_control) to this one, and relative topics
+            given here resolve in it; None: the driver's own.
+        driver: which of the robot's registered ROS 2 drivers (``adapters.drivers``) gives the defaults of the
+            settings below; None: the robot's default driver.
+        joint_states: the driver's ``sensor_msgs/msg/JointState`` topic; None: the driver's.
+        command: the driver's command topic; None: the driver's.
+        command_type: one of ``COMMAND_TYPES`` (``pkg/Name`` is read as ``pkg/msg/Name``); None: the driver's.
+        group: the joint group of a ``JointGroupCommand``; None: the driver's, else ``arm`` (Interbotix).
         localhost_only: discover peers on this host only (default) or on the subnet.
         state_timeout_s: how long to wait for the driver's first joint state and its command subscription.
         node_name: the bridge's name on the bus.
@@ -171,35 +166,48 @@ class Ros2BridgeConfig:
     joint_states: str | None = None
     command: str | None = None
     command_type: str | None = None
-    group: str = "arm"
+    group: str | None = None
     localhost_only: bool = True
     state_timeout_s: float = 10.0
     node_name: str = "ros2_bridge"
 
     def __post_init__(self) -> None:
+        from uniros_async.adapters.drivers import ros_driver_defaults
         from uniros_async.adapters.ros2.msgs import ros_type_name
 
         spec = get_robot_spec(self.robot)  # ConfigError listing the robots
-        defaults = ROS2_DEFAULTS.get(spec.name, {})
-        if self.driver is None:
-            object.__setattr__(self, "driver", defaults.get("driver", "joint_trajectory_controller"))
-        if self.driver not in ROS2_DRIVERS:
-            raise ConfigError(f"Ros2BridgeConfig.driver must be one of {sorted(ROS2_DRIVERS)}, got {self.driver!r}")
+        driver = ros_driver_defaults("ros2", spec.name, self.driver)  # ConfigError naming the robot's drivers
+        defaults: dict[str, Any] = {} if driver is None else driver.as_settings()
+        if driver is not None:
+            object.__setattr__(self, "driver", driver.driver)
+        own_ns = str(defaults.get("namespace", "/"))
         if self.namespace is None:
-            object.__setattr__(self, "namespace", defaults.get("namespace", "/"))
+            object.__setattr__(self, "namespace", own_ns)
         ns = str(self.namespace)
-        if not ns.startswith("/") or "//" in ns:
+        if not ns.startswith("/") or "//" in ns or (len(ns) > 1 and ns.endswith("/")):
             raise ConfigError(f"Ros2BridgeConfig.namespace must be absolute like /rx200 (or /), got {ns!r}")
-        preset = ROS2_DRIVERS[str(self.driver)]
+        for key in ("joint_states", "command", "command_type"):
+            if getattr(self, key) is None and key not in defaults:
+                raise ConfigError(
+                    f"Ros2BridgeConfig: robot {self.robot!r} has no ROS 2 driver registered "
+                    f"(adapters.drivers.register_ros_driver), so {key} has no default; give one"
+                )
         for key in ("joint_states", "command"):
-            topic = getattr(self, key) or preset[key]
+            topic = getattr(self, key)
+            if topic is None:  # the driver's own topic, moved from its namespace to ours
+                topic = str(defaults[key])
+                if own_ns != "/" and topic.startswith(own_ns + "/"):
+                    topic = topic[len(own_ns) :]
+                topic = ns.rstrip("/") + topic
             if not isinstance(topic, str) or not topic.strip("/") or "//" in topic or topic.endswith("/"):
                 raise ConfigError(f"Ros2BridgeConfig.{key} must be a ROS topic name like /a/b or a/b, got {topic!r}")
             object.__setattr__(self, key, _resolve(topic, ns))
-        ctype = ros_type_name(self.command_type or preset["command_type"])
+        ctype = ros_type_name(str(self.command_type or defaults["command_type"]))
         if ctype not in COMMAND_TYPES:
             raise ConfigError(f"Ros2BridgeConfig.command_type must be one of {COMMAND_TYPES}, got {ctype!r}")
         object.__setattr__(self, "command_type", ctype)
+        if self.group is None:
+            object.__setattr__(self, "group", str(defaults.get("group", "arm")))
         if self.domain_id is not None and not 0 <= self.domain_id <= 232:
             raise ConfigError(f"Ros2BridgeConfig.domain_id must be in 0..232, got {self.domain_id}")
         if not self.state_timeout_s > 0:
@@ -207,23 +215,23 @@ class Ros2BridgeConfig:
 
     @classmethod
     def from_uri(cls, robot: str, uri: str, **settings: Any) -> Ros2BridgeConfig:
-        """The config for ``robot`` behind the driver ``uri`` names (``parse_ros2_uri``), plus ``settings``
-        (``ROS2_SETTINGS``).
+        """The config for ``robot`` behind the driver ``uri`` names (``parse_ros2_uri``); ``settings``
+        (``ROS2_SETTINGS``; None values ignored) override the URI's.
 
         Raises:
-            ConfigError: a bad URI, or a setting that is not one of ``ROS2_SETTINGS``.
+            ConfigError: a bad URI or setting.
         """
         unknown = sorted(set(settings) - set(ROS2_SETTINGS))
         if unknown:
             raise ConfigError(f"ros2: unknown setting(s) {unknown}; expected some of {list(ROS2_SETTINGS)}")
         parsed = parse_ros2_uri(uri)
+        merged = {**parsed.settings, **{k: v for k, v in settings.items() if v is not None}}
         return cls(
             robot=robot,
             domain_id=parsed.domain_id,
             namespace=parsed.namespace,
-            driver=parsed.driver,
             localhost_only=parsed.localhost_only,
-            **settings,
+            **merged,
         )
 
     @property
@@ -252,9 +260,9 @@ class Ros2Bridge(Ros1Bridge):
 
     def ros_command(self, q: np.ndarray, duration_s: float = 0.0) -> Any:
         """The driver's ROS 2 command message (a rosbags message) for arm positions ``q``."""
-        cls, kind = self._cls, self.config.command_type
+        cls, kind = self._cls, str(self.config.command_type)
         if kind == "interbotix_xs_msgs/msg/JointGroupCommand":
-            return cls(kind)(name=self.config.group, cmd=q.astype(np.float32))
+            return cls(kind)(name=str(self.config.group), cmd=q.astype(np.float32))
         if kind == "std_msgs/msg/Float64MultiArray":
             layout = cls("std_msgs/msg/MultiArrayLayout")(dim=[], data_offset=0)
             return cls(kind)(layout=layout, data=q.astype(np.float64))
@@ -371,3 +379,28 @@ async def serve_ros2_bridge(
         if on_ready is not None:
             on_ready(dom.uri)
         await asyncio.Event().wait()  # until cancelled
+
+
+# ------------------------------------------------------------------------------------------------ the placement
+
+
+def check_ros2_placement(robot: str, config: EnvConfig) -> None:
+    """The ``ros2://`` placement's check of an env config: the URI and its settings.
+
+    Raises:
+        ConfigError: a malformed URI or an unknown setting.
+    """
+    parse_ros2_uri(robot)
+    if config.ros1 is not None:
+        raise ConfigError("ros1 settings do not apply to a ros2:// arm; give its settings in the URI's query")
+
+
+@contextlib.asynccontextmanager
+async def open_ros2_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+    """``robot="ros2://..."``: the bridge in the env's process, on a memory domain the env joins as it joins an
+    in-process sim; the bridge's settings are the URI's over the driver's defaults."""
+    from uniros_async.placements import ArmLink
+
+    bridge_cfg = Ros2BridgeConfig.from_uri(request.robot.name, request.uri)
+    async with open_domain("memory://") as domain, open_ros2_bridge(bridge_cfg, domain=domain):
+        yield ArmLink(domain=domain)

@@ -168,13 +168,13 @@ _IDL_BASE = {
 def idl_type(ros_type: str) -> Any:
     """A cyclonedds IDL struct of ``ros_type``, named as the rmw names it (``pkg::msg::dds_::Name_``), built from
     rosbags' definition; cyclonedds makes the topic and its type information from it."""
-    from cyclonedds.idl import make_idl_struct
-    from cyclonedds.idl import types as t
+    from cyclonedds.idl import make_idl_struct, types
     from rosbags.interfaces import Nodetype
 
     store = typestore()
     name = _known(ros_type)
     msgdef = store.get_msgdef(name)
+    t: Any = types  # its generic aliases (sequence[T], array[T, n]) are not typed as generics
 
     def field_type(desc: Any) -> Any:
         kind, arg = desc

@@ -160,7 +160,7 @@ def _delete(entity: Any) -> None:
     from cyclonedds.core import Entity
 
     ref = getattr(entity, "_ref", None)
-    if ref is not None and Entity._entities.get(ref) is entity:
+    if ref is not None and Entity._entities.get(ref) is entity is not None:
         del Entity._entities[ref]
         entity._delete(ref)
 
@@ -326,7 +326,7 @@ class Ros2Subscription(_Endpoint):
         self._mask = SampleState.Any | ViewState.Any | InstanceState.Any
         self._pending = False
         self._loop = node.loop
-        self._listener = Listener(on_data_available=self._on_data_available)
+        self._listener = Listener(on_data_available=self._on_data_available)  # type: ignore[no-untyped-call]
         dds_topic = Topic(node.participant, msgs.dds_topic_name(topic), msgs.idl_type(self.ros_type))
         self._reader = DataReader(node.participant, dds_topic, qos=_qos(qos, self.ros_type), listener=self._listener)
         self._ref = self._reader._ref
