@@ -21,8 +21,10 @@ Samples arrive on cyclonedds' receive thread; its data-available listener wakes 
 (``call_soon_threadsafe``), which takes and decodes every pending sample and calls the subscription's callback in
 the loop. Before the first message goes out, ``wait_for_subscribers`` / ``wait_for_publishers`` look at the
 discovered endpoints on the topic: one of another type, or of the same type with another RIHS01 hash, is a
-``RobotError`` naming both types and hashes, and nothing is sent. Closing the node deletes the participant (and
-with it every endpoint), which tells the peers at once; it is bounded (``close_timeout_s``).
+``RobotError`` naming both types and hashes, and nothing is sent. Closing the node deletes its endpoints and, with
+the process's last node, the participant; it is bounded (``close_timeout_s``). Fast DDS peers (rclpy's default)
+were seen to drop our endpoints only when the participant's lease runs out, not on cyclonedds' goodbye, so the
+lease is 3 s (cyclonedds' default: 10 s): a restarted env's stale endpoints leave the driver's graph that fast.
 """
 
 from __future__ import annotations
@@ -108,6 +110,7 @@ def domain_id_from_env() -> int:
 _LOCALHOST_CONFIG = """<CycloneDDS><Domain id="any">
 <General><Interfaces><NetworkInterface address="127.0.0.1" multicast="true"/></Interfaces></General>
 <Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32</MaxAutoParticipantIndex>
+<LeaseDuration>3 s</LeaseDuration>
 <Peers><Peer address="127.0.0.1"/></Peers></Discovery>
 </Domain></CycloneDDS>"""
 
