@@ -257,6 +257,34 @@ class Ros2Bridge(Ros1Bridge):
         from uniros_async.adapters.ros2 import msgs
 
         self._cls = msgs.message_class
+        self.last_state_s = time.monotonic()  # when the driver's newest joint state came
+
+    def on_ros_state(self, msg: Any) -> None:
+        """A ``sensor_msgs/msg/JointState`` from the driver: republished as ours (``Ros1Bridge.on_ros_state``)."""
+        self.last_state_s = time.monotonic()
+        super().on_ros_state(msg)
+
+    async def watch_driver(self, domain_id: int, silent_s: float) -> None:
+        """Log, naming the driver's topic and domain, when its joint states stop for ``silent_s`` (the env's robot
+        timeout then stops the episode and holds the arm) and when they come back; runs until cancelled."""
+        silent = False
+        while True:
+            await asyncio.sleep(min(silent_s / 4, 0.25))
+            quiet_s = time.monotonic() - self.last_state_s
+            if quiet_s > silent_s and not silent:
+                silent = True
+                logger.warning(
+                    "%s: no sensor_msgs/msg/JointState on %s in ROS 2 domain %d for %.1f s: the driver stopped or "
+                    "left (commands still go to %s)",
+                    self.spec.name,
+                    self.config.joint_states,
+                    domain_id,
+                    quiet_s,
+                    self.config.command,
+                )
+            elif quiet_s <= silent_s and silent:
+                silent = False
+                logger.warning("%s: joint states on %s flow again", self.spec.name, self.config.joint_states)
 
     def ros_command(self, q: np.ndarray, duration_s: float = 0.0) -> Any:
         """The driver's ROS 2 command message (a rosbags message) for arm positions ``q``."""
@@ -345,6 +373,9 @@ async def open_ros2_bridge(
                 f"({config.command_type}), so commands would go nowhere (is that the driver's command topic? "
                 f"`ros2 topic info {config.command}` shows its subscribers; --command / the ros2 settings pick another)"
             ) from None
+        tasks = await stack.enter_async_context(asyncio.TaskGroup())
+        watch = tasks.create_task(bridge.watch_driver(ros.domain_id, max(1.0, 5 * bridge.period_s)))
+        stack.callback(watch.cancel)  # runs before the task group's exit, which then reaps it
         logger.info(
             "%s: bridged %s -> %s/joint_states and %s/command -> %s (%s) in ROS 2 domain %d in %.2f s",
             spec.name,
