@@ -22,7 +22,7 @@ from uniros_async.placements import (
 
 
 def test_the_built_in_placements_are_registered() -> None:
-    assert {"sim", "sim-process", "emulated-real", "tcp://", "ros1://"} <= set(placement_names())
+    assert {"sim", "sim-process", "emulated-real", "tcp://", "ros1://", "ros2://"} <= set(placement_names())
     assert placement_spec("sim").can_teleport and placement_spec("sim-process").can_teleport
     assert not placement_spec("emulated-real").can_teleport
     assert placement_spec("tcp://127.0.0.1:7000").name == "tcp://"
@@ -32,7 +32,7 @@ def test_the_built_in_placements_are_registered() -> None:
 
 @pytest.mark.parametrize(
     ("robot", "closest"),
-    [("simm", "sim"), ("sim_process", "sim-process"), ("tpc://127.0.0.1:1", "tcp://"), ("ros://h:1", "ros1://")],
+    [("simm", "sim"), ("sim_process", "sim-process"), ("tpc://127.0.0.1:1", "tcp://"), ("ros11://h:1", "ros1://"), ("rso2://0", "ros2://")],
 )
 def test_an_unknown_placement_names_the_closest_and_the_registered(robot: str, closest: str) -> None:
     with pytest.raises(ConfigError, match=rf"did you mean {closest!r}\?\); registered: \[.*'sim'") as info:
