@@ -32,7 +32,13 @@ def test_the_built_in_placements_are_registered() -> None:
 
 @pytest.mark.parametrize(
     ("robot", "closest"),
-    [("simm", "sim"), ("sim_process", "sim-process"), ("tpc://127.0.0.1:1", "tcp://"), ("ros11://h:1", "ros1://"), ("rso2://0", "ros2://")],
+    [
+        ("simm", "sim"),
+        ("sim_process", "sim-process"),
+        ("tpc://127.0.0.1:1", "tcp://"),
+        ("ros11://h:1", "ros1://"),
+        ("rso2://0", "ros2://"),
+    ],
 )
 def test_an_unknown_placement_names_the_closest_and_the_registered(robot: str, closest: str) -> None:
     with pytest.raises(ConfigError, match=rf"did you mean {closest!r}\?\); registered: \[.*'sim'") as info:
