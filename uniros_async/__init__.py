@@ -2,6 +2,8 @@
 
 The bus (``uniros_async.bus``: domains, nodes, topics, timers, services, parameters) runs over pluggable
 transports (``uniros_async.transports``: memory, shm, tcp); robots, environments and training build on it.
+Robots, placements (where an arm runs) and tasks are registries your own package adds to at import, without editing
+this one: ``register_robot``, ``register_placement``, ``register_task`` and ``register_env_id``.
 """
 
 from uniros_async.errors import (
@@ -14,6 +16,7 @@ from uniros_async.errors import (
     WorkerError,
 )
 from uniros_async.placements import register_placement
+from uniros_async.robots import register_robot
 
 __version__ = "0.1.0"
 
@@ -28,7 +31,10 @@ __all__ = [
     "__version__",
     "make",
     "make_vec",
+    "register_env_id",
     "register_placement",
+    "register_robot",
+    "register_task",
 ]
 
 # Register the gymnasium ids ("uniros/Rx200Reach-v0", ...) on import, as gymnasium-robotics does.
@@ -44,4 +50,8 @@ def __getattr__(name: str) -> object:
         from uniros_async import runtime
 
         return getattr(runtime, name)
+    if name in ("register_task", "register_env_id"):
+        from uniros_async.tasks import registry
+
+        return getattr(registry, name)
     raise AttributeError(f"module 'uniros_async' has no attribute {name!r}")
