@@ -6,6 +6,8 @@ Robots, placements (where an arm runs) and tasks are registries your own package
 this one: ``register_robot``, ``register_placement``, ``register_task`` and ``register_env_id``.
 """
 
+from typing import TYPE_CHECKING, Any
+
 from uniros_async.errors import (
     ConfigError,
     SimulationError,
@@ -17,6 +19,10 @@ from uniros_async.errors import (
 )
 from uniros_async.placements import register_placement
 from uniros_async.robots import register_robot
+
+if TYPE_CHECKING:
+    from uniros_async.runtime import make, make_vec
+    from uniros_async.tasks.registry import register_env_id, register_task
 
 __version__ = "0.1.0"
 
@@ -43,14 +49,14 @@ from uniros_async.tasks.registry import register_envs as _register  # noqa: E402
 _register()
 
 
-def __getattr__(name: str) -> object:
+def __getattr__(name: str) -> Any:
     # make / make_vec load the runtime (worker processes) only when asked for: a transport-only process or a
     # spawned worker does not import it.
     if name in ("make", "make_vec"):
         from uniros_async import runtime
 
         return getattr(runtime, name)
-    if name in ("register_task", "register_env_id"):
+    if name in ("register_task", "register_env_id"):  # gymnasium is imported for them (the task registry)
         from uniros_async.tasks import registry
 
         return getattr(registry, name)

@@ -95,7 +95,7 @@ def test_mjcf_matches_spec(spec: RobotSpec, mj_model: mujoco.MjModel) -> None:
 
 
 def test_mjcf_follows_the_pinocchio_rules(spec: RobotSpec) -> None:
-    """The rules of docs/howto/add-a-robot.md that keep pinocchio's MJCF parser exact (robot_facts pitfalls)."""
+    """The rules of docs/howto/add-a-robot.md that keep pinocchio's MJCF parser exact."""
     root = ET.parse(spec.mjcf_path).getroot()
     assert not root.findall(".//frame"), "pinocchio drops bodies inside <frame>"
     for element in root.iter():

@@ -24,6 +24,8 @@ __all__ = ["add_parser", "main", "run"]
 
 logger = logging.getLogger(__name__)
 
+ROBOT_HELP = "a registered robot (rx200, ned2), or MODULE:NAME for one that MODULE registers when imported"
+
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``robot`` command to the ``uniros`` subparsers; returns its parser."""
@@ -33,7 +35,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     actions = robot.add_subparsers(dest="robot_action", required=True)
 
     serve = actions.add_parser("serve", help="serve a servo sim in an own tcp domain; prints the domain URI")
-    serve.add_argument("robot", help="robot name (rx200, ned2)")
+    serve.add_argument("robot", help=ROBOT_HELP)
     serve.add_argument("--host", default="127.0.0.1", help="bind host of the domain and the node (default %(default)s)")
     serve.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     serve.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
@@ -70,7 +72,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "bridge",
         help="put an arm whose driver is a ROS 1 node on the bus (adapters/ros1_bridge.py); prints the domain URI",
     )
-    bridge.add_argument("robot", help="robot name (rx200, ned2)")
+    bridge.add_argument("robot", help=ROBOT_HELP)
     bridge.add_argument(
         "--ros-master", default=None, help="the ROS master, http://HOST:PORT/ (default $ROS_MASTER_URI, else :11311)"
     )
@@ -96,7 +98,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
 
     render = actions.add_parser("render", help="render the arm to a PNG offscreen")
-    render.add_argument("robot", help="robot name (rx200, ned2)")
+    render.add_argument("robot", help=ROBOT_HELP)
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
     render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
     render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
@@ -105,7 +107,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
-    view.add_argument("robot", help="robot name (rx200, ned2)")
+    view.add_argument("robot", help=ROBOT_HELP)
     return robot
 
 
@@ -200,9 +202,10 @@ def _run_until_signal(serve: Any) -> int:
         mine = group.subgroup(UnirosError)
         if mine is None:
             raise
-        while isinstance(mine, BaseExceptionGroup):
-            mine = mine.exceptions[0]
-        raise mine from None
+        first: BaseException = mine
+        while isinstance(first, BaseExceptionGroup):
+            first = first.exceptions[0]
+        raise first from None
     return 0
 
 
