@@ -76,6 +76,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     bridge.add_argument(
         "--ros-master", default=None, help="the ROS master, http://HOST:PORT/ (default $ROS_MASTER_URI, else :11311)"
     )
+    bridge.add_argument(
+        "--driver",
+        default=None,
+        help="which of the robot's registered ROS 1 drivers gives the defaults below (default: the robot's default)",
+    )
     bridge.add_argument("--joint-states", default=None, help="the driver's sensor_msgs/JointState topic")
     # dest: "command" is the uniros subcommand's own
     bridge.add_argument("--command", dest="command_topic", default=None, help="the driver's command topic")
@@ -84,7 +89,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         default=None,
         help="interbotix_xs_msgs/JointGroupCommand, trajectory_msgs/JointTrajectory or std_msgs/Float64MultiArray",
     )
-    bridge.add_argument("--group", default="arm", help="joint group of a JointGroupCommand (default %(default)s)")
+    bridge.add_argument(
+        "--group", default=None, help="joint group of a JointGroupCommand (default: the driver's, else arm)"
+    )
     bridge.add_argument(
         "--ros-host",
         default=None,
@@ -150,6 +157,7 @@ def _bridge(args: argparse.Namespace) -> int:
     cfg = Ros1BridgeConfig(
         robot=args.robot,
         master_uri=args.ros_master,
+        driver=args.driver,
         joint_states=args.joint_states,
         command=args.command_topic,
         command_type=args.command_type,
