@@ -57,7 +57,9 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--arms", nargs="+", default=["rx200", "ned2"])
     be.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
     be.add_argument(
-        "--robot", default="sim", help="sim, sim-process, emulated-real, tcp://host:port, ros1://host:port or ros2://[domain]"
+        "--robot",
+        default="sim",
+        help="sim, sim-process, emulated-real, tcp://host:port, ros1://host:port or ros2://[domain]",
     )
     be.add_argument("--concurrent", action="store_true", help="run the arms at the same time")
     be.add_argument(

@@ -25,6 +25,8 @@ __all__ = ["add_parser", "main", "run"]
 
 logger = logging.getLogger(__name__)
 
+ROBOT_HELP = "a registered robot (rx200, ned2), or MODULE:NAME for one that MODULE registers when imported"
+
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``robot`` command to the ``uniros`` subparsers; returns its parser."""
@@ -34,7 +36,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     actions = robot.add_subparsers(dest="robot_action", required=True)
 
     serve = actions.add_parser("serve", help="serve a servo sim in an own tcp domain; prints the domain URI")
-    serve.add_argument("robot", help="robot name (rx200, ned2)")
+    serve.add_argument("robot", help=ROBOT_HELP)
     serve.add_argument("--host", default="127.0.0.1", help="bind host of the domain and the node (default %(default)s)")
     serve.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     serve.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
@@ -81,9 +83,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "bridge",
         help="put an arm whose driver is a ROS 1 (or, with --ros2, ROS 2) node on the bus; prints the domain URI",
     )
-    bridge.add_argument("robot", help="robot name (rx200, ned2)")
+    bridge.add_argument("robot", help=ROBOT_HELP)
     bridge.add_argument(
         "--ros-master", default=None, help="the ROS master, http://HOST:PORT/ (default $ROS_MASTER_URI, else :11311)"
+    )
+    bridge.add_argument(
+        "--driver",
+        default=None,
+        help="which of the robot's registered ROS 1 (with --ros2: ROS 2) drivers gives the defaults below "
+        "(default: the robot's default)",
     )
     bridge.add_argument("--joint-states", default=None, help="the driver's sensor_msgs/JointState topic")
     # dest: "command" is the uniros subcommand's own
@@ -103,7 +111,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "discovery=localhost|subnet] or a domain id (default $ROS_DOMAIN_ID, else 0); --ros-master and --ros-host "
         "do not apply",
     )
-    bridge.add_argument("--group", default="arm", help="joint group of a JointGroupCommand (default %(default)s)")
+    bridge.add_argument(
+        "--group", default=None, help="joint group of a JointGroupCommand (default: the driver's, else arm)"
+    )
     bridge.add_argument(
         "--ros-host",
         default=None,
@@ -117,7 +127,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
 
     render = actions.add_parser("render", help="render the arm to a PNG offscreen")
-    render.add_argument("robot", help="robot name (rx200, ned2)")
+    render.add_argument("robot", help=ROBOT_HELP)
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
     render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
     render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
@@ -126,7 +136,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
-    view.add_argument("robot", help="robot name (rx200, ned2)")
+    view.add_argument("robot", help=ROBOT_HELP)
     return robot
 
 
@@ -174,6 +184,7 @@ def _bridge_ros2(args: argparse.Namespace) -> int:
     if args.ros_master is not None or args.ros_host is not None:
         raise ConfigError("--ros2 bridges a ROS 2 driver: --ros-master and --ros-host are ROS 1's")
     settings = {
+        "driver": args.driver,
         "joint_states": args.joint_states,
         "command": args.command_topic,
         "command_type": args.command_type,
@@ -194,6 +205,7 @@ def _bridge(args: argparse.Namespace) -> int:
     cfg = Ros1BridgeConfig(
         robot=args.robot,
         master_uri=args.ros_master,
+        driver=args.driver,
         joint_states=args.joint_states,
         command=args.command_topic,
         command_type=args.command_type,
@@ -264,9 +276,10 @@ def _run_until_signal(serve: Any) -> int:
         mine = group.subgroup(UnirosError)
         if mine is None:
             raise
-        while isinstance(mine, BaseExceptionGroup):
-            mine = mine.exceptions[0]
-        raise mine from None
+        first: BaseException = mine
+        while isinstance(first, BaseExceptionGroup):
+            first = first.exceptions[0]
+        raise first from None
     return 0
 
 
