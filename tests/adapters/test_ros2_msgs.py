@@ -233,3 +233,18 @@ def test_uris_and_settings() -> None:
         gym.make("uniros/Rx200Reach-v0", robot="ros2://0?topic=/x")
     with pytest.raises(ConfigError, match="ros1 settings"):
         gym.make("uniros/Rx200Reach-v0", robot="ros2://0", ros1={"command": "/x"})
+
+
+def test_ros_domain_id_is_read_as_rclpy_reads_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    from uniros_async.adapters.ros2 import domain_id_from_env
+    from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig
+
+    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
+    assert domain_id_from_env() == 0
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    assert domain_id_from_env() == 42
+    assert Ros2BridgeConfig.from_uri("rx200", "ros2://").domain_id is None  # None: the node reads $ROS_DOMAIN_ID
+    for bad in ("x", "300", "-1"):
+        monkeypatch.setenv("ROS_DOMAIN_ID", bad)
+        with pytest.raises(ConfigError, match="ROS_DOMAIN_ID must be an integer in 0..232"):
+            domain_id_from_env()
