@@ -6,8 +6,9 @@ rclpy never enters our interpreter. ``ros2_venv()`` is a virtual environment wit
 (``LD_LIBRARY_PATH=<venv>/lib``, Fast DDS as the rmw, no PYTHONPATH of ours).
 
 DDS discovers peers by multicast, so everything on DDS here runs in a network namespace of its own
-(``netns_command``: ``unshare --net``, loopback up with multicast on), never on the host's interfaces: tests cannot
-disturb, or be disturbed by, other hosts or other test runs. Inside it ``UNIROS_NETNS=1`` is set.
+(``netns_command``: ``unshare --net --mount``, loopback up with multicast on, a /dev/shm of its own), never on the
+host's interfaces: tests cannot disturb, or be disturbed by, other hosts or other test runs, and what rclpy leaves
+in /dev/shm goes with the namespace. Inside it ``UNIROS_NETNS=1`` is set.
 
 ``ros2_missing()`` / ``netns_missing()`` say why the peers cannot run (what to install or what is lacking);
 ``skip_or_fail(reason)`` skips a test with that reason, or fails it when ``UNIROS_REQUIRE_ROS=1`` (set by
@@ -55,7 +56,10 @@ ROS2_PEER_PACKAGES = (
     "ros-jazzy-std-msgs",
     "ros-jazzy-trajectory-msgs",
 )
-_MODULES = "rclpy, rclpy.serialization, sensor_msgs.msg, std_msgs.msg, trajectory_msgs.msg"
+_MODULES = ("rclpy", "sensor_msgs", "std_msgs", "trajectory_msgs")
+# found, not imported: importing rclpy loads the lttng-ust bundled in its wheels, which leaves files in the host's
+# /dev/shm; the peers themselves run in a namespace with a /dev/shm of its own
+_PROBE = f"import importlib.util as u, sys; sys.exit(0 if all(u.find_spec(m) for m in {_MODULES!r}) else 1)"
 
 
 def ros2_venv() -> Path:
@@ -118,7 +122,7 @@ def ros2_missing() -> str | None:
         return f"no rclpy venv at {ros2_venv()} ($UNIROS_ROS2_VENV); make it: {_install_hint()}"
     try:
         probe = subprocess.run(
-            [str(python), "-c", f"import {_MODULES}"],
+            [str(python), "-c", _PROBE],
             env=rclpy_env(),
             capture_output=True,
             text=True,
@@ -129,7 +133,7 @@ def ros2_missing() -> str | None:
         return f"{python} could not import rclpy ({exc}); install it: {_install_hint()}"
     if probe.returncode != 0:
         last = probe.stderr.strip().splitlines()[-1:] or ["?"]
-        return f"{python} cannot import {_MODULES} ({last[0]}); install them: {_install_hint()}"
+        return f"{python} does not have {', '.join(_MODULES)} ({last[0]}); install them: {_install_hint()}"
     try:
         import cyclonedds  # noqa: F401
         import rosbags  # noqa: F401
@@ -155,7 +159,7 @@ def netns_missing() -> str | None:
     except (OSError, subprocess.TimeoutExpired) as exc:
         return f"cannot make a network namespace ({exc})"
     if probe.returncode != 0:
-        return f"cannot make a network namespace with `unshare --net` (root needed?): {probe.stderr.strip()[-300:]}"
+        return f"cannot make a namespace with `unshare --net --mount` (root needed?): {probe.stderr.strip()[-300:]}"
     return None
 
 
@@ -165,10 +169,15 @@ def in_netns() -> bool:
 
 
 def netns_command(argv: Sequence[str]) -> list[str]:
-    """``argv`` run in a new network namespace whose loopback is up with multicast on (``UNIROS_NETNS=1``)."""
+    """``argv`` run in a new network namespace whose loopback is up with multicast on (``UNIROS_NETNS=1``), with a
+    /dev/shm of its own: rclpy's Fast DDS and lttng-ust (bundled in the wheels) leave files there, which then go
+    with the namespace instead of staying on the host."""
     ip = shutil.which("ip") or "/sbin/ip"
-    script = f'{ip} link set lo up && {ip} link set lo multicast on && UNIROS_NETNS=1 exec "$@"'
-    return ["unshare", "--net", "--", "sh", "-c", script, "sh", *argv]
+    script = (
+        f"mount -t tmpfs -o mode=1777,size=256m tmpfs /dev/shm && {ip} link set lo up && "
+        f'{ip} link set lo multicast on && UNIROS_NETNS=1 exec "$@"'
+    )
+    return ["unshare", "--net", "--mount", "--", "sh", "-c", script, "sh", *argv]
 
 
 def start_rclpy(

@@ -1,8 +1,9 @@
 """ROS 2 messages (adapters/ros2/msgs.py) against rclpy's own: the same bytes and the same fields, both ways.
 
 rclpy (Jazzy, from the rclpy venv of ``uniros_async.testing.ros2``) runs in its own process as a codec
-(``tests/ros2/rclpy_peer.py codec``): it reads our CDR and serializes its own, with no network, so this file runs
-on the host. The names, URIs and settings checks below need no peer at all.
+(``rclpy_peer.py codec``): it reads our CDR and serializes its own, with no network. It runs in the namespace with
+the other ROS 2 tests all the same: rclpy's bundled lttng-ust leaves files in /dev/shm, which go with the namespace.
+The names, URIs and settings checks below need no peer at all.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from hypothesis import strategies as st
 
 from uniros_async.errors import CodecError, ConfigError
 
-PEER = Path(__file__).resolve().parents[1] / "ros2" / "rclpy_peer.py"
+PEER = Path(__file__).with_name("rclpy_peer.py")
 msgs = pytest.importorskip("uniros_async.adapters.ros2.msgs")
 pytest.importorskip("cyclonedds", reason="pip install -e '.[ros2]'")
 pytest.importorskip("rosbags", reason="pip install -e '.[ros2]'")
