@@ -1,12 +1,10 @@
 """The ROS 2 tests: our participant, bridge and mirror against real rclpy nodes, in a network namespace.
 
 DDS discovers peers by multicast, so these tests run only inside a network namespace of their own, where nothing
-else can hear them: ``tests/adapters/test_ros2_in_netns.py`` runs this folder there (``unshare --net``, loopback up
-with multicast on) and fails with this folder's output when anything here fails. Run directly, outside such a
-namespace, nothing here is collected. To run them by hand (as root)::
-
-    unshare --net -- sh -c 'ip link set lo up && ip link set lo multicast on && UNIROS_NETNS=1 \
-        python -m pytest tests/ros2'
+else can hear them: ``tests/adapters/test_ros2_in_netns.py`` runs each file of this folder there
+(``testing.ros2.netns_command``: ``unshare --net --mount``, loopback up with multicast on, a /dev/shm of its own)
+and fails with its output when anything here fails. Run directly, outside such a namespace, nothing here is
+collected. To run them by hand (as root): ``python -m pytest tests/adapters/test_ros2_in_netns.py``.
 
 The rclpy peers (Jazzy wheels from PyPI) live in their own venv (``uniros_async.testing.ros2``); without it every
 test here skips saying how to make it, or fails under ``UNIROS_REQUIRE_ROS=1``.

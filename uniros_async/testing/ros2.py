@@ -105,11 +105,12 @@ def rclpy_env(domain_id: int = 0, *, home: str | os.PathLike[str] | None = None)
         LD_LIBRARY_PATH=lib + (":" + env["LD_LIBRARY_PATH"] if env.get("LD_LIBRARY_PATH") else ""),
         ROS_DOMAIN_ID=str(domain_id),
         RMW_IMPLEMENTATION="rmw_fastrtps_cpp",
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",  # as our side's default: peers on this host only
         ROS_HOME=str(home),
         ROS_LOG_DIR=str(home / "log"),
         PYTHONUNBUFFERED="1",
     )
-    for key in ("PYTHONPATH", "PYTHONHOME", "ROS_LOCALHOST_ONLY", "ROS_AUTOMATIC_DISCOVERY_RANGE", "CYCLONEDDS_URI"):
+    for key in ("PYTHONPATH", "PYTHONHOME", "ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "CYCLONEDDS_URI"):
         env.pop(key, None)
     return env
 
