@@ -180,8 +180,7 @@ class SafetyChecker:
         mujoco.mj_kinematics(m, d)
         clearance = self._clearance()  # the table top is the plane z = 0
         if clearance < self.config.table_margin_m:
-            margin_cm = self.config.table_margin_m * 100
-            return f"a link would be {clearance * 100:.1f} cm above the table (margin {margin_cm:.1f} cm)"
+            return _table_reason(clearance, self.config.table_margin_m)
         x, y, z = self._site_xpos[self._ee_site].tolist()
         x0, y0, z0, x1, y1, z1 = self._ws
         if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):
@@ -243,3 +242,15 @@ def _hops(m: mujoco.MjModel, a: int, b: int) -> int:
     ca, cb = chain(a), chain(b)
     common = next(x for x in ca if x in cb)
     return ca.index(common) + cb.index(common)
+
+
+def _table_reason(clearance_m: float, margin_m: float) -> str:
+    """Why a clearance below the margin is unsafe, in words: a link below the table top, on it, or too close."""
+    cm, margin_cm = abs(clearance_m) * 100, margin_m * 100
+    if clearance_m < -0.0005:
+        where = f"{cm:.1f} cm below the table top"
+    elif clearance_m < 0.0005:
+        where = "on the table top"
+    else:
+        where = f"only {cm:.1f} cm above the table"
+    return f"a link would be {where} (it must stay {margin_cm:.1f} cm above it)"

@@ -210,7 +210,7 @@ class TrainConfig:
             ``achieved_goal`` and ``desired_goal`` keys), clipped to +-10 std; rewards are not normalised. The
             replay buffer keeps raw observations (normalised when sampled); the statistics are saved with every
             checkpoint, restored on resume and used, frozen, by every evaluation. Off by default.
-        torch_threads: torch intra-op threads (1: envs share the machine; design.md section 9).
+        torch_threads: torch intra-op threads (1: envs share the machine; more stall env loops).
         run_dir: where logs and checkpoints go (default ``runs/<name>``).
     """
 
