@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import gymnasium as gym
 import pytest
 
@@ -71,3 +74,21 @@ def test_lookups_that_miss_name_the_closest() -> None:
         register_env_id("rx2000", "Reach")
     with pytest.raises(gym.error.NameNotFound, match="Did you mean: `Rx200Reach`"):
         gym.make("uniros/Rx200Reech-v0")
+
+
+def test_a_users_package_may_register_ids_before_gymnasium_is_imported() -> None:
+    """``import uniros_async`` registers the shipped ids right after gymnasium's first import, wherever it happens:
+    also inside ``register_env_id`` of a user's package that imported nothing else yet."""
+    code = (
+        "import sys, uniros_async\n"
+        "import uniros_async.tasks.registry as r\n"
+        "assert 'gymnasium' not in sys.modules and 'Reach' in r.task_names()\n"
+        "from uniros_async import register_env_id\n"
+        "register_env_id('ned2', 'Reach', env_id='mine/Ned2Reach-v0')\n"
+        "import gymnasium as gym\n"
+        "assert gym.spec('uniros/Rx200Reach-v0').kwargs == {'arm': 'rx200'}, 'the shipped ids'\n"
+        "assert set(r.ENV_IDS) >= {'uniros/Ned2ReachGoal-v0', 'mine/Ned2Reach-v0'}, sorted(r.ENV_IDS)\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

@@ -210,7 +210,7 @@ def test_cli_bridge_serves_a_domain_until_sigint(fake_arm: Any) -> None:
         text=True,
     )
     try:
-        uri = wait_for_line(proc, "tcp://", timeout_s=60.0)
+        uri = wait_for_line(proc, "export UNIROS_DOMAIN=tcp://", timeout_s=60.0).removeprefix("export UNIROS_DOMAIN=")
 
         async def one_state() -> JointState:
             async with open_node("probe", domain=uri, namespace="/rx200", transport="tcp") as node:

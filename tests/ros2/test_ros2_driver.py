@@ -100,7 +100,8 @@ def test_cli_serves_the_mirror_until_sigint() -> None:
         text=True,
     )
     try:
-        assert wait_for_line(proc, "ros2://", timeout_s=60.0) == "ros2://3/rx200"
+        assert wait_for_line(proc, "export ROS_DOMAIN_ID=", timeout_s=60.0) == "export ROS_DOMAIN_ID=3"
+        assert wait_for_line(proc, "#", timeout_s=5.0).endswith("robot=ros2://3/rx200")
 
         async def one_state() -> Any:
             from uniros_async.adapters.ros2 import open_ros2_node
@@ -135,7 +136,7 @@ def test_sim_trained_policy_on_the_emulated_arm_over_ros2() -> None:
         text=True,
     )
     try:
-        assert wait_for_line(proc, "ros2://", timeout_s=60.0) == "ros2://0/rx200"
+        assert wait_for_line(proc, "export ROS_DOMAIN_ID=", timeout_s=60.0) == "export ROS_DOMAIN_ID=0"
         model = TD3.load(CHECKPOINT / "model.zip", device="cpu")
         env = gym.make("uniros/Rx200Reach-v0", robot="ros2://0", reward_type="dense", action_mode="delta")
         successes = 0

@@ -191,9 +191,9 @@ def test_names_and_bad_bytes() -> None:
 def test_uris_and_settings() -> None:
     from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig, parse_ros2_uri
 
-    u = parse_ros2_uri("ros2://3/arm1?driver=forward_position_controller&discovery=subnet&state_timeout_s=2")
+    u = parse_ros2_uri("ros2://3/arm1?driver=forward_position_controller&discovery=subnet&state_timeout_s=2&insecure=1")
     assert (u.domain_id, u.namespace, u.localhost_only) == (3, "/arm1", False)
-    assert u.settings == {"driver": "forward_position_controller", "state_timeout_s": 2.0}
+    assert u.settings == {"driver": "forward_position_controller", "state_timeout_s": 2.0, "insecure": True}
     assert parse_ros2_uri("ros2://").domain_id is None and parse_ros2_uri("ros2://").localhost_only
     for bad, why in (
         ("ros2://x", "domain id"),
@@ -222,6 +222,11 @@ def test_uris_and_settings() -> None:
     assert Ros2BridgeConfig.from_uri("ned2", "ros2://").command == "/joint_trajectory_controller/joint_trajectory"
     with pytest.raises(ConfigError, match="command_type must be one of"):
         Ros2BridgeConfig(robot="rx200", command_type="std_msgs/msg/String")
+    with pytest.raises(ConfigError, match="cannot authenticate its peers"):  # the subnet only when asked twice
+        Ros2BridgeConfig.from_uri("rx200", "ros2://0?discovery=subnet")
+    assert not Ros2BridgeConfig.from_uri("rx200", "ros2://0?discovery=subnet&insecure=1").localhost_only
+    with pytest.raises(ConfigError, match="insecure must be"):
+        parse_ros2_uri("ros2://0?insecure=yes")
     with pytest.raises(ConfigError, match="did you mean|registered"):
         Ros2BridgeConfig(robot="rx200", driver="xs_skd")
     with pytest.raises(ConfigError, match="unknown setting"):

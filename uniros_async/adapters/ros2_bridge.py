@@ -17,6 +17,7 @@ Where the driver is: ``ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=loc
 - ``driver``: one of the robot's ROS 2 drivers registered in ``adapters.drivers``; empty: the robot's default.
 - ``discovery``: ``localhost`` (default: this host only, as ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) or
   ``subnet`` (a driver on another machine).
+- ``insecure=1``: required with ``discovery=subnet`` (DDS without SROS2 cannot authenticate its peers).
 - any of ``ROS2_SETTINGS`` (``joint_states``, ``command``, ``command_type``, ``group``, ``state_timeout_s``).
 
 The built-in drivers (``adapters/drivers.py``), for the rx200 and the Ned2:
@@ -55,6 +56,7 @@ from uniros_async.robots.spec import RobotSpec
 if TYPE_CHECKING:
     from uniros_async.envs.config import EnvConfig
     from uniros_async.placements import ArmLink, PlacementRequest
+    from uniros_async.transports.base import TransportOptions
 
 __all__ = [
     "COMMAND_TYPES",
@@ -76,7 +78,7 @@ COMMAND_TYPES = (
     "std_msgs/msg/Float64MultiArray",
 )
 
-ROS2_SETTINGS = ("driver", "joint_states", "command", "command_type", "group", "state_timeout_s")
+ROS2_SETTINGS = ("driver", "joint_states", "command", "command_type", "group", "state_timeout_s", "insecure")
 """The bridge settings a ``ros2://`` URI takes as query parameters, besides ``discovery``."""
 
 
@@ -126,6 +128,10 @@ def parse_ros2_uri(uri: str) -> Ros2Uri:
     if discovery not in ("localhost", "subnet"):
         raise ConfigError(f"{uri!r}: discovery must be localhost or subnet, got {discovery!r}")
     settings: dict[str, Any] = dict(params)
+    if "insecure" in settings:
+        if settings["insecure"] not in ("1", "true", "0", "false"):
+            raise ConfigError(f"{uri!r}: insecure must be 1, true, 0 or false, got {settings['insecure']!r}")
+        settings["insecure"] = settings["insecure"] in ("1", "true")
     if "state_timeout_s" in settings:
         try:
             settings["state_timeout_s"] = float(settings["state_timeout_s"])
@@ -157,6 +163,9 @@ class Ros2BridgeConfig:
         localhost_only: discover peers on this host only (default) or on the subnet.
         state_timeout_s: how long to wait for the driver's first joint state and its command subscription.
         node_name: the bridge's name on the bus.
+        insecure: allow discovery beyond this host (``localhost_only=False``). DDS without SROS2 cannot
+            authenticate its peers: anyone on the subnet can read the arm's state and command it; without this the
+            bridge refuses to start.
     """
 
     robot: str
@@ -170,6 +179,7 @@ class Ros2BridgeConfig:
     localhost_only: bool = True
     state_timeout_s: float = 10.0
     node_name: str = "ros2_bridge"
+    insecure: bool = False
 
     def __post_init__(self) -> None:
         from uniros_async.adapters.drivers import ros_driver_defaults
@@ -212,6 +222,12 @@ class Ros2BridgeConfig:
             raise ConfigError(f"Ros2BridgeConfig.domain_id must be in 0..232, got {self.domain_id}")
         if not self.state_timeout_s > 0:
             raise ConfigError(f"Ros2BridgeConfig.state_timeout_s must be > 0, got {self.state_timeout_s}")
+        if not self.localhost_only and not self.insecure:
+            raise ConfigError(
+                "ROS 2 discovery beyond this host (discovery=subnet): DDS without SROS2 cannot authenticate its peers, "
+                "so anyone on the subnet could read the arm's state and command it; give insecure=1 in the ros2:// URI "
+                "(or --insecure) to accept that"
+            )
 
     @classmethod
     def from_uri(cls, robot: str, uri: str, **settings: Any) -> Ros2BridgeConfig:
@@ -397,14 +413,16 @@ async def serve_ros2_bridge(
     port: int = 0,
     namespace: str | None = None,
     on_ready: Callable[[str], Any] | None = None,
+    options: TransportOptions | None = None,
 ) -> None:
     """Run the bridge in an own tcp domain on ``host:port`` until cancelled (``uniros robot bridge --ros2``).
 
     Args:
         on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
+        options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
     """
     async with (
-        open_domain(f"tcp://{host}:{port}") as dom,
+        open_domain(f"tcp://{host}:{port}", options=options) as dom,
         open_ros2_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
     ):
         if on_ready is not None:

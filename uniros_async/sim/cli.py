@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -26,6 +27,10 @@ __all__ = ["add_parser", "main", "run"]
 logger = logging.getLogger(__name__)
 
 ROBOT_HELP = "a registered robot (rx200, ned2), or MODULE:NAME for one that MODULE registers when imported"
+
+AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
+"""Where ``uniros robot serve`` and ``bridge`` read the domain's shared key by default (as domains and nodes do:
+``transports.base.options_from_environ``)."""
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -78,6 +83,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "instead of in a uniros domain: ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet] or a "
         "domain id (default $ROS_DOMAIN_ID, else 0); prints the ros2:// URI to drive it by",
     )
+    _add_exposure_flags(serve)
 
     bridge = actions.add_parser(
         "bridge",
@@ -122,6 +128,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     bridge.add_argument("--host", default="127.0.0.1", help="bind host of the domain (default %(default)s)")
     bridge.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     bridge.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
+    _add_exposure_flags(bridge)
     bridge.add_argument(
         "--state-timeout", type=float, default=10.0, help="seconds to wait for the driver's first joint state"
     )
@@ -131,8 +138,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
     render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
     render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
-    render.add_argument("--width", type=int, default=640)
-    render.add_argument("--height", type=int, default=480)
+    render.add_argument("--width", type=int, default=640, help="pixels (default %(default)s)")
+    render.add_argument("--height", type=int, default=480, help="pixels (default %(default)s)")
     render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
@@ -190,9 +197,15 @@ def _bridge_ros2(args: argparse.Namespace) -> int:
         "command_type": args.command_type,
         "group": args.group,
         "state_timeout_s": args.state_timeout,
+        "insecure": args.insecure or None,
     }
     cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), **settings)
-    serve = serve_ros2_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready)
+    from uniros_async.transports.base import TransportOptions
+
+    options = TransportOptions(auth_key=_auth_key(args), insecure=args.insecure)
+    serve = serve_ros2_bridge(
+        cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready, options=options
+    )
     return _run_until_signal(serve)
 
 
@@ -212,9 +225,14 @@ def _bridge(args: argparse.Namespace) -> int:
         group=args.group,
         ros_host=args.ros_host,
         state_timeout_s=args.state_timeout,
+        insecure=args.insecure,
     )
+    from uniros_async.transports.base import TransportOptions
 
-    serve = serve_ros1_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready)
+    options = TransportOptions(auth_key=_auth_key(args), insecure=args.insecure)
+    serve = serve_ros1_bridge(
+        cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready, options=options
+    )
     return _run_until_signal(serve)
 
 
@@ -230,7 +248,9 @@ def _serve_ros1(args: argparse.Namespace) -> int:
         raise ConfigError(
             "--ros1-master serves on the ROS graph in wall time: --sim-time, --markers and --namespace do not apply"
         )
-    cfg = Ros1BridgeConfig(robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host)
+    cfg = Ros1BridgeConfig(
+        robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host, insecure=args.insecure
+    )
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
     return _run_until_signal(serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
@@ -248,14 +268,28 @@ def _serve_ros2(args: argparse.Namespace) -> int:
             "--ros2 serves on a ROS 2 domain in wall time: --sim-time, --markers, --namespace (give it in the URI) "
             "and --ros1-master do not apply"
         )
-    cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2))
+    cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), insecure=args.insecure or None)
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
     return _run_until_signal(serve_ros2_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
 
 
 def _print_ready(uri: str) -> None:
-    sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join, or the ROS master
+    """Say on stdout how to reach what now serves: a shell line to paste (or ``eval``) elsewhere, then a hint.
+
+    The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, ``export ROS_MASTER_URI=http://...``
+    when a ROS 1 master carries the arm, or ``export ROS_DOMAIN_ID=N`` for a ROS 2 driver (the hint line then gives
+    the ``ros2://`` URI to drive it by); scripts read the value after the ``=``.
+    """
+    if uri.startswith("ros2://"):
+        domain_id = uri.removeprefix("ros2://").split("/", 1)[0]
+        sys.stdout.write(
+            f"export ROS_DOMAIN_ID={domain_id}\n# the arm serves a ROS 2 driver's topics in this domain: robot={uri}\n"
+        )
+    elif uri.startswith("http://"):
+        sys.stdout.write(f"export ROS_MASTER_URI={uri}\n# the arm serves a ROS 1 driver's topics on this master\n")
+    else:
+        sys.stdout.write(f"export UNIROS_DOMAIN={uri}\n# in another shell, the line above, then: uniros topic list\n")
     sys.stdout.flush()
 
 
@@ -302,8 +336,37 @@ def _serve(args: argparse.Namespace) -> int:
         clock="sim" if args.sim_time else "wall",
         time_scale=args.time_scale or None,
         publish_markers=args.markers,
+        auth_key=_auth_key(args),
+        insecure=args.insecure,
     )
     return _run_until_signal(serve_servo_sim(cfg, on_ready=_print_ready))
+
+
+def _add_exposure_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--auth-key-env",
+        default=None,
+        metavar="VAR",
+        help=f"read the domain's shared auth key from this environment variable (default: ${AUTH_KEY_ENV} if set); "
+        "nodes joining must use the same key",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow listening beyond loopback without authentication (--host other than 127.0.0.1 without a key; "
+        "any ROS 1 listener beyond loopback, since ROS 1 cannot authenticate; ROS 2 discovery=subnet, as DDS without "
+        "SROS2 cannot either)",
+    )
+
+
+def _auth_key(args: argparse.Namespace) -> bytes | None:
+    var = args.auth_key_env or AUTH_KEY_ENV
+    key = os.environ.get(var, "").encode() or None
+    if args.auth_key_env and key is None:
+        from uniros_async.errors import ConfigError
+
+        raise ConfigError(f"--auth-key-env {var}: the environment variable {var} is not set (or empty)")
+    return key
 
 
 def main(argv: Sequence[str] | None = None) -> int:

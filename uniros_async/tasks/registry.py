@@ -13,9 +13,11 @@ A package of your own registers its tasks and ids at import, without touching th
     register_env_id("rx200", "Push")                           # "uniros/Rx200Push-v0"
     register_env_id("myarm", "Reach", env_id="my_pkg/MyarmReach-v0", kwargs={"goal_min": (0.1, -0.1, 0.05)})
 
-Entry points are strings, so registering costs one gymnasium import; MuJoCo, pinocchio and the env code load only
-when an env is made (a transport-only process or a spawned worker does not pay for them). A worker process finds
-a user's id when the id is given as ``"my_pkg:my_pkg/MyarmReach-v0"`` (gymnasium imports ``my_pkg`` first).
+Entry points are strings, so registering costs one gymnasium import (done when an id is registered, not when this
+module is imported: ``import uniros_async`` registers the ids that ship right after gymnasium is first imported,
+and that hook must find this module whole); MuJoCo, pinocchio and the env code load only when an env is made (a
+transport-only process or a spawned worker does not pay for them). A worker process finds a user's id when the id
+is given as ``"my_pkg:my_pkg/MyarmReach-v0"`` (gymnasium imports ``my_pkg`` first).
 """
 
 from __future__ import annotations
@@ -26,8 +28,6 @@ import re
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
-
-from gymnasium.envs.registration import register, registry
 
 from uniros_async.errors import ConfigError
 from uniros_async.robots import get_robot_spec, robot_names
@@ -187,6 +187,10 @@ def register_env_id(
         if _ENV_IDS[env_id] == (robot, task) and _ID_KWARGS[env_id] == own:
             return env_id
         raise ConfigError(f"env id {env_id!r} is already registered for {_ENV_IDS[env_id]}")
+    from gymnasium.envs.registration import register, registry
+
+    if env_id in _ENV_IDS:  # registered meanwhile: importing gymnasium just now registered the ids that ship
+        return register_env_id(robot, task, env_id=env_id, kwargs=kwargs, max_episode_steps=max_episode_steps)
     if env_id in registry:
         raise ConfigError(f"env id {env_id!r} is already a gymnasium id ({registry[env_id].entry_point})")
     register(
@@ -201,10 +205,18 @@ def register_env_id(
     return env_id
 
 
-def register_envs() -> None:
-    """Register the tasks and ids that ship (idempotent): the reach tasks on rx200 and ned2."""
+def _register_tasks() -> None:
+    """The tasks that ship (no gymnasium import: a task is a name, an entry point and defaults)."""
     register_task("Reach", "uniros_async.tasks.reach:ReachEnv")
     register_task("ReachGoal", "uniros_async.tasks.reach:ReachGoalEnv")
+
+
+def register_envs() -> None:
+    """Register the ids that ship (idempotent): the reach tasks on rx200 and ned2."""
+    _register_tasks()
     for robot in ("rx200", "ned2"):
         for task in ("Reach", "ReachGoal"):
             register_env_id(robot, task)
+
+
+_register_tasks()
