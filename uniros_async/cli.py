@@ -116,6 +116,11 @@ def _build_parser() -> argparse.ArgumentParser:
     b2.add_argument("--per-block", type=int, default=500, help="round trips per block (default %(default)s)")
     b2.add_argument("--domain-id", type=int, default=0, help="ROS 2 domain id (default %(default)s)")
     b2.add_argument("--no-netns", action="store_true", help="run on this host's loopback, not in a network namespace")
+    b2.add_argument(
+        "--rclpy-shm",
+        action="store_true",
+        help="let rclpy-to-rclpy use Fast DDS's shared memory (default: UDP, as ours)",
+    )
     b2.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     b2.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
@@ -363,6 +368,7 @@ def _run_bench(args: argparse.Namespace) -> int:
                 per_block=args.per_block,
                 domain_id=args.domain_id,
                 netns=not args.no_netns,
+                rclpy_shm=args.rclpy_shm,
                 json_path=args.json_path,
                 progress=not args.no_progress,
             )

@@ -9,7 +9,9 @@ a ``sensor_msgs/msg/JointState`` of the rx200's 8 joints, one at a time (send, w
 - ours, a ``Ros2Node`` in this process (serializing and deserializing each message with rosbags);
 - rclpy in its own process, at its fastest for this pattern (publish, then spin its executor once per wake-up).
 
-Both go through the same echo, so the difference between them is the two clients' own cost on both ends of a hop.
+Both go through the same echo and, by default, over the same medium: UDP on loopback (Fast DDS would otherwise
+carry rclpy-to-rclpy over its own shared memory, which our participant cannot speak; ``rclpy_shm=True`` measures
+that too). So the difference between them is the two clients' own cost on both ends of a hop.
 They take turns in blocks (``blocks`` of ``per_block`` round trips each), so both meet the same moments of the
 machine's load; the first block of each is warm-up and not counted. Reported: p50, p90, p99 and IQR in us, and the
 ratio of the medians.
@@ -54,6 +56,9 @@ class Ros2BenchConfig:
     domain_id: int = 0
     netns: bool = True
     """Run in a network namespace of its own when one can be made (root and ``unshare``)."""
+    rclpy_shm: bool = False
+    """Let the two rclpy processes (client and echo) use Fast DDS's shared-memory transport between them. Off: both
+    clients' hops cross UDP on loopback, the medium our participant has (Fast DDS's shared memory is its own)."""
 
     def __post_init__(self) -> None:
         if self.blocks < 2 or self.per_block < 1:
@@ -149,6 +154,7 @@ def _in_netns(config: Ros2BenchConfig) -> list[dict[str, Any]] | None:
         argv = [sys.executable, "-m", "uniros_async.cli", "bench", "ros2", "--blocks", str(config.blocks)]
         argv += ["--per-block", str(config.per_block), "--domain-id", str(config.domain_id), "--json", str(out)]
         argv += [] if config.progress else ["--no-progress"]
+        argv += ["--rclpy-shm"] if config.rclpy_shm else []
         proc = subprocess.run(netns_command(argv), text=True, check=False, stdout=subprocess.PIPE)
         if proc.returncode != 0:
             raise RuntimeError(f"the bench in its network namespace failed ({proc.returncode}):\n{proc.stdout}")
@@ -175,6 +181,8 @@ def main(config: Ros2BenchConfig, log: Callable[[str], None] = print) -> list[di
         return records
     with tempfile.TemporaryDirectory(prefix="uniros_bench_ros2_") as tmp:
         env = rclpy_env(config.domain_id, home=tmp)
+        if not config.rclpy_shm:
+            env["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
         procs = []
         try:
             for mode in ("echo", "client"):
@@ -218,5 +226,6 @@ def _print(config: Ros2BenchConfig, records: list[dict[str, Any]], log: Callable
             f"{r['lost']:>6}{r['count']:>7}"
         )
     ratio = records[0]["p50_us"] / records[1]["p50_us"]
-    lines.append(f"median round trip: uniros / rclpy = {ratio:.2f} (DDS in {where})")
+    medium = "rclpy-to-rclpy over Fast DDS shared memory" if config.rclpy_shm else "every hop over UDP on loopback"
+    lines.append(f"median round trip: uniros / rclpy = {ratio:.2f} (DDS in {where}; {medium})")
     report("\n".join(lines), records, config.json_path, log)

@@ -120,9 +120,27 @@ def message_class(ros_type: str) -> Any:
     return typestore().types[_known(ros_type)]
 
 
+@functools.cache
+def _codec(ros_type: str) -> tuple[Any, Any, Any, Any, Any]:
+    """rosbags' generated functions of ``ros_type``: (size, serialize LE, deserialize LE, deserialize BE, class)."""
+    msgdef = typestore().get_msgdef(_known(ros_type))
+    return (
+        msgdef.getsize_cdr,
+        msgdef.serialize_cdr_le,
+        msgdef.deserialize_cdr_le,
+        msgdef.deserialize_cdr_be,
+        msgdef.cls,
+    )
+
+
 def serialize(msg: Any, ros_type: str) -> bytes:
     """``msg`` (a rosbags message) -> CDR bytes with the encapsulation header, as a DDS writer sends them."""
-    return bytes(typestore().serialize_cdr(msg, ros_type))
+    size, ser, _, _, _ = _codec(ros_type)
+    store = typestore()
+    out = bytearray(4 + size(0, msg, store))
+    out[1] = 1  # CDR_LE
+    ser(memoryview(out)[4:], 0, msg, store)
+    return bytes(out)
 
 
 def deserialize(data: bytes | memoryview, ros_type: str) -> Any:
@@ -131,15 +149,13 @@ def deserialize(data: bytes | memoryview, ros_type: str) -> Any:
     Raises:
         CodecError: the bytes do not hold a ``ros_type`` (names the type).
     """
-    store = typestore()
-    if len(data) < 4 or bytes(data[:2]) not in (b"\x00\x00", b"\x00\x01"):
+    if len(data) < 4 or data[0] != 0 or data[1] > 1:
         raise CodecError(f"{ros_type}: {bytes(data[:4])!r} is not a plain CDR encapsulation header")
-    msgdef = store.get_msgdef(ros_type)
-    func = msgdef.deserialize_cdr_le if data[1] else msgdef.deserialize_cdr_be
+    _, _, de_le, de_be, cls = _codec(ros_type)
     try:
         # rosbags' deserialize_cdr also refuses trailing bytes; an rmw may send a few (its size estimate), as
         # rclpy's serialize_message does, so the reader stops at the message's end instead
-        return func(memoryview(data)[4:], 0, msgdef.cls, store)[0]
+        return (de_le if data[1] else de_be)(memoryview(data)[4:], 0, cls, typestore())[0]
     except Exception as exc:  # struct.error, IndexError, ValueError, UnicodeDecodeError on bad input
         raise CodecError(f"{ros_type}: {len(data)} bytes are not a valid CDR message: {exc}") from exc
 
