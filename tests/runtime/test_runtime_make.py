@@ -96,7 +96,7 @@ def test_a_synchronous_envs_step_errors_come_back_and_the_worker_keeps_serving()
     """The worker's step lane for an env it steps synchronously (CartPole): an action the env refuses and a
     malformed step frame each come back as an error reply, and the next step is served as usual."""
     from uniros_async.runtime import make_vec
-    from uniros_async.runtime.worker import STEP_TAG, unpack
+    from uniros_async.runtime.protocol import STEP_TAG, unpack
 
     venv = make_vec(["CartPole-v1"], pad=False)
     try:

@@ -25,7 +25,7 @@ import pytest
 
 from uniros_async.errors import ConfigError, WorkerError
 from uniros_async.runtime import RemoteWorker, make, make_vec, serve_launcher
-from uniros_async.runtime.worker import pack, unpack
+from uniros_async.runtime.protocol import pack, unpack
 from uniros_async.transports.base import TransportOptions, connect
 
 pytestmark = pytest.mark.slow

@@ -313,7 +313,7 @@ def test_replies_read_into_place_and_replies_that_cannot_be_give_the_same_return
     the returns are the same arrays either way."""
     from uniros_async.runtime import vector
     from uniros_async.runtime.vector import _Returns
-    from uniros_async.runtime.worker import pack_step_reply
+    from uniros_async.runtime.protocol import pack_step_reply
 
     in_place = []
     real = vector.unpack_step_reply_into

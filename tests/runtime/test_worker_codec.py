@@ -1,4 +1,4 @@
-"""The worker protocol's frames (runtime/worker.py ``pack``/``unpack``): arrays by value whatever their layout,
+"""The worker protocol's frames (runtime/protocol.py ``pack``/``unpack``): arrays by value whatever their layout,
 numpy scalars as Python ones, malformed frames refused by name. No processes: the codec alone."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from uniros_async.errors import CodecError
-from uniros_async.runtime.worker import (
+from uniros_async.runtime.protocol import (
     STEP_TAG,
     PackedRequest,
     _array_part,

@@ -6,7 +6,7 @@ to a worker on another host. A spec is placed on a launcher with the ``worker`` 
     make_vec([("uniros/Rx200Reach-v0", {"worker": "tcp://10.0.0.5:7000"}), "uniros/Ned2Reach-v0"])
     make("uniros/Ned2Reach-v0", worker=RemoteWorker("tcp://10.0.0.5:7000", auth_key=b"..."))
 
-Protocol (msgpack frames of ``worker.pack``, over one tcp connection per remote worker, HMAC-authenticated when the
+Protocol (msgpack frames of ``protocol.pack``, over one tcp connection per remote worker, HMAC-authenticated when the
 launcher has a key): the agent sends ``{"op": "start", "index", "env_id", "kwargs", "start_timeout_s"}``; the
 launcher checks the id and kwargs against its own registry (``check_env_args``), spawns a worker exactly as the
 supervisor does (``worker_entry``, a ``WorkerSpec`` whose parent is the launcher), reads the worker's listen URI
@@ -47,7 +47,8 @@ import numpy as np
 
 from uniros_async._signals import cancel_on_signals
 from uniros_async.errors import ConfigError, TransportError, WorkerError
-from uniros_async.runtime.worker import WorkerSpec, _error_reply, pack, unpack, worker_entry
+from uniros_async.runtime.protocol import error_reply, pack, unpack
+from uniros_async.runtime.worker import WorkerSpec, worker_entry
 from uniros_async.transports.base import Transport, TransportOptions
 from uniros_async.transports.tcp import TcpTransport
 
@@ -413,7 +414,7 @@ class Launcher:
                 logger.warning("worker launcher: refused a request from %s: %s", peer, exc)
                 with contextlib.suppress(TransportError, TimeoutError):
                     async with asyncio.timeout(2.0):
-                        await transport.send(pack(_error_reply(exc, "could not start a worker")))
+                        await transport.send(pack(error_reply(exc, "could not start a worker")))
                 return
             async with asyncio.timeout(5.0):
                 await transport.send(pack({"ok": True, "result": {"uri": w.uri, "pid": w.process.pid}}))
@@ -435,7 +436,7 @@ class Launcher:
             await transport.aclose()
 
     async def _launch(self, request: dict[str, Any], peer: str) -> _Launched:
-        from uniros_async.runtime.supervisor import check_env_args
+        from uniros_async.runtime.envargs import check_env_args
 
         if request.get("op") != "start":
             op = request.get("op")

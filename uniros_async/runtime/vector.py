@@ -28,8 +28,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
 from uniros_async.errors import ConfigError, WorkerError
-from uniros_async.runtime.supervisor import Supervisor
-from uniros_async.runtime.worker import (
+from uniros_async.runtime.protocol import (
     PackedRequest,
     array_head,
     pack_step_request,
@@ -37,6 +36,7 @@ from uniros_async.runtime.worker import (
     unpack,
     unpack_step_reply_into,
 )
+from uniros_async.runtime.supervisor import Supervisor
 
 __all__ = ["UnirosVectorEnv", "make_vec"]
 
