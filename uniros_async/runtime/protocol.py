@@ -15,17 +15,14 @@ message map per step; ``unpack`` turns them into the same dicts. Spaces cross as
 
 from __future__ import annotations
 
-import math
 import struct
-import threading
 import traceback
 from typing import Any
 
 import gymnasium as gym
-import msgpack
 import numpy as np
 
-from uniros_async.bus.codec import encode_plain
+from uniros_async.bus.codec import array_bytes, array_from_bytes, array_head, encode_plain, pack_value, unpack_value
 from uniros_async.errors import CodecError, ConfigError
 
 __all__ = [
@@ -80,102 +77,6 @@ def from_wire(value: Any) -> Any:
     return value
 
 
-_ND_EXT = 42
-_SHAPE = struct.Struct("<q")
-
-
-_PACKED_HEADS: dict[tuple[np.dtype[Any], tuple[int, ...]], bytes] = {}
-"""Array headers by (dtype, shape), the packing side of ``_HEADS``: the same few every step (keyed by the dtype
-itself: ``dtype.str`` builds a new string every call, which costs more than the lookup)."""
-
-
-def _default(value: Any) -> Any:
-    """msgpack's hook for what it cannot pack itself: arrays as ExtType, numpy scalars as Python ones."""
-    if isinstance(value, np.ndarray):
-        if value.dtype.hasobject:
-            return value.tolist()
-        return msgpack.ExtType(_ND_EXT, _array_part(value))
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, tuple | list):  # subclasses msgpack refuses (named tuples are packed as lists)
-        return list(value)
-    return repr(value)
-
-
-def _array_part(value: np.ndarray) -> bytes:
-    """An array on the wire: a header (dtype string, ndim, shape; cached by dtype and shape) and the data in C
-    order, whatever the strides. The payload of the array ExtType, and a step frame's array as it is."""
-    head = _PACKED_HEADS.get((value.dtype, value.shape))
-    if head is None:
-        head = array_head(value.dtype, value.shape)
-    return head + value.tobytes()
-
-
-def array_head(dtype: np.dtype[Any], shape: tuple[int, ...]) -> bytes:
-    """The header ``_array_part`` writes before the data of an array of ``dtype`` and ``shape``."""
-    head = _PACKED_HEADS.get((dtype, shape))
-    if head is None:
-        d = dtype.str.encode()
-        head = bytes((len(d),)) + d + bytes((len(shape),)) + b"".join(_SHAPE.pack(n) for n in shape)
-        if len(_PACKED_HEADS) < 256:
-            _PACKED_HEADS[(dtype, shape)] = head
-    return head
-
-
-_HEADS: dict[bytes, tuple[np.dtype[Any], tuple[int, ...], int]] = {}
-"""Parsed array headers (dtype, shape, element count) by their bytes: a worker sees the same few every step, and
-parsing one (a dtype from its string, a struct unpack per dimension) costs more than the array itself."""
-
-
-def _array_from(buf: bytes | memoryview, start: int = 0, stop: int | None = None) -> np.ndarray:
-    """The array ``_array_part`` wrote in ``buf[start:stop]``, as a writable copy.
-
-    Raises:
-        ValueError, TypeError, IndexError: not such an array (the data does not match its header, a bad dtype, too
-            short); the callers turn these into CodecError.
-    """
-    stop = len(buf) if stop is None else stop
-    n = buf[start]
-    ndim = buf[start + 1 + n]
-    data_start = start + 2 + n + 8 * ndim
-    head = bytes(buf[start:data_start])
-    parsed = _HEADS.get(head)
-    if parsed is None:
-        dtype = np.dtype(head[1 : 1 + n].decode())
-        shape = tuple(_SHAPE.unpack_from(head, 2 + n + 8 * i)[0] for i in range(ndim))
-        parsed = (dtype, shape, math.prod(shape))
-        if len(_HEADS) < 256:
-            _HEADS[head] = parsed
-    dtype, shape, count = parsed
-    if stop - data_start != count * dtype.itemsize:
-        raise ValueError(f"an array of {dtype} {shape} needs {count * dtype.itemsize} bytes, got {stop - data_start}")
-    return np.frombuffer(buf, dtype=dtype, count=count, offset=data_start).reshape(shape).copy()
-
-
-def _ext_hook(code: int, data: bytes) -> Any:
-    if code != _ND_EXT:
-        return msgpack.ExtType(code, data)
-    return _array_from(data)
-
-
-def _str_list_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
-    return {str(tuple(k)) if isinstance(k, list) else k: v for k, v in pairs}
-
-
-_local = threading.local()
-
-
-def _packb(value: Any) -> bytes:
-    """``msgpack.packb(value, default=_default, use_bin_type=True)`` with a Packer kept per thread: ``packb`` builds
-    a new Packer every call, which costs a quarter of packing a step reply (a Packer is not thread-safe: the
-    ``default`` hook lets other threads run in the middle of a pack, hence one per thread). A pack that raises
-    leaves the Packer reset."""
-    packer = getattr(_local, "packer", None)
-    if packer is None:
-        packer = _local.packer = msgpack.Packer(default=_default, use_bin_type=True)
-    return packer.pack(value)  # type: ignore[no-any-return]
-
-
 def pack(message: dict[str, Any] | PackedRequest) -> bytes:
     """One frame for ``message``.
 
@@ -185,8 +86,8 @@ def pack(message: dict[str, Any] | PackedRequest) -> bytes:
     if type(message) is PackedRequest:
         return message.frame
     try:
-        return _packb(message)
-    except (TypeError, ValueError, OverflowError):
+        return pack_value(message)
+    except CodecError:
         # e.g. a dict key msgpack refuses: the slow, forgiving path, marked for unpack
         return encode_plain({"__to_wire__": to_wire(message)})
 
@@ -199,7 +100,7 @@ def unpack(frame: bytes | memoryview) -> dict[str, Any]:
     """
     if frame and frame[0] == STEP_TAG:
         return _unpack_step(frame)
-    msg = _unpackb(frame, "worker frame")
+    msg = unpack_value(frame, "worker frame")
     if not isinstance(msg, dict):
         raise CodecError(f"expected a map, got {type(msg).__name__}")
     if "__to_wire__" in msg:
@@ -216,7 +117,7 @@ STEP_TAG = 0xC1
 _STEP_REQUEST, _STEP_REPLY = 1, 2
 _STEP_REQ = struct.Struct("<BBBBq")  # tag, kind, autoreset mode (index in AUTORESET_MODES), body, reference time ns
 _STEP_REP = struct.Struct("<BBBBId")  # tag, kind, flags, observation's encoding, observation's bytes, reward
-_MSGPACK, _ARRAY = 0, 1  # how the action (request) or observation (reply) travels: msgpack, or as ``_array_part``
+_MSGPACK, _ARRAY = 0, 1  # how the action (request) or observation (reply) travels: msgpack, or as ``codec.array_bytes``
 _TERMINATED, _TRUNCATED = 1, 2
 
 
@@ -235,11 +136,11 @@ class PackedRequest:
 
 
 def _part(value: Any) -> tuple[int, bytes]:
-    """(encoding, bytes) of an action or observation: an array of numbers as it is (``_array_part``: no msgpack
+    """(encoding, bytes) of an action or observation: an array of numbers as it is (``codec.array_bytes``: no msgpack
     ExtType and no hook on either side), anything else in msgpack."""
     if type(value) is np.ndarray and not value.dtype.hasobject:
-        return _ARRAY, _array_part(value)
-    return _MSGPACK, _packb(value)
+        return _ARRAY, array_bytes(value)
+    return _MSGPACK, pack_value(value)
 
 
 def pack_step_request(action: Any, autoreset: str | None, t: int | None) -> PackedRequest:
@@ -265,8 +166,8 @@ def pack_step_reply(result: list[Any]) -> bytes:
     flags = (_TERMINATED if terminated else 0) | (_TRUNCATED if truncated else 0)
     try:
         enc, obs_part = _part(obs)
-        info_part = _packb(info)
-    except (TypeError, ValueError, OverflowError):  # something msgpack refuses: the general, forgiving path
+        info_part = pack_value(info)
+    except CodecError:  # something msgpack refuses: the general, forgiving path
         return pack({"ok": True, "result": result})
     return _STEP_REP.pack(STEP_TAG, _STEP_REPLY, flags, enc, len(obs_part), reward) + obs_part + info_part
 
@@ -322,7 +223,7 @@ def _reply_info(frame: bytes | memoryview, start: int) -> dict[str, Any]:
     Raises:
         CodecError: not msgpack, or not a map.
     """
-    info = _unpackb(frame[start:])
+    info = unpack_value(frame[start:])
     if type(info) is not dict:
         raise CodecError(f"malformed step frame: a reply's info must be a map, got {type(info).__name__}")
     return info
@@ -330,33 +231,12 @@ def _reply_info(frame: bytes | memoryview, start: int) -> dict[str, Any]:
 
 def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:
     if enc == _MSGPACK:
-        return _unpackb(frame[start:stop])
+        return unpack_value(frame[start:stop])
     if enc != _ARRAY:
         raise CodecError(f"malformed step frame: encoding {enc}; expected {_MSGPACK} (msgpack) or {_ARRAY} (array)")
     if stop > len(frame):
         raise CodecError(f"malformed step frame: {len(frame)} bytes, its array ends at {stop}")
-    try:
-        return _array_from(frame, start, stop)
-    except (ValueError, TypeError, IndexError) as exc:
-        raise CodecError(f"malformed step frame: {exc}") from exc
-
-
-def _unpackb(data: bytes | memoryview, what: str = "step frame") -> Any:
-    """msgpack's unpackb with the worker protocol's hooks; map keys that came as lists (tuple keys) as their str,
-    as ``to_wire`` does.
-
-    Raises:
-        CodecError: ``data`` is not msgpack (named ``what``).
-    """
-    try:
-        try:
-            return msgpack.unpackb(data, raw=False, strict_map_key=False, ext_hook=_ext_hook)
-        except TypeError:  # a map key that came as a list (a tuple key)
-            return msgpack.unpackb(
-                data, raw=False, strict_map_key=False, ext_hook=_ext_hook, object_pairs_hook=_str_list_keys
-            )
-    except (ValueError, TypeError, IndexError, msgpack.UnpackException) as exc:
-        raise CodecError(f"malformed {what}: {exc}") from exc
+    return array_from_bytes(frame, start, stop, "step frame")
 
 
 def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:

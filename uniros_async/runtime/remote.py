@@ -42,11 +42,11 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 from urllib.parse import urlsplit
 
-import msgpack
 import numpy as np
 
 from uniros_async._signals import cancel_on_signals
-from uniros_async.errors import ConfigError, TransportError, WorkerError
+from uniros_async.bus.codec import encode_plain
+from uniros_async.errors import CodecError, ConfigError, TransportError, WorkerError
 from uniros_async.runtime.protocol import error_reply, pack, unpack
 from uniros_async.runtime.worker import WorkerSpec, worker_entry
 from uniros_async.transports.base import Transport, TransportOptions
@@ -162,8 +162,8 @@ def check_plain(kwargs: dict[str, Any], env_id: str) -> None:
     """ConfigError unless ``kwargs`` can travel to a launcher as plain data (no pickles cross the wire)."""
     for k, v in kwargs.items():
         try:
-            msgpack.packb(v, default=_strict_default, use_bin_type=True)
-        except (TypeError, ValueError, OverflowError) as exc:
+            encode_plain(v, _strict_default)
+        except CodecError as exc:
             raise ConfigError(
                 f"{env_id}: keyword {k!r} cannot be sent to a remote worker ({exc}); use plain data"
             ) from None
