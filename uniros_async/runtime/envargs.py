@@ -15,7 +15,7 @@ from gymnasium.envs.registration import registry
 from uniros_async.errors import ConfigError
 from uniros_async.runtime.remote import RemoteWorker, check_plain, parse_placement
 
-__all__ = ["PLACEMENT_KWARG", "check_env_args", "split_placement"]
+__all__ = ["PLACEMENT_KWARG", "check_env_args", "registration", "split_placement"]
 
 # gymnasium.make's own keyword arguments (not passed to the env constructor)
 _MAKE_KWARGS = {"max_episode_steps", "disable_env_checker", "autoreset", "apply_api_compatibility"}
@@ -70,6 +70,8 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
             " registered in this process, or given as 'module:Id' (the module registers Id, in every worker too)"
         )
     entry = registry[reg_id].entry_point
+    if placement is None and ":" not in env_id:
+        registration(env_id)  # raises for an entry point in __main__
     if not isinstance(entry, str) or not entry.startswith("uniros_async."):
         return
     module, _, name = entry.partition(":")
@@ -80,3 +82,42 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
 
     env_kwargs = {k: v for k, v in kwargs.items() if k not in _MAKE_KWARGS and k not in registry[reg_id].kwargs}
     split_kwargs(cls, env_kwargs)
+
+
+def registration(env_id: str) -> dict[str, Any] | None:
+    """What a worker needs to register ``env_id`` as this process has it, when the id is registered here with an
+    entry point in an importable module: a worker is a fresh interpreter, where only the ids that gymnasium, uniros
+    and the modules it imports register exist (an id registered by the agent's script is not). None for an id that
+    is not registered here, or given as ``"module:Id"`` (the worker imports the module).
+
+    Raises:
+        ConfigError: the entry point is defined in ``__main__``, which a worker does not import.
+    """
+    if ":" in env_id or env_id not in registry:
+        return None
+    spec = registry[env_id]
+    entry = spec.entry_point
+    if callable(entry):
+        module = getattr(entry, "__module__", None)
+        name = getattr(entry, "__qualname__", None)
+        if module == "__main__":
+            raise ConfigError(
+                f"env id {env_id!r}: its entry point {name} is defined in __main__, which worker processes do not "
+                "import (each is a fresh interpreter); define the env in a module of its own and register it there "
+                "(then name it 'module:Id'), or register it with entry_point='module:Class'"
+            )
+        if not module or not name or "<locals>" in name:
+            return None
+        entry = f"{module}:{name}"
+    if not isinstance(entry, str):
+        return None
+    return {
+        "id": env_id,
+        "entry_point": entry,
+        "kwargs": dict(spec.kwargs),
+        "max_episode_steps": spec.max_episode_steps,
+        "reward_threshold": spec.reward_threshold,
+        "nondeterministic": spec.nondeterministic,
+        "order_enforce": spec.order_enforce,
+        "disable_env_checker": spec.disable_env_checker,
+    }

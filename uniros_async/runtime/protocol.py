@@ -30,11 +30,14 @@ __all__ = [
     "STEP_TAG",
     "PackedRequest",
     "array_head",
+    "conform",
     "error_reply",
     "from_wire",
     "pack",
     "pack_step_reply",
     "pack_step_request",
+    "reply_value",
+    "result_value",
     "space_from_plain",
     "space_to_plain",
     "to_wire",
@@ -240,30 +243,126 @@ def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:
 
 
 def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
-    """Box, Discrete and Dict spaces as plain data (no pickles cross the wire).
+    """A space as plain data (no pickles cross the wire): every space gymnasium's vector envs batch (Box of any
+    shape and dtype, Discrete, MultiDiscrete, MultiBinary, Text, and Dict, Tuple, Sequence and OneOf nested in any
+    way).
 
     Raises:
-        ConfigError: another kind of space.
+        ConfigError: another kind of space (a custom Space subclass), naming it.
     """
-    if isinstance(space, gym.spaces.Box):
-        return {"type": "Box", "low": space.low, "high": space.high, "dtype": np.dtype(space.dtype).str}
-    if isinstance(space, gym.spaces.Discrete):
-        return {"type": "Discrete", "n": int(space.n), "start": int(space.start)}
-    if isinstance(space, gym.spaces.Dict):
-        return {"type": "Dict", "spaces": {k: space_to_plain(s) for k, s in space.spaces.items()}}
-    raise ConfigError(f"expected a Box, Discrete or Dict space, got {space}")
+    t = type(space)
+    spaces = gym.spaces
+    if t is spaces.Box:
+        b: Any = space
+        return {"type": "Box", "low": b.low, "high": b.high, "dtype": np.dtype(b.dtype).str}
+    if t is spaces.Discrete:
+        d: Any = space
+        return {"type": "Discrete", "n": int(d.n), "start": int(d.start)}
+    if t is spaces.MultiDiscrete:
+        m: Any = space
+        return {"type": "MultiDiscrete", "nvec": m.nvec, "start": m.start, "dtype": np.dtype(m.dtype).str}
+    if t is spaces.MultiBinary:
+        mb: Any = space
+        return {"type": "MultiBinary", "n": np.asarray(mb.n).tolist()}
+    if t is spaces.Text:
+        tx: Any = space
+        charset = "".join(sorted(tx.character_set))
+        return {"type": "Text", "max_length": tx.max_length, "min_length": tx.min_length, "charset": charset}
+    if t is spaces.Dict:
+        dd: Any = space
+        return {"type": "Dict", "spaces": {k: space_to_plain(s) for k, s in dd.spaces.items()}}
+    if t is spaces.Tuple:
+        tt: Any = space
+        return {"type": "Tuple", "spaces": [space_to_plain(s) for s in tt.spaces]}
+    if t is spaces.Sequence:
+        sq: Any = space
+        return {"type": "Sequence", "space": space_to_plain(sq.feature_space), "stack": bool(sq.stack)}
+    if t is spaces.OneOf:
+        oo: Any = space
+        return {"type": "OneOf", "spaces": [space_to_plain(s) for s in oo.spaces]}
+    raise ConfigError(
+        f"cannot send the space {space!r} between processes: expected Box, Discrete, MultiDiscrete, MultiBinary, "
+        f"Text, Dict, Tuple, Sequence or OneOf, got {t.__name__}"
+    )
 
 
 def space_from_plain(plain: dict[str, Any]) -> gym.Space[Any]:
-    """Inverse of ``space_to_plain``."""
+    """Inverse of ``space_to_plain``.
+
+    Raises:
+        ConfigError: an unknown space type.
+    """
     kind = plain["type"]
+    spaces = gym.spaces
     if kind == "Box":
-        return gym.spaces.Box(plain["low"], plain["high"], dtype=np.dtype(plain["dtype"]))
+        return spaces.Box(plain["low"], plain["high"], dtype=np.dtype(plain["dtype"]))
     if kind == "Discrete":
-        return gym.spaces.Discrete(plain["n"], start=plain["start"])
+        return spaces.Discrete(plain["n"], start=plain["start"])
+    if kind == "MultiDiscrete":
+        return spaces.MultiDiscrete(plain["nvec"], dtype=np.dtype(plain["dtype"]), start=plain["start"])
+    if kind == "MultiBinary":
+        return spaces.MultiBinary(plain["n"])
+    if kind == "Text":
+        return spaces.Text(plain["max_length"], min_length=plain["min_length"], charset=plain["charset"])
     if kind == "Dict":
-        return gym.spaces.Dict({k: space_from_plain(s) for k, s in plain["spaces"].items()})
+        return spaces.Dict({k: space_from_plain(s) for k, s in plain["spaces"].items()})
+    if kind == "Tuple":
+        return spaces.Tuple([space_from_plain(s) for s in plain["spaces"]])
+    if kind == "Sequence":
+        return spaces.Sequence(space_from_plain(plain["space"]), stack=plain["stack"])
+    if kind == "OneOf":
+        return spaces.OneOf([space_from_plain(s) for s in plain["spaces"]])
     raise ConfigError(f"unknown space type {kind!r}")
+
+
+def conform(space: gym.Space[Any], value: Any) -> Any:
+    """``value`` of ``space`` as it was before it crossed the wire: msgpack has no tuples (a Tuple's or a
+    Sequence's element arrives as a list) and no numpy scalars (a Discrete's arrives as an int).
+
+    A value that does not fit ``space`` is returned as it is, as far as it does not (the env's own checks judge it).
+    """
+    t = type(space)
+    spaces = gym.spaces
+    if t is spaces.Box or t is spaces.MultiDiscrete or t is spaces.MultiBinary:
+        return value if type(value) is np.ndarray else np.asarray(value, dtype=space.dtype)
+    if t is spaces.Discrete:
+        return space.dtype.type(value) if isinstance(value, int) else value  # type: ignore[union-attr]
+    if t is spaces.Dict and type(value) is dict:
+        sub: Any = space
+        return {k: conform(sub.spaces[k], v) if k in sub.spaces else v for k, v in value.items()}
+    if t is spaces.Tuple and isinstance(value, list | tuple):
+        tt: Any = space
+        return tuple(conform(s, v) for s, v in zip(tt.spaces, value, strict=False))
+    if t is spaces.Sequence and isinstance(value, list | tuple):
+        sq: Any = space
+        if sq.stack:
+            return value
+        return tuple(conform(sq.feature_space, v) for v in value)
+    if t is spaces.OneOf and isinstance(value, list | tuple) and len(value) == 2:
+        oo: Any = space
+        return (np.int64(value[0]), conform(oo.spaces[int(value[0])], value[1]))
+    return value
+
+
+def reply_value(value: Any) -> Any:
+    """A ``call``/``get`` result as it crosses the wire: a space as its plain form (``space_to_plain``), anything
+    else as it is (``pack`` sends what msgpack cannot take as its repr). ``result_value`` undoes it."""
+    if isinstance(value, gym.Space):
+        try:
+            return {_SPACE_KEY: space_to_plain(value)}
+        except ConfigError:
+            return repr(value)
+    return value
+
+
+def result_value(value: Any) -> Any:
+    """Inverse of ``reply_value``."""
+    if type(value) is dict and len(value) == 1 and _SPACE_KEY in value:
+        return space_from_plain(value[_SPACE_KEY])
+    return value
+
+
+_SPACE_KEY = "__uniros_space__"
 
 
 def error_reply(exc: BaseException, what: str) -> dict[str, Any]:

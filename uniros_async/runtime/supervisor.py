@@ -16,7 +16,8 @@ interrupted by Ctrl-C while the loop waits is finished (its replies consumed) be
 interrupted inside a request's own code marks that worker broken, since its next reply could no longer be matched
 to a request.
 
-Start-up: every process is started first (spawn, daemon), then each worker's listen URI (``shm://`` by default,
+Start-up: every process is started first (``launch.start_worker``: ``python -m uniros_async.runtime``, which
+imports nothing of the agent's ``__main__``), then each worker's listen URI (``shm://`` by default,
 ``tcp://127.0.0.1:0`` with ``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the
 supervisor connects to all of them and asks each for its spaces, in parallel.
 If any worker fails to start, all are closed and the error names the worker and why.
@@ -37,7 +38,6 @@ import contextlib
 import dataclasses
 import functools
 import logging
-import multiprocessing
 import os
 import threading
 import time
@@ -48,10 +48,11 @@ import gymnasium as gym
 
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.priority import MAX_LOOP_RANK
-from uniros_async.runtime.envargs import check_env_args, split_placement
+from uniros_async.runtime.envargs import check_env_args, registration, split_placement
+from uniros_async.runtime.launch import WorkerProcess, start_worker
 from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
 from uniros_async.runtime.remote import RemoteWorker, RemoteWorkerProcess
-from uniros_async.runtime.worker import WorkerSpec, worker_entry
+from uniros_async.runtime.worker import WorkerSpec
 
 __all__ = ["Supervisor", "WorkerHandle"]
 
@@ -82,7 +83,7 @@ class WorkerHandle:
     """The supervisor's side of one worker."""
 
     spec: WorkerSpec
-    process: multiprocessing.process.BaseProcess | RemoteWorkerProcess
+    process: WorkerProcess | RemoteWorkerProcess
     conn: Any = None  # the start-up pipe end (None for a remote worker)
     transport: Any = None
     broken: str | None = None
@@ -271,6 +272,8 @@ class Supervisor:
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
         self.listen_uri = _LISTEN_URIS[transport]
+        # specs of different envs: every info says which env it came from (info["env_id"])
+        self.tag_infos = len({env_id for env_id, _ in specs}) > 1
         self.workers: list[WorkerHandle] = []
         self._closed = False
         self._loop = asyncio.new_event_loop()
@@ -335,7 +338,6 @@ class Supervisor:
     def _spawn(
         index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
     ) -> WorkerHandle:
-        ctx = multiprocessing.get_context("spawn")
         spec = WorkerSpec(
             index=index,
             env_id=env_id,
@@ -344,14 +346,10 @@ class Supervisor:
             accept_timeout_s=timeout_s,
             listen_uri=listen_uri,
             rt_rank=rt_rank,
+            registration=registration(env_id),
         )
-        parent_conn, child_conn = ctx.Pipe(duplex=False)
-        # daemon=True: if the supervisor's process exits, multiprocessing terminates the workers (and a
-        # SIGKILLed supervisor is noticed by each worker's watchdog)
-        proc = ctx.Process(target=worker_entry, args=(spec, child_conn), name=f"uniros-worker-{index}", daemon=True)
-        proc.start()
-        child_conn.close()
-        return WorkerHandle(spec=spec, process=proc, conn=parent_conn)
+        proc, conn = start_worker(spec)  # a fresh interpreter: nothing of this process's __main__ is imported
+        return WorkerHandle(spec=spec, process=proc, conn=conn)
 
     def restart(self, index: int, timeout_s: float = 60.0) -> WorkerHandle:
         """Stop worker ``index`` (whatever its state) and start a new one with the same spec.
@@ -401,7 +399,7 @@ class Supervisor:
 
     @staticmethod
     def _wait_uri(w: WorkerHandle, deadline: float) -> str:
-        hint = "see its stderr; a script that starts workers needs `if __name__ == '__main__':` (spawn start method)"
+        hint = "see its stderr"
         while not w.conn.poll(0.05):
             if not w.process.is_alive():
                 raise WorkerError(
@@ -412,7 +410,7 @@ class Supervisor:
         try:
             uri = w.conn.recv()
         except EOFError:
-            if isinstance(w.process, multiprocessing.process.BaseProcess):
+            if isinstance(w.process, WorkerProcess):
                 w.process.join(1.0)
             raise WorkerError(
                 w.index, f"{w.spec.env_id}: the worker exited with code {w.process.exitcode} at start; {hint}"
@@ -429,7 +427,7 @@ class Supervisor:
                 w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s, auth_key=key))
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
-            w.info = await w.request({"op": "spaces"}, timeout_s)
+            w.info = await w.request({"op": "spaces", "tag_infos": self.tag_infos}, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
                 w.transport.spin_ns = REPLY_SPIN_NS
             w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a remote worker too)
@@ -729,7 +727,7 @@ class Supervisor:
         local = [
             (w, w.process, ok)
             for w, ok in zip(self.workers, acked, strict=True)
-            if isinstance(w.process, multiprocessing.process.BaseProcess)
+            if isinstance(w.process, WorkerProcess)
         ]
         deadline = time.monotonic() + t
         for _, p, ok in local:
@@ -801,7 +799,7 @@ async def _aclose(transport: Any) -> None:
         await transport.aclose()
 
 
-def _stop_process(process: multiprocessing.process.BaseProcess, timeout_s: float) -> None:
+def _stop_process(process: WorkerProcess, timeout_s: float) -> None:
     """join, terminate, kill: each bounded."""
     if process.is_alive():
         process.terminate()

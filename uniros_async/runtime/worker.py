@@ -45,9 +45,11 @@ from uniros_async._signals import cancel_on_signals
 from uniros_async.errors import TransportError
 from uniros_async.runtime.protocol import (
     AUTORESET_MODES,
+    conform,
     error_reply,
     pack,
     pack_step_reply,
+    reply_value,
     space_to_plain,
     unpack,
 )
@@ -92,6 +94,8 @@ class WorkerSpec:
         rt_rank: for a real-time env, the rank of its SCHED_RR priority among the workers of its vector env
             (``priority.raise_loop_priority``; the supervisor gives the first worker the highest), and of its loop
             phase (``LOOP_PHASE_STEP_NS``).
+        registration: ``gymnasium.register`` keyword arguments for ``env_id`` as the agent's process has it
+            registered (``envargs.registration``), used when this fresh interpreter does not know the id.
     """
 
     index: int
@@ -103,6 +107,7 @@ class WorkerSpec:
     listen_uri: str = "shm://"
     auth_key: bytes | None = None
     rt_rank: int = 0
+    registration: dict[str, Any] | None = None
 
 
 # ---------------------------------------------------------------- the worker
@@ -302,6 +307,8 @@ class _Server:
         self.needs_autoreset = False
         self.attached = False  # the env runs on this process's event loop and is stepped with astep_through
         self.realtime = False  # ... and its env loop follows the wall clock
+        self._conform_action: Any = None  # protocol.conform for the action space, where an action needs it
+        self.tag_infos = False
 
     async def build(self) -> None:
         import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
@@ -309,8 +316,12 @@ class _Server:
         from uniros_async.envs.runtime import deferred_start
 
         try:
+            reg = self.spec.registration
+            if reg is not None and reg["id"] not in gym.registry:
+                gym.register(**reg)
             with deferred_start():
                 self.env = env = gym.make(self.spec.env_id, **self.spec.kwargs)
+            self._conform_action = _action_conformer(env.action_space)
             base = env.unwrapped
             realtime = getattr(getattr(base, "config", None), "clock", "sim") != "sim"
             if realtime and hasattr(base, "loop_phase_ns"):
@@ -326,8 +337,7 @@ class _Server:
             where = (
                 "this worker is a fresh interpreter, where only the uniros ids, gymnasium's own and the ids that "
                 "modules imported at start-up register exist: register the env when a module is imported and name it "
-                "'module:Id', or register it at the top level of the main script (not under "
-                "if __name__ == '__main__')"
+                "'module:Id'"
             )
             self.build_error = error_reply(exc, f"could not make {self.spec.env_id} ({where})")
         except Exception as exc:  # noqa: BLE001 - sent back to the supervisor
@@ -374,32 +384,51 @@ class _Server:
                 base.step_reference_ns = ref  # see RobotEnv._step_deadline
             return await self._step(request["action"], request.get("autoreset"))
         if op == "spaces":
+            # tag_infos: add info["env_id"] to every info (in a vector env of different envs, which one spoke);
+            # otherwise the infos are the env's own
+            self.tag_infos = bool(request.get("tag_infos"))
             return self._spaces()
         if op == "pad":
             from uniros_async.envs.wrappers import PadSpaces
 
             self.env = PadSpaces(env, int(request["obs_size"]), int(request["action_size"]))
+            self._conform_action = _action_conformer(self.env.action_space)
             return self._spaces()
         if op == "reset":
             self.needs_autoreset = False
             obs, info = await self._reset(request.get("seed"), request.get("options"))
             return [obs, self._info(info)]
         if op == "call":
+            attr = self._attr(request["name"])
+            if callable(attr):
+                attr = attr(*request.get("args", []), **request.get("kwargs", {}))
+            return reply_value(attr)
+        if op == "get":
+            return reply_value(self._attr(request["name"]))
+        if op == "set":
             name = request["name"]
             if name.startswith("_"):
-                raise AttributeError(f"refusing to call private attribute {name!r}")
-            attr = getattr(env, name) if hasattr(env, name) else getattr(env.unwrapped, name)
-            return attr(*request.get("args", []), **request.get("kwargs", {})) if callable(attr) else attr
-        if op == "get":
-            name = request["name"]
-            return getattr(env, name) if hasattr(env, name) else getattr(env.unwrapped, name)
-        if op == "set":
-            setattr(env.unwrapped, request["name"], request["value"])
+                raise AttributeError(f"refusing to set private attribute {name!r}")
+            env.set_wrapper_attr(name, request["value"])
             return None
+        if op == "render":
+            return env.render()
+        if op == "is_wrapped":
+            return _is_wrapped(env, str(request["wrapper"]))
         if op == "close":
             await self.aclose()
             return None
-        raise ValueError(f"unknown op {op!r}; expected spaces, pad, reset, step, call, get, set or close")
+        raise ValueError(
+            f"unknown op {op!r}; expected spaces, pad, reset, step, call, get, set, render, is_wrapped or close"
+        )
+
+    def _attr(self, name: str) -> Any:
+        """Attribute ``name`` of the env, looked up through its wrappers as gymnasium's vector envs do."""
+        if name.startswith("_"):
+            raise AttributeError(f"refusing to access private attribute {name!r}")
+        env = self.env
+        assert env is not None
+        return env.get_wrapper_attr(name)
 
     def _spaces(self) -> dict[str, Any]:
         env = self.env
@@ -407,14 +436,17 @@ class _Server:
         return {
             "observation_space": space_to_plain(env.observation_space),
             "action_space": space_to_plain(env.action_space),
-            "metadata": {k: v for k, v in env.metadata.items() if isinstance(v, int | float | str | list)},
+            "metadata": {
+                k: v for k, v in env.metadata.items() if v is None or isinstance(v, bool | int | float | str | list)
+            },
+            "render_mode": env.render_mode,
             "max_episode_steps": env.spec.max_episode_steps if env.spec is not None else None,
             "pid": os.getpid(),
             "realtime": self.realtime,  # a real-time env loop shares this worker's event loop
         }
 
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:
-        return {**info, "env_id": self.spec.env_id}
+        return {**info, "env_id": self.spec.env_id} if self.tag_infos else info
 
     async def _reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
@@ -433,9 +465,14 @@ class _Server:
         if self._reset_instead(autoreset):
             obs, info = await self._reset()
             return [obs, 0.0, False, False, self._info(info)]
+        conform_action = self._conform_action
+        if conform_action is not None:
+            action = conform_action(action)
         result, reset = self._returns(*await astep_through(env, action), autoreset)
         if reset:
-            result[0], _ = await self._reset()
+            final_obs = result[0]
+            result[0], info = await self._reset()
+            result[4] = self._same_step_info(final_obs, result[4], info)
         return result
 
     def _step_now(self, action: Any, autoreset: str | None) -> list[Any]:
@@ -445,9 +482,14 @@ class _Server:
         if self._reset_instead(autoreset):
             obs, info = env.reset()
             return [obs, 0.0, False, False, self._info(info)]
+        conform_action = self._conform_action
+        if conform_action is not None:
+            action = conform_action(action)
         result, reset = self._returns(*env.step(action), autoreset)
         if reset:
-            result[0], _ = env.reset()
+            final_obs = result[0]
+            result[0], info = env.reset()
+            result[4] = self._same_step_info(final_obs, result[4], info)
         return result
 
     def _reset_instead(self, autoreset: str | None) -> bool:
@@ -467,15 +509,20 @@ class _Server:
     def _returns(
         self, obs: Any, reward: Any, terminated: Any, truncated: Any, info: dict[str, Any], autoreset: str | None
     ) -> tuple[list[Any], bool]:
-        """A step's reply, and whether its observation must now be replaced by a reset's (SB3's SAME_STEP
-        convention: the final observation goes in the info)."""
+        """A step's reply, and whether the env must now be reset in the same step (SAME_STEP: the reply then carries
+        the reset's observation, ``_same_step_info``)."""
         done = bool(terminated or truncated)
         info = self._info(info)
         if autoreset == "next_step":
             self.needs_autoreset = done
         elif autoreset == "same_step" and done:
-            return [obs, float(reward), bool(terminated), bool(truncated), {**info, "final_obs": obs}], True
+            return [obs, float(reward), bool(terminated), bool(truncated), info], True
         return [obs, float(reward), bool(terminated), bool(truncated), info], False
+
+    def _same_step_info(self, final_obs: Any, step_info: dict[str, Any], reset_info: dict[str, Any]) -> dict[str, Any]:
+        """The info of a step that ended an episode and reset at once, as gymnasium's SAME_STEP mode builds it per
+        sub-env: the reset's info, with the step's observation and info as ``final_obs`` and ``final_info``."""
+        return {**self._info(reset_info), "final_obs": final_obs, "final_info": step_info}
 
     async def aclose(self) -> None:
         env, self.env = self.env, None
@@ -486,3 +533,31 @@ class _Server:
             await base.aclose()  # the wrappers' close() only passes close on
         else:
             env.close()
+
+
+def _action_conformer(space: gym.Space[Any]) -> Any:
+    """``conform`` for actions of ``space`` (a Tuple's arrive as lists), or None where actions arrive as the env
+    takes them (a Box's as arrays, a Discrete's as ints): a step then costs nothing more."""
+    if isinstance(space, gym.spaces.Box | gym.spaces.Discrete):
+        return None
+    return lambda action: conform(space, action)
+
+
+def _is_wrapped(env: gym.Env[Any, Any], wrapper: str) -> bool:
+    """Whether a wrapper of class ``wrapper`` (``"module:QualName"``) is around the env, as SB3's
+    ``env_is_wrapped`` asks; False when that class cannot be imported here (then no wrapper of it can be there)."""
+    import importlib
+
+    module, _, name = wrapper.partition(":")
+    try:
+        cls: Any = importlib.import_module(module)
+        for part in name.split("."):
+            cls = getattr(cls, part)
+    except (ImportError, AttributeError):
+        return False
+    e: Any = env
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, cls):
+            return True
+        e = e.env
+    return False
