@@ -1,4 +1,4 @@
-"""The worker protocol's frames (runtime/worker.py ``pack``/``unpack``): arrays by value whatever their layout,
+"""The worker protocol's frames (runtime/protocol.py ``pack``/``unpack``): arrays by value whatever their layout,
 numpy scalars as Python ones, malformed frames refused by name. No processes: the codec alone."""
 
 from __future__ import annotations
@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from uniros_async.bus.codec import array_bytes
 from uniros_async.errors import CodecError
-from uniros_async.runtime.worker import (
+from uniros_async.runtime.protocol import (
     STEP_TAG,
     PackedRequest,
-    _array_part,
     array_head,
     pack,
     pack_step_reply,
@@ -117,7 +117,7 @@ def test_a_step_reply_read_into_place_matches_unpack_and_writes_nothing_it_canno
 
 
 _REQ = bytes([STEP_TAG, 1])  # a request's tag and kind; then mode, encoding, and 8 bytes of reference time
-_ARRAY_HEAD = _array_part(np.zeros(4, np.float32))[:-16]  # the header of a 4-float array, without its data
+_ARRAY_HEAD = array_bytes(np.zeros(4, np.float32))[:-16]  # the header of a 4-float array, without its data
 
 
 @pytest.mark.parametrize(

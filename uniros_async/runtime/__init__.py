@@ -7,8 +7,9 @@ A spec with ``worker="tcp://HOST:PORT"`` runs on a launcher on another host (``u
 ``serve_launcher``), over tcp (runtime/remote.py).
 """
 
+from uniros_async.runtime.proxy import ProxyEnv, make
 from uniros_async.runtime.remote import Launcher, RemoteWorker, serve_launcher
-from uniros_async.runtime.supervisor import ProxyEnv, Supervisor, make
+from uniros_async.runtime.supervisor import Supervisor
 from uniros_async.runtime.vector import UnirosVectorEnv, make_vec
 
 __all__ = [

@@ -291,7 +291,7 @@ class TrainConfig:
         Raises:
             ConfigError: an unknown id or keyword argument, or an invalid run-time setting, naming the env.
         """
-        from uniros_async.runtime.supervisor import check_env_args
+        from uniros_async.runtime.envargs import check_env_args
 
         for where, specs in (("envs", self.env_specs()), ("eval.envs", self.eval_specs())):
             for i, (label, env_id, kwargs) in enumerate(specs):

@@ -60,7 +60,7 @@ def build_env(
         ConfigError: an unknown id or keyword argument, or an env larger than ``pad_to``.
         WorkerError: the worker failed to start (``workers``).
     """
-    from uniros_async.runtime.supervisor import check_env_args
+    from uniros_async.runtime.envargs import check_env_args
 
     check_env_args(env_id, kwargs)
     if placement == "inprocess":
