@@ -2,7 +2,7 @@
 
 ``check_env_args`` tells an unknown id or keyword argument (and a malformed ``worker`` placement) at once, with
 what was expected, instead of as a worker's failure; ``split_placement`` takes the ``worker`` keyword (where the
-worker runs, runtime/remote.py) out of a spec's kwargs.
+worker runs: a launcher, runtime/remote.py, or a node Ray picks, runtime/ray_backend.py) out of a spec's kwargs.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from typing import Any
 from gymnasium.envs.registration import registry
 
 from uniros_async.errors import ConfigError
+from uniros_async.runtime.ray_backend import RayPlacement, parse_ray_placement
 from uniros_async.runtime.remote import RemoteWorker, check_plain, parse_placement
 
 __all__ = ["PLACEMENT_KWARG", "check_env_args", "registration", "split_placement"]
@@ -23,7 +24,7 @@ _MAKE_KWARGS = {"max_episode_steps", "disable_env_checker", "autoreset", "apply_
 PLACEMENT_KWARG = "worker"
 
 
-def split_placement(kwargs: dict[str, Any]) -> tuple[RemoteWorker | None, dict[str, Any]]:
+def split_placement(kwargs: dict[str, Any]) -> tuple[RemoteWorker | RayPlacement | None, dict[str, Any]]:
     """The placement of a spec (None: a local worker) and the kwargs without it.
 
     Raises:
@@ -32,14 +33,16 @@ def split_placement(kwargs: dict[str, Any]) -> tuple[RemoteWorker | None, dict[s
     if PLACEMENT_KWARG not in kwargs:
         return None, kwargs
     rest = {k: v for k, v in kwargs.items() if k != PLACEMENT_KWARG}
-    return parse_placement(kwargs[PLACEMENT_KWARG]), rest
+    value = kwargs[PLACEMENT_KWARG]
+    return parse_ray_placement(value) or parse_placement(value), rest
 
 
 def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
     """Check, in the caller, that ``env_id`` is registered and (for uniros envs) that ``kwargs`` are known.
 
     ``worker`` (where the worker runs, see runtime/remote.py) is accepted and checked, never passed to the env. For
-    a spec placed on a launcher, an id unknown here is left to the launcher's registry to judge.
+    a spec placed on a launcher, an id unknown here is left to the launcher's registry to judge; for a spec placed by
+    Ray, a ``"module:Id"`` whose module does not import here is left to the worker's node.
 
     Raises:
         ConfigError: an unknown id (the registered uniros ids are listed) or unknown keyword arguments (the
@@ -63,6 +66,11 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
                     f"env id {env_id!r}: cannot import {module!r}, which should register {reg_id!r}: {exc}"
                 ) from exc
     if placement is not None and isinstance(reg_id, str) and reg_id not in registry:
+        if isinstance(placement, RayPlacement) and ":" not in env_id:  # every node has the same uniros registry
+            raise ConfigError(
+                f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must be"
+                " given as 'module:Id' (the module registers Id, on the worker's node too)"
+            )
         return
     if not isinstance(reg_id, str) or reg_id not in registry:
         raise ConfigError(

@@ -10,6 +10,7 @@ import numpy as np
 from uniros_async.errors import ConfigError
 from uniros_async.runtime.envargs import PLACEMENT_KWARG, check_env_args
 from uniros_async.runtime.protocol import space_from_plain
+from uniros_async.runtime.ray_backend import apply_backend
 from uniros_async.runtime.supervisor import Supervisor
 
 __all__ = ["ProxyEnv", "make"]
@@ -75,6 +76,7 @@ def make(
     start_timeout_s: float = 60.0,
     call_timeout_s: float = 60.0,
     transport: str = "shm",
+    backend: str = "local",
     **kwargs: Any,
 ) -> gym.Env[Any, Any]:
     """Make ``env_id`` in its own worker process and return a gymnasium.Env proxy for it.
@@ -86,6 +88,7 @@ def make(
         start_timeout_s: bound on starting the worker and building the env.
         call_timeout_s: bound on each reset/step.
         transport: how the agent side talks to the worker: ``"shm"`` (default) or ``"tcp"`` (loopback).
+        backend: ``"local"`` (the default) or ``"ray"``: the worker is placed by Ray (see ``make_vec``).
         **kwargs: passed to ``gymnasium.make`` in the worker (clock, robot, reward_type, ...), except ``worker``:
             where the worker runs, None (here) or a launcher on another host, ``"tcp://HOST:PORT"`` or a
             ``RemoteWorker`` (see runtime/remote.py; the key defaults to ``$UNIROS_WORKER_AUTH_KEY``).
@@ -96,6 +99,7 @@ def make(
         WorkerError: the worker failed to start or to build the env (its traceback attached), or its launcher
             is unreachable or refused it.
     """
+    ((env_id, kwargs),) = apply_backend([(env_id, kwargs)], "local" if in_process else backend)
     check_env_args(env_id, kwargs)
     if in_process:
         if kwargs.get(PLACEMENT_KWARG) is not None:

@@ -28,6 +28,12 @@ answers with the worker's tcp URI and the supervisor connects to it directly, as
 a ``RemoteWorkerProcess`` (pid and exit code as the launcher reports them); a broken connection is reported with
 the exit code the launcher saw, ``restart`` starts the new worker through the same launcher, and ``close`` has the
 launcher terminate and kill what does not exit by itself. Local and remote workers mix freely.
+
+Workers placed by Ray: a spec whose ``worker`` is a Ray placement (``"ray"``, ``{"ray": {...}}``, a
+``ray_backend.RayPlacement``) is started the same way by a Ray actor on the node Ray's scheduler picks
+(runtime/ray_backend.py); its ``process`` is a ``RayWorkerProcess``. The placements are checked against the
+cluster's nodes before any worker starts, and the workers of one supervisor share a random key (tcp or shm with
+HMAC).
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ import dataclasses
 import functools
 import logging
 import os
+import secrets
 import threading
 import time
 from collections.abc import Callable, Coroutine, Sequence
@@ -51,6 +58,7 @@ from uniros_async.priority import MAX_LOOP_RANK
 from uniros_async.runtime.envargs import check_env_args, registration, split_placement
 from uniros_async.runtime.launch import WorkerProcess, start_worker
 from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
+from uniros_async.runtime.ray_backend import RayPlacement, RayWorkerProcess, check_placements
 from uniros_async.runtime.remote import RemoteWorker, RemoteWorkerProcess
 from uniros_async.runtime.worker import WorkerSpec
 
@@ -83,7 +91,7 @@ class WorkerHandle:
     """The supervisor's side of one worker."""
 
     spec: WorkerSpec
-    process: WorkerProcess | RemoteWorkerProcess
+    process: WorkerProcess | RemoteWorkerProcess | RayWorkerProcess
     conn: Any = None  # the start-up pipe end (None for a remote worker)
     transport: Any = None
     broken: str | None = None
@@ -106,10 +114,10 @@ class WorkerHandle:
         return self.spec.index
 
     @functools.cached_property
-    def remote(self) -> RemoteWorkerProcess | None:
-        """The launcher's handle of a remote worker, or None for a local one (read on every step; a handle keeps
-        its process: a restart makes a new handle)."""
-        return self.process if isinstance(self.process, RemoteWorkerProcess) else None
+    def remote(self) -> RemoteWorkerProcess | RayWorkerProcess | None:
+        """The handle of a worker started elsewhere (by a launcher or a Ray actor), or None for a local one (read on
+        every step; a handle keeps its process: a restart makes a new handle)."""
+        return self.process if isinstance(self.process, RemoteWorkerProcess | RayWorkerProcess) else None
 
     async def request(self, message: dict[str, Any], timeout_s: float) -> Any:
         """Send ``message`` and wait for the reply's result.
@@ -279,6 +287,7 @@ class Supervisor:
         self._loop = asyncio.new_event_loop()
         self._lock = threading.Lock()
         self._orphans: list[asyncio.Task[Any]] = []  # calls interrupted inside the loop (see _drive)
+        self._ray_key = secrets.token_bytes(32)  # the key of this vector env's Ray-placed workers
         try:
             self._start(specs, start_timeout_s)
         except BaseException:
@@ -289,8 +298,9 @@ class Supervisor:
 
     def _start(self, specs: Sequence[tuple[str, dict[str, Any]]], timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
-        for index, (env_id, kwargs) in enumerate(specs):
-            placement, env_kwargs = split_placement(kwargs)
+        split = [split_placement(kwargs) for _, kwargs in specs]
+        check_placements([p for p, _ in split if isinstance(p, RayPlacement)])  # before anything starts
+        for index, ((env_id, _), (placement, env_kwargs)) in enumerate(zip(specs, split, strict=True)):
             # the first worker the highest real-time priority: the order in which a step's requests are sent
             rank = min(len(specs) - 1 - index, MAX_LOOP_RANK)
             self.workers.append(self._new_handle(index, env_id, env_kwargs, placement, timeout_s, rank))
@@ -303,13 +313,16 @@ class Supervisor:
         index: int,
         env_id: str,
         kwargs: dict[str, Any],
-        placement: RemoteWorker | None,
+        placement: RemoteWorker | RayPlacement | None,
         timeout_s: float,
         rt_rank: int = 0,
     ) -> WorkerHandle:
-        """A local worker, started now, or a remote one, to be started by ``_launch``."""
+        """A local worker, started now, or a remote or Ray-placed one, to be started by ``_launch``."""
         if placement is None:
             return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri, rt_rank)
+        if isinstance(placement, RayPlacement):
+            spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s)
+            return WorkerHandle(spec=spec, process=RayWorkerProcess(placement.keyed(self._ray_key)))
         spec = WorkerSpec(
             index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s, listen_uri=placement.uri
         )
@@ -377,9 +390,10 @@ class Supervisor:
             self._discard(new)
             if old_remote is not None and isinstance(exc, WorkerError | ConfigError):
                 where = old_remote.placement.uri
+                where = where if isinstance(old_remote, RayWorkerProcess) else f"its launcher {where}"
                 raise WorkerError(
                     index,
-                    f"could not restart the remote worker through its launcher {where}: {exc}",
+                    f"could not restart the remote worker through {where}: {exc}",
                     remote_traceback=getattr(exc, "remote_traceback", ""),
                 ) from exc
             raise

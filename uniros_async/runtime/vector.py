@@ -38,6 +38,7 @@ from uniros_async.runtime.protocol import (
     unpack,
     unpack_step_reply_into,
 )
+from uniros_async.runtime.ray_backend import apply_backend
 from uniros_async.runtime.supervisor import Supervisor
 
 __all__ = ["UnirosVectorEnv", "make_vec"]
@@ -670,6 +671,7 @@ def make_vec(
     call_timeout_s: float = 60.0,
     transport: str = "shm",
     autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+    backend: str = "local",
     **common_kwargs: Any,
 ) -> UnirosVectorEnv:
     """A gymnasium VectorEnv over one worker process per spec.
@@ -693,6 +695,9 @@ def make_vec(
             after an episode's end resets that sub-env and ignores its action), ``SAME_STEP`` (the step that ends
             an episode resets at once; ``info["final_obs"]`` and ``info["final_info"]`` hold the ended episode's
             last returns) or ``DISABLED`` (the caller resets, ``reset(options={"reset_mask": ...})``).
+        backend: where the workers run: ``"local"`` (here, the default) or ``"ray"`` (each placed by Ray's scheduler
+            on a node of the connected cluster, runtime/ray_backend.py; a spec's ``{"worker": {"ray": {"resources":
+            {"rx200_arm": 1}}}}`` or ``node_id`` pins it, ``"worker": None`` keeps it here).
         **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
 
     Raises:
@@ -703,6 +708,7 @@ def make_vec(
             (its index and traceback; the others are closed).
     """
     norm = [(env_id, {**common_kwargs, **kw}) for env_id, kw in _normalize_specs(specs)]
+    norm = apply_backend(norm, backend)
     sup = Supervisor(norm, start_timeout_s=start_timeout_s, call_timeout_s=call_timeout_s, transport=transport)
     try:
         return UnirosVectorEnv(
