@@ -65,12 +65,9 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
                 raise ConfigError(
                     f"env id {env_id!r}: cannot import {module!r}, which should register {reg_id!r}: {exc}"
                 ) from exc
-    if placement is not None and isinstance(reg_id, str) and reg_id not in registry:
-        if isinstance(placement, RayPlacement) and ":" not in env_id:  # every node has the same uniros registry
-            raise ConfigError(
-                f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must be"
-                " given as 'module:Id' (the module registers Id, on the worker's node too)"
-            )
+    # a launcher judges an id unknown here; a node Ray picks has the same uniros registry, and judges "module:Id"
+    judged_there = isinstance(placement, RemoteWorker) or (isinstance(placement, RayPlacement) and ":" in env_id)
+    if judged_there and isinstance(reg_id, str) and reg_id not in registry:
         return
     if not isinstance(reg_id, str) or reg_id not in registry:
         raise ConfigError(
