@@ -68,7 +68,7 @@ def cluster() -> Iterator[dict[str, Any]]:
     import ray
     from ray.cluster_utils import Cluster
 
-    assert not ray_processes(), f"Ray processes before the cluster started: {ray_processes()}"
+    wait_until(lambda: not ray_processes(), 20.0, f"Ray processes before the cluster started: {ray_processes()}")
     shm_before = dev_shm()
     c = Cluster(
         initialize_head=True,

@@ -420,7 +420,7 @@ class RayWorkerProcess:
         fut = self._exit
         if self.exitcode is not None or fut is None or self.launcher_lost is not None:
             return self.exitcode
-        with contextlib.suppress(TimeoutError):
+        with contextlib.suppress(Exception):  # a timeout, or the actor's death: read from ``fut`` below
             async with asyncio.timeout(max(0.0, timeout_s)):
                 await asyncio.shield(asyncio.wrap_future(fut))
         if fut.done():
