@@ -56,7 +56,9 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--duration", type=float, default=60.0, help="wall seconds per arm (default 60)")
     be.add_argument("--arms", nargs="+", default=["rx200", "ned2"])
     be.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
-    be.add_argument("--robot", default="sim", help="sim, sim-process, emulated-real, tcp://host:port or ros1://host:port")
+    be.add_argument(
+        "--robot", default="sim", help="sim, sim-process, emulated-real, tcp://host:port or ros1://host:port"
+    )
     be.add_argument("--concurrent", action="store_true", help="run the arms at the same time")
     be.add_argument(
         "--think-ms", type=float, default=50.0, help="the agent thinks a random 0 to this many ms before each step"
