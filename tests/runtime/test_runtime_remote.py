@@ -1,4 +1,4 @@
-"""Workers on another host (issue 5, item 1): a launcher (``uniros worker serve``) starts workers on request, the
+"""Workers on another host: a launcher (``uniros worker serve``) starts workers on request, the
 agent side connects to them over tcp, mixed with local workers in one vector env.
 
 "Another host" is emulated by loopback: the launcher runs in a separate process (the real CLI, spawned with
