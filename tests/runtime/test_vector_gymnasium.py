@@ -158,6 +158,31 @@ def test_vector_obs_action_spaces(space: gym.Space[object]) -> None:
         envs.close()
 
 
+@pytest.mark.parametrize(
+    "space",
+    [
+        TESTING_SPACES[22],  # Dict of a Discrete and a float64 Box
+        TESTING_SPACES[21],  # Tuple of a Graph and a Discrete
+        TESTING_SPACES[17],  # Text with a charset
+        TESTING_SPACES[6],  # Box of uint8 images
+    ],
+    ids=lambda s: str(s),
+)
+def test_vector_obs_action_spaces_over_tcp(space: gym.Space[object]) -> None:
+    """test_vector_obs_action_spaces's composite, text and image cases, with the workers over tcp."""
+    envs = make_vec(
+        [GENERIC] * 2, action_space=space, observation_space=space, step_func=debug_step_func, transport="tcp"
+    )
+    try:
+        obs, _ = envs.reset(seed=0)
+        assert obs in envs.observation_space
+        for _ in range(3):
+            obs, _, _, _, _ = envs.step(envs.action_space.sample())
+            assert obs in envs.observation_space
+    finally:
+        envs.close()
+
+
 def test_final_obs_info() -> None:
     """NEXT_STEP: the step after the end resets (its info is the reset's); as gymnasium's test_final_obs_info."""
     env = make_vec([GENERIC], action_space=Discrete(4), observation_space=Discrete(4), reset_func=final_obs_reset,
