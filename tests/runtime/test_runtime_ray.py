@@ -43,7 +43,8 @@ def test_ray_module_in_a_network_namespace(module: str) -> None:
         if os.environ.get("UNIROS_REQUIRE_RAY") == "1":
             pytest.fail(f"UNIROS_REQUIRE_RAY=1: {missing}")
         pytest.skip(missing)
-    env = dict(os.environ, UNIROS_RAY_NETNS="1", PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    env = dict(os.environ, UNIROS_RAY_NETNS="1", PYTHONPATH=path)
     env.pop("RAY_ADDRESS", None)
     inner = f"ip link set lo up && exec {sys.executable} -m pytest -q -p no:cacheprovider -rs tests/ray_netns/{module}"
     proc = subprocess.run(

@@ -41,8 +41,12 @@ def test_arrays_round_trip_by_value_and_come_back_writable(a: np.ndarray) -> Non
 
 
 def test_scalars_objects_and_odd_keys() -> None:
-    msg = unpack(pack({"r": np.float32(0.5), "n": np.int64(3), "o": np.array([1, "x"], dtype=object), (1, 2): "t"}))
+    msg = unpack(pack({"r": np.float64(0.5), "n": np.int64(3), "o": np.array([1, "x"], dtype=object), (1, 2): "t"}))
     assert msg["r"] == 0.5 and type(msg["r"]) is float and msg["n"] == 3 and type(msg["n"]) is int
+    # other numpy scalars keep their dtype (a vector env batches an info's float32 into a float32 array)
+    kept = unpack(pack({"f": np.float32(0.5), "i": np.int8(-3), "u": np.uint16(7), "b": np.bool_(True)}))
+    assert type(kept["f"]) is np.float32 and kept["f"] == 0.5 and type(kept["i"]) is np.int8 and kept["i"] == -3
+    assert type(kept["u"]) is np.uint16 and kept["u"] == 7 and kept["b"] is True
     assert msg["o"] == [1, "x"]
     assert msg["(1, 2)"] == "t"  # a tuple key comes back as its str
 

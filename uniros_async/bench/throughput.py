@@ -38,6 +38,12 @@ bound on aggregate steps/s is printed beside: min(N, cores) / bare step time.
 ``--backend ray`` adds, in the same run, workers placed by Ray (on another node over our tcp, and on the agent's
 node over shm), local workers over tcp and a plain Ray actor call per step to the trivial env's table, and the
 Ray-placed workers to the rx200 rows (``bench/_ray_rows.py``).
+
+A fourth and a fifth table measure the same way, N = 1, envs whose observations are what other pipelines carry
+(``bench/envs.py``; their steps cost next to nothing): a goal env's Dict observation (three float64 arrays), and an
+Atari-style 84x84x3 uint8 frame, which ``make_vec`` carries in its shm ring and gymnasium's AsyncVectorEnv in its
+shared memory, SB3's SubprocVecEnv through its pickled pipe. A line under them gives the image env's uniros
+overhead as a fraction of gymnasium's.
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from uniros_async.bench._ray_rows import RAY_IMPLS, RayRows, overhead_lines
+from uniros_async.bench.envs import DICT_ID, IMAGE_ID
 from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
 from uniros_async.errors import ConfigError
 from uniros_async.transports._shm_ring import describe_ring_end
@@ -63,6 +70,9 @@ IMPLS = ("uniros", "gymnasium-async", "sb3-subproc")
 ENV_ID = "uniros/Rx200Reach-v0"
 ENV_KW: dict[str, Any] = {"turn_based": True, "max_episode_steps": 10**9}
 TRIVIAL_ID = "CartPole-v1"
+SPACE_IDS = (DICT_ID, IMAGE_ID)
+SPACE_STEPS = 500
+"""Steps per row of the Dict and image envs' tables (interleaved as the trivial env's)."""
 QUIET_S = 0.001
 """Untimed pause before each block of the trivial env's interleaved rows: longer than a worker's poll for its next
 request (``worker.TURN_SPIN_NS``, 200 us), so no row starts while the previous row's worker still polls."""
@@ -104,6 +114,8 @@ def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
 
     if env_id.startswith("uniros/"):
         import uniros_async  # noqa: F401  (registers the uniros ids, also in a spawned process)
+    if env_id in SPACE_IDS:
+        import uniros_async.bench.envs  # noqa: F401  (registers them, also in a spawned process)
 
     return gym.make(env_id, **kwargs)
 
@@ -408,6 +420,15 @@ def _measure(
         bar(len(rows))
     finally:
         trivial.close()
+    space_steps = min(SPACE_STEPS, TRIVIAL_STEPS // 5) if config.quick else SPACE_STEPS
+    for env_id in SPACE_IDS:
+        env = _make_env(env_id, {})
+        try:
+            rows = _run_trivial(IMPLS, (), env, env_id, space_steps, transport=config.transport)
+            records += rows
+            bar(len(rows))
+        finally:
+            env.close()
 
 
 def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
@@ -420,6 +441,7 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     in_turns = IMPLS[:2] if config.quick else IMPLS  # (--quick: against gymnasium's only, to keep within its minute)
     ray = config.backend == "ray"
     n_rows = len(ns) * (len(IMPLS) + ray) + len(IMPLS) + len(RAY_IMPLS) * ray + len(in_turns)
+    n_rows += len(SPACE_IDS) * len(IMPLS)
     global _RAY
     if ray:
         _RAY = RayRows(config.ray_address)
@@ -465,6 +487,9 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
                     + " meanwhile (the VM's cores were taken away that long)",
                 ]
             lines += ["", f"{TRIVIAL_ID} ({what})", head, "-" * len(head)]
+        if r["env"] in SPACE_IDS and r["impl"] == IMPLS[0]:
+            what = "Dict observation, 3 float64 arrays" if r["env"] == DICT_ID else "84x84x3 uint8 frame observation"
+            lines += ["", f"{r['env'].partition(':')[2]} ({what}; N = 1, rows interleaved)", head, "-" * len(head)]
         lines.append(
             f"{r['n_envs']:>3} {r['impl']:<16} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}"
             f" {_interval(r['overhead_ci_us']):>18} {r['step_ms']:>8.3f} {r['bare_ms']:>8.3f}"
@@ -486,5 +511,9 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
             f"N={n}: uniros / gymnasium-async steps/s = {ratio:.2f}x; physics bound min(N, {cores} cores) / bare step"
             f" = {bound:.0f} steps/s"
         )
+    image = {r["impl"]: r for r in records if r["env"] == IMAGE_ID}
+    if image["gymnasium-async"]["overhead_us"] > 0:
+        frac = image["uniros"]["overhead_us"] / image["gymnasium-async"]["overhead_us"]
+        lines.append(f"image env: uniros overhead / gymnasium-async overhead = {frac:.2f}")
     report("\n".join(lines), records, config.json_path, log)
     return records

@@ -15,8 +15,9 @@ Two more encodings live here, so that this stays the only module that imports ms
 
 - plain data (``encode_plain`` / ``decode_plain``): the registry's and handshakes' control traffic;
 - values with arrays (``pack_value`` / ``unpack_value``): the worker protocol's messages (runtime/protocol.py), in
-  which every numpy array travels as an ExtType (code 42: ``array_bytes``, dtype, shape and raw bytes) and numpy
-  scalars as Python numbers, converted by msgpack's own ``default`` / ``ext_hook`` hooks, so the C packer walks
+  which every numpy array travels as an ExtType (code 42: ``array_bytes``, dtype, shape and raw bytes), numpy
+  float64, int64 and bool scalars as Python numbers and other numpy scalars as an ExtType (code 43: their dtype
+  kept), converted by msgpack's own ``default`` / ``ext_hook`` hooks, so the C packer walks
   the value and Python sees only the arrays. ``array_bytes`` / ``array_from_bytes`` are also the step frames' own
   array format, outside msgpack.
 """
@@ -259,6 +260,9 @@ def decode_plain(frame: bytes | memoryview) -> Any:
 # ---------------------------------------------------------------- values with arrays (runtime/protocol.py)
 
 _ND_EXT = 42
+_SCALAR_EXT = 43  # a numpy scalar of a type Python's numbers do not keep (float32, int8, ...): dtype kept
+_PLAIN_SCALARS = (np.float64, np.int64, np.bool_)
+"""Numpy scalars that travel as Python numbers: a vector env's info batches them into arrays of the same dtype."""
 _SHAPE = struct.Struct("<q")
 
 
@@ -268,13 +272,16 @@ itself: ``dtype.str`` builds a new string every call, which costs more than the 
 
 
 def _default(value: Any) -> Any:
-    """msgpack's hook for what it cannot pack itself: arrays as ExtType, numpy scalars as Python ones."""
+    """msgpack's hook for what it cannot pack itself: arrays as ExtType, numpy float64, int64 and bool scalars as
+    Python ones, other numpy scalars as ExtType (their dtype kept)."""
     if isinstance(value, np.ndarray):
         if value.dtype.hasobject:
             return value.tolist()
         return msgpack.ExtType(_ND_EXT, array_bytes(value))
     if isinstance(value, np.generic):
-        return value.item()
+        if type(value) in _PLAIN_SCALARS or value.dtype.hasobject:
+            return value.item()
+        return msgpack.ExtType(_SCALAR_EXT, array_bytes(np.asarray(value)))
     if isinstance(value, tuple | list):  # subclasses msgpack refuses (named tuples are packed as lists)
         return list(value)
     return repr(value)
@@ -338,9 +345,11 @@ def _array_from_bytes(buf: bytes | memoryview, start: int, stop: int) -> np.ndar
 
 
 def _value_ext_hook(code: int, data: bytes) -> Any:
-    if code != _ND_EXT:
-        return msgpack.ExtType(code, data)
-    return array_from_bytes(data)
+    if code == _ND_EXT:
+        return array_from_bytes(data)
+    if code == _SCALAR_EXT:
+        return array_from_bytes(data)[()]
+    return msgpack.ExtType(code, data)
 
 
 def _str_list_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:

@@ -121,7 +121,8 @@ def start_worker(spec: WorkerSpec) -> tuple[WorkerProcess, multiprocessing.conne
     finally:
         os.close(write_fd)
     assert popen.stdin is not None
-    payload = pickle.dumps({"spec": spec, "sys_path": list(sys.path)}, protocol=pickle.HIGHEST_PROTOCOL)
+    # sys.path first, in a pickle of its own: the spec's kwargs may name things from modules found only through it
+    payload = pickle.dumps(list(sys.path)) + pickle.dumps(spec, protocol=pickle.HIGHEST_PROTOCOL)
     try:
         popen.stdin.write(payload)
         popen.stdin.close()
@@ -145,13 +146,15 @@ def read_spec(stream: Any) -> WorkerSpec:
     Raises:
         RuntimeError: the payload is not what ``start_worker`` writes.
     """
-    payload = pickle.load(stream)
-    spec = payload.get("spec") if isinstance(payload, dict) else None
+    path = pickle.load(stream)
+    if not isinstance(path, list):
+        raise RuntimeError(f"expected the parent's sys.path on stdin, got {type(path).__name__}")
+    for p in reversed(path):
+        if isinstance(p, str) and p not in sys.path:
+            sys.path.insert(0, p)
+    spec = pickle.load(stream)
     if not isinstance(spec, WorkerSpec):
         raise RuntimeError(f"expected a WorkerSpec on stdin, got {type(spec).__name__}")
-    for p in reversed(payload.get("sys_path", [])):
-        if p not in sys.path:
-            sys.path.insert(0, p)
     return spec
 
 

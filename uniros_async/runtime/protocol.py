@@ -1,7 +1,8 @@
 """The wire protocol between the supervisor and its workers: requests, replies and the step's own frames.
 
 One frame per message, both directions: msgpack of plain data in which every numpy array travels as an ExtType
-(code 42: dtype, shape, raw bytes) and numpy scalars as Python numbers, converted by msgpack's own ``default`` /
+(code 42: dtype, shape, raw bytes) and numpy scalars as Python numbers (float32 and the like with their dtype),
+converted by msgpack's own ``default`` /
 ``ext_hook`` hooks, so the C packer walks the message and Python sees only the arrays (a step reply: ~10 us of CPU
 each way instead of ~13-33 us for a recursive walk in Python; ``to_wire``/``from_wire`` remain, for plain-data
 users). Anything else msgpack cannot take travels as its ``repr`` (infos may hold odd objects). A request is
@@ -244,8 +245,8 @@ def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:
 
 def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
     """A space as plain data (no pickles cross the wire): every space gymnasium's vector envs batch (Box of any
-    shape and dtype, Discrete, MultiDiscrete, MultiBinary, Text, and Dict, Tuple, Sequence and OneOf nested in any
-    way).
+    shape and dtype, Discrete, MultiDiscrete, MultiBinary, Text, and Dict, Tuple, Sequence, OneOf and Graph nested
+    in any way).
 
     Raises:
         ConfigError: another kind of space (a custom Space subclass), naming it.
@@ -257,7 +258,7 @@ def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
         return {"type": "Box", "low": b.low, "high": b.high, "dtype": np.dtype(b.dtype).str}
     if t is spaces.Discrete:
         d: Any = space
-        return {"type": "Discrete", "n": int(d.n), "start": int(d.start)}
+        return {"type": "Discrete", "n": int(d.n), "start": int(d.start), "dtype": np.dtype(d.dtype).str}
     if t is spaces.MultiDiscrete:
         m: Any = space
         return {"type": "MultiDiscrete", "nvec": m.nvec, "start": m.start, "dtype": np.dtype(m.dtype).str}
@@ -280,9 +281,13 @@ def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
     if t is spaces.OneOf:
         oo: Any = space
         return {"type": "OneOf", "spaces": [space_to_plain(s) for s in oo.spaces]}
+    if t is spaces.Graph:
+        g: Any = space
+        edge = None if g.edge_space is None else space_to_plain(g.edge_space)
+        return {"type": "Graph", "node_space": space_to_plain(g.node_space), "edge_space": edge}
     raise ConfigError(
         f"cannot send the space {space!r} between processes: expected Box, Discrete, MultiDiscrete, MultiBinary, "
-        f"Text, Dict, Tuple, Sequence or OneOf, got {t.__name__}"
+        f"Text, Dict, Tuple, Sequence, OneOf or Graph, got {t.__name__}"
     )
 
 
@@ -297,7 +302,7 @@ def space_from_plain(plain: dict[str, Any]) -> gym.Space[Any]:
     if kind == "Box":
         return spaces.Box(plain["low"], plain["high"], dtype=np.dtype(plain["dtype"]))
     if kind == "Discrete":
-        return spaces.Discrete(plain["n"], start=plain["start"])
+        return spaces.Discrete(plain["n"], start=plain["start"], dtype=np.dtype(plain.get("dtype", "<i8")))
     if kind == "MultiDiscrete":
         return spaces.MultiDiscrete(plain["nvec"], dtype=np.dtype(plain["dtype"]), start=plain["start"])
     if kind == "MultiBinary":
@@ -312,12 +317,16 @@ def space_from_plain(plain: dict[str, Any]) -> gym.Space[Any]:
         return spaces.Sequence(space_from_plain(plain["space"]), stack=plain["stack"])
     if kind == "OneOf":
         return spaces.OneOf([space_from_plain(s) for s in plain["spaces"]])
+    if kind == "Graph":
+        edge = plain["edge_space"]
+        return spaces.Graph(space_from_plain(plain["node_space"]), None if edge is None else space_from_plain(edge))
     raise ConfigError(f"unknown space type {kind!r}")
 
 
 def conform(space: gym.Space[Any], value: Any) -> Any:
     """``value`` of ``space`` as it was before it crossed the wire: msgpack has no tuples (a Tuple's or a
-    Sequence's element arrives as a list) and no numpy scalars (a Discrete's arrives as an int).
+    Sequence's element arrives as a list; a Graph's as a list of three). A Discrete's numpy scalar arrives as an
+    int and stays one (as many envs return it).
 
     A value that does not fit ``space`` is returned as it is, as far as it does not (the env's own checks judge it).
     """
@@ -325,8 +334,6 @@ def conform(space: gym.Space[Any], value: Any) -> Any:
     spaces = gym.spaces
     if t is spaces.Box or t is spaces.MultiDiscrete or t is spaces.MultiBinary:
         return value if type(value) is np.ndarray else np.asarray(value, dtype=space.dtype)
-    if t is spaces.Discrete:
-        return space.dtype.type(value) if isinstance(value, int) else value  # type: ignore[union-attr]
     if t is spaces.Dict and type(value) is dict:
         sub: Any = space
         return {k: conform(sub.spaces[k], v) if k in sub.spaces else v for k, v in value.items()}
@@ -338,6 +345,12 @@ def conform(space: gym.Space[Any], value: Any) -> Any:
         if sq.stack:
             return value
         return tuple(conform(sq.feature_space, v) for v in value)
+    if t is spaces.Graph and isinstance(value, list | tuple) and len(value) == 3:
+        g: Any = space
+        nodes, edges, links = value
+        edges = None if edges is None or g.edge_space is None else np.asarray(edges, dtype=g.edge_space.dtype)
+        links = None if links is None else np.asarray(links)
+        return spaces.GraphInstance(np.asarray(nodes, dtype=g.node_space.dtype), edges, links)
     if t is spaces.OneOf and isinstance(value, list | tuple) and len(value) == 2:
         oo: Any = space
         return (np.int64(value[0]), conform(oo.spaces[int(value[0])], value[1]))

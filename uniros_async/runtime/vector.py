@@ -122,6 +122,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         self._pad_msg: dict[str, Any] | None = None
         self._closed_vec = False
         self._pending: Any = None  # the Supervisor._Pending of step_async
+        self._last_obs: Any = None  # the last vector observation returned (reset with a reset_mask keeps its rows)
         workers = supervisor.workers
         self.num_envs = len(workers)
         self.env_ids = [w.spec.env_id for w in workers]
@@ -185,17 +186,42 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Any, dict[str, Any]]:
-        """Reset every sub-env; an int seed gives sub-env i the seed ``seed + i``.
+        """Reset every sub-env; an int seed gives sub-env i the seed ``seed + i``. With ``options["reset_mask"]`` (a
+        bool array, one per sub-env; gymnasium's DISABLED autoreset mode) only those sub-envs reset, and the others
+        keep their last observation.
 
         Raises:
             WorkerError: a worker failed (index and traceback attached).
+            ValueError, TypeError: a malformed ``reset_mask`` (as gymnasium's vector envs say it).
         """
         self._check_open()
         self._drop_pending()
         seeds = self._seeds(seed)
-        replies = self._sup.call(self._sup.request_all([{"op": "reset", "seed": s, "options": options} for s in seeds]))
-        self._np_random_seeds = tuple(-1 if s is None else s for s in seeds) if seed is not None else None
-        return self._stack_obs([r[0] for r in replies]), self._infos([r[1] for r in replies])
+        mask = None
+        if options is not None and "reset_mask" in options:
+            options = dict(options)
+            mask = _check_reset_mask(options.pop("reset_mask"), self.num_envs)
+            if mask.all() or self._last_obs is None:  # every row is reset: an ordinary reset
+                mask = None
+        msgs: list[Any] = [{"op": "reset", "seed": s, "options": options} for s in seeds]
+        if mask is not None:
+            msgs = [m if keep else None for m, keep in zip(msgs, mask, strict=True)]
+        replies = self._sup.call(self._sup.request_all(msgs))
+        if mask is None:
+            obs = self._stack_obs([r[0] for r in replies])
+            infos = self._infos([r[1] for r in replies])
+        else:
+            rows = list(iterate(self.observation_space, self._last_obs))
+            for i, r in enumerate(replies):
+                if r is not None:
+                    rows[i] = r[0]
+            obs = self._stack_obs(rows)
+            infos = {}
+            for i, r in enumerate(replies):
+                if r is not None:
+                    infos = self._add_info(infos, r[1], i)
+        self._last_obs = obs
+        return obs, infos
 
     def step_async(self, actions: Any) -> None:
         """Send one action to every worker and return at once."""
@@ -267,9 +293,9 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         return tuple(self._sup.call(self._sup.request_all([{"op": "render"}] * self.num_envs)))
 
     @property
-    def np_random_seed(self) -> tuple[int, ...] | None:  # type: ignore[override]
-        """The seeds of the last seeded reset (-1 for a sub-env reset without one), or None."""
-        return getattr(self, "_np_random_seeds", None)
+    def np_random_seed(self) -> tuple[int, ...]:  # type: ignore[override]
+        """Every sub-env's ``np_random_seed`` (as gymnasium's vector envs read it)."""
+        return self.get_attr("np_random_seed")
 
     def close(self, **kwargs: Any) -> None:
         """Stop every worker; idempotent and bounded in time."""
@@ -310,12 +336,14 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         if kind == "box":
             per_env: Any = np.asarray(actions, dtype)
             if per_env.shape != shape:
-                raise gym.error.InvalidAction(f"actions must have shape {shape}, got {per_env.shape}")
+                _bad_actions(shape, per_env.shape)
         elif kind == "discrete":  # gymnasium's iterate over the batch space costs ~7 us here
             batch = np.asarray(actions, dtype)
             if batch.shape != shape:
-                raise gym.error.InvalidAction(f"actions must have shape {shape}, got {batch.shape}")
+                _bad_actions(shape, batch.shape)
             per_env = batch.tolist()
+        elif type(actions) is list and len(actions) == self.num_envs and kind == "composite":
+            per_env = actions  # one action per sub-env, as SB3 passes them (a batch of a Dict or Tuple is no list)
         else:
             per_env = list(iterate(self.action_space, actions))
         # one reference time for the whole step, for the members on this machine (CLOCK_MONOTONIC is machine-wide):
@@ -324,7 +352,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         t = time.monotonic_ns()
         workers = self._sup.workers
         if len(per_env) != len(workers):
-            raise gym.error.InvalidAction(f"expected one action per env ({len(workers)}), got {len(per_env)}")
+            raise InvalidActionsError(f"expected one action per env ({len(workers)}), got {len(per_env)}")
         return [
             pack_step_request(a, autoreset, t if w.remote is None else None)
             for a, w in zip(per_env, workers)  # noqa: B905  (lengths checked: the strict check costs ~0.5 us here)
@@ -425,6 +453,40 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
 
 
 _FLOAT64, _BOOL = np.dtype(np.float64), np.dtype(np.bool_)
+
+
+class InvalidActionsError(gym.error.InvalidAction, ValueError):
+    """Actions that are not one per sub-env (a ValueError too, as gymnasium's vector envs raise)."""
+
+
+def _bad_actions(expected: tuple[int, ...], got: tuple[int, ...]) -> None:
+    """Raise what a vector step with actions of shape ``got`` raises: TypeError for a scalar (no action per sub-env
+    at all), else InvalidActionsError."""
+    if got == ():
+        raise TypeError(f"actions must have shape {expected}, one per sub-env, got a scalar")
+    raise InvalidActionsError(f"actions must have shape {expected}, got {got}")
+
+
+def _check_reset_mask(mask: Any, n: int) -> np.ndarray:
+    """``options["reset_mask"]`` checked as gymnasium's vector envs check it (their messages).
+
+    Raises:
+        TypeError: not a bool array.
+        ValueError: not of shape ``(n,)``, or no True in it.
+    """
+    if not isinstance(mask, np.ndarray):
+        raise TypeError(f"`options['reset_mask': mask]` must be a numpy array, got {type(mask)}")
+    if mask.shape != (n,):
+        raise ValueError(f"`options['reset_mask']` must have shape `({n},)`, got {mask.shape}")
+    if mask.dtype != np.bool_:
+        raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got {mask.dtype}")
+    if not np.any(mask):
+        raise ValueError(
+            f"`options['reset_mask']` must contain a boolean array with at least one True value, got reset_mask={mask}"
+        )
+    return mask
+
+
 _AUTORESET_WIRE = {
     AutoresetMode.NEXT_STEP: "next_step",
     AutoresetMode.SAME_STEP: "same_step",
@@ -449,11 +511,14 @@ def _autoreset_mode(mode: AutoresetMode | str) -> AutoresetMode:
 
 def _action_form(space: gym.Space[Any], n: int) -> tuple[Any, ...]:
     """(space, kind, batch shape, dtype) of a vector env's actions: kind "box" (an array of ``n`` rows), "discrete"
-    (``n`` ints) or "other" (iterated as gymnasium does)."""
+    (``n`` ints), "composite" (a Dict or Tuple: a batch iterated as gymnasium does, or a list of one action per
+    sub-env) or "other" (iterated as gymnasium does)."""
     if isinstance(space, gym.spaces.Box):
         return space, "box", (n, *space.shape), np.dtype(space.dtype)
     if isinstance(space, gym.spaces.Discrete):
         return space, "discrete", (n,), np.dtype(np.int64)
+    if isinstance(space, gym.spaces.Dict | gym.spaces.Tuple):
+        return space, "composite", None, None
     return space, "other", None, None
 
 
@@ -513,6 +578,7 @@ class _Returns:
             infos = venv._add_info(infos, info, i)
         if obs is None:
             obs = venv._stack_obs(others)
+        venv._last_obs = obs
         return obs, self.rewards, self.terminated, self.truncated, infos
 
 
