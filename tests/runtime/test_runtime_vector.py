@@ -201,8 +201,8 @@ def test_sb3_td3_trains_on_mixed_rx200_ned2() -> None:
 
 def test_a_worker_that_cannot_start_is_named_and_the_others_are_closed() -> None:
     with pytest.raises(WorkerError) as e:
-        make_vec([RX, (NED, {"reward_type": "bogus"})], clock="sim")
-    assert e.value.index == 1 and NED in str(e.value) and "reward_type" in str(e.value)
+        make_vec([RX, (NED, {"goal_min": [0.3, 0.0, 0.2]})], clock="sim")  # above the arm's default goal_max
+    assert e.value.index == 1 and NED in str(e.value) and "goal_min/goal_max" in str(e.value)
     assert "ConfigError" in e.value.remote_traceback
     assert children() == []
 

@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from uniros_async.errors import ConfigError
+from uniros_async.yamlio import loads_yaml
 
 __all__ = ["add_parsers", "run"]
 
@@ -91,7 +92,7 @@ def add_parsers(subparsers: Any) -> None:
 
 def _yaml_value(text: str, what: str) -> Any:
     try:
-        return yaml.safe_load(text)
+        return loads_yaml(text)  # as in config files: 3e-4 and 1e4 are numbers
     except yaml.YAMLError as exc:
         raise ConfigError(f"{what}: not valid YAML: {text!r}") from exc
 
