@@ -1,8 +1,12 @@
-"""Training on workers placed by Ray: SB3's TD3 and the asynchronous learner on the head node (the agent's), the envs
-on the arm node, on a real two-node Ray cluster."""
+"""Training on workers placed by Ray: SB3's TD3, the asynchronous learner and ``uniros train`` (``placement: ray``)
+on the head node (the agent's), the envs on the arm node, on a real two-node Ray cluster."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -48,3 +52,32 @@ def test_the_async_learner_on_the_head_with_every_env_on_the_arm_node(cluster: d
         assert model.learner_stats["updates"] > 0  # the learner thread trained while the envs stepped on the arm node
     finally:
         venv.close()
+
+
+def test_uniros_train_with_placement_ray_trains_on_the_arm_node(cluster: dict[str, Any], tmp_path: Path) -> None:
+    # half of the arm node's rx200_arm each: the training env and the evaluation env both fit there, nowhere else
+    config = tmp_path / "ray.yaml"
+    config.write_text(
+        "name: ray\n"
+        "seed: 0\n"
+        "total_steps: 200\n"
+        "placement: ray\n"
+        "learner: async\n"
+        "envs:\n"
+        "  - {id: uniros/Rx200Reach-v0, kwargs: {worker: {ray: {resources: {rx200_arm: 0.5}}}}}\n"
+        "td3: {learning_starts: 50, buffer_size: 5000, net_arch: [32, 32], batch_size: 32}\n"
+        "eval: {every_steps: 100, episodes: 1}\n"
+        "checkpoint: {every_steps: 100}\n"
+    )
+    run = tmp_path / "run"
+    env = dict(os.environ, RAY_ADDRESS=cluster["address"])
+    proc = subprocess.run(
+        [sys.executable, "-m", "uniros_async.cli", "train", str(config), "--run-dir", str(run), "--no-progress"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-6000:]
+    assert (run / "checkpoints" / "latest").exists()
