@@ -188,9 +188,9 @@ class _Progress:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         if enabled:
-            from tqdm import tqdm
+            from uniros_async._progress import progress_bar
 
-            self._bar = tqdm(
+            self._bar = progress_bar(
                 total=round(total_s), desc=desc, unit="s", leave=False, bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s"
             )
             self._thread = threading.Thread(target=self._run, name="latency bench progress", daemon=True)
@@ -306,7 +306,7 @@ def _run_learner(
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import Logger
 
-    torch.set_num_threads(1)  # beside env loops on 2 cores, more threads stall updates (design.md section 9)
+    torch.set_num_threads(1)  # beside env loops on 2 cores, more threads stall updates
     cls = _learner_class(name)
     rec = _step_recorder(vec.as_sb3())
     n_actions = int(np.prod(vec.single_action_space.shape))

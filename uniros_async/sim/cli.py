@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -23,6 +24,10 @@ from uniros_async._signals import cancel_on_signals
 __all__ = ["add_parser", "main", "run"]
 
 logger = logging.getLogger(__name__)
+
+AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
+"""Where ``uniros robot serve`` and ``bridge`` read the domain's shared key by default (as domains and nodes do:
+``transports.base.options_from_environ``)."""
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -65,6 +70,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "adapters/ros1_driver.py) instead of in a uniros domain; prints the master's URI",
     )
     serve.add_argument("--ros-host", default=None, help="with --ros1-master: address ROS peers reach this process at")
+    _add_exposure_flags(serve)
 
     bridge = actions.add_parser(
         "bridge",
@@ -91,6 +97,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     bridge.add_argument("--host", default="127.0.0.1", help="bind host of the domain (default %(default)s)")
     bridge.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     bridge.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
+    _add_exposure_flags(bridge)
     bridge.add_argument(
         "--state-timeout", type=float, default=10.0, help="seconds to wait for the driver's first joint state"
     )
@@ -100,8 +107,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
     render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
     render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
-    render.add_argument("--width", type=int, default=640)
-    render.add_argument("--height", type=int, default=480)
+    render.add_argument("--width", type=int, default=640, help="pixels (default %(default)s)")
+    render.add_argument("--height", type=int, default=480, help="pixels (default %(default)s)")
     render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
@@ -154,9 +161,14 @@ def _bridge(args: argparse.Namespace) -> int:
         group=args.group,
         ros_host=args.ros_host,
         state_timeout_s=args.state_timeout,
+        insecure=args.insecure,
     )
+    from uniros_async.transports.base import TransportOptions
 
-    serve = serve_ros1_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready)
+    options = TransportOptions(auth_key=_auth_key(args), insecure=args.insecure)
+    serve = serve_ros1_bridge(
+        cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready, options=options
+    )
     return _run_until_signal(serve)
 
 
@@ -172,14 +184,24 @@ def _serve_ros1(args: argparse.Namespace) -> int:
         raise ConfigError(
             "--ros1-master serves on the ROS graph in wall time: --sim-time, --markers and --namespace do not apply"
         )
-    cfg = Ros1BridgeConfig(robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host)
+    cfg = Ros1BridgeConfig(
+        robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host, insecure=args.insecure
+    )
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
     return _run_until_signal(serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
 
 
 def _print_ready(uri: str) -> None:
-    sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join, or the ROS master
+    """Say on stdout how to reach what now serves: a shell line to paste (or ``eval``) elsewhere, then a hint.
+
+    The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, or ``export ROS_MASTER_URI=http://...``
+    when a ROS 1 master carries the arm; scripts read the URI after the ``=``.
+    """
+    if uri.startswith("http://"):
+        sys.stdout.write(f"export ROS_MASTER_URI={uri}\n# the arm serves a ROS 1 driver's topics on this master\n")
+    else:
+        sys.stdout.write(f"export UNIROS_DOMAIN={uri}\n# in another shell, the line above, then: uniros topic list\n")
     sys.stdout.flush()
 
 
@@ -200,9 +222,10 @@ def _run_until_signal(serve: Any) -> int:
         mine = group.subgroup(UnirosError)
         if mine is None:
             raise
-        while isinstance(mine, BaseExceptionGroup):
-            mine = mine.exceptions[0]
-        raise mine from None
+        first: BaseException = mine
+        while isinstance(first, BaseExceptionGroup):
+            first = first.exceptions[0]
+        raise first from None
     return 0
 
 
@@ -223,8 +246,36 @@ def _serve(args: argparse.Namespace) -> int:
         clock="sim" if args.sim_time else "wall",
         time_scale=args.time_scale or None,
         publish_markers=args.markers,
+        auth_key=_auth_key(args),
+        insecure=args.insecure,
     )
     return _run_until_signal(serve_servo_sim(cfg, on_ready=_print_ready))
+
+
+def _add_exposure_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--auth-key-env",
+        default=None,
+        metavar="VAR",
+        help=f"read the domain's shared auth key from this environment variable (default: ${AUTH_KEY_ENV} if set); "
+        "nodes joining must use the same key",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow listening beyond loopback without authentication (--host other than 127.0.0.1 without a key; "
+        "any ROS 1 listener beyond loopback, since ROS 1 cannot authenticate)",
+    )
+
+
+def _auth_key(args: argparse.Namespace) -> bytes | None:
+    var = args.auth_key_env or AUTH_KEY_ENV
+    key = os.environ.get(var, "").encode() or None
+    if args.auth_key_env and key is None:
+        from uniros_async.errors import ConfigError
+
+        raise ConfigError(f"--auth-key-env {var}: the environment variable {var} is not set (or empty)")
+    return key
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,4 +1,4 @@
-"""ServoSimNode: the bus face of a ServoSim, the "hardware interface" of a simulated arm (design.md section 5).
+"""ServoSimNode: the bus face of a ServoSim, the "hardware interface" of a simulated arm.
 
 In namespace ``/<robot name>`` (configurable) the node
 
@@ -10,7 +10,7 @@ In namespace ``/<robot name>`` (configurable) the node
 - publishes Marker messages on ``markers`` when asked (``publish_markers=True``): the goal marker given by
   ``set_goal_marker(pos)`` or received on ``markers_in``, and the EE marker at every tick.
 
-Placements (design.md section 5): ``open_servo_sim`` runs it in the caller's process; ``open_servo_sim_process``
+Placements (docs/architecture.md): ``open_servo_sim`` runs it in the caller's process; ``open_servo_sim_process``
 (sim/serve.py) in its own process joining the same domain; ``serve_servo_sim`` (sim/serve.py, and
 ``uniros robot serve``) as a remote service with its own tcp domain.
 

@@ -43,6 +43,7 @@ import struct
 from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any
 
+from uniros_async.backoff import Backoff
 from uniros_async.errors import (
     ConfigError,
     FrameTooLargeError,
@@ -81,9 +82,9 @@ _ADDRESS_PREFIX = "\0uniros-shm-"
 _MAX_NAME_BYTES = 100  # sun_path holds 108 bytes, the prefix included
 
 # Before sleeping, receive() polls the ring for up to spin_ns, yielding the CPU between polls: in a request/reply
-# exchange the answer usually comes sooner than a sleeping process wakes up (20-46 us on an idle core here, design.md
-# section 9), and while both ends keep polling neither core halts (10 us round trips instead of 60-80 us). After
-# sending a large frame the window grows by the time the peer needs to read it (up to _SPIN_EXTRA_NS). A spin that
+# exchange the answer usually comes sooner than a sleeping process wakes up (20-46 us for an idle core of a 2-core
+# VM), and while both ends keep polling neither core halts (10 us round trips instead of 60-80 us). After sending
+# a large frame the window grows by the time the peer needs to read it (up to _SPIN_EXTRA_NS). A spin that
 # finds nothing costs credit; without credit no spin is tried until a sleep turns out to have been short enough that
 # a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
 _now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
@@ -98,7 +99,7 @@ _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS
 class ShmTransport(Transport):
     """One end of a ``shm://`` connection (made by ``connect`` or ``ShmListener.accept``).
 
-    Costs on the 2-core machines of design.md: one copy per send (a 900 KiB image: 45 us when the ring's pages are
+    Costs on the 2-core VMs of docs/performance.md: one copy per send (a 900 KiB image: 45 us when the ring's pages are
     in cache), no syscall per frame while both ends are busy, one eventfd write when the reader sleeps.
     """
 
@@ -908,7 +909,7 @@ async def connect(uri: str, options: TransportOptions) -> ShmTransport:
     if not name:
         raise ConfigError(f"connect needs a name: shm://NAME, got {uri!r}")
     loop = asyncio.get_running_loop()
-    delay_s = 0.001
+    backoff = Backoff(first_s=0.001, max_s=0.1)
     async with asyncio.timeout(options.connect_timeout_s):
         while True:
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -921,8 +922,7 @@ async def connect(uri: str, options: TransportOptions) -> ShmTransport:
             except BaseException:
                 sock.close()
                 raise
-            await asyncio.sleep(delay_s)
-            delay_s = min(delay_s * 2, 0.1)
+            await backoff.sleep()
         try:
             setup = await _shm_handshake.join(sock, name, options)
             return _open_transport(name, sock, setup, options)
