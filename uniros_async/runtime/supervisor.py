@@ -514,7 +514,7 @@ class Supervisor:
         (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
         half is ``receive_steps_now``; ``submit_steps`` (``step_async``) sends with it too. In as few lines of Python
         as it can: this runs on every step, and at one env the agent's share of a step's overhead is what its lines of
-        Python cost (the goal: 50 us).
+        Python cost (the goal: 50 us over the bare env step).
 
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).

@@ -1,9 +1,10 @@
 """The env worker process: one environment, served to the agent side over the project's own transports.
 
-A worker is started by the supervisor (``multiprocessing.get_context("spawn")``, ``daemon=True``) with one frozen
-``WorkerSpec``. It listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through the
-start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then answers
-requests until told to close or until the supervisor goes away.
+A worker is started with one frozen ``WorkerSpec``: by the supervisor as ``python -m uniros_async.runtime``
+(``launch.start_worker``, ``__main__.py``), by a remote launcher with multiprocessing's spawn (``remote.py``). It
+listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through the start-up pipe, accepts
+one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then answers requests until told to
+close or until the supervisor goes away.
 
 One event loop per worker (docs/architecture.md): a uniros env is made inside ``envs.runtime.deferred_start()`` and
 started on the worker's own loop (``await env.astart()``), so its bus, servo sim and env loop run beside the
