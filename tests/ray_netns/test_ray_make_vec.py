@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from uniros_async.errors import ConfigError
+from uniros_async.errors import ConfigError, WorkerError
 from uniros_async.runtime import make, make_vec
 
 RX, NED = "uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"
@@ -96,3 +96,11 @@ def test_no_cluster_at_the_address_fails_fast_naming_it() -> None:
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env, check=True)
     assert "ConfigError" in out.stdout and "127.0.0.1:1" in out.stdout, out.stdout + out.stderr
+
+
+def test_a_resource_that_is_taken_fails_after_the_start_timeout_naming_it(cluster: dict[str, Any]) -> None:
+    # the arm node has one rx200_arm: the second spec's actor can never be placed while the first holds it
+    with pytest.raises(WorkerError) as err:
+        make_vec([("CartPole-v1", ARM), ("CartPole-v1", ARM)], backend="ray", start_timeout_s=5.0)
+    msg = str(err.value)
+    assert "within 5" in msg and "rx200_arm" in msg and cluster["arm_id"][:12] in msg, msg

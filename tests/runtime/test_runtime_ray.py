@@ -46,7 +46,10 @@ def test_ray_module_in_a_network_namespace(module: str) -> None:
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
     env = dict(os.environ, UNIROS_RAY_NETNS="1", PYTHONPATH=path)
     env.pop("RAY_ADDRESS", None)
-    inner = f"ip link set lo up && exec {sys.executable} -m pytest -q -p no:cacheprovider -rs tests/ray_netns/{module}"
+    inner = (
+        f"ip link set lo up && exec {sys.executable} -m pytest -q -p no:cacheprovider -rs --tb=short"
+        f" tests/ray_netns/{module}"
+    )
     proc = subprocess.run(
         ["unshare", "--net", "--", "sh", "-c", inner],
         cwd=ROOT,
@@ -57,5 +60,7 @@ def test_ray_module_in_a_network_namespace(module: str) -> None:
         check=False,
     )
     out = proc.stdout + proc.stderr
-    assert proc.returncode == 0, f"tests/ray_netns/{module} failed in its network namespace:\n{out[-12000:]}"
+    failures = out.find("= FAILURES =") if "= FAILURES =" in out else out.find("= ERRORS =")
+    shown = (out[failures : failures + 10000] + "\n...\n" if failures >= 0 else "") + out[-3000:]
+    assert proc.returncode == 0, f"tests/ray_netns/{module} failed in its network namespace:\n{shown}"
     assert " passed" in out and "skipped" not in out, f"tests/ray_netns/{module}: not every test ran:\n{out[-4000:]}"

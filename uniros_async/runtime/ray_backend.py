@@ -389,7 +389,7 @@ class RayWorkerProcess:
             nodes = _node_summary([n for n in ray.nodes() if n.get("Alive")])
             raise WorkerError(
                 index,
-                f"{env_id}: Ray did not place and start the worker within {timeout_s} s (it asks for "
+                f"{env_id}: Ray did not place and start the worker within {timeout_s:.1f} s (it asks for "
                 f"{p.num_cpus} CPU and {p.resources}{f' on node {p.node_id}' if p.node_id else ''}; nodes: {nodes})",
             ) from None
         except Exception as exc:  # noqa: BLE001 - RayActorError and the like: the actor died at start
