@@ -129,7 +129,7 @@ def test_make_and_make_vec_mix_remote_and_local_workers(launcher: LauncherProces
     try:
         assert launcher.workers() == [env.pid]
         obs, info = env.reset(seed=0)
-        assert obs.shape == (28,) and info["env_id"] == RX
+        assert obs.shape == (28,) and "env_id" not in info  # one env: its info is its own
         obs, reward, terminated, truncated, _ = env.step(np.zeros(5, np.float32))
         assert obs.shape == (28,) and isinstance(reward, float)
         # the worker stops by itself when its tcp connection to the agent goes away (EOF), the launcher's
