@@ -63,6 +63,10 @@ _ACTOR_CONCURRENCY = 4
 """Threads of a host actor: ``wait_exit`` blocks in one while ``terminate`` / ``kill`` run in another."""
 _CONNECT_PROBE_S = 2.0
 """How long the tcp probe of a cluster's address may take before ``connect`` gives up on it."""
+_DEATH_REPORT_WAIT_S = 0.2
+"""How long a broken connection waits for the actor's report of the worker's exit code before it is reported
+without it (``poll_exit`` outside ``stop``): a living actor reports within milliseconds; a dead one (its node lost)
+is reported by Ray only after ~0.5 s, which would hold the error past a 10 Hz env's next action cycle."""
 _PLACEMENT_KEYS = {"resources", "node_id", "num_cpus", "address"}
 BACKENDS = ("local", "ray")
 """``make_vec`` / ``make``'s ``backend``: workers started here (``local``), or placed by Ray (``ray``)."""
@@ -346,6 +350,7 @@ class RayWorkerProcess:
         self._actor: Any = None
         self._exit: concurrent.futures.Future[Any] | None = None
         self._news = False
+        self._stopping = False  # in ``stop``: wait for the exit as long as asked
 
     def where(self) -> str:
         return f"pid {self.pid} on Ray node {self.node_id[:12]} ({self.node_ip})"
@@ -416,10 +421,13 @@ class RayWorkerProcess:
         return self._news
 
     async def poll_exit(self, timeout_s: float) -> int | None:
-        """Wait at most ``timeout_s`` for the actor's report that the worker ended; its exit code, or None."""
+        """Wait at most ``timeout_s`` (outside ``stop``: at most ``_DEATH_REPORT_WAIT_S``) for the actor's report that
+        the worker ended; its exit code, or None."""
         fut = self._exit
         if self.exitcode is not None or fut is None or self.launcher_lost is not None:
             return self.exitcode
+        if not self._stopping:  # a broken connection's report: see _DEATH_REPORT_WAIT_S
+            timeout_s = min(timeout_s, _DEATH_REPORT_WAIT_S)
         with contextlib.suppress(Exception):  # a timeout, or the actor's death: read from ``fut`` below
             async with asyncio.timeout(max(0.0, timeout_s)):
                 await asyncio.shield(asyncio.wrap_future(fut))
@@ -436,6 +444,7 @@ class RayWorkerProcess:
     async def stop(self, timeout_s: float, *, asked: bool) -> None:
         """Make sure the worker ends: wait ``timeout_s`` for it (if it was ``asked`` to close), else terminate it,
         then kill it, through its actor; then kill the actor. Bounded by about 2 x ``timeout_s`` + 1 s."""
+        self._stopping = True
         try:
             if self._actor is None or self.pid is None:
                 return
