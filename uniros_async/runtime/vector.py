@@ -263,10 +263,9 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         return tuple(result_value(r) for r in self._sup.call(self._sup.request_all([msg] * self.num_envs)))
 
     def get_attr(self, name: str) -> tuple[Any, ...]:
-        """Attribute ``name`` of every sub-env (as ``call``, without calling it)."""
-        self._check_open()
-        msg = {"op": "get", "name": name}
-        return tuple(result_value(r) for r in self._sup.call(self._sup.request_all([msg] * self.num_envs)))
+        """Attribute ``name`` of every sub-env: ``call(name)``, as gymnasium's vector envs have it (a method is
+        called)."""
+        return self.call(name)
 
     def set_attr(self, name: str, values: list[Any] | tuple[Any, ...] | Any) -> None:
         """Set attribute ``name`` of every sub-env: ``values[i]`` for sub-env i when a list or tuple, else the one
