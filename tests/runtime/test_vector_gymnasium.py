@@ -139,6 +139,30 @@ def test_vector_env_equal(transport: str, autoreset_mode: AutoresetMode) -> None
         sync_env.close()
 
 
+@pytest.mark.parametrize("autoreset_mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_dict_of_boxes_equal(transport: str, autoreset_mode: AutoresetMode) -> None:
+    """A Dict of Boxes (a goal env's observation, batched key by key by make_vec itself) equals SyncVectorEnv's,
+    step by step, across an episode's end (the env's episodes are 200 steps)."""
+    from uniros_async.bench.envs import DICT_ID
+
+    uniros_env = make_vec([DICT_ID] * 2, transport=transport, autoreset_mode=autoreset_mode)
+    sync_env = _sync(DICT_ID, 2, autoreset_mode=autoreset_mode)
+    try:
+        u_obs, u_info = uniros_env.reset(seed=3)
+        s_obs, s_info = sync_env.reset(seed=3)
+        assert data_equivalence(u_obs, s_obs) and data_equivalence(u_info, s_info)
+        uniros_env.action_space.seed(3)
+        for _ in range(205):
+            actions = uniros_env.action_space.sample()
+            u = uniros_env.step(actions)
+            s = sync_env.step(actions)
+            for a, b in zip(u, s, strict=True):
+                assert data_equivalence(a, b), (a, b)
+    finally:
+        uniros_env.close()
+        sync_env.close()
+
+
 @pytest.mark.parametrize("space", TESTING_SPACES, ids=TESTING_SPACES_IDS)
 def test_vector_obs_action_spaces(space: gym.Space[object]) -> None:
     """Every kind of space crosses the wire: the observations are in the batched space, the actions reach each

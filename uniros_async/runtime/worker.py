@@ -404,8 +404,8 @@ class _Server:
             if callable(attr):
                 attr = attr(*request.get("args", []), **request.get("kwargs", {}))
             return reply_value(attr)
-        if op == "get":
-            return reply_value(self._attr(request["name"]))
+        if op == "get":  # reading is harmless: private attributes too
+            return reply_value(self._attr(request["name"], private=True))
         if op == "set":
             name = request["name"]
             if name.startswith("_"):
@@ -423,10 +423,15 @@ class _Server:
             f"unknown op {op!r}; expected spaces, pad, reset, step, call, get, set, render, is_wrapped or close"
         )
 
-    def _attr(self, name: str) -> Any:
-        """Attribute ``name`` of the env, looked up through its wrappers as gymnasium's vector envs do."""
-        if name.startswith("_"):
-            raise AttributeError(f"refusing to access private attribute {name!r}")
+    def _attr(self, name: str, *, private: bool = False) -> Any:
+        """Attribute ``name`` of the env, looked up through its wrappers as gymnasium's vector envs do (a private
+        one only with ``private``).
+
+        Raises:
+            AttributeError: no such attribute, or a private one without ``private``.
+        """
+        if name.startswith("_") and not private:
+            raise AttributeError(f"refusing to call private attribute {name!r}")
         env = self.env
         assert env is not None
         return env.get_wrapper_attr(name)
