@@ -6,7 +6,6 @@
     uniros param get|set|load|list        parameters of a domain, as rosparam
     uniros robot ...                      simulated and emulated arms (sim/cli.py)
     uniros train|eval|plot                TD3 / TD3+HER training, checkpoint evaluation, curves (training/cli.py)
-    uniros worker serve                   a launcher of env workers for agents on other hosts (runtime/remote.py)
 
 Every introspection command takes ``--domain URI`` or reads ``UNIROS_DOMAIN``. Errors print one line and exit 2;
 nothing here starts a domain (``open_domain()`` does that from Python).
@@ -176,19 +175,6 @@ def _build_parser() -> argparse.ArgumentParser:
     pli = param.add_parser("list", help="names of parameters")
     _domain_arg(pli)
     pli.add_argument("prefix", nargs="?", default="/", help="list only names under it (default /)")
-
-    worker = sub.add_parser("worker", help="env workers for agents on other hosts").add_subparsers(
-        dest="action", required=True
-    )
-    ws = worker.add_parser("serve", help="start env workers on request (make_vec/make with worker='tcp://HOST:PORT')")
-    ws.add_argument("--listen", default="tcp://0.0.0.0:7000", help="tcp://HOST:PORT (default tcp://0.0.0.0:7000)")
-    ws.add_argument(
-        "--auth-key-env",
-        default=None,
-        metavar="VAR",
-        help="read the shared auth key from this environment variable (default: $UNIROS_WORKER_AUTH_KEY if set)",
-    )
-    ws.add_argument("--max-workers", type=int, default=None, metavar="N", help="refuse more than N workers at once")
 
     from uniros_async.sim import cli as robot_cli  # imports no MuJoCo until a robot command runs
 
@@ -431,26 +417,6 @@ def _run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_worker(args: argparse.Namespace) -> int:
-    import os
-
-    from uniros_async.runtime import remote
-
-    var = args.auth_key_env or remote.AUTH_KEY_ENV
-    key = os.environ.get(var) or None
-    if args.auth_key_env and key is None:
-        raise UnirosError(f"--auth-key-env {var}: the environment variable {var} is not set (or empty)")
-
-    def ready(launcher: remote.Launcher) -> None:
-        print(f"worker launcher listening on {launcher.uri} (auth {'on' if key else 'off'})", flush=True)
-
-    try:
-        remote.run_launcher(args.listen, auth_key=key, max_workers=args.max_workers, ready=ready)
-    except OSError as exc:
-        raise UnirosError(f"cannot listen on {args.listen}: {exc}") from exc
-    return 0
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``uniros`` command; returns the exit code."""
     args = _build_parser().parse_args(argv)
@@ -474,8 +440,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             from uniros_async.sim import cli as robot_cli
 
             return int(robot_cli.run(args))
-        if args.command == "worker":
-            return _run_worker(args)
     except KeyboardInterrupt:
         return 130
     except (UnirosError, KeyError, TimeoutError) as exc:

@@ -1,5 +1,5 @@
 """The worker processes this test process started and that still run: local workers (``launch.live_workers``,
-started as ``python -m uniros_async.runtime``) and anything multiprocessing started (a launcher's workers, servo
+started as ``python -m uniros_async.runtime``) and anything multiprocessing started (servo
 processes)."""
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ import pytest
 from _children import children
 
 from uniros_async.errors import ConfigError, WorkerError
-from uniros_async.runtime import ProxyEnv, make
+from uniros_async.runtime import ProxyEnv, make, make_vec
 from uniros_async.tasks.registry import ENV_IDS
 
 pytestmark = pytest.mark.slow
@@ -66,6 +66,23 @@ def test_unknown_id_and_kwarg_fail_in_the_caller_before_any_process() -> None:
     assert "rewardtype" in str(e.value)
     with pytest.raises(ConfigError, match="clock"):
         make("uniros/Rx200Reach-v0", clock="fast")
+    assert set(children()) == before
+
+
+def test_a_worker_placement_other_than_ray_fails_in_the_caller_pointing_at_the_cluster_howto() -> None:
+    before = set(children())
+    with pytest.raises(ConfigError, match="run on Ray") as e:  # a worker on another host is Ray's job
+        make("uniros/Rx200Reach-v0", worker="tcp://127.0.0.1:7000")
+    assert "tcp://127.0.0.1:7000" in str(e.value) and "docs/howto/cluster.md" in str(e.value)
+    with pytest.raises(ConfigError, match="run on Ray"):
+        make_vec([("CartPole-v1", {"worker": "tcp://10.0.0.5:7000"}), "CartPole-v1"])
+    with pytest.raises(ConfigError, match="worker must be None") as e:
+        make("CartPole-v1", worker={"uri": "tcp://127.0.0.1:7000"})
+    assert "docs/howto/cluster.md" in str(e.value) and "'uri'" in str(e.value)
+    # kwargs that go to another node must be plain data: checked before Ray is asked for anything
+    with pytest.raises(ConfigError, match="plain data") as e:
+        make("uniros/Rx200Reach-v0", worker="ray", clock=object())
+    assert "'clock'" in str(e.value)
     assert set(children()) == before
 
 

@@ -2,7 +2,7 @@
 
 ``check_env_args`` tells an unknown id or keyword argument (and a malformed ``worker`` placement) at once, with
 what was expected, instead of as a worker's failure; ``split_placement`` takes the ``worker`` keyword (where the
-worker runs: a launcher, runtime/remote.py, or a node Ray picks, runtime/ray_backend.py) out of a spec's kwargs.
+worker runs: here, or on a node Ray picks, runtime/ray_backend.py) out of a spec's kwargs.
 """
 
 from __future__ import annotations
@@ -11,44 +11,82 @@ import difflib
 import importlib
 from typing import Any
 
+import numpy as np
 from gymnasium.envs.registration import registry
 
-from uniros_async.errors import ConfigError
+from uniros_async.bus.codec import encode_plain
+from uniros_async.errors import CodecError, ConfigError
 from uniros_async.runtime.ray_backend import RayPlacement, parse_ray_placement
-from uniros_async.runtime.remote import RemoteWorker, check_plain, parse_placement
 
-__all__ = ["PLACEMENT_KWARG", "check_env_args", "registration", "split_placement"]
+__all__ = ["CLUSTER_HOWTO", "PLACEMENT_KWARG", "check_env_args", "check_plain", "registration", "split_placement"]
 
 # gymnasium.make's own keyword arguments (not passed to the env constructor)
 _MAKE_KWARGS = {"max_episode_steps", "disable_env_checker", "autoreset", "apply_api_compatibility"}
-# where the worker runs (runtime/remote.py); taken out of the kwargs before they reach the env
+# where the worker runs (None: here; a Ray placement: runtime/ray_backend.py); taken out of the kwargs before they
+# reach the env
 PLACEMENT_KWARG = "worker"
+CLUSTER_HOWTO = "docs/howto/cluster.md"
+"""The how-to that a misplaced ``worker`` points at: workers on other hosts run on Ray."""
 
 
-def split_placement(kwargs: dict[str, Any]) -> tuple[RemoteWorker | RayPlacement | None, dict[str, Any]]:
+def split_placement(kwargs: dict[str, Any]) -> tuple[RayPlacement | None, dict[str, Any]]:
     """The placement of a spec (None: a local worker) and the kwargs without it.
 
     Raises:
-        ConfigError: a malformed ``worker`` value.
+        ConfigError: a ``worker`` value that is neither None nor a Ray placement (a ``"tcp://HOST:PORT"`` among
+            them: workers on other hosts are placed by Ray).
     """
     if PLACEMENT_KWARG not in kwargs:
         return None, kwargs
     rest = {k: v for k, v in kwargs.items() if k != PLACEMENT_KWARG}
     value = kwargs[PLACEMENT_KWARG]
-    return parse_ray_placement(value) or parse_placement(value), rest
+    if value is None:
+        return None, rest
+    placement = parse_ray_placement(value)
+    if placement is not None:
+        return placement, rest
+    if isinstance(value, str) and value.startswith("tcp://"):
+        raise ConfigError(
+            f"worker={value!r}: workers on other hosts run on Ray: start a Ray cluster and give the spec "
+            f"worker='ray' or {{'ray': {{'resources': ..., 'node_id': ...}}}}, or make_vec(..., backend='ray') "
+            f"(see {CLUSTER_HOWTO})"
+        )
+    raise ConfigError(
+        f"worker must be None (a worker on this machine), 'ray', {{'ray': {{...}}}} or a RayPlacement (placed by Ray, "
+        f"on any node of a cluster: see {CLUSTER_HOWTO}), got {value!r:.80}"
+    )
+
+
+def _strict_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    if isinstance(value, tuple):
+        return list(value)
+    raise TypeError(f"{type(value).__name__} is not plain data")
+
+
+def check_plain(kwargs: dict[str, Any], env_id: str) -> None:
+    """ConfigError unless ``kwargs`` can travel to a worker on another node as plain data (no pickles cross the
+    wire)."""
+    for k, v in kwargs.items():
+        try:
+            encode_plain(v, _strict_default)
+        except CodecError as exc:
+            raise ConfigError(
+                f"{env_id}: keyword {k!r} cannot be sent to a worker placed by Ray ({exc}); use plain data"
+            ) from None
 
 
 def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
     """Check, in the caller, that ``env_id`` is registered and (for uniros envs) that ``kwargs`` are known.
 
-    ``worker`` (where the worker runs, see runtime/remote.py) is accepted and checked, never passed to the env. For
-    a spec placed on a launcher, an id unknown here is left to the launcher's registry to judge; for a spec placed by
-    Ray, a ``"module:Id"`` whose module does not import here is left to the worker's node.
+    ``worker`` (where the worker runs, see ``split_placement``) is accepted and checked, never passed to the env.
+    For a spec placed by Ray, a ``"module:Id"`` whose module does not import here is left to the worker's node.
 
     Raises:
         ConfigError: an unknown id (the registered uniros ids are listed) or unknown keyword arguments (the
             valid ones are listed), or an invalid run-time setting (EnvConfig's own checks), or a malformed
-            ``worker``, or (remote) kwargs that are not plain data.
+            ``worker``, or (placed by Ray) kwargs that are not plain data.
     """
     from uniros_async.tasks.registry import ENV_IDS, register_envs
 
@@ -62,12 +100,12 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
         try:
             importlib.import_module(module)
         except ImportError as exc:
-            if placement is None:  # a launcher may have the module where this machine has not
+            if placement is None:  # the worker's node may have the module where this machine has not
                 raise ConfigError(
                     f"env id {env_id!r}: cannot import {module!r}, which should register {reg_id!r}: {exc}"
                 ) from exc
-    # a launcher judges an id unknown here; a node Ray picks has the same uniros registry, and judges "module:Id"
-    judged_there = isinstance(placement, RemoteWorker) or (isinstance(placement, RayPlacement) and ":" in env_id)
+    # a node Ray picks has the same uniros registry, and judges a "module:Id" whose module does not import here
+    judged_there = placement is not None and ":" in env_id
     if judged_there and isinstance(reg_id, str) and reg_id not in registry:
         return
     if not isinstance(reg_id, str) or reg_id not in registry:

@@ -90,14 +90,14 @@ def make(
         transport: how the agent side talks to the worker: ``"shm"`` (default) or ``"tcp"`` (loopback).
         backend: ``"local"`` (the default) or ``"ray"``: the worker is placed by Ray (see ``make_vec``).
         **kwargs: passed to ``gymnasium.make`` in the worker (clock, robot, reward_type, ...), except ``worker``:
-            where the worker runs, None (here) or a launcher on another host, ``"tcp://HOST:PORT"`` or a
-            ``RemoteWorker`` (see runtime/remote.py; the key defaults to ``$UNIROS_WORKER_AUTH_KEY``).
+            where the worker runs, None (here) or a Ray placement, ``"ray"`` or ``{"ray": {...}}`` (see
+            ``make_vec`` and runtime/ray_backend.py).
 
     Raises:
-        ConfigError: an unknown id or keyword argument (raised here, before any process starts; for a remote
-            worker, by the launcher's registry).
-        WorkerError: the worker failed to start or to build the env (its traceback attached), or its launcher
-            is unreachable or refused it.
+        ConfigError: an unknown id or keyword argument, or a ``worker`` that is neither None nor a Ray placement
+            (raised here, before any process starts).
+        WorkerError: the worker failed to start or to build the env (its traceback attached), or Ray could not
+            place or start it.
     """
     ((env_id, kwargs),) = apply_backend([(env_id, kwargs)], "local" if in_process else backend)
     check_env_args(env_id, kwargs)

@@ -121,7 +121,7 @@ class RayPlacement:
 
 def parse_ray_placement(value: Any) -> RayPlacement | None:
     """The ``worker`` keyword of a spec as a Ray placement: ``"ray"``, ``{"ray": {resources, node_id, num_cpus,
-    address}}`` (the YAML form), or a ``RayPlacement``; None for anything else (a local worker or a launcher).
+    address}}`` (the YAML form), or a ``RayPlacement``; None for anything else (``envargs.split_placement`` judges it).
 
     Raises:
         ConfigError: a ``{"ray": ...}`` mapping with unknown keys or malformed values.
@@ -346,7 +346,7 @@ class RayWorkerProcess:
         self.worker_uri = ""
         self.node_id = ""
         self.node_ip = ""
-        self.launcher_lost: str | None = None  # why the actor ended without reporting the worker's exit
+        self.lost: str | None = None  # why the actor ended without reporting the worker's exit
         self._actor: Any = None
         self._exit: concurrent.futures.Future[Any] | None = None
         self._news = False
@@ -356,7 +356,7 @@ class RayWorkerProcess:
         return f"pid {self.pid} on Ray node {self.node_id[:12]} ({self.node_ip})"
 
     def is_alive(self) -> bool:
-        return self.pid is not None and self.exitcode is None and self.launcher_lost is None
+        return self.pid is not None and self.exitcode is None and self.lost is None
 
     async def start(self, index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float) -> str:
         """Have Ray place an actor, which starts the worker; returns the worker's URI.
@@ -424,7 +424,7 @@ class RayWorkerProcess:
         """Wait at most ``timeout_s`` (outside ``stop``: at most ``_DEATH_REPORT_WAIT_S``) for the actor's report that
         the worker ended; its exit code, or None."""
         fut = self._exit
-        if self.exitcode is not None or fut is None or self.launcher_lost is not None:
+        if self.exitcode is not None or fut is None or self.lost is not None:
             return self.exitcode
         if not self._stopping:  # a broken connection's report: see _DEATH_REPORT_WAIT_S
             timeout_s = min(timeout_s, _DEATH_REPORT_WAIT_S)
@@ -438,7 +438,7 @@ class RayWorkerProcess:
                 self.exitcode = int(code) if code is not None else -1
             else:
                 node = f"{self.node_id[:12]} ({self.node_ip})"
-                self.launcher_lost = f"its Ray actor on node {node} is gone: {_first_line(exc)}"
+                self.lost = f"its Ray actor on node {node} is gone: {_first_line(exc)}"
         return self.exitcode
 
     async def stop(self, timeout_s: float, *, asked: bool) -> None:
@@ -451,7 +451,7 @@ class RayWorkerProcess:
             if asked:
                 await self.poll_exit(timeout_s)
             for op, wait_s in (("terminate", timeout_s), ("kill", 1.0)):
-                if self.exitcode is not None or self.launcher_lost is not None:
+                if self.exitcode is not None or self.lost is not None:
                     break
                 getattr(self._actor, op).remote()
                 await self.poll_exit(wait_s)

@@ -7,8 +7,8 @@ and a call then costs no hand-over to another thread (~16 us of loop start/stop 
 wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_steps`` sends requests
 and returns at once; the replies are collected by ``_Pending.result``. A step does not run the loop at all: the
 requests go out with the transport's ``try_send`` and the replies come in with its ``receive_blocking`` (shm and
-tcp, local and remote workers), in the calling thread (``send_steps_now``, ``receive_steps_now`` and
-``_take_replies``); whatever that cannot do (no room, a hang-up, a deadline, a launcher's news of a remote worker)
+tcp, local and Ray-placed workers), in the calling thread (``send_steps_now``, ``receive_steps_now`` and
+``_take_replies``); whatever that cannot do (no room, a hang-up, a deadline, a Ray actor's news of its worker)
 is left to the loop, which also reports it.
 Every wait on a worker has a deadline; a worker that does not answer in time, whose connection breaks or whose
 process died is marked broken and every later request to it raises WorkerError naming its index. A call
@@ -22,18 +22,14 @@ imports nothing of the agent's ``__main__``), then each worker's listen URI (``s
 supervisor connects to all of them and asks each for its spaces, in parallel.
 If any worker fails to start, all are closed and the error names the worker and why.
 
-Remote workers: a spec whose kwargs hold ``worker="tcp://HOST:PORT"`` (or a ``remote.RemoteWorker``) is
-started by the launcher there (``uniros worker serve``, runtime/remote.py) instead of ``_spawn``; the launcher
-answers with the worker's tcp URI and the supervisor connects to it directly, as to a local one. Its ``process`` is
-a ``RemoteWorkerProcess`` (pid and exit code as the launcher reports them); a broken connection is reported with
-the exit code the launcher saw, ``restart`` starts the new worker through the same launcher, and ``close`` has the
-launcher terminate and kill what does not exit by itself. Local and remote workers mix freely.
-
 Workers placed by Ray: a spec whose ``worker`` is a Ray placement (``"ray"``, ``{"ray": {...}}``, a
-``ray_backend.RayPlacement``) is started the same way by a Ray actor on the node Ray's scheduler picks
-(runtime/ray_backend.py); its ``process`` is a ``RayWorkerProcess``. The placements are checked against the
-cluster's nodes before any worker starts, and the workers of one supervisor share a random key (tcp or shm with
-HMAC).
+``ray_backend.RayPlacement``) is started instead of ``_spawn`` by a Ray actor on the node Ray's scheduler picks
+(runtime/ray_backend.py); the actor answers with the worker's URI and the supervisor connects to it directly, as
+to a local one. Its ``process`` is a ``RayWorkerProcess`` (pid and exit code as the actor reports them); a broken
+connection is reported with the exit code the actor saw, ``restart`` starts the new worker through Ray with the
+same placement, and ``close`` has the actor terminate and kill what does not exit by itself. The placements are
+checked against the cluster's nodes before any worker starts, and the workers of one supervisor share a random key
+(tcp or shm with HMAC). Local and Ray-placed workers mix freely.
 """
 
 from __future__ import annotations
@@ -59,7 +55,6 @@ from uniros_async.runtime.envargs import check_env_args, registration, split_pla
 from uniros_async.runtime.launch import WorkerProcess, start_worker
 from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
 from uniros_async.runtime.ray_backend import RayPlacement, RayWorkerProcess, check_placements
-from uniros_async.runtime.remote import RemoteWorker, RemoteWorkerProcess
 from uniros_async.runtime.worker import WorkerSpec
 
 __all__ = ["Supervisor", "WorkerHandle"]
@@ -91,8 +86,8 @@ class WorkerHandle:
     """The supervisor's side of one worker."""
 
     spec: WorkerSpec
-    process: WorkerProcess | RemoteWorkerProcess | RayWorkerProcess
-    conn: Any = None  # the start-up pipe end (None for a remote worker)
+    process: WorkerProcess | RayWorkerProcess
+    conn: Any = None  # the start-up pipe end (None for a Ray-placed worker)
     transport: Any = None
     broken: str | None = None
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -114,10 +109,10 @@ class WorkerHandle:
         return self.spec.index
 
     @functools.cached_property
-    def remote(self) -> RemoteWorkerProcess | RayWorkerProcess | None:
-        """The handle of a worker started elsewhere (by a launcher or a Ray actor), or None for a local one (read on
-        every step; a handle keeps its process: a restart makes a new handle)."""
-        return self.process if isinstance(self.process, RemoteWorkerProcess | RayWorkerProcess) else None
+    def remote(self) -> RayWorkerProcess | None:
+        """The handle of a worker started elsewhere (by a Ray actor), or None for a local one (read on every step; a
+        handle keeps its process: a restart makes a new handle)."""
+        return self.process if isinstance(self.process, RayWorkerProcess) else None
 
     async def request(self, message: dict[str, Any], timeout_s: float) -> Any:
         """Send ``message`` and wait for the reply's result.
@@ -136,7 +131,7 @@ class WorkerHandle:
             raise WorkerError(self.index, self.broken)
         self.check_idle()
         remote = self.remote
-        if remote is not None and remote.lifeline_has_news():  # its launcher reported the exit, or died
+        if remote is not None and remote.lifeline_has_news():  # its actor reported the exit, or died
             self.broken = await self._death_reason()
             raise WorkerError(self.index, self.broken)
         op = message.get("op")
@@ -160,13 +155,13 @@ class WorkerHandle:
 
     def try_send_request(self, frame: bytes) -> bool:
         """Send an already packed request at once, outside the event loop, when nothing stands in the way (not
-        broken, no news from a remote worker's launcher, room in the transport); True if sent (``receive_reply`` must
+        broken, no news from a Ray-placed worker's actor, room in the transport); True if sent (``receive_reply`` must
         follow). False: nothing was sent, ``send_request`` must do it (and raises what is wrong)."""
         try_send = self.try_send
         if self.broken is not None or self.in_flight or try_send is None:
             return False
         remote = self.remote
-        if remote is not None and remote.lifeline_has_news():  # send_request reports the launcher's news
+        if remote is not None and remote.lifeline_has_news():  # send_request reports the actor's news
             return False
         if not try_send(frame):
             return False
@@ -234,11 +229,11 @@ class WorkerHandle:
     async def _death_reason(self) -> str:
         remote = self.remote
         if remote is not None:
-            code = await remote.poll_exit(0.5)  # the launcher reports the exit a moment after the connection broke
+            code = await remote.poll_exit(0.5)  # the actor reports the exit a moment after the connection broke
             if code is not None:
                 return f"the remote worker process ({self.spec.env_id}, {remote.where()}) died with exit code {code}"
-            if remote.launcher_lost:
-                return f"the remote worker ({self.spec.env_id}, {remote.where()}) is lost: {remote.launcher_lost}"
+            if remote.lost:
+                return f"the remote worker ({self.spec.env_id}, {remote.where()}) is lost: {remote.lost}"
             return f"the connection to the remote worker ({self.spec.env_id}, {remote.where()}) broke"
         for _ in range(20):  # the connection usually breaks a moment before the process is reaped
             if self.process.exitcode is not None:
@@ -259,7 +254,7 @@ class Supervisor:
         call_timeout_s: bound on any one request (reset, step, ...).
         close_timeout_s: bound on ``close`` per stage (ask, join, terminate).
         transport: ``"shm"`` (same machine, the default) or ``"tcp"`` (loopback), for local workers; a spec with
-            ``worker="tcp://HOST:PORT"`` in its kwargs runs on that launcher, over tcp.
+            a Ray placement in its ``worker`` keyword runs where Ray places it (runtime/ray_backend.py).
     """
 
     def __init__(
@@ -313,24 +308,19 @@ class Supervisor:
         index: int,
         env_id: str,
         kwargs: dict[str, Any],
-        placement: RemoteWorker | RayPlacement | None,
+        placement: RayPlacement | None,
         timeout_s: float,
         rt_rank: int = 0,
     ) -> WorkerHandle:
-        """A local worker, started now, or a remote or Ray-placed one, to be started by ``_launch``."""
+        """A local worker, started now, or a Ray-placed one, to be started by ``_launch``."""
         if placement is None:
             return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri, rt_rank)
-        if isinstance(placement, RayPlacement):
-            spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s)
-            return WorkerHandle(spec=spec, process=RayWorkerProcess(placement.keyed(self._ray_key)))
-        spec = WorkerSpec(
-            index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s, listen_uri=placement.uri
-        )
-        return WorkerHandle(spec=spec, process=RemoteWorkerProcess(placement))
+        spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s)
+        return WorkerHandle(spec=spec, process=RayWorkerProcess(placement.keyed(self._ray_key)))
 
     def _launch(self, workers: list[WorkerHandle], deadline: float) -> list[str]:
-        """Ask the launchers of the remote ``workers`` to start them (in parallel, while the local ones start), then
-        read the local ones' URIs; the workers' URIs in order."""
+        """Ask the Ray actors of the Ray-placed ``workers`` to start them (in parallel, while the local ones start),
+        then read the local ones' URIs; the workers' URIs in order."""
         remote = [w for w in workers if w.remote is not None]
         if remote:
             remaining = max(0.1, deadline - time.monotonic())
@@ -378,7 +368,7 @@ class Supervisor:
         deadline = time.monotonic() + timeout_s
         if old_remote is None:
             new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri, old.spec.rt_rank)
-        else:  # through the same launcher
+        else:  # through Ray, with the same placement
             new = self._new_handle(index, old.spec.env_id, old.spec.kwargs, old_remote.placement, timeout_s)
         self.workers[index] = new
         try:
@@ -389,11 +379,9 @@ class Supervisor:
             new.broken = "restart failed"
             self._discard(new)
             if old_remote is not None and isinstance(exc, WorkerError | ConfigError):
-                where = old_remote.placement.uri
-                where = where if isinstance(old_remote, RayWorkerProcess) else f"its launcher {where}"
                 raise WorkerError(
                     index,
-                    f"could not restart the remote worker through {where}: {exc}",
+                    f"could not restart the remote worker through {old_remote.placement.uri}: {exc}",
                     remote_traceback=getattr(exc, "remote_traceback", ""),
                 ) from exc
             raise
@@ -444,7 +432,7 @@ class Supervisor:
             w.info = await w.request({"op": "spaces", "tag_infos": self.tag_infos}, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
                 w.transport.spin_ns = REPLY_SPIN_NS
-            w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a remote worker too)
+            w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a Ray-placed worker too)
             w.receive_blocking = getattr(w.transport, "receive_blocking", None)
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
@@ -729,7 +717,7 @@ class Supervisor:
             except Exception:  # noqa: BLE001 - shutting down whatever state they are in
                 logger.warning("asking the workers to close failed", exc_info=True)
         remote = [(w.remote, ok) for w, ok in zip(self.workers, acked, strict=True) if w.remote is not None]
-        if remote and not self._loop.is_closed():  # the launchers join, terminate and kill them (bounded)
+        if remote and not self._loop.is_closed():  # their actors join, terminate and kill them (bounded)
 
             async def stop_remote() -> None:
                 await asyncio.gather(*(r.stop(t, asked=ok) for r, ok in remote), return_exceptions=True)

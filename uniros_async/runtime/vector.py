@@ -762,10 +762,9 @@ def make_vec(
     Args:
         specs: env ids or ``(env_id, kwargs)`` pairs, e.g. ``["uniros/Rx200Reach-v0", ("uniros/Ned2Reach-v0",
             {"robot": "emulated-real"})]``; any gymnasium id, and for an env of your own gymnasium's
-            ``"module:Id"`` (the worker imports ``module``, which registers ``Id``). ``{"worker":
-            "tcp://HOST:PORT"}`` (or a ``RemoteWorker``) runs that spec's worker on a launcher on another host
-            (``uniros worker serve``, runtime/remote.py; its pid in ``pids`` is on that host); ``"worker": None``
-            keeps it here.
+            ``"module:Id"`` (the worker imports ``module``, which registers ``Id``). ``{"worker": "ray"}``
+            or ``{"worker": {"ray": {...}}}`` has Ray place that spec's worker on a node of its cluster (see
+            ``backend``; its pid in ``pids`` is on that node); ``"worker": None`` keeps it here.
         pad: when the envs' spaces differ, pad observations and actions to the largest sizes (1-D Box spaces, or a
             Dict with a 1-D ``observation``); identical spaces are never padded. Without it the spaces must match.
         start_timeout_s: bound on starting all workers and building their envs.
@@ -784,11 +783,11 @@ def make_vec(
         **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
 
     Raises:
-        ConfigError: a malformed spec, an unknown id or keyword argument (before any process starts; for a remote
-            spec, by its launcher), or spaces that cannot be padded or combined (naming the envs; the workers are
-            closed).
-        WorkerError: a worker failed to start or to build its env, or its launcher is unreachable or refused it
-            (its index and traceback; the others are closed).
+        ConfigError: a malformed spec, an unknown id or keyword argument, a ``worker`` that is neither None nor a
+            Ray placement (before any process starts), or spaces that cannot be padded or combined (naming the
+            envs; the workers are closed).
+        WorkerError: a worker failed to start or to build its env, or Ray could not place or start it (its index
+            and traceback; the others are closed).
     """
     norm = [(env_id, {**common_kwargs, **kw}) for env_id, kw in _normalize_specs(specs)]
     norm = apply_backend(norm, backend)

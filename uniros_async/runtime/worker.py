@@ -1,10 +1,10 @@
 """The env worker process: one environment, served to the agent side over the project's own transports.
 
 A worker is started with one frozen ``WorkerSpec``: by the supervisor as ``python -m uniros_async.runtime``
-(``launch.start_worker``, ``__main__.py``), by a remote launcher with multiprocessing's spawn (``remote.py``). It
-listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through the start-up pipe, accepts
-one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then answers requests until told to
-close or until the supervisor goes away.
+(``launch.start_worker``, ``__main__.py``), and the same way by a Ray actor on the node Ray placed it on
+(``ray_backend.py``). It listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through
+the start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then
+answers requests until told to close or until the supervisor goes away.
 
 One event loop per worker (docs/architecture.md): a uniros env is made inside ``envs.runtime.deferred_start()`` and
 started on the worker's own loop (``await env.astart()``), so its bus, servo sim and env loop run beside the
@@ -91,7 +91,7 @@ class WorkerSpec:
         listen_uri: where the worker listens for the supervisor: ``shm://`` (a unique name; same machine) or
             ``tcp://127.0.0.1:0`` (a free port).
         auth_key: shared key the supervisor must prove (HMAC handshake) before the worker serves it; a worker
-            started by a remote launcher listens on tcp with the launcher's key.
+            placed by Ray listens with its vector env's key.
         rt_rank: for a real-time env, the rank of its SCHED_RR priority among the workers of its vector env
             (``priority.raise_loop_priority``; the supervisor gives the first worker the highest), and of its loop
             phase (``LOOP_PHASE_STEP_NS``).
