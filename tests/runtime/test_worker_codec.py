@@ -3,6 +3,8 @@ numpy scalars as Python ones, malformed frames refused by name. No processes: th
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 import pytest
 
@@ -135,8 +137,25 @@ _ARRAY_HEAD = array_bytes(np.zeros(4, np.float32))[:-16]  # the header of a 4-fl
         (_REQ + bytes([1, 1]) + bytes(8) + _ARRAY_HEAD + bytes(3), "needs 16 bytes, got 3"),
         (bytes([STEP_TAG, 2, 0, 0, 1, 0, 0, 0]) + bytes(8) + b"\xc0\x91\x01", "info must be a map, got list"),
         (bytes([STEP_TAG, 2, 0, 1, 99, 0, 0, 0]) + bytes(8) + _ARRAY_HEAD, "its array ends at 115"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x03<f4\x05" + bytes(8), "5 dimensions ends at byte 57"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x06(2)f4,\x00" + bytes(8), "not a dtype string"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x02|O\x01" + struct.pack("<q", 1) + bytes(8), "object arrays"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x03<f4\x02" + struct.pack("<2q", -1, -4) + bytes(16), "negative"),
     ],
-    ids=["truncated", "mode", "kind", "encoding", "action", "array", "info", "obs past the end"],
+    ids=[
+        "truncated",
+        "mode",
+        "kind",
+        "encoding",
+        "action",
+        "array",
+        "info",
+        "obs past the end",
+        "ndim past the end",
+        "dtype literal",
+        "object dtype",
+        "negative shape",
+    ],
 )
 def test_malformed_step_frames_are_refused_by_name(frame: bytes, what: str) -> None:
     with pytest.raises(CodecError, match=f"malformed step frame.*{what}"):

@@ -25,6 +25,7 @@ Two more encodings live here, so that this stays the only module that imports ms
 from __future__ import annotations
 
 import math
+import re
 import struct
 import threading
 from collections.abc import Callable, Sequence
@@ -270,6 +271,10 @@ _SCALAR_EXT = 43  # a numpy scalar of a type Python's numbers do not keep (float
 _PLAIN_SCALARS = (np.float64, np.int64, np.bool_)
 """Numpy scalars that travel as Python numbers: a vector env's info batches them into arrays of the same dtype."""
 _SHAPE = struct.Struct("<q")
+_DTYPE_STR = re.compile(r"[<>|=][a-zA-Z][0-9]{0,6}(\[[0-9]{0,6}[a-zA-Z]{1,2}\])?")
+"""The dtype strings ``array_bytes`` writes (``dtype.str``: byte order, kind, item size, a datetime unit): anything
+else is refused before numpy parses it (numpy evaluates some dtype strings as Python literals, with warnings and
+SyntaxError)."""
 
 
 _PACKED_HEADS: dict[tuple[np.dtype[Any], tuple[int, ...]], bytes] = {}
@@ -328,7 +333,7 @@ def array_from_bytes(
     """
     try:
         return _array_from_bytes(buf, start, len(buf) if stop is None else stop)
-    except (ValueError, TypeError, IndexError) as exc:
+    except (ValueError, TypeError, IndexError, struct.error, SyntaxError) as exc:
         raise CodecError(f"malformed {what}: {exc}") from exc
 
 
@@ -339,8 +344,17 @@ def _array_from_bytes(buf: bytes | memoryview, start: int, stop: int) -> np.ndar
     head = bytes(buf[start:data_start])
     parsed = _HEADS.get(head)
     if parsed is None:
-        dtype = np.dtype(head[1 : 1 + n].decode())
+        dtype_str = head[1 : 1 + n].decode("ascii")
+        if not _DTYPE_STR.fullmatch(dtype_str):
+            raise ValueError(f"dtype {dtype_str!r:.40} is not a dtype string such as '<f4'")
+        dtype = np.dtype(dtype_str)
+        if dtype.hasobject:
+            raise ValueError(f"dtype {dtype_str!r}: object arrays do not travel")
+        if start + len(head) != data_start:
+            raise ValueError(f"its header of {ndim} dimensions ends at byte {data_start}, past the frame's end")
         shape = tuple(_SHAPE.unpack_from(head, 2 + n + 8 * i)[0] for i in range(ndim))
+        if any(d < 0 for d in shape):
+            raise ValueError(f"shape {shape} has a negative dimension")
         parsed = (dtype, shape, math.prod(shape))
         if len(_HEADS) < 256:
             _HEADS[head] = parsed
