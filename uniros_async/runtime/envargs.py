@@ -7,6 +7,7 @@ worker runs, runtime/remote.py) out of a spec's kwargs.
 
 from __future__ import annotations
 
+import difflib
 import importlib
 from typing import Any
 
@@ -65,9 +66,11 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
     if placement is not None and isinstance(reg_id, str) and reg_id not in registry:
         return
     if not isinstance(reg_id, str) or reg_id not in registry:
+        close = difflib.get_close_matches(str(reg_id), list(registry), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ConfigError(
-            f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must be"
-            " registered in this process, or given as 'module:Id' (the module registers Id, in every worker too)"
+            f"unknown env id {env_id!r}{hint}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must"
+            " be registered in this process, or given as 'module:Id' (the module registers Id, in every worker too)"
         )
     entry = registry[reg_id].entry_point
     if placement is None and ":" not in env_id:
