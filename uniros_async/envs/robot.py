@@ -232,6 +232,11 @@ class RobotEnv(BaseEnv):
         js = self._js.latest()
         if js is None or self._ended:
             return
+        if self._state_age_s() > self.config.robot_timeout_s:
+            # where the arm is is unknown: no returns are built and no command is sent (a target computed from an
+            # old state could be seconds out of date by the time it arrives); the arm's watchdog holds it
+            self.timing.stale_ticks += 1
+            return
         q_arm = js.position[self._arm_idx]
         returns = self._compute_returns(js, q_arm)
         self._cache = (now, returns)
@@ -256,7 +261,8 @@ class RobotEnv(BaseEnv):
     def _hold_target(self, q_arm: np.ndarray) -> np.ndarray:
         """Where to hold the arm: where it measures itself, inside the joint limits. Sensor noise or overshoot can put
         a joint a hair past a limit it sits at, and a real driver may refuse a command out there (the sims clip)."""
-        return np.clip(q_arm, self.safety.lower, self.safety.upper)
+        held: np.ndarray = np.clip(q_arm, self.safety.lower, self.safety.upper)
+        return held
 
     def _send(self, q: np.ndarray, now: int) -> None:
         self._cmd_seq += 1
@@ -264,12 +270,54 @@ class RobotEnv(BaseEnv):
         self.timing.command_ns.append(now)
 
     def _state_age_s(self) -> float:
+        """How old the newest joint state is: since it arrived (wall clock; the arm's clock need not be ours), or
+        since its stamp (sim clock: the sim in this process stamps it on the same clock)."""
         js = self._js.latest()
         if js is None:
             return float("inf")
         if isinstance(self._clock, SimClock):
             return (self._clock.now_ns() - js.header.stamp_ns) / 1e9
         return (time.monotonic_ns() - self._js.latest_recv_ns) / 1e9
+
+    def _stale_at_ns(self) -> int:
+        """When, on the env's clock, the newest joint state turns older than ``robot_timeout_s``."""
+        js = self._js.latest()
+        if js is None:
+            return self._clock.now_ns()
+        timeout_ns = round(self.config.robot_timeout_s * 1e9)
+        if isinstance(self._clock, SimClock):
+            return js.header.stamp_ns + timeout_ns
+        return self._clock.now_ns() + self._js.latest_recv_ns + timeout_ns - time.monotonic_ns()
+
+    def _stale_error(self, what: str) -> RobotError:
+        """Stop commanding the arm (its watchdog holds it) and say how old its newest joint state is."""
+        self._stop_commanding()
+        age_s = self._state_age_s()
+        return RobotError(
+            f"{self.robot_spec.name}: {what}: the newest joint state on {self._js.topic} is {age_s:.2f} s old "
+            f"(robot_timeout_s={self.config.robot_timeout_s}); no command is sent until joint states arrive again, "
+            "and the arm's watchdog holds it"
+        )
+
+    async def _wait_for_fresh_state(self, what: str) -> JointState:
+        """The newest joint state if it is at most ``robot_timeout_s`` old, else the first that arrives within
+        ``robot_timeout_s``.
+
+        Raises:
+            RobotError: none arrived in that time (names the robot and the newest state's age).
+        """
+        timeout_s = self.config.robot_timeout_s
+        js = self._js.latest()
+        if js is not None and self._state_age_s() <= timeout_s:
+            return js
+        seen = self._js.received
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            await asyncio.sleep(min(0.2 / self.robot_spec.hardware_rate_hz, max(deadline - time.monotonic(), 0.0)))
+            js = self._js.latest()
+            if self._js.received != seen and js is not None and self._state_age_s() <= timeout_s:
+                return js
+        raise self._stale_error(what)
 
     async def _wait_for_state(self, after_ns: int | None, timeout_s: float | None = None) -> JointState:
         """The first joint state stamped after ``after_ns`` (any, when None), waiting on the env's clock."""
@@ -342,6 +390,8 @@ class RobotEnv(BaseEnv):
             latency = self._agent_latency_s()
             if latency > 0:
                 await clock.sleep(latency)
+        if self._state_age_s() > cfg.robot_timeout_s:  # no action is applied to a state that old
+            raise self._stale_error("step")
         self._set_action(action)
         self._on_action(action)
         now = clock.now_ns()
@@ -354,7 +404,15 @@ class RobotEnv(BaseEnv):
         # no spin: the returns were built by the tick just before, and a few tens of microseconds later matter
         # less than a core held: ranked workers spinning for their deadlines kept lower-ranked ones from their
         # ticks (with 4 workers on 2 cores the ned2 ticks before a deadline started 1.4-1.7 ms late)
-        await clock.sleep_until(deadline, spin=False)
+        while True:  # until the deadline, or until the newest joint state turns older than robot_timeout_s
+            await clock.sleep_until(min(deadline, self._stale_at_ns()), spin=False)
+            if self._state_age_s() > cfg.robot_timeout_s:
+                self._deadline_ns = deadline
+                if isinstance(clock, SimClock):
+                    clock.pause()
+                raise self._stale_error("step")
+            if clock.now_ns() >= deadline:
+                break
         self._deadline_ns = deadline
         if cfg.turn_based:  # the baseline: returns built now, from the newest joint state received
             js = self._js.latest()
@@ -363,13 +421,6 @@ class RobotEnv(BaseEnv):
             if self._wall_turn_based:  # as old as that state is: no loop keeps it fresh
                 stamp = js.header.stamp_ns if cfg.robot == "sim" else self._js.latest_recv_ns
             self._cache = (stamp, self._compute_returns(js, js.position[self._arm_idx]))
-        age_s = self._state_age_s()
-        if age_s > cfg.robot_timeout_s:
-            await self._ahold()
-            raise RobotError(
-                f"{self.robot_spec.name}: the newest joint state on {self._js.topic} is {age_s:.2f} s old "
-                f"(robot_timeout_s={cfg.robot_timeout_s}); the arm was told to hold"
-            )
         assert self._cache is not None
         stamp, (obs, reward, terminated, info) = self._cache
         end = clock.now_ns()
@@ -409,11 +460,19 @@ class RobotEnv(BaseEnv):
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
         self._action, self._ended, self._projected = None, False, False
         t0 = clock.now_ns()
+        # no reset on a state older than robot_timeout_s: an arm that went silent is reported, not settled on its
+        # last known pose (RobotError within robot_timeout_s, or at once when the state is already that old)
+        await self._wait_for_fresh_state("reset")
         if cfg.robot in ("sim", "sim-process"):  # a nominal sim can be teleported home: exact and fast
-            reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=cfg.reset_timeout_s)
+            # a teleport answers within a tick: an arm that does not answer within robot_timeout_s is not there
+            timeout_s = min(cfg.reset_timeout_s, cfg.robot_timeout_s)
+            try:
+                reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=timeout_s)
+            except TimeoutError:
+                raise self._stale_error(f"reset: no reply from {self._reset_cli.name} within {timeout_s} s") from None
             if not reply.success:
                 raise RobotError(f"{self.robot_spec.name}: reset refused: {reply.message}")
-            js = await self._wait_for_state(after_ns=t0)
+            js = await self._wait_for_state(after_ns=t0, timeout_s=cfg.robot_timeout_s)
         else:
             self._target = self.home_q.copy()  # the loop re-sends it every tick until settled
             if self._wall_turn_based:  # no loop: one command home
@@ -497,6 +556,8 @@ class RobotEnv(BaseEnv):
         deadline = time.monotonic() + timeout_s
         while True:
             await self._clock.sleep(1.0 / self.robot_spec.hardware_rate_hz)
+            if self._state_age_s() > self.config.robot_timeout_s:  # settling is judged on fresh states only
+                raise self._stale_error("reset")
             js = self._js.latest()
             if js is not None:
                 q = js.position[self._arm_idx]
@@ -511,9 +572,16 @@ class RobotEnv(BaseEnv):
                 )
                 raise RobotError(f"{self.robot_spec.name}: did not settle at home within {timeout_s} s ({err})")
 
+    def _stop_commanding(self) -> None:
+        """Send nothing more until a new target is set (the arm's watchdog holds it)."""
+        self._target, self._target_unsafe, self._action_t_ns = None, None, None
+        self._action, self._projected = None, False
+
     async def _ahold(self) -> None:
         js = self._js.latest()
-        self._target_unsafe, self._action_t_ns, self._action, self._projected = None, None, None, False
-        if js is not None:  # hold = keep commanding where it is (action repeat of the current position)
+        self._stop_commanding()
+        # hold = keep commanding where it is (action repeat of the current position); never where a stale state
+        # says it was
+        if js is not None and self._state_age_s() <= self.config.robot_timeout_s:
             self._target = js.position[self._arm_idx].copy()
             self._send(self._target, self._clock.now_ns())
