@@ -28,8 +28,10 @@ import abc
 import asyncio
 import contextlib
 import logging
+import socket
 import time
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -40,10 +42,11 @@ from uniros_async.envs.base import BaseEnv
 from uniros_async.envs.config import EnvConfig
 from uniros_async.envs.safety import SafetyChecker, SafetyConfig
 from uniros_async.envs.timing import Timing
-from uniros_async.errors import RobotError
+from uniros_async.errors import ConfigError, DomainError, NameConflictError, RobotError, TransportError
 from uniros_async.kinematics import Kinematics
 from uniros_async.robots import get_robot_spec
 from uniros_async.sim_clock import SimClock
+from uniros_async.transports.base import TransportOptions
 
 __all__ = ["RobotEnv"]
 
@@ -59,9 +62,30 @@ period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the
 must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and
 action cycles that are multiples of their periods) keep one phase, give or take each member's
 ``RobotEnv.loop_phase_ns`` of a few ms: the agent gets every member's returns about equally fresh."""
+REJOIN_RETRY_S = 0.1
+"""First wait between attempts to join the arm's domain again after the connection to it was lost (doubling to
+1 s)."""
 LOOP_PHASE_MAX_FRACTION = 4
 """``RobotEnv.loop_phase_ns`` is capped at a quarter of the loop's period, so a tick still sees the state its servo
 published at the period's start."""
+
+
+def _local_host_toward(uri: str) -> str:
+    """This machine's address on the interface that reaches the host of ``tcp://HOST:PORT`` (no packet is sent: a
+    UDP socket's ``connect`` only picks the route), so that a node's listener is bound there and nowhere else.
+
+    Raises:
+        ConfigError: HOST has no route from here (the message names it).
+    """
+    parts = urlsplit(uri)
+    host, port = parts.hostname or "127.0.0.1", parts.port or 1
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+        with socket.socket(family[0], socket.SOCK_DGRAM) as s:
+            s.connect(family[4])
+            return str(s.getsockname()[0])
+    except OSError as exc:
+        raise ConfigError(f"robot={uri!r}: no route to {host} from this machine ({exc})") from exc
 
 
 async def _settle() -> None:
@@ -199,25 +223,82 @@ class RobotEnv(BaseEnv):
                     await stack.enter_async_context(open_ros1_bridge(bridge_cfg, domain=domain))
                 else:
                     domain, transport = cfg.robot, "tcp"
-                node = await stack.enter_async_context(
-                    open_node("env", domain=domain, namespace=f"/{spec.name}", clock=clock, transport=transport)
-                )
-                self._node = node
-                self._js = await node.create_subscription(JointState, "joint_states")
-                self._cmd = await node.create_publisher(JointCommand, "command")
-                self._reset_cli = node.create_client(Data, Trigger, "reset")
+                options = None
+                if isinstance(domain, str) and domain.startswith("tcp://"):
+                    # the arm subscribes to our commands: listen where it can reach us (loopback for an arm on loopback)
+                    options = TransportOptions(bind_host=_local_host_toward(domain))
+                await self._join(domain, transport, options)
+                stack.push_async_callback(self._leave)
                 await self._js.wait_for_publishers(1, timeout_s=30.0)
                 await self._wait_for_state(after_ns=None)
                 if isinstance(clock, SimClock):
                     clock.pause()
-                if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
-                    start = grid_after(clock.now_ns(), self._period_ns, TICK_OFFSET_NS + self._phase_ns)
-                    node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
+                self._start_timer()
                 started(None)
-                await asyncio.Event().wait()  # until close() cancels main
+                while True:  # until close() cancels main
+                    await self._registry_lost()
+                    await self._rejoin(domain, transport, options)
         except BaseException as exc:
             started(exc)
             raise
+
+    async def _join(self, domain: Any, transport: str, options: TransportOptions | None) -> None:
+        """Join the arm's domain as node ``env``: its joint-state subscription, command publisher and reset client.
+        The node lives in ``self._node_stack``."""
+        stack = contextlib.AsyncExitStack()
+        try:
+            node = await stack.enter_async_context(
+                open_node(
+                    "env",
+                    domain=domain,
+                    namespace=f"/{self.robot_spec.name}",
+                    clock=self._clock,
+                    transport=transport,
+                    options=options,
+                )
+            )
+            self._js = await node.create_subscription(JointState, "joint_states")
+            self._cmd = await node.create_publisher(JointCommand, "command")
+            self._reset_cli = node.create_client(Data, Trigger, "reset")
+        except BaseException:
+            await stack.aclose()
+            raise
+        self._node = node
+        self._node_stack = stack
+
+    async def _leave(self) -> None:
+        await self._node_stack.aclose()
+
+    def _start_timer(self) -> None:
+        if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
+            start = grid_after(self._clock.now_ns(), self._period_ns, TICK_OFFSET_NS + self._phase_ns)
+            self._node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
+
+    async def _registry_lost(self) -> None:
+        """Return when the node's connection to the domain registry is gone (a tcp reset, the arm's host
+        restarted): the domain then forgets the node, and the arm its subscription to our commands."""
+        node = self._node
+        reader = [t for t in node._tasks if t.get_name() == f"{node.name} registry"]
+        if reader:  # none: it has ended already
+            await asyncio.wait(reader)  # the registry reader ends when the connection does
+
+    async def _rejoin(self, domain: Any, transport: str, options: TransportOptions | None) -> None:
+        """Leave the dead node and join the domain again, retrying with backoff until it answers. Meanwhile the
+        newest joint state only ages: steps and resets fail with RobotError, nothing is commanded."""
+        logger.warning("%s: lost the arm's domain %s; joining it again", self.robot_spec.name, domain)
+        await self._node_stack.aclose()
+        delay = REJOIN_RETRY_S
+        while True:
+            try:
+                await self._join(domain, transport, options)
+                break
+            except (DomainError, NameConflictError, TransportError, TimeoutError, OSError) as exc:
+                # NameConflictError: the domain has not yet noticed that our old connection is gone (TCP keepalive)
+                logger.info("%s: domain %s not back yet (%s)", self.robot_spec.name, domain, exc)
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, 1.0)
+        self._start_timer()
+        logger.warning("%s: joined the arm's domain %s again", self.robot_spec.name, domain)
 
     @property
     def _relative_action(self) -> bool:

@@ -56,6 +56,18 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         default=1.0,
         help="watchdog: hold after this many seconds without a command; 0 disables",
     )
+    serve.add_argument(
+        "--max-command-age",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="drop commands stamped more than S seconds ago (the sender must share this machine's clock); 0: keep all",
+    )
+    serve.add_argument(
+        "--trace",
+        action="store_true",
+        help="print every command's age and every watchdog hold as JSON lines on stdout, after the URI",
+    )
     serve.add_argument("--markers", action="store_true", help="publish EE and goal markers on ROBOT/markers")
     serve.add_argument(
         "--ros1-master",
@@ -200,9 +212,10 @@ def _run_until_signal(serve: Any) -> int:
         mine = group.subgroup(UnirosError)
         if mine is None:
             raise
-        while isinstance(mine, BaseExceptionGroup):
-            mine = mine.exceptions[0]
-        raise mine from None
+        first: BaseException = mine
+        while isinstance(first, BaseExceptionGroup):
+            first = first.exceptions[0]
+        raise first from None
     return 0
 
 
@@ -223,6 +236,8 @@ def _serve(args: argparse.Namespace) -> int:
         clock="sim" if args.sim_time else "wall",
         time_scale=args.time_scale or None,
         publish_markers=args.markers,
+        max_command_age_s=args.max_command_age or None,
+        trace=args.trace,
     )
     return _run_until_signal(serve_servo_sim(cfg, on_ready=_print_ready))
 

@@ -18,11 +18,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import json
 import logging
 import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+import sys
 import traceback
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
@@ -62,6 +64,8 @@ class ServeConfig:
         transport: the node's transport choice; ``auto`` uses shm to peers on the same machine.
         publish_markers: publish EE and goal markers.
         auth_key: shared key of the domain, or None.
+        max_command_age_s: drop commands older than this (``ServoSimNode.max_command_age_s``); None: keep all.
+        trace: write every command's age and every watchdog hold as a JSON line on stdout (``ServoSimNode.on_event``).
     """
 
     robot: str
@@ -77,6 +81,8 @@ class ServeConfig:
     transport: str = "auto"
     publish_markers: bool = False
     auth_key: bytes | None = None
+    max_command_age_s: float | None = None
+    trace: bool = False
 
     def __post_init__(self) -> None:
         if self.clock not in CLOCKS:
@@ -132,12 +138,19 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
                 node_name=config.node_name,
                 transport=transport,
                 options=options,
+                max_command_age_s=config.max_command_age_s,
+                on_event=_print_event if config.trace else None,
             )
         )
         logger.info("serving %s as %s in %s", config.robot, sim_node.node.name, uri)
         if on_ready is not None:
             on_ready(uri)
         await asyncio.Event().wait()  # until cancelled
+
+
+def _print_event(event: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(event) + "\n")
+    sys.stdout.flush()
 
 
 # ================================================================================================ child process

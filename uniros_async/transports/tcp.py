@@ -125,6 +125,26 @@ _TX_HIGH_BYTES = 1024 * 1024  # send() waits while the event loop holds more tha
 _TX_LOW_BYTES = 256 * 1024
 _BACKOFF_FIRST_S = 0.005
 _BACKOFF_MAX_S = 0.5
+KEEPALIVE_IDLE_S = 2
+"""TCP keepalive: a connection idle this long is probed every ``KEEPALIVE_INTERVAL_S``, and broken after
+``KEEPALIVE_PROBES`` unanswered probes. A side that only receives (a subscriber, the domain's end of a node's
+registry connection) otherwise never learns that its peer's socket is gone (a reset that reached only the peer, a
+peer host that restarted): the probe is answered with a reset, and the owner reconnects."""
+KEEPALIVE_INTERVAL_S = 1
+KEEPALIVE_PROBES = 3
+
+
+def _set_keepalive(sock: socket.socket) -> None:
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for opt, value in (
+        ("TCP_KEEPIDLE", KEEPALIVE_IDLE_S),
+        ("TCP_KEEPINTVL", KEEPALIVE_INTERVAL_S),
+        ("TCP_KEEPCNT", KEEPALIVE_PROBES),
+    ):
+        if hasattr(socket, opt):  # Linux; elsewhere the system's defaults apply
+            sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, opt), value)
+
+
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
 
 # Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
@@ -530,6 +550,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         sock = tr.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            _set_keepalive(sock)
         if sock is not None and hasattr(os, "readv"):
             self._fd = sock.fileno()
         peer = tr.get_extra_info("peername")
