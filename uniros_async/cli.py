@@ -56,7 +56,9 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--duration", type=float, default=60.0, help="wall seconds per arm (default 60)")
     be.add_argument("--arms", nargs="+", default=["rx200", "ned2"])
     be.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
-    be.add_argument("--robot", default="sim", help="sim, sim-process, emulated-real, tcp://host:port or ros1://host:port")
+    be.add_argument(
+        "--robot", default="sim", help="sim, sim-process, emulated-real, tcp://host:port or ros1://host:port"
+    )
     be.add_argument("--concurrent", action="store_true", help="run the arms at the same time")
     be.add_argument(
         "--think-ms", type=float, default=50.0, help="the agent thinks a random 0 to this many ms before each step"
@@ -83,6 +85,23 @@ def _build_parser() -> argparse.ArgumentParser:
         "--allow-idle",
         action="store_true",
         help="let idle cores halt (default: a SCHED_IDLE busy-poll process per core keeps them awake, like cyclictest)",
+    )
+    bl.add_argument(
+        "--load",
+        dest="loads",
+        nargs="+",
+        default=[],
+        choices=["cpu", "gil", "torch", "gc"],
+        help="run the scenario under each load (spinning processes, a GIL-holding thread, torch threads = cores, "
+        "heavy allocation and gc) and print the load table",
+    )
+    bl.add_argument(
+        "--sched",
+        dest="sched_classes",
+        nargs="+",
+        default=["rt", "off"],
+        choices=["rt", "off"],
+        help="with --load: scheduling classes to compare (UNIROS_LOOP_PRIORITY; default: rt off)",
     )
     bl.add_argument("--no-progress", action="store_true")
 
@@ -359,6 +378,8 @@ def _run_bench(args: argparse.Namespace) -> int:
                 plot_path=args.plot_path,
                 progress=not args.no_progress,
                 keep_cores_awake=not args.allow_idle,
+                loads=tuple(args.loads),
+                sched_classes=tuple(args.sched_classes),
             )
         )
     elif args.scenario == "envloop":
