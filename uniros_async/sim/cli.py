@@ -184,10 +184,22 @@ def _serve_ros1(args: argparse.Namespace) -> int:
         raise ConfigError(
             "--ros1-master serves on the ROS graph in wall time: --sim-time, --markers and --namespace do not apply"
         )
+    if args.max_command_age:
+        from uniros_async.errors import ConfigError
+
+        raise ConfigError(
+            "--max-command-age needs the sender's stamp, which the ROS 1 driver's command messages do not carry"
+        )
     cfg = Ros1BridgeConfig(robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host)
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
-    return _run_until_signal(serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
+    on_event = None
+    if args.trace:
+        from uniros_async.sim.serve import print_event
+
+        on_event = print_event
+    serve = serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready, on_event=on_event)
+    return _run_until_signal(serve)
 
 
 def _print_ready(uri: str) -> None:

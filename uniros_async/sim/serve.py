@@ -39,7 +39,7 @@ from uniros_async.sim.servo import ServoSimConfig
 from uniros_async.sim_clock import SimClock
 from uniros_async.transports.base import TransportOptions
 
-__all__ = ["ServeConfig", "ServoSimProcess", "open_servo_sim_process", "serve_servo_sim"]
+__all__ = ["ServeConfig", "ServoSimProcess", "open_servo_sim_process", "print_event", "serve_servo_sim"]
 
 logger = logging.getLogger(__name__)
 
@@ -139,7 +139,7 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
                 transport=transport,
                 options=options,
                 max_command_age_s=config.max_command_age_s,
-                on_event=_print_event if config.trace else None,
+                on_event=print_event if config.trace else None,
             )
         )
         logger.info("serving %s as %s in %s", config.robot, sim_node.node.name, uri)
@@ -148,7 +148,8 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
         await asyncio.Event().wait()  # until cancelled
 
 
-def _print_event(event: dict[str, Any]) -> None:
+def print_event(event: dict[str, Any]) -> None:
+    """Write ``event`` as one JSON line on stdout (``--trace``)."""
     sys.stdout.write(json.dumps(event) + "\n")
     sys.stdout.flush()
 

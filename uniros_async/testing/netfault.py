@@ -33,13 +33,14 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["ARM_IP", "ENV_IP", "NetnsPair", "netfault_missing", "open_netns_pair"]
+__all__ = ["ARM_IP", "ENV_IP", "EventPeer", "NetnsPair", "fault_figures", "netfault_missing", "open_netns_pair"]
 
 ARM_IP = "10.200.0.1"
 ENV_IP = "10.200.0.2"
@@ -171,6 +172,109 @@ def open_netns_pair() -> Iterator[NetnsPair]:
             _run("ip", "netns", "del", ns, check=False)
 
 
+# ================================================================================================ event lines
+
+
+@dataclass
+class EventPeer:
+    """A process that prints JSON event lines (``{"ev": ..., "t_ns": ...}``) on stdout, read by a thread."""
+
+    proc: subprocess.Popen[str]
+    events: list[dict[str, Any]] = field(default_factory=list)
+    lines: list[str] = field(default_factory=list)
+    reader: threading.Thread | None = None
+
+    def start_reader(self) -> None:
+        def read() -> None:
+            assert self.proc.stdout is not None
+            for line in self.proc.stdout:
+                self.lines.append(line)
+                if line.startswith("{"):
+                    with contextlib.suppress(ValueError):
+                        self.events.append(json.loads(line))
+
+        self.reader = threading.Thread(target=read, daemon=True)
+        self.reader.start()
+
+    def after(self, t_ns: int, ev: str) -> list[dict[str, Any]]:
+        """Events of kind ``ev`` at or after ``t_ns``."""
+        return [e for e in list(self.events) if e["ev"] == ev and e["t_ns"] >= t_ns]
+
+    def wait_for(self, t_ns: int, ev: str, timeout_s: float, what: str) -> dict[str, Any]:
+        """The first ``ev`` event at or after ``t_ns``, waiting up to ``timeout_s``.
+
+        Raises:
+            AssertionError: none came, or the process ended (its last lines are in the message).
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            found = self.after(t_ns, ev)
+            if found:
+                return found[0]
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                tail = "".join(self.lines[-20:])
+                raise AssertionError(f"no {ev!r} event ({what}) within {timeout_s} s; output:\n{tail}")
+            time.sleep(0.02)
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        """Resume it if frozen, send ``sig``, kill after 10 s; reap it and close its pipe."""
+        proc = self.proc
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGCONT)  # a frozen process cannot handle the signal
+            proc.send_signal(sig)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+        if self.reader is not None:
+            self.reader.join(5)
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+
+def fault_figures(
+    name: str,
+    arm: EventPeer,
+    agent: EventPeer,
+    *,
+    t_fault: int,
+    t_clear: int,
+    recovered_ns: int,
+    robot_timeout_s: float,
+) -> dict[str, Any]:
+    """One fault's figures from the arm's and the agent's event lines (times in s from the fault or its clearing):
+
+    ``hold_after_fault_s`` (the arm's first watchdog hold after the fault), ``hold_after_last_command_s`` (that hold
+    after the last command the arm applied before it), ``notice_after_fault_s`` (the agent's first RobotError),
+    ``agent_saw`` (its message), ``robot_errors``, ``recovery_after_clear_s`` (the agent's first step after the
+    fault was cleared), ``stale_commands_applied`` (commands applied older than ``robot_timeout_s``, over the whole
+    run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s`` and ``uncaught_exceptions``.
+    """
+    s = 1e-9
+    cmds = [e for e in list(arm.events) if e["ev"] == "cmd"]
+    errors = [e for e in agent.after(t_fault, "robot_error") if e["t_ns"] <= t_clear]
+    holds = arm.after(t_fault, "hold")
+    hold = holds[0] if holds else None
+    before_hold = [e for e in cmds if e["applied"] and hold is not None and e["t_ns"] < hold["t_ns"]]
+    since_fault = [e for e in cmds if e["t_ns"] >= t_fault]
+    return {
+        "fault": name,
+        "hold_after_fault_s": round((hold["t_ns"] - t_fault) * s, 3) if hold else None,
+        "hold_after_last_command_s": (
+            round((hold["t_ns"] - before_hold[-1]["t_ns"]) * s, 3) if hold and before_hold else None
+        ),
+        "notice_after_fault_s": round((errors[0]["t_ns"] - t_fault) * s, 3) if errors else None,
+        "agent_saw": errors[0]["msg"] if errors else "no error",
+        "robot_errors": len(errors),
+        "recovery_after_clear_s": round((recovered_ns - t_clear) * s, 3),
+        "stale_commands_applied": sum(1 for e in cmds if e["applied"] and e["age_ns"] > robot_timeout_s / s),
+        "stale_commands_dropped": sum(1 for e in since_fault if not e["applied"]),
+        "max_age_applied_s": round(max((e["age_ns"] for e in since_fault if e["applied"]), default=0) * s, 3),
+        "uncaught_exceptions": len([e for e in agent.events if e["ev"] == "error"]),
+    }
+
+
 # ================================================================================================ the agent side
 
 
@@ -179,7 +283,15 @@ def _emit(event: str, **fields: Any) -> None:
     sys.stdout.flush()
 
 
-def drive(robot: str, *, env_id: str, robot_timeout_s: float, action_cycle_s: float, reset_timeout_s: float) -> None:
+def drive(
+    robot: str,
+    *,
+    env_id: str,
+    robot_timeout_s: float,
+    action_cycle_s: float,
+    reset_timeout_s: float,
+    ros_host: str | None = None,
+) -> None:
     """Step a reach env on ``robot`` until SIGTERM, printing every event (see the module docstring)."""
     import gymnasium as gym
     import numpy as np
@@ -194,12 +306,14 @@ def drive(robot: str, *, env_id: str, robot_timeout_s: float, action_cycle_s: fl
         stop = True
 
     signal.signal(signal.SIGTERM, on_term)
+    extra: dict[str, Any] = {"ros1": {"ros_host": ros_host}} if ros_host else {}
     env = gym.make(
         env_id,
         robot=robot,
         robot_timeout_s=robot_timeout_s,
         action_cycle_s=action_cycle_s,
         reset_timeout_s=reset_timeout_s,
+        **extra,
     )
     u: Any = env.unwrapped
     action = np.zeros(env.action_space.shape or (), np.float32)
@@ -239,6 +353,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     d.add_argument("--robot-timeout", type=float, default=0.5)
     d.add_argument("--action-cycle", type=float, default=0.2)
     d.add_argument("--reset-timeout", type=float, default=10.0)
+    d.add_argument("--ros-host", default=None, help="with ros1://: the address ROS peers reach the bridge at")
     args = parser.parse_args(argv)
     drive(
         args.robot,
@@ -246,6 +361,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         robot_timeout_s=args.robot_timeout,
         action_cycle_s=args.action_cycle,
         reset_timeout_s=args.reset_timeout,
+        ros_host=args.ros_host,
     )
     return 0
 
