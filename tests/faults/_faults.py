@@ -78,13 +78,14 @@ def run_fault(
     inject, must_notice = FAULTS[name]
     arm, agent = link.arm, link.agent
     agent.wait_for(time.monotonic_ns(), "step", RECOVER_S, "a step before the fault")
-    t_fault = time.monotonic_ns()
+    # the fault is in effect once its command has returned (spawning ip/nft can take a while on a loaded machine)
     clear = inject(link)
+    t_fault = time.monotonic_ns()
     try:
         time.sleep(FAULT_S)  # the fault's duration: the thing under test runs meanwhile
     finally:
-        t_clear = time.monotonic_ns()
         clear()
+        t_clear = time.monotonic_ns()
     recovered = agent.wait_for(t_clear, "step", RECOVER_S, "recovery after the fault was cleared")
     time.sleep(0.5)  # what the arm applies right after recovery is judged too
     row = fault_figures(

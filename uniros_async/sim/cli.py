@@ -216,6 +216,10 @@ def _run_until_signal(serve: Any) -> int:
         cancel_on_signals(signal.SIGINT, signal.SIGTERM)
         await serve
 
+    from uniros_async.priority import raise_loop_priority
+
+    raise_loop_priority()  # an arm's hardware loop (or its bridge): on time beside learners and other loops
+
     try:
         asyncio.run(main())
     except asyncio.CancelledError:  # SIGINT/SIGTERM: an orderly stop

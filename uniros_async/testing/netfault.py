@@ -306,6 +306,9 @@ def drive(
         stop = True
 
     signal.signal(signal.SIGTERM, on_term)
+    from uniros_async.priority import raise_loop_priority
+
+    raise_loop_priority()  # the env loop runs in this process, as in a worker (which asks the same)
     extra: dict[str, Any] = {"ros1": {"ros_host": ros_host}} if ros_host else {}
     env = gym.make(
         env_id,
