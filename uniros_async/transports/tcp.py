@@ -52,7 +52,9 @@ the loop is not running (the supervisor between calls). Whatever they cannot do 
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
 (the bus) closes it and calls ``connect`` again, which retries with exponential backoff (5 ms doubling to 500 ms)
 until ``connect_timeout_s``; frames that were in flight when the connection broke are lost, as on any TCP link.
-There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe and re-send.
+There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe and re-send. Every
+connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within seconds that
+its peer's socket is gone.
 """
 
 from __future__ import annotations
