@@ -6,7 +6,7 @@ One `make_vec(["CartPole-v1"])` (one worker over shm) is stepped in alternating 
 
 - `lean`: `UnirosVectorEnv.step` as it is (`Supervisor.send_steps_now` / `receive_steps_now`, returns' arrays made
   with positional dtypes);
-- `general`: the path the step took before the tenth session (`b2dd1ed`), kept here as the baseline: the
+- `general`: the step's earlier, general path (`b2dd1ed`), kept here as the baseline: the
   supervisor's general send and receive of that code (`_send_now`, a `_SentPending`-like object and its `result`,
   `_receive_now`: sets, a sort, the checks of any request) and the returns' arrays made with keyword dtypes. Only
   its common case is kept (every request goes and every reply is taken in this thread); anything else raises.

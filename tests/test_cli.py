@@ -110,3 +110,23 @@ async def test_clear_errors(tmp_path) -> None:  # type: ignore[no-untyped-def]
         f.write_text("a: 1\nb: {c: 2}\n")
         rc, out, err = await uniros("param", "load", str(f), "--namespace", "/ns", domain=domain.uri)
         assert rc == 0 and "loaded 2" in out, (out, err)
+
+
+def test_every_option_and_argument_has_help_text() -> None:
+    """`uniros ... --help` explains every flag (argparse prints a bare name for one without help)."""
+    import argparse
+
+    from uniros_async.cli import _build_parser
+
+    missing = []
+
+    def walk(parser: argparse.ArgumentParser, path: list[str]) -> None:
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, child in action.choices.items():
+                    walk(child, [*path, name])
+            elif not action.help:
+                missing.append(f"uniros {' '.join(path)} {'/'.join(action.option_strings) or action.dest}")
+
+    walk(_build_parser(), [])
+    assert not missing, missing

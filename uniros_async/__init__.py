@@ -29,10 +29,18 @@ __all__ = [
     "make_vec",
 ]
 
-# Register the gymnasium ids ("uniros/Rx200Reach-v0", ...) on import, as gymnasium-robotics does.
-from uniros_async.tasks.registry import register_envs as _register  # noqa: E402
 
-_register()
+def _register_ids(_gymnasium: object) -> None:
+    from uniros_async.tasks.registry import register_envs
+
+    register_envs()
+
+
+# The gymnasium ids ("uniros/Rx200Reach-v0", ...) are registered on import, as gymnasium-robotics does, but
+# without importing gymnasium here: at once if it is loaded, else right after it is (a bus-only process skips it).
+from uniros_async._post_import import when_imported as _when_imported  # noqa: E402
+
+_when_imported("gymnasium", _register_ids)
 
 
 def __getattr__(name: str) -> object:

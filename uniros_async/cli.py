@@ -29,6 +29,10 @@ from uniros_async.errors import UnirosError
 __all__ = ["main"]
 
 
+_JSON_HELP = "also write the records as JSON to PATH"
+_NO_PROGRESS_HELP = "no progress bar on stderr"
+
+
 def _domain_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain", default=None, help="domain URI (default: $UNIROS_DOMAIN)")
 
@@ -46,15 +50,15 @@ def _build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--json", dest="json_path", default=None, metavar="PATH", help="write records as JSON")
     bt.add_argument("--transports", nargs="+", default=None, help="subset to run (default: all)")
     bt.add_argument("--payloads", nargs="+", default=None, help="small, 64k, image (default: all)")
-    bt.add_argument("--no-progress", action="store_true")
+    bt.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
     bti = bench.add_parser("timers", help="fire-time error of 10 Hz and 25 Hz timers vs asyncio.sleep")
     bti.add_argument("--duration", type=float, default=60.0, help="seconds per phase (default 60)")
-    bti.add_argument("--json", dest="json_path", default=None, metavar="PATH")
-    bti.add_argument("--no-progress", action="store_true")
+    bti.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    bti.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     be = bench.add_parser("envloop", help="actuator cycle, action cycle, observation age of the real-time reach envs")
     be.add_argument("--duration", type=float, default=60.0, help="wall seconds per arm (default 60)")
-    be.add_argument("--arms", nargs="+", default=["rx200", "ned2"])
+    be.add_argument("--arms", nargs="+", default=["rx200", "ned2"], help="robots to run (default rx200 ned2)")
     be.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
     be.add_argument(
         "--robot", default="sim", help="sim, sim-process, emulated-real, tcp://host:port or ros1://host:port"
@@ -63,8 +67,8 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument(
         "--think-ms", type=float, default=50.0, help="the agent thinks a random 0 to this many ms before each step"
     )
-    be.add_argument("--json", dest="json_path", default=None, metavar="PATH")
-    be.add_argument("--no-progress", action="store_true")
+    be.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    be.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     bl = bench.add_parser("latency", help="the paper's timing figures (Fig 8-10): cycles, ages, latencies, learners")
     scenarios = ["single", "concurrent", "turn-based", "sweep"]
@@ -77,10 +81,12 @@ def _build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--learner", dest="learners", nargs="+", default=None, help="sb3-td3 and/or async-td3")
     bl.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
     bl.add_argument("--think-ms", type=float, default=50.0, help="scripted agent's think time, 0 to this")
-    bl.add_argument("--learning-starts", type=int, default=10)
-    bl.add_argument("--seed", type=int, default=0)
-    bl.add_argument("--json", dest="json_path", default=None, metavar="PATH")
-    bl.add_argument("--plot", dest="plot_path", default=None, metavar="PATH.png")
+    bl.add_argument(
+        "--learning-starts", type=int, default=10, help="env steps before a learner trains (default %(default)s)"
+    )
+    bl.add_argument("--seed", type=int, default=0, help="seeds the envs, the learners and the scripted agent")
+    bl.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    bl.add_argument("--plot", dest="plot_path", default=None, metavar="PATH.png", help="draw box plots to PATH.png")
     bl.add_argument(
         "--allow-idle",
         action="store_true",
@@ -103,7 +109,7 @@ def _build_parser() -> argparse.ArgumentParser:
         choices=["rt", "off"],
         help="with --load: scheduling classes to compare (UNIROS_LOOP_PRIORITY; default: rt off)",
     )
-    bl.add_argument("--no-progress", action="store_true")
+    bl.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
     bth.add_argument("--quick", action="store_true", help="N = 1, 2, 4 and fewer steps")
@@ -111,36 +117,36 @@ def _build_parser() -> argparse.ArgumentParser:
     bth.add_argument(
         "--n-envs", dest="n_envs", type=int, nargs="+", default=None, help="rx200 rows' env counts (default 1 2 4 8)"
     )
-    bth.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+    bth.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bth.add_argument("--transport", choices=("shm", "tcp"), default="shm", help="make_vec's workers over (default shm)")
-    bth.add_argument("--no-progress", action="store_true")
+    bth.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     br = bench.add_parser("ros1", help="ROS 1 round trips: our asyncio client against rospy (needs ROS 1 installed)")
     br.add_argument("--blocks", type=int, default=11, help="blocks per client, in turns; the first is warm-up")
     br.add_argument("--per-block", type=int, default=500, help="round trips per block (default %(default)s)")
-    br.add_argument("--json", dest="json_path", default=None, metavar="PATH")
-    br.add_argument("--no-progress", action="store_true")
+    br.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    br.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
-    bs.add_argument("--sim-seconds", type=float, default=60.0)
-    bs.add_argument("--episodes", type=int, default=3)
-    bs.add_argument("--json", dest="json_path", default=None, metavar="PATH")
+    bs.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds per case (default 60)")
+    bs.add_argument("--episodes", type=int, default=3, help="reach episodes to time (default 3)")
+    bs.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
 
     topic = sub.add_parser("topic", help="topics of a domain").add_subparsers(dest="action", required=True)
     tl = topic.add_parser("list", help="topics with their types, publishers and subscribers")
     _domain_arg(tl)
     te = topic.add_parser("echo", help="print messages of a topic")
     _domain_arg(te)
-    te.add_argument("topic")
+    te.add_argument("topic", help="topic name, e.g. /rx200/joint_states")
     te.add_argument("-n", "--count", type=int, default=0, help="stop after N messages (0: until Ctrl-C)")
     te.add_argument("--timeout", type=float, default=0.0, help="stop after this many seconds (0: never)")
     th = topic.add_parser("hz", help="measure the publishing rate of a topic")
     _domain_arg(th)
-    th.add_argument("topic")
+    th.add_argument("topic", help="topic name")
     th.add_argument("--window", type=float, default=1.0, help="seconds per report")
     th.add_argument("--reports", type=int, default=0, help="stop after N reports (0: until Ctrl-C)")
     tp = topic.add_parser("pub", help="publish a message given as YAML/JSON")
     _domain_arg(tp)
-    tp.add_argument("topic")
+    tp.add_argument("topic", help="topic name")
     tp.add_argument("type", help="message type, e.g. Text, JointCommand")
     tp.add_argument("data", help="fields as YAML, e.g. '{data: hello}'")
     tp.add_argument("-r", "--rate", type=float, default=0.0, help="repeat at this rate in Hz (0: once)")
@@ -153,18 +159,18 @@ def _build_parser() -> argparse.ArgumentParser:
     param = sub.add_parser("param", help="parameters of a domain").add_subparsers(dest="action", required=True)
     pg = param.add_parser("get", help="print a parameter (or a namespace as a mapping) as YAML")
     _domain_arg(pg)
-    pg.add_argument("name")
+    pg.add_argument("name", help="parameter or namespace, e.g. /rx200_1")
     ps = param.add_parser("set", help="set a parameter to a YAML value")
     _domain_arg(ps)
-    ps.add_argument("name")
-    ps.add_argument("value")
+    ps.add_argument("name", help="parameter name")
+    ps.add_argument("value", help="YAML value")
     pl = param.add_parser("load", help="load a YAML file of parameters")
     _domain_arg(pl)
-    pl.add_argument("path")
-    pl.add_argument("--namespace", default="/")
+    pl.add_argument("path", help="YAML file")
+    pl.add_argument("--namespace", default="/", help="prefix of the loaded names (default /)")
     pli = param.add_parser("list", help="names of parameters")
     _domain_arg(pli)
-    pli.add_argument("prefix", nargs="?", default="/")
+    pli.add_argument("prefix", nargs="?", default="/", help="list only names under it (default /)")
 
     worker = sub.add_parser("worker", help="env workers for agents on other hosts").add_subparsers(
         dest="action", required=True

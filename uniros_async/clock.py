@@ -2,7 +2,7 @@
 
 ``WallClock`` follows ``time.monotonic_ns()``. asyncio's own timers cannot hit a deadline closer than about a
 millisecond on Linux: the selector rounds its timeout up to whole milliseconds before ``epoll_wait``. The env loop
-must fire within 0.1 ms of its period (design.md section 8), so on Linux WallClock sleeps on a ``timerfd`` armed
+must fire within 0.1 ms of its period, so on Linux WallClock sleeps on a ``timerfd`` armed
 with an absolute CLOCK_MONOTONIC deadline and registered in the event loop with ``add_reader``: the kernel wakes
 the loop at the deadline, with nanosecond resolution, without busy waiting. Elsewhere it falls back to
 ``asyncio.sleep``.

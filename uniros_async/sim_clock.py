@@ -1,4 +1,4 @@
-"""SimClock: simulated time that every timer and sleep of the nodes using it follows (design.md section 4).
+"""SimClock: simulated time that every timer and sleep of the nodes using it follows.
 
 The simulation is the time source. A SimClock keeps a heap of sleepers (``sleep_until`` deadlines) and time
 only moves when its driver (``run()``, started by the servo sim node) advances it: a discrete-event scheduler.

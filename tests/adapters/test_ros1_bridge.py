@@ -269,7 +269,7 @@ def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> Non
         env.step(action)  # the first step after a reset ends on the action-cycle grid: 0.1 to 0.9 s
         t0 = time.monotonic()
         obs, reward, terminated, truncated, info = env.step(action)
-        assert 0.7 < time.monotonic() - t0 < 0.9  # one 0.8 s action cycle, in real time
+        assert 0.7 < time.monotonic() - t0 < 1.5  # one 0.8 s action cycle in real time (not two, not none)
         assert np.all(np.isfinite(obs)) and math.isfinite(reward)
         assert "unsafe_reason" not in info, info
     finally:
@@ -292,7 +292,7 @@ def test_cli_bridge_serves_a_domain_until_sigint(ros_master: str, fake_arm: Any,
         text=True,
     )
     try:
-        uri = wait_for_line(proc, "tcp://", timeout_s=60.0)
+        uri = wait_for_line(proc, "export UNIROS_DOMAIN=tcp://", timeout_s=60.0).removeprefix("export UNIROS_DOMAIN=")
 
         async def one_state() -> JointState:
             async with open_node("probe", domain=uri, namespace="/rx200", transport="tcp") as node:

@@ -104,7 +104,7 @@ def test_sim_trained_policy_on_the_emulated_arm_over_ros1(ros_master: str, tmp_p
         text=True,
     )
     try:
-        assert wait_for_line(proc, "http://", timeout_s=60.0) == ros_master
+        assert wait_for_line(proc, "export ROS_MASTER_URI=", timeout_s=60.0) == f"export ROS_MASTER_URI={ros_master}"
         model = TD3.load(CHECKPOINT / "model.zip", device="cpu")
         port = ros_master.rstrip("/").rsplit(":", 1)[1]
         env = gym.make(

@@ -111,3 +111,13 @@ def test_check_agrees_with_the_pinocchio_reference(arm: str) -> None:
         mujoco.mj_kinematics(checker._model, checker._data)
         assert checker._clearance() == pytest.approx(checker.kin.table_clearance_m(q), abs=1e-9)
         np.testing.assert_allclose(checker._data.site_xpos[checker._ee_site], checker.kin.ee_position(q), atol=1e-9)
+
+
+def test_the_table_reason_reads_naturally() -> None:
+    from uniros_async.envs.safety import _table_reason
+
+    assert _table_reason(-0.301, 0.02) == "a link would be 30.1 cm below the table top (it must stay 2.0 cm above it)"
+    assert _table_reason(0.0, 0.02) == "a link would be on the table top (it must stay 2.0 cm above it)"
+    assert _table_reason(0.012, 0.02) == "a link would be only 1.2 cm above the table (it must stay 2.0 cm above it)"
+    why = _checker("rx200").check(np.array([0.0, 1.9, 1.5, 1.5, 0.0])) or ""
+    assert "below the table top" in why and "-" not in why, why

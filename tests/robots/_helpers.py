@@ -19,7 +19,7 @@ Vec3 = tuple[float, float, float]
 
 @dataclass(frozen=True)
 class RobotFacts:
-    """Independent reference data of one robot (from robot_facts.md, not from our MJCF).
+    """Independent reference data of one robot (from docs/robot-facts.md, not from our MJCF).
 
     Attributes:
         ee_home_m: EE site position at ``home_q_rad``.

@@ -115,7 +115,7 @@ def test_ik_solves_reachable_targets_from_a_cold_start(spec: RobotSpec, kin: Kin
         if ok:
             assert np.linalg.norm(kin.ee_position(q) - target) <= 1e-4
             solved += 1
-    # Timing is reported, not asserted (design.md section 8: performance is shown by benchmarks).
+    # Timing is reported, not asserted: performance is shown by benchmarks.
     print(f"{spec.name}: IK solved {solved}/300, median {np.median(durations_s) * 1e3:.3f} ms")
     assert solved >= 297
 

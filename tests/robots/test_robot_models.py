@@ -71,7 +71,7 @@ def test_pinocchio_matches_mujoco_full_model(mj_model: mujoco.MjModel, spec: Rob
 
 
 def test_mjcf_reproduces_the_urdf_chain(spec: RobotSpec, kin: Kinematics) -> None:
-    """The EE pose of the MJCF equals the URDF's (as listed in robot_facts.md) at random configurations."""
+    """The EE pose of the MJCF equals the URDF's (as listed in docs/robot-facts.md) at random configurations."""
     rng = np.random.default_rng(3)
     for _ in range(200):
         q = random_arm_q(spec, rng)

@@ -75,7 +75,7 @@ def test_mjcf_matches_spec(spec: RobotSpec, mj_model: mujoco.MjModel) -> None:
         actuator = mj_model.actuator(act[i])
         assert int(actuator.trntype[0]) == int(mujoco.mjtTrn.mjTRN_JOINT) and actuator.trnid[0] == joint.id
         assert actuator.ctrllimited[0] and actuator.forcelimited[0]
-        np.testing.assert_array_equal(actuator.ctrlrange, joint.range)  # ctrlrange = joint range (pitfall 13)
+        np.testing.assert_array_equal(actuator.ctrlrange, joint.range)  # docs/robot-facts.md, pitfall 13
         assert actuator.gainprm[0] > 0 and actuator.biasprm[2] < 0  # a damped position servo
     assert sorted(adr.tolist()) == adr.tolist()
     for name in spec.joint_state_names:  # every joint_states name is an MJCF joint
@@ -91,7 +91,7 @@ def test_mjcf_matches_spec(spec: RobotSpec, mj_model: mujoco.MjModel) -> None:
 
 
 def test_mjcf_follows_the_pinocchio_rules(spec: RobotSpec) -> None:
-    """The rules of docs/howto/add-a-robot.md that keep pinocchio's MJCF parser exact (robot_facts pitfalls)."""
+    """The rules of docs/howto/add-a-robot.md that keep pinocchio's MJCF parser exact (robot-facts.md, pitfalls 1-8)."""
     root = ET.parse(spec.mjcf_path).getroot()
     assert not root.findall(".//frame"), "pinocchio drops bodies inside <frame>"
     for element in root.iter():

@@ -70,9 +70,9 @@ def test_unknown_id_and_kwarg_fail_in_the_caller_before_any_process() -> None:
 
 def test_env_construction_error_comes_back_with_traceback() -> None:
     with pytest.raises(WorkerError) as e:
-        make("uniros/Rx200Reach-v0", clock="sim", reward_type="bogus")
+        make("uniros/Rx200Reach-v0", clock="sim", goal_min=[0.3, 0.0, 0.1])  # above the arm's default goal_max
     assert e.value.index == 0
-    assert "reward_type" in str(e.value)
+    assert "goal_min/goal_max: min must be <= max on every axis" in str(e.value)
     assert "ConfigError" in e.value.remote_traceback and "reach.py" in e.value.remote_traceback
     assert multiprocessing.active_children() == []
 

@@ -1,4 +1,4 @@
-"""Workers on another host (issue 5, item 1): a launcher (``uniros worker serve``) starts workers on request, the
+"""Workers on another host: a launcher (``uniros worker serve``) starts workers on request, the
 agent side connects to them over tcp, mixed with local workers in one vector env.
 
 "Another host" is emulated by loopback: the launcher runs in a separate process (the real CLI, spawned with
@@ -196,8 +196,8 @@ def test_bad_env_id_bad_request_and_build_failure_through_the_launcher(launcher:
     assert "env_id" in str(replies[2]["error"])
 
     with pytest.raises(WorkerError) as e2:  # the env fails to build in the remote worker: its traceback comes back
-        make(RX, clock="sim", reward_type="bogus", worker=launcher.worker())
-    assert e2.value.index == 0 and "reward_type" in str(e2.value)
+        make(RX, clock="sim", goal_min=[0.3, 0.0, 0.1], worker=launcher.worker())  # above the default goal_max
+    assert e2.value.index == 0 and "goal_min/goal_max" in str(e2.value)
     assert "reach.py" in e2.value.remote_traceback
     assert launcher.wait_no_workers(5.0) == []
     assert launcher.proc.poll() is None  # still serving

@@ -47,7 +47,7 @@ async def test_command_over_the_bus_reaches_target(robot: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize(("robot", "rate_hz"), [("rx200", 10.0), ("ned2", 25.0)])
 async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: float) -> None:
-    """Wall clock. Issue 3 asks the tests to show a median period error below 0.1 ms: the stamps are the timer's
+    """Wall clock. The median period error is below 0.1 ms: the stamps are the timer's
     fire times at absolute deadlines, so their median period holds even when a busy machine delays single ticks
     (the max is printed, not asserted)."""
     async with open_domain("memory://") as domain:

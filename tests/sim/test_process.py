@@ -73,8 +73,8 @@ async def test_emulated_real_arm_is_reached_over_tcp_from_another_process() -> N
     try:
         async with asyncio.timeout(30):
             line = (await proc.stdout.readline()).decode()
-        uri = line.strip()
-        assert uri.startswith("tcp://127.0.0.1:"), f"expected the domain URI on stdout, got {line!r}"
+        assert line.startswith("export UNIROS_DOMAIN=tcp://127.0.0.1:"), f"expected the domain to join, got {line!r}"
+        uri = line.strip().removeprefix("export UNIROS_DOMAIN=")
         async with open_node("trainer", domain=uri) as env:
             states = await env.create_subscription(JointState, "/rx200/joint_states")
             pub = await env.create_publisher(JointCommand, "/rx200/command")

@@ -33,6 +33,21 @@ def test_render_png_shows_the_arm_and_the_goal(tmp_path: Path) -> None:
     assert dark.sum() > 500, "the (dark grey) arm is in the picture"
 
 
+@pytest.mark.slow
+def test_the_picture_says_which_marker_is_which() -> None:
+    def coloured(img: np.ndarray) -> tuple[int, int]:
+        corner = img[:60, :160].astype(int)  # the legend's corner, above the table
+        red = (corner[..., 0] > 150) & (corner[..., 1] < 80) & (corner[..., 2] < 80)
+        green = (corner[..., 1] > 150) & (corner[..., 0] < 80) & (corner[..., 2] < 80)
+        return int(green.sum()), int(red.sum())
+
+    green, red = coloured(render_rgb("rx200", goal=(0.3, 0.15, 0.15), width=320, height=240))
+    assert green > 20 and red > 20, "'end effector' in green and 'goal' in red"
+    green, red = coloured(render_rgb("rx200", width=320, height=240))
+    assert green > 20 and red == 0, "no goal, no goal in the legend"
+    assert coloured(render_rgb("rx200", goal=(0.3, 0.15, 0.15), width=320, height=240, legend=False)) == (0, 0)
+
+
 def test_render_ned2_at_a_pose_and_bad_input(tmp_path: Path) -> None:
     out = render_png("ned2", q=[0.5, -0.3, 0.4, 0.0, 0.5, 0.0], out=tmp_path / "ned2.png", width=160, height=120)
     assert png_size(out) == (160, 120)

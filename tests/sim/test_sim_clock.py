@@ -116,7 +116,7 @@ async def test_time_scale_paces_against_wall_time() -> None:
         wall = time.perf_counter() - t0
         driver.cancel()
     assert clock.now_ns() >= 500_000_000
-    assert 0.04 < wall < 0.2, f"0.5 s of sim time at 10x took {wall:.3f} s"
+    assert 0.04 < wall < 0.4, f"0.5 s of sim time at 10x took {wall:.3f} s"  # paced, and faster than real time
 
 
 async def test_follower_clock_follows_clock_ticks() -> None:
@@ -165,4 +165,4 @@ async def test_paced_sim_stamps_are_exact_hardware_periods() -> None:
             await clock.sleep(0.4)
             wall = time.perf_counter() - t0
     assert len(stamps) >= 9 and set(np.diff(stamps)) == {40_000_000}, "sim-time stamps, exact at any time scale"
-    assert 0.02 < wall < 0.2, f"0.4 s of sim time at 10x took {wall:.3f} s"
+    assert 0.02 < wall < 0.3, f"0.4 s of sim time at 10x took {wall:.3f} s"  # paced, and faster than real time

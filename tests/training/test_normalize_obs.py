@@ -42,7 +42,7 @@ def test_normalize_obs_is_off_by_default_and_must_be_a_bool() -> None:
     cfg = train_config_from_dict({"envs": [RX], "normalize_obs": True})
     assert cfg.normalize_obs is True and train_config_from_dict(config_to_dict(cfg)) == cfg
     for bad in ("yes", 1, None, {"obs": True}):
-        with pytest.raises(ConfigError, match=r"normalize_obs must be true or false, got"):
+        with pytest.raises(ConfigError, match=r"^normalize_obs: expected true or false, got"):
             train_config_from_dict({"envs": [RX], "normalize_obs": bad})
 
 

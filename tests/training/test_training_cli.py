@@ -93,14 +93,18 @@ def test_bad_input_exits_2_before_anything_starts(tmp_path: Path, capsys: pytest
     bad.write_text("name: x\nenvs: [uniros/Rx200Reach-v0]\ntd3: {gama: 0.9}\n")
     assert main(["train", str(bad)]) == 2
     err = capsys.readouterr().err
-    assert "unknown key(s) ['gama']" in err and "'gamma'" in err
+    assert err == f"uniros: error: {bad}: td3.gama: unknown key; did you mean 'gamma'?\n"
     assert not Path("runs/x").exists()
     run = tmp_path / "r"
     argv = ["train", "--env", "uniros/Rx200Reach-v0", "--env-kwargs", "{reward: dense}", "--run-dir", str(run)]
     assert main(argv) == 2
-    assert "unknown keyword argument(s) ['reward']" in capsys.readouterr().err and not run.exists()
+    err = capsys.readouterr().err
+    assert "envs[0].kwargs.reward: unknown keyword argument; did you mean 'reward_type'?" in err and not run.exists()
     assert main(["train", "--env", "uniros/Rx200Reach-v0", "--set", "td3.tau=3", "--run-dir", str(run)]) == 2
-    assert "tau must be in (0, 1]" in capsys.readouterr().err and not run.exists()
+    assert "command line: td3.tau: must be <= 1, got 3" in capsys.readouterr().err and not run.exists()
+    assert main(["train", "--env", "uniros/Rx200Reach-v0", "--set", "td3.batch_size=128.5", "--run-dir", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "command line: td3.batch_size: expected an integer, got 128.5" in err and not run.exists()
     assert main(["eval", str(tmp_path), "--env", "uniros/Rx200Reach-v0"]) == 2
     assert "no checkpoint at" in capsys.readouterr().err
     assert main(["plot", str(tmp_path)]) == 2

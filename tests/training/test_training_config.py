@@ -45,41 +45,176 @@ def test_env_entries_labels_and_overrides(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    ("data", "match"),
+    ("data", "message"),
     [
-        ({"envs": [RX], "bogus": 1}, r"unknown key\(s\) \['bogus'\]; valid keys are \[.*'total_steps'"),
-        ({"envs": [RX], "td3": {"lr": 1}}, r"td3: unknown key\(s\) \['lr'\].*'learning_rate'"),
-        ({"envs": [{"id": "uniros/Rx200Reach-v0", "kwarg": {}}]}, r"envs\[0\]: unknown key\(s\) \['kwarg'\]"),
-        ({"envs": []}, "at least one env"),
-        ({"envs": [RX], "td3": {"tau": 2}}, r"tau must be in \(0, 1\]"),
-        ({"envs": [RX], "td3": {"batch_size": 512, "buffer_size": 100}}, "batch_size=512 > td3.buffer_size=100"),
-        ({"envs": [RX], "td3": {"learning_rate": "fast"}}, "expected a number, got 'fast'"),
-        ({"envs": [RX], "td3": {"net_arch": []}}, "net_arch"),
-        ({"envs": [RX], "learner": "turbo"}, "learner must be one of"),
-        ({"envs": [RX], "total_steps": 0}, "total_steps must be >= 1"),
-        ({"envs": [RX], "her": {"goal_selection_strategy": "past"}}, "goal_selection_strategy"),
-        ({"envs": [RX, RX]}, "labels must be unique"),
-        ({"envs": [RX], "task_id_in_obs": True}, "two or more envs"),
-        ({"envs": "uniros/Rx200Reach-v0"}, "expected a list of envs"),
-        ({"envs": [RX], "drop_observation": [3, 3]}, "distinct indices"),
-        ({"envs": [RX], "drop_observation": [-1]}, "distinct indices >= 0"),
+        ({"envs": [RX], "td3": {"batch_size": 128.5}}, "td3.batch_size: expected an integer, got 128.5"),
+        ({"envs": [RX], "td3": {"batch_size": True}}, "td3.batch_size: expected an integer, got True"),
+        ({"envs": [RX], "total_steps": "1e4.5"}, "total_steps: expected an integer, got '1e4.5'"),
+        ({"envs": [RX], "total_steps": "1.5"}, "total_steps: expected an integer, got '1.5'"),
+        ({"envs": [RX], "eval": {"episodes": 0}}, "eval.episodes: must be >= 1, got 0"),
+        ({"envs": [RX], "eval": {"episodes": "many"}}, "eval.episodes: expected an integer, got 'many'"),
+        ({"envs": [RX], "td3": {"tau": 2}}, "td3.tau: must be <= 1, got 2"),
+        (
+            {"envs": [RX], "td3": {"batch_size": 512, "buffer_size": 100}},
+            "td3.batch_size: must be <= buffer_size (100), got 512",
+        ),
+        ({"envs": [RX], "td3": {"learning_rate": "fast"}}, "td3.learning_rate: expected a number, got 'fast'"),
+        (
+            {"envs": [RX], "td3": {"learning_rate": float("nan")}},
+            "td3.learning_rate: expected a number (not NaN), got nan",
+        ),
+        ({"envs": [RX], "td3": {"net_arch": []}}, "td3.net_arch: expected at least 1 item(s), got []"),
+        ({"envs": [RX], "td3": {"net_arch": [64, 0]}}, "td3.net_arch[1]: must be > 0, got 0"),
+        ({"envs": [RX], "td3": {"net_arch": 64}}, "td3.net_arch: expected a list, got 64"),
+        ({"envs": [RX], "td3": 5}, "td3: expected a mapping, got 5"),
+        ({"envs": [RX], "learner": "turbo"}, "learner: expected one of 'sync', 'async', got 'turbo'"),
+        (
+            {"envs": [RX], "learner": "asinc"},
+            "learner: expected one of 'sync', 'async', got 'asinc'; did you mean 'async'?",
+        ),
+        ({"envs": [RX], "total_steps": 0}, "total_steps: must be >= 1, got 0"),
+        ({"envs": [RX], "normalize_obs": 1}, "normalize_obs: expected true or false, got 1"),
+        ({"envs": [RX], "name": 5}, "name: expected a string, got 5"),
+        ({"envs": [RX], "name": "a b"}, "name: must match ^[A-Za-z0-9_.+-]+$, got 'a b'"),
+        (
+            {"envs": [RX], "her": {"goal_selection_strategy": "past"}},
+            "her.goal_selection_strategy: expected one of 'future', 'final', 'episode', got 'past'",
+        ),
+        ({"envs": []}, "envs: at least one env is needed, e.g. envs: [{id: uniros/Rx200Reach-v0}]"),
+        ({}, "envs: at least one env is needed, e.g. envs: [{id: uniros/Rx200Reach-v0}]"),
+        (
+            {"envs": [RX, RX]},
+            "envs: env labels must be unique (give envs a name:), got ['Rx200Reach', 'Rx200Reach']",
+        ),
+        ({"envs": [RX], "task_id_in_obs": True}, "task_id_in_obs: needs two or more envs"),
+        (
+            {"envs": "uniros/Rx200Reach-v0"},
+            "envs: expected a list of envs (ids or {id, kwargs, name} mappings), got 'uniros/Rx200Reach-v0'",
+        ),
+        ({"envs": [RX, 5]}, "envs[1]: expected a mapping, got 5"),
+        ({"envs": [RX, {"id": ""}]}, "envs[1].id: expected a non-empty string, got ''"),
+        ({"envs": [RX, {"kwargs": {}}]}, "envs[1].id: missing (required)"),
+        (
+            {"envs": [RX], "eval": {"envs": [RX, {"id": "x", "kwargs": 3}]}},
+            "eval.envs[1].kwargs: expected a mapping, got 3",
+        ),
+        ({"envs": [RX], "drop_observation": [3, 3]}, "drop_observation: must be distinct indices, got [3, 3]"),
+        ({"envs": [RX], "drop_observation": [-1]}, "drop_observation[0]: must be >= 0, got -1"),
+        ({"envs": [RX], "env_defaults": [1]}, "env_defaults: expected a mapping, got [1]"),
     ],
 )
-def test_bad_config_is_a_clear_error(data: dict, match: str) -> None:
-    with pytest.raises(ConfigError, match=match):
+def test_bad_value_names_its_key_path(data: dict, message: str) -> None:
+    with pytest.raises(ConfigError) as e:
         train_config_from_dict(data)
+    assert str(e.value) == message
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (
+            {"envs": [RX], "bogus": 1},
+            "bogus: unknown key (valid keys: name, seed, total_steps, envs, env_defaults, placement, learner, "
+            "replay_buffer, task_id_in_obs, drop_observation, normalize_obs, td3, her, async_learner, eval, "
+            "checkpoint, torch_threads, run_dir, progress_bar)",
+        ),
+        ({"envs": [RX], "total_step": 1}, "total_step: unknown key; did you mean 'total_steps'?"),
+        ({"envs": [RX], "td3": {"lr": 1}}, "td3.lr: unknown key; did you mean 'learning_rate'?"),
+        ({"envs": [RX], "td3": {"batchsize": 1}}, "td3.batchsize: unknown key; did you mean 'batch_size'?"),
+        ({"envs": [RX], "eval": {"episode": 1}}, "eval.episode: unknown key; did you mean 'episodes'?"),
+        ({"envs": [{"id": RX["id"], "kwarg": {}}]}, "envs[0].kwarg: unknown key; did you mean 'kwargs'?"),
+        (
+            {"envs": [RX], "eval": {"envs": [RX, {"id": RX["id"], "nmae": "x"}]}},
+            "eval.envs[1].nmae: unknown key; did you mean 'name'?",
+        ),
+    ],
+)
+def test_unknown_key_names_the_closest_valid_one(data: dict, message: str) -> None:
+    with pytest.raises(ConfigError) as e:
+        train_config_from_dict(data)
+    assert str(e.value) == message
+
+
+def test_every_problem_is_reported_on_its_own_line(tmp_path: Path) -> None:
+    p = tmp_path / "c.yaml"
+    p.write_text("envs: [uniros/Rx200Reach-v0]\ntd3: {batch_size: 128.5, tau: 0}\neval: {episodes: true}\n")
+    with pytest.raises(ConfigError) as e:
+        load_train_config(p)
+    assert str(e.value).splitlines() == [
+        f"{p}: 3 problems:",
+        "  td3.batch_size: expected an integer, got 128.5",
+        "  td3.tau: must be > 0, got 0",
+        "  eval.episodes: expected an integer, got True",
+    ]
+    assert e.value.problems == [  # type: ignore[attr-defined]
+        ("td3.batch_size", "expected an integer, got 128.5"),
+        ("td3.tau", "must be > 0, got 0"),
+        ("eval.episodes", "expected an integer, got True"),
+    ]
+
+
+def test_numbers_in_exponent_and_underscore_notation_work_everywhere(tmp_path: Path) -> None:
+    # PyYAML (YAML 1.1) reads 3e-4 and 1e4 as strings; load_yaml reads them as numbers, and quoted ones work too
+    p = tmp_path / "c.yaml"
+    p.write_text(
+        "total_steps: 1e4\nenvs: [uniros/Rx200Reach-v0]\n"
+        "td3: {learning_rate: 3e-4, buffer_size: 1_000_000, batch_size: '2.56e2', tau: '5e-3', learning_starts: 1E3}\n"
+        "eval: {every_steps: '1_000', episodes: 2.0}\n"
+    )
+    cfg = load_train_config(p)
+    assert cfg.total_steps == 10_000 and isinstance(cfg.total_steps, int)
+    t = cfg.td3
+    assert (t.learning_rate, t.buffer_size, t.batch_size, t.tau, t.learning_starts) == (
+        3e-4,
+        1_000_000,
+        256,
+        5e-3,
+        1000,
+    )
+    assert all(isinstance(v, int) for v in (t.buffer_size, t.batch_size, t.learning_starts, cfg.eval.every_steps))
+    assert (cfg.eval.every_steps, cfg.eval.episodes) == (1000, 2)
+    assert train_config_from_dict({"envs": [RX], "total_steps": "1e4"}).total_steps == 10_000
+
+
+def test_configs_are_frozen() -> None:
+    cfg = train_config_from_dict({"envs": [RX]})
+    with pytest.raises(ValueError, match="frozen"):
+        cfg.td3.batch_size = 1  # type: ignore[misc]
+    with pytest.raises(ValueError, match="frozen"):
+        cfg.total_steps = 1  # type: ignore[misc]
 
 
 def test_unknown_env_id_and_kwargs_are_found_before_anything_starts() -> None:
     cfg = train_config_from_dict({"envs": [{"id": "uniros/Nope-v0"}]})
-    with pytest.raises(ConfigError, match=r"envs\[0\] .*unknown env id 'uniros/Nope-v0'"):
+    with pytest.raises(ConfigError, match=r"^envs\[0\]: unknown env id 'uniros/Nope-v0'"):
         cfg.check_envs()
     cfg = train_config_from_dict({"envs": [{"id": "uniros/Rx200Reach-v0", "kwargs": {"reward": "dense"}}]})
-    with pytest.raises(ConfigError, match=r"unknown keyword argument\(s\) \['reward'\]"):
+    with pytest.raises(
+        ConfigError, match=r"^envs\[0\]\.kwargs\.reward: unknown keyword argument; did you mean 'reward_type'"
+    ):
         cfg.check_envs()
     cfg = train_config_from_dict({"envs": [{"id": "uniros/Rx200Reach-v0", "kwargs": {"action_cycle_s": -1}}]})
-    with pytest.raises(ConfigError, match="action_cycle_s must be in"):
+    with pytest.raises(ConfigError, match=r"^envs\[0\]\.kwargs\.action_cycle_s: must be > 0, got -1$"):
         cfg.check_envs()
+
+
+def test_env_kwargs_errors_carry_their_path_in_the_config() -> None:
+    ned = {"id": "uniros/Ned2Reach-v0", "kwargs": {"reward_type": "spars", "action_cycle_s": True}}
+    data = {
+        "envs": [RX, ned],
+        "env_defaults": {"clock": "sim", "unsafe_action": "clip"},
+        "eval": {"envs": [{"id": "uniros/Rx200ReachGoal-v0", "kwargs": {"goal_min": [0.1, 0.2]}}]},
+    }
+    with pytest.raises(ConfigError) as e:
+        train_config_from_dict(data).check_envs()
+    lines = str(e.value).splitlines()
+    assert lines[0] == "4 problems:"
+    assert sorted(line.strip() for line in lines[1:]) == [
+        "env_defaults.unsafe_action: expected one of 'hold', 'project', got 'clip'",  # once, not once per env
+        "envs[1].kwargs.action_cycle_s: expected a number, got True",
+        "envs[1].kwargs.reward_type: expected one of 'dense', 'sparse', got 'spars'; did you mean 'sparse'?",
+        "eval.envs[0].kwargs.goal_min: expected 3 numbers [x, y, z], got [0.1, 0.2]",
+    ]
 
 
 def test_missing_and_malformed_files(tmp_path: Path) -> None:
@@ -149,7 +284,7 @@ def test_async_learner_real_time_actor_follows_the_envs_clock(
 def test_action_l2_needs_the_async_learner() -> None:
     with pytest.raises(ConfigError, match=r"async_learner.action_l2=1.0 needs learner: async"):
         train_config_from_dict({"envs": [RX], "async_learner": {"action_l2": 1.0}})
-    with pytest.raises(ConfigError, match=r"async_learner.action_l2 must be >= 0, got -1"):
+    with pytest.raises(ConfigError, match=r"^async_learner.action_l2: must be >= 0, got -1$"):
         train_config_from_dict({"envs": [RX], "learner": "async", "async_learner": {"action_l2": -1}})
     cfg = train_config_from_dict({"envs": [RX], "learner": "async", "async_learner": {"action_l2": 1.0}})
     assert cfg.async_learner.action_l2 == 1.0

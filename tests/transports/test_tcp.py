@@ -252,7 +252,7 @@ async def test_connect_to_nobody_times_out_within_connect_timeout() -> None:
     t0 = time.monotonic()
     with pytest.raises(TimeoutError, match=f"tcp://127.0.0.1:{port}"):
         await connect(f"tcp://127.0.0.1:{port}", TransportOptions(connect_timeout_s=0.3))
-    assert time.monotonic() - t0 < 0.3 + 0.25  # + scheduling slack on a busy machine
+    assert time.monotonic() - t0 < 5 * 0.3  # the 0.3 s asked for, not the default 10 s (slack for a busy host)
 
 
 async def test_listener_started_after_connect_began_is_reached() -> None:

@@ -49,7 +49,7 @@ def client() -> None:
         if not line.startswith("go "):
             continue
         n = int(line.split()[1])
-        times = []
+        times: list[int] = []
         lost = 0
         while len(times) < n:
             seq += 1

@@ -93,10 +93,10 @@ def main(config: EnvLoopBenchConfig, *, log: Callable[[str], None] = print) -> l
     results: dict[str, Series] = {}
     bar = None
     if config.progress:
-        from tqdm import tqdm
+        from uniros_async._progress import progress_bar
 
         total = config.duration_s * (1 if config.concurrent else len(config.arms))
-        bar = tqdm(
+        bar = progress_bar(
             total=round(total),
             desc="env loop bench",
             unit="s",

@@ -233,9 +233,9 @@ class _Progress:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         if enabled:
-            from tqdm import tqdm
+            from uniros_async._progress import progress_bar
 
-            self._bar = tqdm(
+            self._bar = progress_bar(
                 total=round(total_s), desc=desc, unit="s", leave=False, bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s"
             )
             self._thread = threading.Thread(target=self._run, name="latency bench progress", daemon=True)

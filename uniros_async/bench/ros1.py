@@ -159,7 +159,7 @@ def main(config: Ros1BenchConfig, log: Callable[[str], None] = print) -> list[di
         finally:
             for proc in procs:
                 kill_process(proc)
-    records = []
+    records: list[dict[str, Any]] = []
     lines = [
         f"ROS 1 round trips, sensor_msgs/JointState of 8 joints through a rospy echo node, "
         f"{config.blocks - 1} blocks of {config.per_block} per client, taken in turns (first block of each: warm-up)",
@@ -169,7 +169,7 @@ def main(config: Ros1BenchConfig, log: Callable[[str], None] = print) -> list[di
     labels = {"uniros": "uniros (asyncio, this process)", "rospy": "rospy (queue_size=None)"}
     for key in ("uniros", "rospy"):
         times, lost = results[key]
-        s = summary(np.asarray(times) / 1e3)
+        s = summary((np.asarray(times) / 1e3).tolist())
         records.append(
             {"client": key, **{f"{k}_us": v for k, v in s.items() if k != "count"}, "count": s["count"], "lost": lost}
         )

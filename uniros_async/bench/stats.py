@@ -69,9 +69,9 @@ def progress_counter(total: int, enabled: bool, desc: str, unit: str) -> Callabl
     done=True)`` closes it. Without ``enabled``, a function that does nothing."""
     if not enabled:
         return lambda n, done=False: None
-    from tqdm import tqdm
+    from uniros_async._progress import progress_bar
 
-    bar = tqdm(total=total, desc=desc, unit=unit, leave=False)
+    bar = progress_bar(total=total, desc=desc, unit=unit, leave=False)
 
     def step(n: int, done: bool = False) -> None:
         if n:

@@ -50,9 +50,9 @@ async def _wait(config: TimerBenchConfig, desc: str) -> None:
     if not config.progress:
         await asyncio.sleep(config.duration_s)
         return
-    from tqdm import tqdm
+    from uniros_async._progress import progress_bar
 
-    with tqdm(total=round(config.duration_s), desc=desc, unit="s", leave=False) as bar:
+    with progress_bar(total=round(config.duration_s), desc=desc, unit="s", leave=False) as bar:
         while (el := time.monotonic() - t0) < config.duration_s:
             await asyncio.sleep(min(1.0, config.duration_s - el))
             bar.n = round(min(time.monotonic() - t0, config.duration_s))

@@ -45,7 +45,6 @@ from uniros_async.bus.services import Service, ServiceClient
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.bus.timer import Timer
 from uniros_async.clock import Clock, wall_clock
-from uniros_async.config import load_yaml
 from uniros_async.errors import (
     CodecError,
     ConfigError,
@@ -55,6 +54,7 @@ from uniros_async.errors import (
     TransportError,
 )
 from uniros_async.transports.base import Listener, Transport, TransportOptions, connect, listen
+from uniros_async.yamlio import load_yaml
 
 __all__ = ["Node", "Publisher", "Service", "ServiceClient", "Subscription", "Timer", "open_node"]
 

@@ -1,10 +1,18 @@
-"""EnvConfig: how an environment runs (clock, robot placement, rates, timeouts, latency model)."""
+"""EnvConfig: how an environment runs (clock, robot placement, rates, timeouts, latency model).
+
+These are the keyword arguments every task takes (``gym.make("uniros/Rx200Reach-v0", clock="sim", ...)``); a
+task's own settings are its ``TASK_CONFIG`` (tasks/reach.py). Both are validated once, when the env is built
+(``parse_kwargs`` in envs/task.py), and read as plain attributes afterwards.
+"""
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any
+from typing import Annotated, Any, Literal
 
+import pydantic
+from pydantic import Field, PlainValidator
+
+from uniros_async.config import Bool, ConfigModel, Float, Int, Str
 from uniros_async.errors import ConfigError
 
 __all__ = ["CLOCKS", "UNSAFE_ACTIONS", "EnvConfig"]
@@ -14,65 +22,83 @@ UNSAFE_ACTIONS = ("hold", "project")
 ROBOT_PLACEMENTS = ("sim", "sim-process", "emulated-real")
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class EnvConfig:
-    """Runtime settings shared by every task.
+def _latency_input(v: Any) -> float | str:
+    if v == "measured":
+        return "measured"
+    number = v
+    if isinstance(v, str):
+        try:
+            number = float(v)
+        except ValueError:
+            number = None
+    if isinstance(number, bool) or not isinstance(number, int | float) or not number >= 0:
+        raise ConfigError(f"expected a number >= 0 or 'measured', got {v!r}")
+    return float(number)
 
-    Attributes:
-        robot: where the arm is: ``"sim"`` (servo sim in the env's own process, memory transport),
-            ``"sim-process"`` (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as
-            a tcp service in its own process), ``"tcp://host:port"`` (the domain of an arm served elsewhere,
-            e.g. by ``uniros robot serve`` or ``uniros robot bridge``), or ``"ros1://host:port"`` (an arm whose
-            driver is a ROS 1 node, reached through that ROS master by a bridge in the env's process:
-            ``adapters/ros1_bridge.py``).
-        ros1: with ``robot="ros1://..."``: settings of the bridge (``Ros1BridgeConfig`` fields ``joint_states``,
-            ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``); None: the robot's
-            defaults (``ROS1_DEFAULTS``).
-        clock: ``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``,
-            or ``robot="emulated-real"``, which then runs the same emulation model (perturbed dynamics, sensor
-            noise, command and state latency in sim time) in the env's process instead of behind tcp).
-        env_loop_rate_hz: env loop rate; None: the robot's hardware rate.
-        action_cycle_s: time between agent steps (an absolute deadline from the previous step).
-        turn_based: the baseline, without an env loop's real-time guarantees. With the sim clock (the default
-            when ``turn_based`` is set) the world is paused while the agent thinks and ``step`` advances the sim in
-            lockstep for one action cycle, returning a fresh observation. With ``clock="wall"`` given explicitly it
-            is the turn-based env of a real arm (openai_ros style): no env loop; ``step`` sends the command once,
-            waits one action cycle and builds the returns from the newest joint state received, however old.
-        agent_latency_s: with ``clock="sim"``: sim time between the returns the agent was given and its action
-            reaching the loop. A number (fixed), ``"measured"`` (the agent's measured wall time), or 0.
-        agent_latency_jitter_s: standard deviation of a Gaussian added to a fixed latency (clipped at 0).
-        robot_timeout_s: joint states older than this make ``step`` raise RobotError and the arm hold.
-        step_timeout_s: bound on any one ``step`` call (beyond the action cycle itself).
-        reset_timeout_s: bound on ``reset`` (moving home and settling).
-        reset_move_s: time to move home on an arm that cannot be teleported (emulated or real).
-        settle_tol_rad: an arm that moves home (emulated or real) is settled when every joint is within this of
-            home and slower than 10x it per s (0.02: the servos' steady-state error under gravity is ~0.011 rad).
-        emulation_seed: seed of the emulated real arm's perturbations and noise.
-        unsafe_action: what the loop does with an action whose target fails a safety check: ``"hold"`` (UniROS:
-            nothing of it is sent, the arm holds) or ``"project"`` (the safe part of it is sent: joint by joint,
-            from the base, each joint takes its target value if the configuration stays safe, so the arm slides
-            along the table or a joint limit instead of freezing; ``SafetyChecker.project``). Either way
-            ``info["not_executable"]`` is set (the reach task's -5 applies); projected actions also set
-            ``info["action_projected"]``.
-    """
 
-    robot: str = "sim"
-    clock: str | None = None  # None: "sim" when turn_based, else "wall"
-    env_loop_rate_hz: float | None = None
-    action_cycle_s: float = 0.8
-    turn_based: bool = False
-    agent_latency_s: float | str = 0.0
-    agent_latency_jitter_s: float = 0.0
-    robot_timeout_s: float = 2.0
-    step_timeout_s: float = 10.0
-    reset_timeout_s: float = 20.0
-    reset_move_s: float = 1.5
-    settle_tol_rad: float = 0.02
-    emulation_seed: int = 0
-    unsafe_action: str = "hold"
+class EnvConfig(ConfigModel):
+    """Runtime settings shared by every task (each key's meaning is documented where it is declared)."""
+
+    robot: Str = "sim"
+    """Where the arm is: ``"sim"`` (servo sim in the env's own process, memory transport), ``"sim-process"``
+    (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as a tcp service in its own
+    process), ``"tcp://host:port"`` (the domain of an arm served elsewhere, e.g. by ``uniros robot serve`` or
+    ``uniros robot bridge``), or ``"ros1://host:port"`` (an arm whose driver is a ROS 1 node, reached through that
+    ROS master by a bridge in the env's process: ``adapters/ros1_bridge.py``)."""
+    clock: Literal["wall", "sim"] | None = None
+    """``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``, or
+    ``robot="emulated-real"``, which then runs the same emulation model (perturbed dynamics, sensor noise, command
+    and state latency in sim time) in the env's process instead of behind tcp). Unset: ``"sim"`` when
+    ``turn_based``, else ``"wall"``."""
+    env_loop_rate_hz: Annotated[Float, Field(gt=0, le=1000)] | None = None
+    """Env loop rate; unset: the robot's hardware rate."""
+    action_cycle_s: Float = Field(default=0.8, gt=0, le=60)
+    """Time between agent steps (an absolute deadline from the previous step)."""
+    turn_based: Bool = False
+    """The baseline, without an env loop's real-time guarantees. With the sim clock (the default when
+    ``turn_based`` is set) the world is paused while the agent thinks and ``step`` advances the sim in lockstep for
+    one action cycle, returning a fresh observation. With ``clock="wall"`` given explicitly it is the turn-based env
+    of a real arm (openai_ros style): no env loop; ``step`` sends the command once, waits one action cycle and
+    builds the returns from the newest joint state received, however old."""
+    agent_latency_s: Annotated[float | Literal["measured"], PlainValidator(_latency_input)] = 0.0
+    """With ``clock="sim"``: sim time between the returns the agent was given and its action reaching the loop. A
+    number (fixed), ``"measured"`` (the agent's measured wall time), or 0."""
+    agent_latency_jitter_s: Float = Field(default=0.0, ge=0)
+    """Standard deviation of a Gaussian added to a fixed latency (clipped at 0)."""
+    robot_timeout_s: Float = Field(default=2.0, gt=0)
+    """Joint states older than this make ``step`` raise RobotError and the arm hold."""
+    step_timeout_s: Float = Field(default=10.0, gt=0)
+    """Bound on any one ``step`` call (beyond the action cycle itself)."""
+    reset_timeout_s: Float = Field(default=20.0, gt=0)
+    """Bound on ``reset`` (moving home and settling)."""
+    reset_move_s: Float = Field(default=1.5, gt=0)
+    """Time to move home on an arm that cannot be teleported (emulated or real)."""
+    settle_tol_rad: Float = Field(default=0.02, gt=0)
+    """An arm that moves home (emulated or real) is settled when every joint is within this of home and slower
+    than 10x it per s (0.02: the servos' steady-state error under gravity is ~0.011 rad)."""
+    emulation_seed: Int = 0
+    """Seed of the emulated real arm's perturbations and noise."""
+    unsafe_action: Literal["hold", "project"] = "hold"
+    """What the loop does with an action whose target fails a safety check: ``"hold"`` (UniROS: nothing of it is
+    sent, the arm holds) or ``"project"`` (the safe part of it is sent: joint by joint, from the base, each joint
+    takes its target value if the configuration stays safe, so the arm slides along the table or a joint limit
+    instead of freezing; ``SafetyChecker.project``). Either way ``info["not_executable"]`` is set (the reach task's
+    -5 applies); projected actions also set ``info["action_projected"]``."""
     ros1: dict[str, Any] | None = None
+    """With ``robot="ros1://..."``: settings of the bridge (``Ros1BridgeConfig`` fields ``joint_states``,
+    ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``); unset: the robot's defaults
+    (``ROS1_DEFAULTS``)."""
 
-    def __post_init__(self) -> None:
+    @pydantic.model_validator(mode="before")
+    @classmethod
+    def _default_clock(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("clock") is None:
+            return {**data, "clock": "sim" if data.get("turn_based") is True else "wall"}
+        return data
+
+    @pydantic.model_validator(mode="after")
+    def _check(self) -> EnvConfig:
+        """The checks that span keys (placement, its settings, clock)."""
         if self.robot not in ROBOT_PLACEMENTS and not self.robot.startswith(("tcp://", "ros1://")):
             raise ConfigError(
                 f"robot must be one of {ROBOT_PLACEMENTS}, a tcp://host:port URI or a ros1://host:port ROS master, "
@@ -87,33 +113,19 @@ class EnvConfig:
                 raise ConfigError(f"ros1: unknown setting(s) {unknown}; expected some of {list(ROS1_SETTINGS)}")
         elif self.ros1 is not None:
             raise ConfigError(f"ros1 settings apply only to robot='ros1://HOST:PORT', got robot={self.robot!r}")
-        if self.clock is None:
-            object.__setattr__(self, "clock", "sim" if self.turn_based else "wall")
-        if self.clock not in CLOCKS:
-            raise ConfigError(f"clock must be one of {CLOCKS}, got {self.clock!r}")
         if self.clock == "sim" and self.robot not in ("sim", "emulated-real"):
             raise ConfigError(
                 f"clock='sim' needs robot='sim' or 'emulated-real' (run in this process), got robot={self.robot!r}"
             )
-        if self.env_loop_rate_hz is not None and not 0 < self.env_loop_rate_hz <= 1000:
-            raise ConfigError(f"env_loop_rate_hz must be in (0, 1000], got {self.env_loop_rate_hz}")
-        if not 0 < self.action_cycle_s <= 60:
-            raise ConfigError(f"action_cycle_s must be in (0, 60], got {self.action_cycle_s}")
-        if isinstance(self.agent_latency_s, str):
-            if self.agent_latency_s != "measured":
-                raise ConfigError(f"agent_latency_s must be a number or 'measured', got {self.agent_latency_s!r}")
-        elif self.agent_latency_s < 0:
-            raise ConfigError(f"agent_latency_s must be >= 0, got {self.agent_latency_s}")
-        if self.unsafe_action not in UNSAFE_ACTIONS:
-            raise ConfigError(f"unsafe_action must be one of {UNSAFE_ACTIONS}, got {self.unsafe_action!r}")
-        for name in ("robot_timeout_s", "step_timeout_s", "reset_timeout_s", "reset_move_s", "settle_tol_rad"):
-            if getattr(self, name) <= 0:
-                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        return self
 
     @classmethod
     def split(cls, kwargs: dict[str, Any]) -> tuple[EnvConfig, dict[str, Any]]:
-        """Take the EnvConfig fields out of ``kwargs``; return the config and what is left (task settings)."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        mine = {k: v for k, v in kwargs.items() if k in names}
-        rest = {k: v for k, v in kwargs.items() if k not in names}
+        """Take the EnvConfig keys out of ``kwargs``; return the config and what is left (task settings).
+
+        Raises:
+            ConfigError: an EnvConfig key has a bad value (one line per problem, naming the key).
+        """
+        mine = {k: v for k, v in kwargs.items() if k in cls.model_fields}
+        rest = {k: v for k, v in kwargs.items() if k not in cls.model_fields}
         return cls(**mine), rest

@@ -342,8 +342,7 @@ class RobotEnv(BaseEnv):
     def _hold_target(self, q_arm: np.ndarray) -> np.ndarray:
         """Where to hold the arm: where it measures itself, inside the joint limits. Sensor noise or overshoot can put
         a joint a hair past a limit it sits at, and a real driver may refuse a command out there (the sims clip)."""
-        held: np.ndarray = np.clip(q_arm, self.safety.lower, self.safety.upper)
-        return held
+        return np.asarray(np.clip(q_arm, self.safety.lower, self.safety.upper))
 
     def _send(self, q: np.ndarray, now: int) -> None:
         self._cmd_seq += 1

@@ -2,36 +2,44 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator
 
 import mujoco
 import numpy as np
+import pydantic
+from pydantic import Field
 
+from uniros_async.config import Bool, ConfigModel, Float, Vec3, key_error
 from uniros_async.kinematics import Kinematics
 from uniros_async.robots.spec import RobotSpec
 
 __all__ = ["SafetyChecker", "SafetyConfig"]
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class SafetyConfig:
-    """Limits of what the env loop will send.
+class SafetyConfig(ConfigModel):
+    """Limits of what the env loop will send."""
 
-    Attributes:
-        table_margin_m: every link surface must stay this far above the table plane (z = 0).
-        workspace_min_m / workspace_max_m: the box the EE must stay inside.
-        max_joint_step_rad: the most any joint's command may move per env-loop tick (larger moves are spread
-            over several ticks: a rate limiter, not a rejection).
-        check_self_collision: reject targets where two non-adjacent links collide (MuJoCo collision of the
-            robot's own capsules at the target configuration).
-    """
+    table_margin_m: Float = 0.01
+    """Every link surface must stay this far above the table plane (z = 0)."""
+    workspace_min_m: Vec3 = (-0.05, -0.6, 0.02)
+    """Lower corner of the box the EE must stay inside."""
+    workspace_max_m: Vec3 = (0.65, 0.6, 0.75)
+    """Upper corner of the box the EE must stay inside."""
+    max_joint_step_rad: Float = Field(default=0.5, gt=0)
+    """The most any joint's command may move per env-loop tick (larger moves are spread over several ticks: a
+    rate limiter, not a rejection)."""
+    check_self_collision: Bool = True
+    """Reject targets where two non-adjacent links collide (MuJoCo collision of the robot's own capsules at the
+    target configuration)."""
 
-    table_margin_m: float = 0.01
-    workspace_min_m: tuple[float, float, float] = (-0.05, -0.6, 0.02)
-    workspace_max_m: tuple[float, float, float] = (0.65, 0.6, 0.75)
-    max_joint_step_rad: float = 0.5
-    check_self_collision: bool = True
+    @pydantic.model_validator(mode="after")
+    def _check(self) -> SafetyConfig:
+        lo, hi = self.workspace_min_m, self.workspace_max_m
+        if not all(a < b for a, b in zip(lo, hi, strict=True)):
+            raise key_error(
+                "workspace_max_m", f"must be above workspace_min_m {list(lo)} on every axis, got {list(hi)}"
+            )
+        return self
 
 
 class SafetyChecker:
@@ -180,8 +188,7 @@ class SafetyChecker:
         mujoco.mj_kinematics(m, d)
         clearance = self._clearance()  # the table top is the plane z = 0
         if clearance < self.config.table_margin_m:
-            margin_cm = self.config.table_margin_m * 100
-            return f"a link would be {clearance * 100:.1f} cm above the table (margin {margin_cm:.1f} cm)"
+            return _table_reason(clearance, self.config.table_margin_m)
         x, y, z = self._site_xpos[self._ee_site].tolist()
         x0, y0, z0, x1, y1, z1 = self._ws
         if not (x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1):
@@ -243,3 +250,15 @@ def _hops(m: mujoco.MjModel, a: int, b: int) -> int:
     ca, cb = chain(a), chain(b)
     common = next(x for x in ca if x in cb)
     return ca.index(common) + cb.index(common)
+
+
+def _table_reason(clearance_m: float, margin_m: float) -> str:
+    """Why a clearance below the margin is unsafe, in words: a link below the table top, on it, or too close."""
+    cm, margin_cm = abs(clearance_m) * 100, margin_m * 100
+    if clearance_m < -0.0005:
+        where = f"{cm:.1f} cm below the table top"
+    elif clearance_m < 0.0005:
+        where = "on the table top"
+    else:
+        where = f"only {cm:.1f} cm above the table"
+    return f"a link would be {where} (it must stay {margin_cm:.1f} cm above it)"

@@ -1,6 +1,6 @@
 """Workers on another host: the launcher (``uniros worker serve``) and the agent side's handle on what it started.
 
-Issue 5, item 1: the agent side talks to workers over the project's own transports, shm on one machine and tcp
+The agent side talks to workers over the project's own transports, shm on one machine and tcp
 to a worker on another host. A spec is placed on a launcher with the ``worker`` keyword (never passed to the env)::
 
     make_vec([("uniros/Rx200Reach-v0", {"worker": "tcp://10.0.0.5:7000"}), "uniros/Ned2Reach-v0"])

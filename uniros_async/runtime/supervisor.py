@@ -11,7 +11,7 @@ tcp, local and remote workers), in the calling thread (``send_steps_now``, ``rec
 ``_take_replies``); whatever that cannot do (no room, a hang-up, a deadline, a launcher's news of a remote worker)
 is left to the loop, which also reports it.
 Every wait on a worker has a deadline; a worker that does not answer in time, whose connection breaks or whose
-process died is marked broken and every later request to it raises WorkerError naming its index (issue 5). A call
+process died is marked broken and every later request to it raises WorkerError naming its index. A call
 interrupted by Ctrl-C while the loop waits is finished (its replies consumed) before the next call; one
 interrupted inside a request's own code marks that worker broken, since its next reply could no longer be matched
 to a request.
@@ -21,7 +21,7 @@ Start-up: every process is started first (spawn, daemon), then each worker's lis
 supervisor connects to all of them and asks each for its spaces, in parallel.
 If any worker fails to start, all are closed and the error names the worker and why.
 
-Remote workers (issue 5): a spec whose kwargs hold ``worker="tcp://HOST:PORT"`` (or a ``remote.RemoteWorker``) is
+Remote workers: a spec whose kwargs hold ``worker="tcp://HOST:PORT"`` (or a ``remote.RemoteWorker``) is
 started by the launcher there (``uniros worker serve``, runtime/remote.py) instead of ``_spawn``; the launcher
 answers with the worker's tcp URI and the supervisor connects to it directly, as to a local one. Its ``process`` is
 a ``RemoteWorkerProcess`` (pid and exit code as the launcher reports them); a broken connection is reported with
@@ -577,7 +577,7 @@ class Supervisor:
         (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
         half is ``receive_steps_now``; ``submit_steps`` (``step_async``) sends with it too. In as few lines of Python
         as it can: this runs on every step, and at one env the agent's share of a step's overhead is what its lines of
-        Python cost (issue 5's 50 us).
+        Python cost (the goal: 50 us over the bare env step).
 
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).

@@ -297,7 +297,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         return result
 
     def _restart(self, index: int, error: WorkerError) -> list[Any]:
-        """Replace a dead worker, reset its env; its episode ends as truncated (issue 5)."""
+        """Replace a dead worker, reset its env; its episode ends as truncated."""
         logger.warning("restarting worker %d after: %s", index, error)
         w = self._sup.restart(index, self._start_timeout_s)
         if self._pad_msg is not None:

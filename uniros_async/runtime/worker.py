@@ -5,7 +5,7 @@ A worker is started by the supervisor (``multiprocessing.get_context("spawn")``,
 start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then answers
 requests until told to close or until the supervisor goes away.
 
-One event loop per worker (design.md section 7): a uniros env is made inside ``envs.runtime.deferred_start()`` and
+One event loop per worker (docs/architecture.md): a uniros env is made inside ``envs.runtime.deferred_start()`` and
 started on the worker's own loop (``await env.astart()``), so its bus, servo sim and env loop run beside the
 request handler, and a step is ``await env.astep(action)`` in the handler's own task: no loop thread, no hand-over
 between threads, and the reply leaves as soon as the step's coroutine returns (before the rest of what the same
@@ -27,7 +27,7 @@ steps a synchronous env without a coroutine in between. An exception while servi
 supervisor raises it as WorkerError) and the worker keeps serving; an exception while building the env is sent as
 the reply to the first request, and the worker exits.
 
-Lifetime (issue 5): the worker ignores SIGINT (the agent's Ctrl-C is the supervisor's business), stops on SIGTERM
+Lifetime: the worker ignores SIGINT (the agent's Ctrl-C is the supervisor's business), stops on SIGTERM
 (the root task is cancelled, the env closed in ``finally``), and stops when the supervisor dies: the connection
 breaks (EOF on the shm socket) and, as a backstop for a worker blocked in a long env call, a watchdog thread sees
 the parent pid change, cancels the root task and, if that has not ended the process within ``exit_grace_s``,

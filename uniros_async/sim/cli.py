@@ -112,8 +112,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
     render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
     render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
-    render.add_argument("--width", type=int, default=640)
-    render.add_argument("--height", type=int, default=480)
+    render.add_argument("--width", type=int, default=640, help="pixels (default %(default)s)")
+    render.add_argument("--height", type=int, default=480, help="pixels (default %(default)s)")
     render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
@@ -203,7 +203,15 @@ def _serve_ros1(args: argparse.Namespace) -> int:
 
 
 def _print_ready(uri: str) -> None:
-    sys.stdout.write(f"{uri}\n")  # the one line a caller reads: the domain to join, or the ROS master
+    """Say on stdout how to reach what now serves: a shell line to paste (or ``eval``) elsewhere, then a hint.
+
+    The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, or ``export ROS_MASTER_URI=http://...``
+    when a ROS 1 master carries the arm; scripts read the URI after the ``=``.
+    """
+    if uri.startswith("http://"):
+        sys.stdout.write(f"export ROS_MASTER_URI={uri}\n# the arm serves a ROS 1 driver's topics on this master\n")
+    else:
+        sys.stdout.write(f"export UNIROS_DOMAIN={uri}\n# in another shell, the line above, then: uniros topic list\n")
     sys.stdout.flush()
 
 

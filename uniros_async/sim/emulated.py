@@ -1,6 +1,6 @@
 """The emulated real arm: the servo sim with perturbed dynamics, sensor noise and a network in between.
 
-An emulated real robot (design.md section 5) stands in for the physical arm in tests and sim-to-real
+An emulated real robot stands in for the physical arm in tests and sim-to-real
 experiments: the same ServoSim, run as a separate service behind tcp, whose dynamics differ from the nominal
 model the policy trained on, whose sensors are noisy, and whose messages arrive late, jittered, or not at all.
 

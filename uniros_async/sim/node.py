@@ -1,4 +1,4 @@
-"""ServoSimNode: the bus face of a ServoSim, the "hardware interface" of a simulated arm (design.md section 5).
+"""ServoSimNode: the bus face of a ServoSim, the "hardware interface" of a simulated arm.
 
 In namespace ``/<robot name>`` (configurable) the node
 
@@ -17,7 +17,7 @@ process on the same machine: CLOCK_MONOTONIC is one across network namespaces, o
 gets a dict for every command taken at a tick (``{"ev": "cmd", "t_ns", "age_ns", "applied"}``) and every watchdog
 hold (``{"ev": "hold", "t_ns"}``): the fault tests measure with it.
 
-Placements: ``open_servo_sim`` runs it in the caller's process; ``open_servo_sim_process``
+Placements (docs/architecture.md): ``open_servo_sim`` runs it in the caller's process; ``open_servo_sim_process``
 (sim/serve.py) in its own process joining the same domain; ``serve_servo_sim`` (sim/serve.py, and
 ``uniros robot serve``) as a remote service with its own tcp domain.
 

@@ -109,6 +109,16 @@ def _add_sphere(scene: Any, pos: ArrayLike, radius: float, rgba: Sequence[float]
     scene.ngeom += 1
 
 
+def _draw_legend(mjr: Any, entries: Sequence[tuple[str, Sequence[float]]], height: int) -> None:
+    """One line per marker in the top left corner, each in its marker's colour."""
+    import mujoco
+
+    line = 28 / height  # the 150 % font is about 20 pixels high
+    for k, (label, rgba) in enumerate(entries):
+        r, g, b = (float(c) for c in rgba[:3])
+        mujoco.mjr_text(int(mujoco.mjtFont.mjFONT_NORMAL), f"* {label}", mjr, 0.02, 1.0 - line * (k + 1), r, g, b)
+
+
 def render_rgb(
     robot: RobotSpec | str,
     q: ArrayLike | None = None,
@@ -118,6 +128,7 @@ def render_rgb(
     height: int = 480,
     camera: str | None = "overview",
     show_ee: bool = True,
+    legend: bool = True,
     model: Any = None,
     data: Any = None,
 ) -> np.ndarray:
@@ -131,6 +142,8 @@ def render_rgb(
         height: image height in pixels.
         camera: a camera of the MJCF, or None for a free camera looking at the arm.
         show_ee: draw a green sphere at the EE site.
+        legend: write in the top left corner, in their colours, what the markers drawn are ("end effector",
+            "goal"), so a picture read alone says which sphere is which.
         model: an MjModel to draw (e.g. a running ServoSim's ``model``); default: load the robot's MJCF.
         data: an MjData of ``model`` to draw as it is (e.g. ``ServoSim.data``).
 
@@ -183,12 +196,14 @@ def render_rgb(
         mujoco.mjv_updateScene(model, data, opt, None, cam, mujoco.mjtCatBit.mjCAT_ALL, scene)
         if goal_arr is not None:
             _add_sphere(scene, goal_arr, 0.02, GOAL_RGBA)
-        if show_ee:
-            site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, spec.ee_site)
-            if site >= 0:
-                _add_sphere(scene, data.site_xpos[site], 0.016, EE_RGBA)
+        site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, spec.ee_site) if show_ee else -1
+        if site >= 0:
+            _add_sphere(scene, data.site_xpos[site], 0.016, EE_RGBA)
+        markers = [("end effector", EE_RGBA, site >= 0), ("goal", GOAL_RGBA, goal_arr is not None)]
         viewport = mujoco.MjrRect(0, 0, width, height)
         mujoco.mjr_render(viewport, scene, mjr)
+        if legend:
+            _draw_legend(mjr, [(label, rgba) for label, rgba, drawn in markers if drawn], height)
         rgb = np.empty((height, width, 3), dtype=np.uint8)
         mujoco.mjr_readPixels(rgb, None, viewport, mjr)
         return np.flipud(rgb).copy()

@@ -23,17 +23,20 @@ within the tolerance (real-time mode; turn-based: at the end of the step).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
+import pydantic
+from pydantic import Field
 
 from uniros_async.bus.messages import JointState
+from uniros_async.config import ConfigModel, Float, Vec3, key_error
 from uniros_async.envs.base import GoalEnv
-from uniros_async.envs.task import TaskEnv, split_kwargs
+from uniros_async.envs.task import TaskEnv, parse_kwargs
 from uniros_async.errors import ConfigError
 
-__all__ = ["ReachEnv", "ReachGoalEnv", "reach_reward"]
+__all__ = ["ReachConfig", "ReachEnv", "ReachGoalEnv", "reach_reward"]
 
 GOAL_BOXES = {  # the goal spaces of UniROS's reach task configs (position_goal_min / _max)
     "rx200": ((0.15, -0.15, 0.05), (0.25, 0.15, 0.25)),
@@ -41,6 +44,33 @@ GOAL_BOXES = {  # the goal spaces of UniROS's reach task configs (position_goal_
 }
 REWARD_TYPES = ("dense", "sparse")
 ACTION_MODES = ("absolute", "delta")
+
+
+class ReachConfig(ConfigModel):
+    """The reach task's keyword arguments (besides EnvConfig's), checked when the env is built."""
+
+    reward_type: Literal["dense", "sparse"] = "dense"
+    """UniROS's: ``dense`` is +20 on reaching, else -2 x distance - 0.5, with -2 at a joint limit and -5 for an
+    action that could not be executed; ``sparse`` is +1 on reaching, else -1."""
+    action_mode: Literal["absolute", "delta"] = "absolute"
+    """Actions are joint targets over the joint range (``absolute``) or joint deltas (``delta``)."""
+    reach_tolerance: Float = Field(default=0.02, gt=0)
+    """Reached when the EE is this close to the goal (m)."""
+    goal_min: Vec3 | None = None
+    """Lower corner of the goal box (m); unset: the arm's box from UniROS's task config."""
+    goal_max: Vec3 | None = None
+    """Upper corner of the goal box (m); unset: the arm's box from UniROS's task config."""
+    delta_coeff: Float = Field(default=0.05, gt=0)
+    """With ``action_mode="delta"``: an action of 1 moves a joint by this times half its range per env-loop tick."""
+    render_mode: Literal["rgb_array"] | None = None
+    """``"rgb_array"``: ``render()`` returns an image of the arm and the goal."""
+
+    @pydantic.model_validator(mode="after")
+    def _check(self) -> ReachConfig:
+        lo, hi = self.goal_min, self.goal_max
+        if lo is not None and hi is not None and not all(a <= b for a, b in zip(lo, hi, strict=True)):
+            raise key_error("goal_max", f"must be >= goal_min {list(lo)} on every axis, got {list(hi)}")
+        return self
 
 
 def reach_reward(
@@ -82,31 +112,27 @@ def _penalties(info: Any, shape: tuple[int, ...]) -> np.ndarray:
 class ReachEnv(TaskEnv):
     """The standard (vector observation) reach task; see the module docstring."""
 
-    TASK_KEYS = ("reward_type", "action_mode", "reach_tolerance", "goal_min", "goal_max", "delta_coeff", "render_mode")
+    TASK_CONFIG = ReachConfig
+    TASK_KEYS = ReachConfig.field_names()
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, arm: str = "rx200", **kwargs: Any) -> None:
-        config, task = split_kwargs(type(self), kwargs)
-        self.reward_type = task.get("reward_type", "dense")
-        self.action_mode: str = task.get("action_mode", "absolute")
-        self.reach_tolerance = float(task.get("reach_tolerance", 0.02))
+        config, settings = parse_kwargs(type(self), kwargs)
+        task: ReachConfig = settings  # TASK_CONFIG's instance
+        self.task_config = task
+        self.reward_type: str = task.reward_type
+        self.action_mode: str = task.action_mode
+        self.reach_tolerance = task.reach_tolerance
         box_min, box_max = GOAL_BOXES.get(arm, GOAL_BOXES["rx200"])
-        self.goal_min = np.asarray(task.get("goal_min", box_min), dtype=np.float64)
-        self.goal_max = np.asarray(task.get("goal_max", box_max), dtype=np.float64)
-        self.delta_coeff = float(task.get("delta_coeff", 0.05))
-        self.render_mode = task.get("render_mode")
-        if self.reward_type not in REWARD_TYPES:
-            raise ConfigError(f"reward_type must be one of {REWARD_TYPES}, got {self.reward_type!r}")
-        if self.action_mode not in ACTION_MODES:
-            raise ConfigError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
-        if self.goal_min.shape != (3,) or self.goal_max.shape != (3,) or np.any(self.goal_min > self.goal_max):
+        self.goal_min = np.asarray(box_min if task.goal_min is None else task.goal_min, dtype=np.float64)
+        self.goal_max = np.asarray(box_max if task.goal_max is None else task.goal_max, dtype=np.float64)
+        self.delta_coeff = task.delta_coeff
+        self.render_mode = task.render_mode
+        if np.any(self.goal_min > self.goal_max):  # one of them given, the other the arm's default
             raise ConfigError(
-                f"goal_min/goal_max must be 3 numbers with min <= max, got {self.goal_min}, {self.goal_max}"
+                f"goal_min/goal_max: min must be <= max on every axis, got {self.goal_min.tolist()} and "
+                f"{self.goal_max.tolist()} (the {arm} goal box gives the one not set)"
             )
-        if self.reach_tolerance <= 0:
-            raise ConfigError(f"reach_tolerance must be > 0, got {self.reach_tolerance}")
-        if self.render_mode not in (None, "rgb_array"):
-            raise ConfigError(f"render_mode must be None or 'rgb_array', got {self.render_mode!r}")
         super().__init__(arm, config)
         spec = self.robot_spec
         n = spec.n_arm_joints

@@ -1,5 +1,5 @@
 """Training: SB3 TD3 / TD3+HER recipes, the multi-task trainer (the paper's Algorithm 1), checkpoints,
-evaluation and learning-curve plots (issue 6); ``uniros train|eval|plot`` on the command line.
+evaluation and learning-curve plots; ``uniros train|eval|plot`` on the command line.
 
 Exports load lazily: importing this package imports neither torch nor SB3, and never the asynchronous learner
 (``uniros_async.training.async_td3``) unless ``AsyncTD3`` is asked for.

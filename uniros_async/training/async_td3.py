@@ -187,7 +187,7 @@ class AsyncTD3(TD3):
             starting an update (at most a quarter of the recent step duration), so that handing the action to the
             env (its loop thread, or the supervisor's, in this process) does not compete with it for the GIL.
         torch_threads: ``torch.set_num_threads`` for the caller and the learner during ``learn`` (process-wide;
-            one thread beside env loops, see design.md section 9); None leaves torch's setting alone.
+            one thread beside env loops: on 2 cores more stall them); None leaves torch's setting alone.
         real_time_actor: for envs on the wall clock: during ``learn`` the acting thread runs under SCHED_RR when
             permitted (``priority.real_time_thread``; the learner thread puts itself back to ordinary scheduling)
             and the process's GIL switch interval drops to 0.5 ms (``priority.gil_switch_interval``), so a learner

@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from uniros_async.errors import ConfigError
+from uniros_async.yamlio import loads_yaml
 
 __all__ = ["add_parsers", "run"]
 
@@ -39,8 +40,13 @@ def add_parsers(subparsers: Any) -> None:
         "--env-kwargs", default=None, metavar="YAML", help="kwargs for every --env, e.g. '{reward_type: sparse}'"
     )
     t.add_argument("--steps", type=int, default=None, help="total env steps")
-    t.add_argument("--seed", type=int, default=None)
-    t.add_argument("--learner", choices=("sync", "async"), default=None)
+    t.add_argument("--seed", type=int, default=None, help="the run's seed (default: the config's)")
+    t.add_argument(
+        "--learner",
+        choices=("sync", "async"),
+        default=None,
+        help="SB3's TD3 or the asynchronous learner (default: the config's)",
+    )
     t.add_argument(
         "--set",
         action="append",
@@ -64,24 +70,29 @@ def add_parsers(subparsers: Any) -> None:
     e.add_argument(
         "--clock", default="sim", choices=("sim", "wall"), help="sim: accelerated (default); wall: real time"
     )
-    e.add_argument("--episodes", type=int, default=200)
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--episodes", type=int, default=200, help="episodes to run (default %(default)s)")
+    e.add_argument("--seed", type=int, default=0, help="seeds the env and its goals (default %(default)s)")
     e.add_argument("--label", default=None, help="training label of the env (task-indexed multi-task policies)")
-    e.add_argument("--placement", choices=("inprocess", "workers"), default="inprocess")
+    e.add_argument(
+        "--placement",
+        choices=("inprocess", "workers"),
+        default="inprocess",
+        help="the env in this process (default) or in a worker process",
+    )
     e.add_argument("--json", dest="json_path", default=None, metavar="PATH", help="also write the result as JSON")
-    e.add_argument("--no-progress", action="store_true")
+    e.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     p = subparsers.add_parser("plot", help="learning curves (episode length, return, success rate) to PNG")
-    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories of `uniros train`")
     p.add_argument("--out", default=None, help="PNG path (default RUN_DIR/curves.png)")
     p.add_argument("--labels", nargs="+", default=None, help="one legend label per run")
     p.add_argument("--window", type=int, default=20, help="episodes per moving average (default 20)")
-    p.add_argument("--title", default=None)
+    p.add_argument("--title", default=None, help="figure title")
 
 
 def _yaml_value(text: str, what: str) -> Any:
     try:
-        return yaml.safe_load(text)
+        return loads_yaml(text)  # as in config files: 3e-4 and 1e4 are numbers
     except yaml.YAMLError as exc:
         raise ConfigError(f"{what}: not valid YAML: {text!r}") from exc
 
@@ -176,9 +187,9 @@ def _run_eval(args: argparse.Namespace) -> int:
         nonlocal bar
         wins[0] += ok
         if bar is None and not args.no_progress:  # created here: errors found before the first episode print alone
-            from tqdm import tqdm
+            from uniros_async._progress import progress_bar
 
-            bar = tqdm(total=args.episodes, initial=0, unit="ep", desc=label, mininterval=1.0, file=sys.stderr)
+            bar = progress_bar(total=args.episodes, unit="ep", desc=label, mininterval=1.0)
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(f"success {100 * wins[0] / (i + 1):.1f}%", refresh=False)

@@ -2,8 +2,11 @@
 
 The defaults are the UniROS paper's (TD3 with 400-300 networks, lr 3e-4, buffer 1e6, batch 256, tau 0.005,
 gamma 0.99, policy delay 2, target noise 0.2 clipped at 0.5; HER with the ``future`` strategy and 4 sampled
-goals). Every key is checked before anything starts: unknown keys (with the valid ones listed), impossible
-values, unknown env ids and env keyword arguments all raise ConfigError::
+goals). Every key is checked before anything starts (pydantic models, uniros_async/config.py): an unknown key
+(with the closest valid one), a wrong type or an impossible value raises ConfigError with one line per problem,
+each naming the key's path (``td3.batch_size: expected an integer, got 128.5``); ``check_envs`` checks the env
+ids and keyword arguments the same way (``envs[1].kwargs.reward_type: ...``). Every key, its type and default:
+docs/configuration.md. ::
 
     name: rx200_reach_dense
     seed: 0
@@ -17,12 +20,22 @@ values, unknown env ids and env keyword arguments all raise ConfigError::
 
 from __future__ import annotations
 
-import dataclasses
-import re
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from uniros_async.config import config_from_dict, load_yaml
+import pydantic
+from pydantic import BeforeValidator, Field
+
+from uniros_async.config import (
+    Bool,
+    ConfigModel,
+    Float,
+    Int,
+    Str,
+    key_error,
+    load_yaml,
+    problems_error,
+)
 from uniros_async.errors import ConfigError
 
 __all__ = [
@@ -42,31 +55,22 @@ LEARNERS = ("sync", "async")
 PLACEMENTS = ("inprocess", "workers")
 REPLAY_BUFFERS = ("auto", "standard", "her")
 GOAL_STRATEGIES = ("future", "final", "episode")
-_NAME_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
+_NAME_PATTERN = r"^[A-Za-z0-9_.+-]+$"
+
+Name = Annotated[Str, Field(pattern=_NAME_PATTERN)]
+"""A run or env name: letters, digits and ``_ . + -`` (it becomes part of file names)."""
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class EnvEntry:
-    """One env of a run.
+class EnvEntry(ConfigModel):
+    """One env of a run (in YAML: a mapping, or just the id)."""
 
-    Attributes:
-        id: a registered id, e.g. ``uniros/Rx200Reach-v0``.
-        kwargs: keyword arguments of the env (``reward_type``, ``robot``, ``action_cycle_s``, ...); the run's
-            ``env_defaults`` fill in what is missing.
-        name: label in logs and reports (default: derived from the id and the robot).
-    """
-
-    id: str
-    kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
-    name: str | None = None
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.id, str) or not self.id:
-            raise ConfigError(f"env id must be a non-empty string, got {self.id!r}")
-        if not isinstance(self.kwargs, dict):
-            raise ConfigError(f"env kwargs must be a mapping, got {type(self.kwargs).__name__}")
-        if self.name is not None and not _NAME_RE.match(self.name):
-            raise ConfigError(f"env name must match {_NAME_RE.pattern}, got {self.name!r}")
+    id: Annotated[Str, Field(min_length=1)]
+    """A registered id, e.g. ``uniros/Rx200Reach-v0``."""
+    kwargs: dict[str, Any] = Field(default_factory=dict)
+    """Keyword arguments of the env (``reward_type``, ``robot``, ``action_cycle_s``, ...; docs/configuration.md);
+    the run's ``env_defaults`` fill in what is missing."""
+    name: Name | None = None
+    """Label in logs and reports (default: derived from the id and the robot)."""
 
     def label(self, defaults: dict[str, Any] | None = None) -> str:
         """The name, or ``Rx200Reach`` / ``Rx200Reach-emulated-real`` from the id and robot."""
@@ -78,194 +82,170 @@ class EnvEntry:
         return base if robot == "sim" else f"{base}-{str(robot).replace('://', '-').replace(':', '-')}"
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class TD3Config:
-    """TD3 hyperparameters (SB3 names; defaults from the paper).
+def _env_list(v: Any) -> Any:
+    """``envs`` as YAML gives it: None, or a list of ids and mappings."""
+    if v is None:
+        return ()
+    if not isinstance(v, list | tuple):
+        raise ConfigError(f"expected a list of envs (ids or {{id, kwargs, name}} mappings), got {v!r}")
+    return [{"id": item} if isinstance(item, str) else item for item in v]
 
-    Attributes:
-        action_noise_std: standard deviation of the Gaussian exploration noise, in action units ([-1, 1]).
-        net_arch: hidden layers of actor and critics.
-        learning_starts: random-action steps before the first update.
-        train_freq: env steps between updates; gradient_steps: updates each time.
-    """
 
-    learning_rate: float = 3e-4
-    buffer_size: int = 1_000_000
-    batch_size: int = 256
-    tau: float = 0.005
-    gamma: float = 0.99
-    net_arch: tuple[int, ...] = (400, 300)
-    policy_delay: int = 2
-    target_policy_noise: float = 0.2
-    target_noise_clip: float = 0.5
-    learning_starts: int = 1000
-    action_noise_std: float = 0.1
-    train_freq: int = 1
-    gradient_steps: int = 1
+EnvList = Annotated[tuple[EnvEntry, ...], BeforeValidator(_env_list)]
+PositiveInt = Annotated[Int, Field(gt=0)]
+Index = Annotated[Int, Field(ge=0)]
 
-    def __post_init__(self) -> None:
-        _positive(self, "learning_rate", "buffer_size", "batch_size", "train_freq", "policy_delay")
-        if not 0 < self.tau <= 1:
-            raise ConfigError(f"td3.tau must be in (0, 1], got {self.tau}")
-        if not 0 < self.gamma <= 1:
-            raise ConfigError(f"td3.gamma must be in (0, 1], got {self.gamma}")
+
+class TD3Config(ConfigModel):
+    """TD3 hyperparameters (SB3 names; defaults from the paper)."""
+
+    learning_rate: Float = Field(default=3e-4, gt=0)
+    """Adam's learning rate of actor and critics."""
+    buffer_size: Int = Field(default=1_000_000, gt=0)
+    """Replay buffer capacity (transitions)."""
+    batch_size: Int = Field(default=256, gt=0)
+    """Transitions per gradient step."""
+    tau: Float = Field(default=0.005, gt=0, le=1)
+    """Polyak coefficient of the target networks."""
+    gamma: Float = Field(default=0.99, gt=0, le=1)
+    """Discount factor."""
+    net_arch: Annotated[tuple[PositiveInt, ...], Field(min_length=1)] = (400, 300)
+    """Hidden layers of actor and critics."""
+    policy_delay: Int = Field(default=2, gt=0)
+    """Critic updates per actor update."""
+    target_policy_noise: Float = Field(default=0.2, ge=0)
+    """Standard deviation of the target policy smoothing noise."""
+    target_noise_clip: Float = Field(default=0.5, ge=0)
+    """The smoothing noise is clipped to +- this."""
+    learning_starts: Int = Field(default=1000, ge=0)
+    """Random-action steps before the first update."""
+    action_noise_std: Float = Field(default=0.1, ge=0)
+    """Standard deviation of the Gaussian exploration noise, in action units ([-1, 1])."""
+    train_freq: Int = Field(default=1, gt=0)
+    """Env steps between updates."""
+    gradient_steps: Int = Field(default=1, ge=1)
+    """Updates each time."""
+
+    @pydantic.model_validator(mode="after")
+    def _check(self) -> TD3Config:
         if self.batch_size > self.buffer_size:
-            raise ConfigError(f"td3.batch_size={self.batch_size} > td3.buffer_size={self.buffer_size}")
-        if not self.net_arch or not all(isinstance(n, int) and n > 0 for n in self.net_arch):
-            raise ConfigError(f"td3.net_arch must be a non-empty list of positive ints, got {list(self.net_arch)}")
-        for name in ("target_policy_noise", "target_noise_clip", "action_noise_std"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"td3.{name} must be >= 0, got {getattr(self, name)}")
-        if self.learning_starts < 0:
-            raise ConfigError(f"td3.learning_starts must be >= 0, got {self.learning_starts}")
-        if self.gradient_steps < 1:
-            raise ConfigError(f"td3.gradient_steps must be >= 1, got {self.gradient_steps}")
+            raise key_error("batch_size", f"must be <= buffer_size ({self.buffer_size}), got {self.batch_size}")
+        return self
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class HerConfig:
+class HerConfig(ConfigModel):
     """Hindsight experience replay (SB3 HerReplayBuffer)."""
 
-    n_sampled_goal: int = 4
-    goal_selection_strategy: str = "future"
-
-    def __post_init__(self) -> None:
-        if self.n_sampled_goal < 1:
-            raise ConfigError(f"her.n_sampled_goal must be >= 1, got {self.n_sampled_goal}")
-        if self.goal_selection_strategy not in GOAL_STRATEGIES:
-            raise ConfigError(
-                f"her.goal_selection_strategy must be one of {GOAL_STRATEGIES}, got {self.goal_selection_strategy!r}"
-            )
+    n_sampled_goal: Int = Field(default=4, ge=1)
+    """Relabelled goals per real transition."""
+    goal_selection_strategy: Literal["future", "final", "episode"] = "future"
+    """Where relabelled goals come from."""
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class AsyncLearnerConfig:
+class AsyncLearnerConfig(ConfigModel):
     """Settings of the asynchronous learner (``learner: async``, training/async_td3.py)."""
 
-    updates_per_step: float = 1.0
-    sync_every: int = 2
-    real_time_actor: bool | None = None
-    """AsyncTD3's ``real_time_actor``; None: on when any training env runs on the wall clock."""
-    action_l2: float = 0.0
+    updates_per_step: Float = Field(default=1.0, gt=0)
+    """Gradient updates per collected transition; the learner never runs ahead of this x transitions."""
+    sync_every: Int = Field(default=2, ge=1)
+    """Updates between two swaps of the actor's weights the acting side uses."""
+    real_time_actor: Bool | None = None
+    """AsyncTD3's ``real_time_actor``; unset: on when any training env runs on the wall clock."""
+    action_l2: Float = Field(default=0.0, ge=0)
     """AsyncTD3's ``action_l2``: the HER paper's action penalty in the actor's loss (1.0 there)."""
 
-    def __post_init__(self) -> None:
-        if not self.action_l2 >= 0:
-            raise ConfigError(f"async_learner.action_l2 must be >= 0, got {self.action_l2}")
-        if self.updates_per_step <= 0:
-            raise ConfigError(f"async_learner.updates_per_step must be > 0, got {self.updates_per_step}")
-        if self.sync_every < 1:
-            raise ConfigError(f"async_learner.sync_every must be >= 1, got {self.sync_every}")
 
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class EvalConfig:
+class EvalConfig(ConfigModel):
     """Periodic evaluation (deterministic policy) on every training env, or on ``envs`` if given."""
 
-    every_steps: int = 1000
-    episodes: int = 20
-    envs: tuple[EnvEntry, ...] = ()
-
-    def __post_init__(self) -> None:
-        if self.every_steps < 0:
-            raise ConfigError(f"eval.every_steps must be >= 0 (0: never), got {self.every_steps}")
-        if self.episodes < 1:
-            raise ConfigError(f"eval.episodes must be >= 1, got {self.episodes}")
+    every_steps: Int = Field(default=1000, ge=0)
+    """Env steps between evaluations (0: never)."""
+    episodes: Int = Field(default=20, ge=1)
+    """Episodes per env and evaluation."""
+    envs: EnvList = ()
+    """Evaluation envs (as ``envs``); empty: the training envs."""
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class CheckpointConfig:
+class CheckpointConfig(ConfigModel):
     """Checkpoints: model and replay buffer every ``every_steps`` (and at the end), the last ``keep`` kept."""
 
-    every_steps: int = 2000
-    keep: int = 2
-    replay_buffer: bool = True
-
-    def __post_init__(self) -> None:
-        if self.every_steps < 0:
-            raise ConfigError(f"checkpoint.every_steps must be >= 0 (0: only at the end), got {self.every_steps}")
-        if self.keep < 1:
-            raise ConfigError(f"checkpoint.keep must be >= 1, got {self.keep}")
+    every_steps: Int = Field(default=2000, ge=0)
+    """Env steps between checkpoints (0: only at the end)."""
+    keep: Int = Field(default=2, ge=1)
+    """Checkpoints kept."""
+    replay_buffer: Bool = True
+    """Save the replay buffer too (needed to resume exactly)."""
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class TrainConfig:
-    """One training run (see the module docstring).
+class TrainConfig(ConfigModel):
+    """One training run (see the module docstring)."""
 
-    Attributes:
-        name: run name; the run directory defaults to ``runs/<name>``.
-        envs: one env (single task) or several (multi-task: one policy, one replay buffer, an env sampled per
-            episode; observations and actions padded to the largest sizes).
-        env_defaults: keyword arguments given to every env unless it sets them (default ``clock: sim``).
-        placement: ``inprocess`` (envs in the agent's process: fastest with accelerated sim) or ``workers``
-            (each env in a worker process through ``uniros_async.make``).
-        learner: ``sync`` (SB3 TD3: collect, then update) or ``async`` (AsyncTD3: updates beside collection).
-        replay_buffer: ``auto`` (HER for goal envs, plain replay otherwise), ``standard`` or ``her``.
-        task_id_in_obs: append a one-hot env index to observations (multi-task only; off as in the paper).
-        drop_observation: indices of the vector observation (the ``observation`` key of a goal env) to remove
-            before the policy sees it (the reach goal envs' ``observation`` is already goal-free; this is for
-            envs whose is not: HER's relabelled goals would contradict goal-dependent entries).
-        normalize_obs: normalise observations with running mean/std statistics (SB3 ``VecNormalize``, as the HER
-            paper and rl-baselines3-zoo's ``normalize: true``; for goal envs the ``observation``,
-            ``achieved_goal`` and ``desired_goal`` keys), clipped to +-10 std; rewards are not normalised. The
-            replay buffer keeps raw observations (normalised when sampled); the statistics are saved with every
-            checkpoint, restored on resume and used, frozen, by every evaluation. Off by default.
-        torch_threads: torch intra-op threads (1: envs share the machine; design.md section 9).
-        run_dir: where logs and checkpoints go (default ``runs/<name>``).
-    """
+    name: Name = "run"
+    """Run name; the run directory defaults to ``runs/<name>``."""
+    seed: Int = Field(default=0, ge=0)
+    """Seed of the envs, the networks and the exploration noise."""
+    total_steps: Int = Field(default=10_000, ge=1)
+    """Env steps of the run."""
+    envs: EnvList = ()
+    """One env (single task) or several (multi-task: one policy, one replay buffer, an env sampled per episode;
+    observations and actions padded to the largest sizes). Each is an id or ``{id, kwargs, name}``."""
+    env_defaults: dict[str, Any] = Field(default_factory=lambda: {"clock": "sim"})
+    """Keyword arguments given to every env unless it sets them."""
+    placement: Literal["inprocess", "workers"] = "inprocess"
+    """``inprocess`` (envs in the agent's process: fastest with accelerated sim) or ``workers`` (each env in a
+    worker process through ``uniros_async.make``)."""
+    learner: Literal["sync", "async"] = "sync"
+    """``sync`` (SB3 TD3: collect, then update) or ``async`` (AsyncTD3: updates beside collection)."""
+    replay_buffer: Literal["auto", "standard", "her"] = "auto"
+    """``auto`` (HER for goal envs, plain replay otherwise), ``standard`` or ``her``."""
+    task_id_in_obs: Bool = False
+    """Append a one-hot env index to observations (multi-task only; off as in the paper)."""
+    drop_observation: tuple[Index, ...] = ()
+    """Indices of the vector observation (the ``observation`` key of a goal env) to remove before the policy sees
+    it (the reach goal envs' ``observation`` is already goal-free; this is for envs whose is not: HER's relabelled
+    goals would contradict goal-dependent entries)."""
+    normalize_obs: Bool = False
+    """Normalise observations with running mean/std statistics (SB3 ``VecNormalize``, as the HER paper and
+    rl-baselines3-zoo's ``normalize: true``; for goal envs the ``observation``, ``achieved_goal`` and
+    ``desired_goal`` keys), clipped to +-10 std; rewards are not normalised. The replay buffer keeps raw
+    observations (normalised when sampled); the statistics are saved with every checkpoint, restored on resume and
+    used, frozen, by every evaluation."""
+    td3: TD3Config = TD3Config()
+    """TD3 hyperparameters."""
+    her: HerConfig = HerConfig()
+    """HER settings (goal envs)."""
+    async_learner: AsyncLearnerConfig = AsyncLearnerConfig()
+    """Settings of ``learner: async``."""
+    eval: EvalConfig = EvalConfig()
+    """Periodic evaluation."""
+    checkpoint: CheckpointConfig = CheckpointConfig()
+    """Checkpoints."""
+    torch_threads: Int = Field(default=1, ge=1)
+    """Torch intra-op threads (1: envs share the machine, and more threads stall updates beside real-time loops)."""
+    run_dir: Str | None = None
+    """Where logs and checkpoints go; unset: ``runs/<name>``."""
+    progress_bar: Bool = True
+    """Show a progress bar of the run's steps (``uniros train --no-progress`` turns it off)."""
 
-    name: str = "run"
-    seed: int = 0
-    total_steps: int = 10_000
-    envs: tuple[EnvEntry, ...] = ()
-    env_defaults: dict[str, Any] = dataclasses.field(default_factory=lambda: {"clock": "sim"})
-    placement: str = "inprocess"
-    learner: str = "sync"
-    replay_buffer: str = "auto"
-    task_id_in_obs: bool = False
-    drop_observation: tuple[int, ...] = ()
-    normalize_obs: bool = False
-    td3: TD3Config = dataclasses.field(default_factory=TD3Config)
-    her: HerConfig = dataclasses.field(default_factory=HerConfig)
-    async_learner: AsyncLearnerConfig = dataclasses.field(default_factory=AsyncLearnerConfig)
-    eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
-    checkpoint: CheckpointConfig = dataclasses.field(default_factory=CheckpointConfig)
-    torch_threads: int = 1
-    run_dir: str | None = None
-    progress_bar: bool = True
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _NAME_RE.match(self.name):
-            raise ConfigError(f"name must match {_NAME_RE.pattern}, got {self.name!r}")
+    @pydantic.model_validator(mode="after")
+    def _check(self) -> TrainConfig:
+        """The checks that span keys."""
         if not self.envs:
-            raise ConfigError("envs: at least one env is needed, e.g. envs: [{id: uniros/Rx200Reach-v0}]")
-        if self.total_steps < 1:
-            raise ConfigError(f"total_steps must be >= 1, got {self.total_steps}")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise ConfigError(f"seed must be an int >= 0, got {self.seed!r}")
-        for key, choices in (("placement", PLACEMENTS), ("learner", LEARNERS), ("replay_buffer", REPLAY_BUFFERS)):
-            if getattr(self, key) not in choices:
-                raise ConfigError(f"{key} must be one of {choices}, got {getattr(self, key)!r}")
-        if not isinstance(self.env_defaults, dict):
-            raise ConfigError(f"env_defaults must be a mapping, got {type(self.env_defaults).__name__}")
-        if self.torch_threads < 1:
-            raise ConfigError(f"torch_threads must be >= 1, got {self.torch_threads}")
+            raise key_error("envs", "at least one env is needed, e.g. envs: [{id: uniros/Rx200Reach-v0}]")
         labels = self.labels()
         if len(set(labels)) != len(labels):
-            raise ConfigError(f"env labels must be unique (give envs a name:), got {labels}")
+            raise key_error("envs", f"env labels must be unique (give envs a name:), got {labels}")
         drop = self.drop_observation
-        valid = all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in drop)
-        if not valid or len(set(drop)) != len(drop):
-            raise ConfigError(f"drop_observation must be distinct indices >= 0, got {list(drop)}")
-        if not isinstance(self.normalize_obs, bool):
-            raise ConfigError(f"normalize_obs must be true or false, got {self.normalize_obs!r}")
+        if len(set(drop)) != len(drop):
+            raise key_error("drop_observation", f"must be distinct indices, got {list(drop)}")
         if self.task_id_in_obs and len(self.envs) < 2:
-            raise ConfigError("task_id_in_obs needs two or more envs")
+            raise key_error("task_id_in_obs", "needs two or more envs")
         if self.async_learner.action_l2 and self.learner != "async":
             raise ConfigError(
                 f"async_learner.action_l2={self.async_learner.action_l2} needs learner: async (AsyncTD3's update; "
                 "SB3's TD3 has no such term)"
             )
+        return self
 
     def labels(self) -> list[str]:
         """Label of every training env."""
@@ -289,72 +269,46 @@ class TrainConfig:
         """Check every env id and keyword argument (imports the task modules, starts nothing).
 
         Raises:
-            ConfigError: an unknown id or keyword argument, or an invalid run-time setting, naming the env.
+            ConfigError: one line per problem, each with its path in the config (``envs[1].kwargs.reward_type``,
+                or ``env_defaults.clock`` for a value that comes from ``env_defaults``): an unknown id or keyword
+                argument, or a bad value.
         """
         from uniros_async.runtime.supervisor import check_env_args
 
-        for where, specs in (("envs", self.env_specs()), ("eval.envs", self.eval_specs())):
-            for i, (label, env_id, kwargs) in enumerate(specs):
+        problems: list[tuple[str, str]] = []
+        for where, entries in (("envs", self.envs), ("eval.envs", self.eval.envs)):
+            for i, e in enumerate(entries):
                 try:
-                    check_env_args(env_id, kwargs)
+                    check_env_args(e.id, {**self.env_defaults, **e.kwargs})
                 except ConfigError as exc:
-                    raise ConfigError(f"{where}[{i}] ({label}): {exc}") from exc
+                    problems += _env_problems(exc, f"{where}[{i}]", e, self.env_defaults)
+        if problems:  # a bad env_defaults value is wrong for every env: said once
+            raise problems_error(list(dict.fromkeys(problems)))
 
 
-def _positive(cfg: Any, *names: str) -> None:
-    for name in names:
-        value = getattr(cfg, name)
-        if not value > 0:
-            raise ConfigError(f"td3.{name} must be > 0, got {value}")
-
-
-def _env_entries(data: Any, where: str) -> tuple[EnvEntry, ...]:
-    if data is None:
-        return ()
-    if not isinstance(data, list):
-        raise ConfigError(f"{where}: expected a list of envs, got {type(data).__name__}")
+def _env_problems(exc: ConfigError, where: str, entry: EnvEntry, defaults: dict[str, Any]) -> list[tuple[str, str]]:
+    """The problems of one env's check, with paths in the config: a key the entry sets is under its ``kwargs``,
+    one it takes from ``env_defaults`` under that."""
+    found: list[tuple[str, str]] | None = getattr(exc, "problems", None)
+    if not found:
+        return [(where, str(exc))]
     out = []
-    for i, item in enumerate(data):
-        if isinstance(item, str):
-            item = {"id": item}
-        out.append(config_from_dict(EnvEntry, item, where=f"{where}[{i}]"))
-    return tuple(out)
+    for path, message in found:
+        key = path.split(".")[0].split("[")[0]
+        if key and key not in entry.kwargs and key in defaults:
+            out.append((f"env_defaults.{path}", message))
+        else:
+            out.append((f"{where}.kwargs.{path}" if path else where, message))
+    return out
 
 
-def train_config_from_dict(data: Any, *, where: str = "TrainConfig") -> TrainConfig:
+def train_config_from_dict(data: Any, *, where: str = "") -> TrainConfig:
     """Build a TrainConfig from a mapping (as read from YAML); env entries may be ids or ``{id, kwargs, name}``.
 
     Raises:
-        ConfigError: unknown keys (valid ones listed), impossible values, or a malformed env list.
+        ConfigError: one line per problem (the key's path, what was expected, what was given), after ``where``.
     """
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
-    data = dict(data)
-    if "envs" in data:
-        data["envs"] = _env_entries(data["envs"], f"{where}.envs")
-    if isinstance(data.get("eval"), dict) and "envs" in data["eval"]:
-        data["eval"] = {**data["eval"], "envs": _env_entries(data["eval"]["envs"], f"{where}.eval.envs")}
-    if isinstance(data.get("td3"), dict):
-        td3 = dict(data["td3"])
-        for key in ("learning_rate", "tau", "gamma", "target_policy_noise", "target_noise_clip", "action_noise_std"):
-            if key in td3:
-                td3[key] = _number(td3[key], f"{where}.td3.{key}")
-        data["td3"] = td3
-    return config_from_dict(TrainConfig, data, where=where)
-
-
-def _number(v: Any, where: str) -> float:
-    # YAML 1.1 reads "3e-4" (no dot) as a string; accept it as the number it plainly is
-    if isinstance(v, str):
-        try:
-            return float(v)
-        except ValueError:
-            raise ConfigError(f"{where}: expected a number, got {v!r}") from None
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ConfigError(f"{where}: expected a number, got {v!r}")
-    return float(v)
+    return TrainConfig.from_data(data, where=where)
 
 
 def load_train_config(path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
@@ -392,8 +346,8 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
 
 def config_to_dict(cfg: Any) -> Any:
     """Plain data (dicts, lists, scalars) of a config, for YAML and checkpoint metadata."""
-    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
-        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    if isinstance(cfg, ConfigModel):
+        return cfg.to_data()
     if isinstance(cfg, tuple | list):
         return [config_to_dict(v) for v in cfg]
     if isinstance(cfg, dict):

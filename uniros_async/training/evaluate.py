@@ -153,7 +153,7 @@ def frozen_obs_stats(vec_normalize: Any) -> Any:
 
 def _algo_class(name: str) -> type:
     if name == "AsyncTD3":
-        from uniros_async.training.async_td3 import AsyncTD3  # lazy: written beside this package (issue 6 item 2)
+        from uniros_async.training.async_td3 import AsyncTD3  # lazy: it imports torch and SB3
 
         return AsyncTD3
     if name == "TD3":

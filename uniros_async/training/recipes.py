@@ -192,7 +192,7 @@ def _use_her(cfg: TrainConfig, layout: EnvLayout) -> bool:
 def _algo_class(cfg: TrainConfig) -> type:
     if cfg.learner == "async":
         try:
-            from uniros_async.training.async_td3 import AsyncTD3  # lazy: another module of issue 6
+            from uniros_async.training.async_td3 import AsyncTD3  # lazy: only the async learner needs it
         except ImportError as exc:
             raise ConfigError(f"learner: async needs uniros_async.training.async_td3 ({exc})") from exc
         return AsyncTD3
@@ -360,9 +360,9 @@ def _make_callback(
             self.bar = None
             self.last_step = self.num_timesteps
             if progress:
-                from tqdm import tqdm
+                from uniros_async._progress import progress_bar
 
-                self.bar = tqdm(
+                self.bar = progress_bar(
                     total=cfg.total_steps,
                     initial=self.num_timesteps,
                     unit="step",

@@ -4,7 +4,7 @@
  * layout and the reasons. Built by `pip install` where a C compiler is at hand (setup.py, optional); where it is
  * not, the Python class is used.
  *
- * Why C: at one env, a vector step's overhead is what its lines of Python cost (issue 5), and these paths run four
+ * Why C: at one env, a vector step's overhead is what its lines of Python cost, and these paths run four
  * times a step (a write and a read on each side). In Python they cost 4-5 us a frame; here well under 1 us.
  *
  * Memory order: positions are stored with release and loaded with acquire semantics; between publishing a

@@ -81,9 +81,9 @@ _ADDRESS_PREFIX = "\0uniros-shm-"
 _MAX_NAME_BYTES = 100  # sun_path holds 108 bytes, the prefix included
 
 # Before sleeping, receive() polls the ring for up to spin_ns, yielding the CPU between polls: in a request/reply
-# exchange the answer usually comes sooner than a sleeping process wakes up (20-46 us on an idle core here, design.md
-# section 9), and while both ends keep polling neither core halts (10 us round trips instead of 60-80 us). After
-# sending a large frame the window grows by the time the peer needs to read it (up to _SPIN_EXTRA_NS). A spin that
+# exchange the answer usually comes sooner than a sleeping process wakes up (20-46 us for an idle core of a 2-core
+# VM), and while both ends keep polling neither core halts (10 us round trips instead of 60-80 us). After sending
+# a large frame the window grows by the time the peer needs to read it (up to _SPIN_EXTRA_NS). A spin that
 # finds nothing costs credit; without credit no spin is tried until a sleep turns out to have been short enough that
 # a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
 _now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
@@ -98,7 +98,7 @@ _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS
 class ShmTransport(Transport):
     """One end of a ``shm://`` connection (made by ``connect`` or ``ShmListener.accept``).
 
-    Costs on the 2-core machines of design.md: one copy per send (a 900 KiB image: 45 us when the ring's pages are
+    Costs on the 2-core VMs of docs/performance.md: one copy per send (a 900 KiB image: 45 us when the ring's pages are
     in cache), no syscall per frame while both ends are busy, one eventfd write when the reader sleeps.
     """
 

@@ -1,4 +1,4 @@
-"""Niryo Ned2: the robot spec (numbers from robot_facts.md section 2)."""
+"""Niryo Ned2: the robot spec (numbers from docs/robot-facts.md section 2)."""
 
 from __future__ import annotations
 

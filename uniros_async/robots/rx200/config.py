@@ -1,4 +1,4 @@
-"""Interbotix ReactorX-200 (rx200): the robot spec (numbers from robot_facts.md section 1)."""
+"""Interbotix ReactorX-200 (rx200): the robot spec (numbers from docs/robot-facts.md section 1)."""
 
 from __future__ import annotations
 
