@@ -49,7 +49,8 @@ def ros1_link(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) ->
             )  # fmt: skip
             arm = EventPeer(arm_proc)
             assert arm_proc.stdout is not None
-            assert arm_proc.stdout.readline().strip() == master_uri
+            ready = arm_proc.stdout.readline().strip()
+            assert ready == f"export ROS_MASTER_URI={master_uri}", ready
             arm.start_reader()
             agent = EventPeer(
                 pair.popen(

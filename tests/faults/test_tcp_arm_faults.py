@@ -46,7 +46,7 @@ def link(netfault_ready: None) -> Iterator[Link]:
         agent: EventPeer | None = None
         try:
             assert arm_proc.stdout is not None
-            uri = arm_proc.stdout.readline().strip()
+            uri = arm_proc.stdout.readline().strip().split("=", 1)[-1]  # export UNIROS_DOMAIN=tcp://...
             assert uri == f"tcp://{pair.arm_ip}:{PORT}", uri
             arm.start_reader()
             agent_proc = pair.popen(
