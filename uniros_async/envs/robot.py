@@ -373,10 +373,14 @@ class RobotEnv(BaseEnv):
         """Stop commanding the arm (its watchdog holds it) and say how old its newest joint state is."""
         self._stop_commanding()
         age_s = self._state_age_s()
+        newest = (
+            f"the newest joint state on {self._js.topic} is {age_s:.2f} s old"
+            if self._js.latest() is not None
+            else f"no joint state on {self._js.topic} since the env joined the arm's domain again"
+        )
         return RobotError(
-            f"{self.robot_spec.name}: {what}: the newest joint state on {self._js.topic} is {age_s:.2f} s old "
-            f"(robot_timeout_s={self.config.robot_timeout_s}); no command is sent until joint states arrive again, "
-            "and the arm's watchdog holds it"
+            f"{self.robot_spec.name}: {what}: {newest} (robot_timeout_s={self.config.robot_timeout_s}); no command "
+            "is sent until joint states arrive again, and the arm's watchdog holds it"
         )
 
     async def _wait_for_fresh_state(self, what: str) -> JointState:
