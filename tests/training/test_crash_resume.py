@@ -132,3 +132,20 @@ def test_sigkill_at_any_moment_resumes_from_the_last_complete_checkpoint(tmp_pat
         steps = [int(float(r["step"])) for r in csv.DictReader(f)]
     assert steps == sorted(steps), "episode rows after a resume continue the step count"
     assert steps and steps[-1] <= TOTAL_STEPS
+
+
+def test_clean_partial_puts_back_a_checkpoint_whose_rewrite_never_landed(tmp_path: Path) -> None:
+    from uniros_async.training.checkpoint import clean_partial, latest_checkpoint
+
+    root = tmp_path / "checkpoints"
+    moved = root / ".old-step_000000080-4242"  # a rewrite of step 80 was killed between its two renames
+    kept = root / ".old-step_000000040-4242"  # a rewrite of step 40 that did land: the old copy is garbage
+    for d in (moved, kept, root / "step_000000040", root / ".tmp-step_000000120-4242"):
+        d.mkdir(parents=True)
+        (d / "model.zip").write_bytes(b"zip")
+        (d / "meta.json").write_text("{}")
+    (root / "latest").write_text("step_000000080\n")
+    (root / ".latest.tmp").write_text("step_000000120\n")
+    clean_partial(tmp_path)
+    assert sorted(p.name for p in root.iterdir()) == ["latest", "step_000000040", "step_000000080"]
+    assert latest_checkpoint(tmp_path) == root / "step_000000080"
