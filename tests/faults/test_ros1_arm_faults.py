@@ -2,6 +2,9 @@
 --ros1-master``) in one network namespace, the agent with the ROS 1 bridge in its env (``robot="ros1://..."``) in
 another, joined by a veth pair (``uniros_async.testing.netfault``). Measured as in test_tcp_arm_faults.py.
 
+ROS 1 cannot authenticate peers, so the driver and the bridge are allowed beyond loopback (``--insecure``,
+``ros1={"insecure": True}``): only the two namespaces the test creates can reach them.
+
 A command's age at the arm is not checked here: the driver's ``interbotix_xs_msgs/JointGroupCommand`` carries no
 stamp, so the arm can only count from a command's arrival (``--max-command-age`` is refused for this driver).
 """
@@ -45,7 +48,7 @@ def ros1_link(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) ->
             arm_proc = pair.popen(
                 "arm",
                 [py, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--ros1-master", master_uri,
-                 "--ros-host", pair.arm_ip, "--command-timeout", str(COMMAND_TIMEOUT_S), "--trace"],
+                 "--ros-host", pair.arm_ip, "--insecure", "--command-timeout", str(COMMAND_TIMEOUT_S), "--trace"],
             )  # fmt: skip
             arm = EventPeer(arm_proc)
             assert arm_proc.stdout is not None

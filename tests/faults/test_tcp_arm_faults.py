@@ -16,6 +16,8 @@ No delay or jitter fault here: this kernel has no netem, and a delaying relay is
 
 from __future__ import annotations
 
+import os
+import secrets
 import sys
 from collections.abc import Iterator
 
@@ -36,11 +38,14 @@ PORT = 7000
 @pytest.fixture(scope="module")
 def link(netfault_ready: None) -> Iterator[Link]:
     py = sys.executable
+    # a listener beyond loopback needs the domain's key: the arm's domain and the env's node both read it
+    env = {**os.environ, "UNIROS_AUTH_KEY": secrets.token_hex(16)}
     with open_netns_pair() as pair:
         arm_proc = pair.popen(
             "arm",
             [py, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--host", pair.arm_ip, "--port", str(PORT),
              "--command-timeout", str(COMMAND_TIMEOUT_S), "--max-command-age", str(ROBOT_TIMEOUT_S), "--trace"],
+            env=env,
         )  # fmt: skip
         arm = EventPeer(arm_proc)
         agent: EventPeer | None = None
@@ -53,6 +58,7 @@ def link(netfault_ready: None) -> Iterator[Link]:
                 "env",
                 [py, "-m", "uniros_async.testing.netfault", "drive", "--robot", uri,
                  "--robot-timeout", str(ROBOT_TIMEOUT_S), "--action-cycle", "0.2"],
+                env=env,
             )  # fmt: skip
             agent = EventPeer(agent_proc)
             agent.start_reader()

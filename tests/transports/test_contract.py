@@ -9,19 +9,34 @@ import os
 import pytest
 
 from uniros_async.testing import transport_contract as contract
+from uniros_async.testing.tls import TlsFiles, write_test_certs
 from uniros_async.transports._shm_ring import PURE_PYTHON_ENV, compiled_ring_end
 from uniros_async.transports.base import TransportOptions, connect
 
 # "shm-python": shm:// with the pure-Python RingEnd on both ends (the fallback where the C one is not built)
-URIS = {"memory": "memory://", "shm": "shm://", "shm-python": "shm://", "tcp": "tcp://127.0.0.1:0"}
-CROSS_PROCESS = ["shm", "shm-python", "tcp"]  # memory:// is in-process by definition
-AUTH = ["shm", "tcp"]
+URIS = {
+    "memory": "memory://",
+    "shm": "shm://",
+    "shm-python": "shm://",
+    "tcp": "tcp://127.0.0.1:0",
+    "tls": "tls://127.0.0.1:0",
+}
+CROSS_PROCESS = ["shm", "shm-python", "tcp", "tls"]  # memory:// is in-process by definition
+AUTH = ["shm", "tcp", "tls"]
+
+
+@pytest.fixture(scope="session")
+def tls_files(tmp_path_factory: pytest.TempPathFactory) -> TlsFiles:
+    return write_test_certs(tmp_path_factory.mktemp("tls"))
 
 
 @pytest.fixture(autouse=True)
-def _ring_end_of(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Which RingEnd shm:// uses in this test (spawned processes inherit the choice with the environment)."""
+def _ring_end_of(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch, tls_files: TlsFiles) -> None:
+    """Which RingEnd shm:// uses in this test (spawned processes inherit the choice with the environment), and
+    the certificates tls:// finds in UNIROS_TLS_* (the contract's checks build their own TransportOptions)."""
     kind = request.node.callspec.params.get("kind") if hasattr(request.node, "callspec") else None
+    for var, value in tls_files.environ().items():
+        monkeypatch.setenv(var, value)
     if kind == "shm-python":
         monkeypatch.setenv(PURE_PYTHON_ENV, "1")
     else:

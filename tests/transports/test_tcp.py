@@ -120,7 +120,7 @@ async def test_garbage_hello_rejected_and_counted(junk: bytes) -> None:
 
 
 async def test_silent_peer_times_out_in_the_handshake() -> None:
-    async with asyncio.timeout(T_S), _listening(TransportOptions(connect_timeout_s=0.2)) as lst:
+    async with asyncio.timeout(T_S), _listening(TransportOptions(handshake_timeout_s=0.2)) as lst:
         reader, writer = await asyncio.open_connection(*lst.address)
         try:
             t0 = time.monotonic()

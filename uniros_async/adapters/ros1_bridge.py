@@ -47,6 +47,7 @@ from uniros_async.bus.qos import latest
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
 from uniros_async.robots.spec import RobotSpec
+from uniros_async.transports.base import TransportOptions
 
 __all__ = [
     "COMMAND_TYPES",
@@ -89,7 +90,7 @@ LIMIT_CLAMP_RAD = 0.05
 (the env's hold) can ask for a hair past a limit the arm sits at, through sensor noise or overshoot. Further out,
 a command is refused."""
 _instances = itertools.count(1)
-ROS1_SETTINGS = ("joint_states", "command", "command_type", "group", "ros_host", "state_timeout_s")
+ROS1_SETTINGS = ("joint_states", "command", "command_type", "group", "ros_host", "state_timeout_s", "insecure")
 """The bridge settings an env takes in its ``ros1`` dict (``EnvConfig.ros1``)."""
 
 
@@ -122,6 +123,8 @@ class Ros1BridgeConfig:
             ``$ROS_IP``, else ``$ROS_HOSTNAME`` (as rospy reads them), else ``127.0.0.1``.
         state_timeout_s: how long to wait for the driver's first joint state before giving up.
         node_name: the bridge's name, on the ROS graph and on the bus.
+        insecure: allow a ``ros_host`` beyond loopback. ROS 1 cannot authenticate its peers, so its XML-RPC and
+            TCPROS listeners on a network address accept anyone who reaches them; without this they refuse to start.
     """
 
     robot: str
@@ -133,6 +136,7 @@ class Ros1BridgeConfig:
     ros_host: str | None = None
     state_timeout_s: float = 10.0
     node_name: str = "ros1_bridge"
+    insecure: bool = False
 
     def __post_init__(self) -> None:
         spec = get_robot_spec(self.robot)  # ConfigError listing the robots
@@ -346,6 +350,7 @@ async def open_ros1_bridge(
                 f"/uniros_{config.node_name}_{spec.name}_{os.getpid()}_{next(_instances)}",
                 master_uri=config.master_uri,
                 host=str(config.ros_host),
+                insecure=config.insecure,
             )
         )
         node = await stack.enter_async_context(
@@ -396,14 +401,16 @@ async def serve_ros1_bridge(
     port: int = 0,
     namespace: str | None = None,
     on_ready: Callable[[str], Any] | None = None,
+    options: TransportOptions | None = None,
 ) -> None:
     """Run the bridge in an own tcp domain on ``host:port`` until cancelled (``uniros robot bridge``).
 
     Args:
         on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
+        options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
     """
     async with (
-        open_domain(f"tcp://{host}:{port}") as dom,
+        open_domain(f"tcp://{host}:{port}", options=options) as dom,
         open_ros1_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
     ):
         if on_ready is not None:

@@ -143,7 +143,12 @@ async def open_ros1_driver(
         node = await stack.enter_async_context(open_node("ros1_driver", domain=dom, namespace=f"/{spec.name}"))
         cmd = await node.create_publisher(JointCommand, "command", qos=latest())
         ros = await stack.enter_async_context(
-            open_ros1_node(f"/uniros_sim_{spec.name}", master_uri=config.master_uri, host=str(config.ros_host))
+            open_ros1_node(
+                f"/uniros_sim_{spec.name}",
+                master_uri=config.master_uri,
+                host=str(config.ros_host),
+                insecure=config.insecure,
+            )
         )
         ros_js = await ros.advertise(config.joint_states, msgs.JointState)
         driver = Ros1Driver(config, ros_js.publish, cmd.publish, node.now_ns)

@@ -14,8 +14,10 @@ import dataclasses
 import logging
 import multiprocessing as mp
 import os
+import shutil
 import socket
 import struct
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,14 +32,17 @@ __all__ = ["PAYLOADS", "TransportBenchConfig", "format_table", "main"]
 logger = logging.getLogger(__name__)
 
 PAYLOADS: dict[str, int] = {"small": 277, "64k": 64 * 1024, "image": 640 * 480 * 3}
-OURS = ("memory", "shm", "shm-loan", "tcp")
+OURS = ("memory", "shm", "shm-loan", "tcp", "tls")
 """shm-loan: the shm transport with both ends writing each frame in place (``ShmTransport.loan``) instead of
 copying it in: a producer that renders into the loan (a camera, a renderer) pays no send copy. The client writes an
 8-byte sequence stamp into each loaned frame; the echo server answers with a loaned frame of the same size that
 carries the stamp back (the client checks it), and writes nothing else: the method of iceoryx2's publish-subscribe
 benchmark, which loans and sends without writing the payload. So this row is the transport's own cost for a frame
 of that size (ring space, wake-ups, views), with no payload copy; the ``shm`` row copies the payload in on both
-sides (``send``)."""
+sides (``send``).
+
+tls: the tcp transport inside mutual TLS (``tls://``), with throw-away certificates written for the run
+(``uniros_async.testing.tls``, ``openssl`` needed); its row beside tcp's is the price of encryption."""
 PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh")
 NETWORK_PEERS = ("zmq-tcp", "zenoh")
 
@@ -105,6 +110,7 @@ class _UnirosClient(_Client):
         self._proc: Any = None
         self._echo_task: Any = None
         self._t: Any = None
+        self._tmp: str | None = None
         self._runner.run(self._open(kind))
 
     async def _open(self, kind: str) -> None:
@@ -119,7 +125,12 @@ class _UnirosClient(_Client):
             await lst.aclose()
             self._echo_task = asyncio.ensure_future(self._memory_echo(server))
             return
-        uri = {"shm": "shm://", "shm-loan": "shm://", "tcp": "tcp://127.0.0.1:0"}[kind]
+        uri = {"shm": "shm://", "shm-loan": "shm://", "tcp": "tcp://127.0.0.1:0", "tls": "tls://127.0.0.1:0"}[kind]
+        if kind == "tls":
+            from uniros_async.testing.tls import write_test_certs
+
+            self._tmp = tempfile.mkdtemp(prefix="uniros-bench-tls-")
+            os.environ.update(write_test_certs(self._tmp).environ())  # the spawned echo server reads them too
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe()
         self._proc = ctx.Process(target=_peers.serve_uniros, args=(uri, child, self._loan), daemon=True)
@@ -209,6 +220,10 @@ class _UnirosClient(_Client):
                 self._proc.join(10)
                 if self._proc.is_alive():
                     self._proc.kill()
+            if self._tmp is not None:
+                shutil.rmtree(self._tmp, ignore_errors=True)
+                for var in ("UNIROS_TLS_CERT", "UNIROS_TLS_KEY", "UNIROS_TLS_CA"):
+                    os.environ.pop(var, None)
 
 
 class _PipeClient(_Client):
@@ -444,6 +459,13 @@ def format_table(records: list[dict[str, Any]]) -> str:
                     verdict = f"{ratio:.2f}x lower" if ratio >= 1 else f"{1 / ratio:.2f}x HIGHER"
                     kind = "network peer" if ours == "tcp" else "peer"
                     lines.append(f"{'':<8} {ours} p50 vs fastest {kind} ({best['transport']}): {verdict}")
+            tcp_row = next((r for r in rows if r["transport"] == "tcp"), None)
+            tls_row = next((r for r in rows if r["transport"] == "tls"), None)
+            if tcp_row and tls_row:
+                extra = tls_row["rtt_p50_us"] - tcp_row["rtt_p50_us"]
+                lines.append(
+                    f"{'':<8} tls p50 vs tcp: {extra:+.1f} us ({tls_row['rtt_p50_us'] / tcp_row['rtt_p50_us']:.2f}x)"
+                )
             lines.append("")
     if any(r["transport"] == "shm-loan" for r in records):
         lines += [

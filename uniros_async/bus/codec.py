@@ -93,6 +93,8 @@ def encode(msg: Any) -> list[bytes | memoryview]:
 
 def _ext_hook(code: int, data: bytes) -> Any:
     if code == _ARRAY_EXT:
+        if len(data) != _U32.size:
+            raise CodecError(f"array reference of {len(data)} bytes, expected {_U32.size}")
         return _ArrayRef(_U32.unpack(data)[0])
     raise CodecError(f"unknown msgpack extension type {code}")
 
@@ -165,11 +167,15 @@ def decode(frame: bytes | memoryview, expected: type | None = None) -> Any:
 def _array(spec: FieldSpec, cls: type, ref: _ArrayRef, table: list[Any], blob: memoryview) -> np.ndarray:
     try:
         dtype_str, shape, offset = table[ref.index]
+        if type(dtype_str) is not str or type(offset) is not int:
+            raise TypeError(f"expected [dtype str, shape, offset int], got {table[ref.index]!r:.80}")
         dtype = np.dtype(dtype_str)
         count = 1
         for s in shape:
-            count *= int(s)
-    except (IndexError, TypeError, ValueError) as exc:
+            if type(s) is not int or s < 0:
+                raise ValueError(f"shape {shape!r:.80} must hold integers >= 0")
+            count *= s
+    except (IndexError, TypeError, ValueError, SyntaxError) as exc:  # numpy parses some dtype strings with ast
         raise CodecError(f"{cls.__name__}.{spec.name}: malformed array table entry: {exc}") from exc
     if dtype != spec.dtype:
         raise CodecError(f"{cls.__name__}.{spec.name}: expected dtype {spec.dtype}, got {dtype}")

@@ -23,10 +23,11 @@ import uuid
 from collections.abc import AsyncIterator
 from typing import Any
 
+from uniros_async._log_throttle import LogThrottle
 from uniros_async.bus.codec import decode_plain, encode_plain
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.errors import CodecError, TransportBrokenError, TransportClosedError
-from uniros_async.transports.base import Listener, Transport, TransportOptions, listen
+from uniros_async.transports.base import Listener, Transport, TransportOptions, listen, options_from_environ
 
 __all__ = ["Domain", "open_domain"]
 
@@ -66,6 +67,7 @@ class Domain:
         self._services: dict[str, tuple[_Participant, dict[str, Any]]] = {}
         self.params: dict[str, Any] = dict(params or {})
         self.rejected_requests = 0
+        self._log = LogThrottle(logger)  # peers choose how many bad requests they send: one warning a second
         self._pending_notify: set[str] = set()  # topics whose subscribers must hear of publisher changes
 
     @property
@@ -95,7 +97,7 @@ class Domain:
                         raise CodecError(f"expected a request map with 'op', got {type(req).__name__}")
                 except CodecError as exc:
                     self.rejected_requests += 1
-                    logger.warning("domain %s: rejected a malformed request from %s: %s", self.uri, conn.peer, exc)
+                    self._log.warning("domain %s: rejected a malformed request from %s: %s", self.uri, conn.peer, exc)
                     continue
                 rid = req.get("id")
                 try:
@@ -323,12 +325,13 @@ async def open_domain(
         uri: where to listen: ``tcp://127.0.0.1:0`` (a free port, reachable from other processes) or
             ``memory://`` (this process only).
         params: initial parameters, nested mappings flattened to absolute ``/a/b`` names.
-        options: transport options (``auth_key`` makes every node prove the shared key).
+        options: transport options (``auth_key`` makes every node prove the shared key); None: defaults, with
+            ``auth_key`` from ``$UNIROS_AUTH_KEY`` when set.
 
     Yields:
         The running Domain; ``domain.uri`` is what nodes join.
     """
-    listener = await listen(uri, options or TransportOptions())
+    listener = await listen(uri, options or options_from_environ())
     flat: dict[str, Any] = {}
     for k, v in (params or {}).items():
         flat.update(_flatten(k if k.startswith("/") else "/" + k, v))

@@ -27,6 +27,7 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+from uniros_async._log_throttle import LogThrottle
 from uniros_async.bus import codec
 from uniros_async.bus._local import (
     _HELLO_TIMEOUT_S,
@@ -53,7 +54,7 @@ from uniros_async.errors import (
     TransportClosedError,
     TransportError,
 )
-from uniros_async.transports.base import Listener, Transport, TransportOptions, connect, listen
+from uniros_async.transports.base import Listener, Transport, TransportOptions, connect, listen, options_from_environ
 from uniros_async.yamlio import load_yaml
 
 __all__ = ["Node", "Publisher", "Service", "ServiceClient", "Subscription", "Timer", "open_node"]
@@ -102,6 +103,7 @@ class Node:
         self._timers: list[Timer] = []
         self._clients: list[ServiceClient[Any, Any]] = []
         self.rejected_connections = 0
+        self._log = LogThrottle(logger)  # peers choose how many bad connections they make: one warning a second
 
     @property
     def _allows_memory(self) -> bool:
@@ -180,7 +182,7 @@ class Node:
                 raise CodecError(f"unknown hello op {op!r}")
         except (CodecError, KeyError, TimeoutError, ConfigError) as exc:
             self.rejected_connections += 1
-            logger.warning("%s: rejected a connection from %s: %r", self.name, conn.peer, exc)
+            self._log.warning("%s: rejected a connection from %s: %r", self.name, conn.peer, exc)
             await conn.aclose()
         except (TransportBrokenError, TransportClosedError):
             await conn.aclose()
@@ -360,14 +362,15 @@ async def open_node(
         namespace: prefix of the node's relative names (``/rx200_1``).
         clock: the domain's clock (default: the wall clock); timers and stamps follow it.
         transport: ``auto`` (in-process, then shm on one machine, else tcp), or force ``memory``, ``shm``, ``tcp``.
-        options: transport options (``auth_key`` must match the domain's and the peers').
+        options: transport options (``auth_key`` must match the domain's and the peers'); None: defaults, with
+            ``auth_key`` from ``$UNIROS_AUTH_KEY`` when set.
         registry_timeout_s: bound on every request to the registry.
 
     Raises:
         DomainError: the domain is unreachable within ``options.connect_timeout_s``.
         NameConflictError: the node name is taken.
     """
-    options = options or TransportOptions()
+    options = options or options_from_environ()
     uri = _domain_uri(domain)
     node = Node(name, namespace, clock or wall_clock(), transport, options)
     async with unwrap_task_group() as tg:

@@ -10,6 +10,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
+from uniros_async.backoff import Backoff
 from uniros_async.bus import codec
 from uniros_async.bus._local import (
     _HELLO_TIMEOUT_S,
@@ -266,7 +267,7 @@ class Subscription(Generic[M]):
                 self._readers[key] = self.node._start(self._read_from(key, info), name=f"sub {self.topic} <- {key}")
 
     async def _read_from(self, key: str, info: dict[str, Any]) -> None:
-        delay = 0.01
+        backoff = Backoff(first_s=0.01, max_s=1.0)
         while True:
             conn: Transport | None = None
             try:
@@ -290,7 +291,7 @@ class Subscription(Generic[M]):
                     return
                 self._connected.add(key)
                 self._pub_count_changed.set()
-                delay = 0.01
+                backoff.reset()
                 expected = self.msg_type
                 while True:
                     frame = await conn.receive()
@@ -309,14 +310,14 @@ class Subscription(Generic[M]):
                         if r is not None:
                             await r
             except (TransportError, TimeoutError, OSError, CodecError) as exc:
-                logger.debug("%s: connection to %s lost (%s); retrying in %.2f s", self.topic, info["node"], exc, delay)
+                msg = "%s: connection to %s lost (%s); retrying in %.2f s"
+                logger.debug(msg, self.topic, info["node"], exc, backoff.delay_s)
             finally:
                 self._connected.discard(key)
                 self._pub_count_changed.set()
                 if conn is not None:
                     await conn.aclose()
-            await asyncio.sleep(delay)  # reconnect backoff (wall time: it is about sockets, not the domain clock)
-            delay = min(delay * 2, 1.0)
+            await backoff.sleep()
 
     async def _dispatch(self) -> None:
         assert self.callback is not None

@@ -27,6 +27,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import socket
 import time
@@ -46,7 +47,7 @@ from uniros_async.errors import ConfigError, DomainError, NameConflictError, Rob
 from uniros_async.kinematics import Kinematics
 from uniros_async.robots import get_robot_spec
 from uniros_async.sim_clock import SimClock
-from uniros_async.transports.base import TransportOptions
+from uniros_async.transports.base import TransportOptions, options_from_environ
 
 __all__ = ["RobotEnv"]
 
@@ -225,8 +226,9 @@ class RobotEnv(BaseEnv):
                     domain, transport = cfg.robot, "tcp"
                 options = None
                 if isinstance(domain, str) and domain.startswith("tcp://"):
-                    # the arm subscribes to our commands: listen where it can reach us (loopback for an arm on loopback)
-                    options = TransportOptions(bind_host=_local_host_toward(domain))
+                    # the arm subscribes to our commands: listen where it can reach us (loopback for an arm on loopback;
+                    # beyond it, the domain's key from $UNIROS_AUTH_KEY is required, as for every listener)
+                    options = dataclasses.replace(options_from_environ(), bind_host=_local_host_toward(domain))
                 await self._join(domain, transport, options)
                 stack.push_async_callback(self._leave)
                 await self._js.wait_for_publishers(1, timeout_s=30.0)

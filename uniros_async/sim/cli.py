@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -23,6 +24,10 @@ from uniros_async._signals import cancel_on_signals
 __all__ = ["add_parser", "main", "run"]
 
 logger = logging.getLogger(__name__)
+
+AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
+"""Where ``uniros robot serve`` and ``bridge`` read the domain's shared key by default (as domains and nodes do:
+``transports.base.options_from_environ``)."""
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -77,6 +82,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "adapters/ros1_driver.py) instead of in a uniros domain; prints the master's URI",
     )
     serve.add_argument("--ros-host", default=None, help="with --ros1-master: address ROS peers reach this process at")
+    _add_exposure_flags(serve)
 
     bridge = actions.add_parser(
         "bridge",
@@ -103,6 +109,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     bridge.add_argument("--host", default="127.0.0.1", help="bind host of the domain (default %(default)s)")
     bridge.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     bridge.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
+    _add_exposure_flags(bridge)
     bridge.add_argument(
         "--state-timeout", type=float, default=10.0, help="seconds to wait for the driver's first joint state"
     )
@@ -166,9 +173,14 @@ def _bridge(args: argparse.Namespace) -> int:
         group=args.group,
         ros_host=args.ros_host,
         state_timeout_s=args.state_timeout,
+        insecure=args.insecure,
     )
+    from uniros_async.transports.base import TransportOptions
 
-    serve = serve_ros1_bridge(cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready)
+    options = TransportOptions(auth_key=_auth_key(args), insecure=args.insecure)
+    serve = serve_ros1_bridge(
+        cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready, options=options
+    )
     return _run_until_signal(serve)
 
 
@@ -190,7 +202,9 @@ def _serve_ros1(args: argparse.Namespace) -> int:
         raise ConfigError(
             "--max-command-age needs the sender's stamp, which the ROS 1 driver's command messages do not carry"
         )
-    cfg = Ros1BridgeConfig(robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host)
+    cfg = Ros1BridgeConfig(
+        robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host, insecure=args.insecure
+    )
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
     on_event = None
@@ -262,8 +276,36 @@ def _serve(args: argparse.Namespace) -> int:
         publish_markers=args.markers,
         max_command_age_s=args.max_command_age or None,
         trace=args.trace,
+        auth_key=_auth_key(args),
+        insecure=args.insecure,
     )
     return _run_until_signal(serve_servo_sim(cfg, on_ready=_print_ready))
+
+
+def _add_exposure_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--auth-key-env",
+        default=None,
+        metavar="VAR",
+        help=f"read the domain's shared auth key from this environment variable (default: ${AUTH_KEY_ENV} if set); "
+        "nodes joining must use the same key",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow listening beyond loopback without authentication (--host other than 127.0.0.1 without a key; "
+        "any ROS 1 listener beyond loopback, since ROS 1 cannot authenticate)",
+    )
+
+
+def _auth_key(args: argparse.Namespace) -> bytes | None:
+    var = args.auth_key_env or AUTH_KEY_ENV
+    key = os.environ.get(var, "").encode() or None
+    if args.auth_key_env and key is None:
+        from uniros_async.errors import ConfigError
+
+        raise ConfigError(f"--auth-key-env {var}: the environment variable {var} is not set (or empty)")
+    return key
 
 
 def main(argv: Sequence[str] | None = None) -> int:

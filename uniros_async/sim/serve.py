@@ -37,7 +37,7 @@ from uniros_async.errors import ConfigError, RobotError
 from uniros_async.sim.emulated import EmulationConfig
 from uniros_async.sim.servo import ServoSimConfig
 from uniros_async.sim_clock import SimClock
-from uniros_async.transports.base import TransportOptions
+from uniros_async.transports.base import TransportOptions, options_from_environ
 
 __all__ = ["ServeConfig", "ServoSimProcess", "open_servo_sim_process", "print_event", "serve_servo_sim"]
 
@@ -63,7 +63,8 @@ class ServeConfig:
         time_scale: the SimClock's time scale (None: unbounded); only with ``clock="sim"``.
         transport: the node's transport choice; ``auto`` uses shm to peers on the same machine.
         publish_markers: publish EE and goal markers.
-        auth_key: shared key of the domain, or None.
+        auth_key: shared key of the domain; None: ``$UNIROS_AUTH_KEY`` if set, else none.
+        insecure: allow a non-loopback ``host`` without ``auth_key`` (else the domain refuses to start).
         max_command_age_s: drop commands older than this (``ServoSimNode.max_command_age_s``); None: keep all.
         trace: write every command's age and every watchdog hold as a JSON line on stdout (``ServoSimNode.on_event``).
     """
@@ -81,6 +82,7 @@ class ServeConfig:
     transport: str = "auto"
     publish_markers: bool = False
     auth_key: bytes | None = None
+    insecure: bool = False
     max_command_age_s: float | None = None
     trace: bool = False
 
@@ -96,7 +98,8 @@ class ServeConfig:
             )
 
     def options(self) -> TransportOptions:
-        return TransportOptions(bind_host=self.host, auth_key=self.auth_key)
+        key = self.auth_key if self.auth_key is not None else options_from_environ().auth_key
+        return TransportOptions(bind_host=self.host, auth_key=key, insecure=self.insecure)
 
     def make_clock(self) -> Clock | None:
         return SimClock(time_scale=self.time_scale) if self.clock == "sim" else None

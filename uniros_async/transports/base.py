@@ -7,6 +7,7 @@ streams). Implementations are chosen by URI scheme:
     memory://NAME           in-process (the reference implementation and test double)
     shm://NAME              same machine: shared-memory rings with eventfd wakeups
     tcp://HOST:PORT         network: length-prefixed frames over TCP (port 0: pick a free one)
+    tls://HOST:PORT         network, encrypted: the same frames over mutual TLS (``tls_*`` options)
 
 ``listen(uri)`` returns a Listener whose ``uri`` is concrete (the chosen port or name) and whose ``accept()``
 yields one Transport per peer; ``connect(uri)`` returns the peer's Transport.
@@ -39,6 +40,7 @@ __all__ = [
     "connect",
     "frame_nbytes",
     "listen",
+    "options_from_environ",
     "register_scheme",
     "split_uri",
 ]
@@ -97,6 +99,19 @@ class TransportOptions:
         connect_timeout_s: how long ``connect`` keeps trying (with exponential backoff) before TimeoutError.
         bind_host: for listeners on the network: the interface to bind (loopback unless told otherwise).
         ring_bytes: for shared memory: the capacity of each direction's ring.
+        insecure: for listeners on the network: allow a non-loopback address without ``auth_key`` (and, for
+            ``tls://``, without client certificates). Without it such a listener refuses to start.
+        max_connections: for listeners on the network: connections open at once (handshaking, waiting for
+            ``accept`` and accepted); a connection beyond it is closed at once, before any byte is read.
+        max_handshakes: for listeners on the network: unfinished handshakes at once; a new connection beyond it
+            evicts the oldest unfinished one if that has waited 1 s (a stranger holding connections open cannot
+            lock peers out), else it is refused before the handshake (a burst of peers: ``connect`` retries).
+        handshake_timeout_s: for listeners on the network: a peer that has not completed the handshake this long
+            after connecting is dropped.
+        tls_cert_file: for ``tls://``: this end's certificate chain (PEM).
+        tls_key_file: for ``tls://``: this end's private key (PEM; None: in ``tls_cert_file``).
+        tls_ca_file: for ``tls://``: the CA certificates the peer's certificate must chain to (PEM). Both ends
+            require the other's certificate (mutual TLS).
     """
 
     max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES
@@ -104,6 +119,13 @@ class TransportOptions:
     connect_timeout_s: float = 5.0
     bind_host: str = "127.0.0.1"
     ring_bytes: int = 4 * 1024 * 1024
+    insecure: bool = False
+    max_connections: int = 1024
+    max_handshakes: int = 64
+    handshake_timeout_s: float = 5.0
+    tls_cert_file: str | None = None
+    tls_key_file: str | None = None
+    tls_ca_file: str | None = None
 
     def __post_init__(self) -> None:
         if self.max_frame_bytes <= 0:
@@ -114,6 +136,23 @@ class TransportOptions:
             raise ConfigError(f"auth_key must be bytes or None, got {type(self.auth_key).__name__}")
         if self.ring_bytes < 4096:
             raise ConfigError(f"ring_bytes must be >= 4096, got {self.ring_bytes}")
+        if self.max_connections < 1 or self.max_handshakes < 1:
+            raise ConfigError(
+                f"max_connections and max_handshakes must be >= 1, got {self.max_connections}, {self.max_handshakes}"
+            )
+        if self.handshake_timeout_s <= 0:
+            raise ConfigError(f"handshake_timeout_s must be > 0, got {self.handshake_timeout_s}")
+
+
+AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
+"""The shared key ``options_from_environ`` reads: domains, nodes and ``uniros robot serve`` use it when no options
+are given, so every process of one setup only needs the variable set."""
+
+
+def options_from_environ() -> TransportOptions:
+    """Default options, with ``auth_key`` from ``$UNIROS_AUTH_KEY`` when it is set and not empty."""
+    key = os.environ.get(AUTH_KEY_ENV, "")
+    return TransportOptions(auth_key=key.encode() if key else None)
 
 
 @dataclasses.dataclass
@@ -251,6 +290,7 @@ _SCHEMES: dict[str, str] = {
     "memory": "uniros_async.transports.memory",
     "shm": "uniros_async.transports.shm",
     "tcp": "uniros_async.transports.tcp",
+    "tls": "uniros_async.transports.tls",
 }
 
 

@@ -15,6 +15,7 @@ import collections
 import itertools
 from collections.abc import Sequence
 
+from uniros_async.backoff import Backoff
 from uniros_async.errors import ConfigError, FrameTooLargeError, TransportBrokenError, TransportClosedError
 from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, frame_nbytes
 
@@ -149,11 +150,10 @@ async def listen(uri: str, options: TransportOptions) -> MemoryListener:
 async def connect(uri: str, options: TransportOptions) -> MemoryTransport:
     """Connect to ``memory://NAME``, waiting (with backoff) up to ``connect_timeout_s`` for it to appear."""
     name = uri.split("://", 1)[1]
-    delay = 0.001
+    backoff = Backoff(first_s=0.001, max_s=0.1)
     async with asyncio.timeout(options.connect_timeout_s):
         while (lst := _LISTENERS.get(name)) is None or lst._closed:
-            await asyncio.sleep(delay)
-            delay = min(delay * 2, 0.1)
+            await backoff.sleep()
     a = MemoryTransport(name, options)
     b = MemoryTransport(name, lst._options)
     a._peer, b._peer = b, a

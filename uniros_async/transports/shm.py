@@ -43,6 +43,7 @@ import struct
 from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any
 
+from uniros_async.backoff import Backoff
 from uniros_async.errors import (
     ConfigError,
     FrameTooLargeError,
@@ -908,7 +909,7 @@ async def connect(uri: str, options: TransportOptions) -> ShmTransport:
     if not name:
         raise ConfigError(f"connect needs a name: shm://NAME, got {uri!r}")
     loop = asyncio.get_running_loop()
-    delay_s = 0.001
+    backoff = Backoff(first_s=0.001, max_s=0.1)
     async with asyncio.timeout(options.connect_timeout_s):
         while True:
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -921,8 +922,7 @@ async def connect(uri: str, options: TransportOptions) -> ShmTransport:
             except BaseException:
                 sock.close()
                 raise
-            await asyncio.sleep(delay_s)
-            delay_s = min(delay_s * 2, 0.1)
+            await backoff.sleep()
         try:
             setup = await _shm_handshake.join(sock, name, options)
             return _open_transport(name, sock, setup, options)

@@ -1,19 +1,10 @@
 """Network transport: length-prefixed frames over TCP, ``tcp://HOST:PORT``.
 
-Wire format (little-endian)::
+Wire format: after the handshake (``_tcp_handshake``: HELLO both ways, then with an ``auth_key`` an HMAC proof
+both ways), each frame is ``length(u32, little-endian) payload(length bytes)``. Each side announces its
+``max_frame_bytes`` in its HELLO, so ``send`` refuses (FrameTooLargeError) what the peer would refuse.
 
-    hello   client -> listener   HELLO = MAGIC(8s) version(u16) flags(u16) max_frame_bytes(u64) nonce(32s)
-            listener -> client   HELLO, then proof(32s) if flags has FLAG_AUTH
-            client -> listener   proof(32s)                                     (only with FLAG_AUTH)
-    frame   either way           length(u32) payload(length bytes)
-
-With a shared ``auth_key`` each side proves knowledge of it without sending it: the listener sends
-HMAC-SHA256(key, b"uniros-tcp listener" + client_nonce + listener_nonce), the client answers with the same over
-b"uniros-tcp client"; both are checked with hmac.compare_digest. Fresh random nonces on both sides defeat replay,
-and the two labels defeat reflection. Both ends refuse a peer whose key setting differs from their own. Each side
-announces its ``max_frame_bytes``, so ``send`` refuses (FrameTooLargeError) what the peer would refuse.
-
-Receiving: an asyncio.BufferedProtocol reads straight into a preallocated stream buffer; frames under 16 KiB are
+Receiving: an asyncio.BufferedProtocol reads straight into the connection's stream buffer; frames under 16 KiB are
 copied out of it (cheaper than any bookkeeping), larger ones are read straight into a buffer of their own from a
 per-connection pool, so an image is copied once (kernel to that buffer) and ``receive`` returns a view of it. A pool
 buffer is reused only once no view of it is alive any more (a caller's, or an event loop still sending it back), so
@@ -36,13 +27,15 @@ receiver that only listens never polls (reading each frame as it lands cost a st
 rate). A frame sent after a ``receive`` that waited is a reply and goes out at once, never into a burst: a reply
 corked to the end of the loop iteration cost the echo ~30 us per round trip.
 
-Measured on the project's 2-core VM (echo server in another process, quiet machine, ``uniros bench transport``,
-docs/perf/history.md): 277 B round trip p50 20-24 us with the default 50 us poll, against 62-99 us without it and
-79-108 us for pyzmq tcp; 64 KiB 66-75 us (pyzmq 114-163 us). Raw Python sockets in the same hour: 28 us blocking,
-12 us busy-polling; each wake-up of a halted core costs 10-25 us here, which is what the poll saves. An earlier
-poll that turned the event loop (``asyncio.sleep(0)``) instead of reading the socket reached 26-30 us on uvloop
-only and took the CPU its peer needed under load, so it was opt-in. 640x480x3 images one way: 4,150-4,950/s
-(pyzmq PUSH/PULL 2,900-3,300/s).
+Why the poll: each wake-up of a halted core costs 10-25 us on the project's 2-core machines, more than the rest of a
+small round trip; reading the socket itself (not turning the event loop, which also takes the CPU a peer on the
+same core needs) keeps the receiving core awake just long enough. Figures: docs/performance.md.
+
+Limits, for peers that are not trusted (docs/security.md): a listener holds at most ``max_connections``
+connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest once that waited 1 s, else
+it is reset and ``connect`` retries), each of which must finish within ``handshake_timeout_s``. The stream buffer
+is anonymous memory, resident only where data has landed, so an idle connection costs a few KiB; refusals are
+counted in ``rejected`` and logged at most once a second.
 
 Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, and ``receive_blocking``
 reads the socket in the caller's thread (the poll's reads, then ``poll(2)``), for a caller in the loop's thread while
@@ -50,9 +43,10 @@ the loop is not running (the supervisor between calls). Whatever they cannot do 
 ``receive``, having taken nothing.
 
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
-(the bus) closes it and calls ``connect`` again, which retries with exponential backoff (5 ms doubling to 500 ms)
-until ``connect_timeout_s``; frames that were in flight when the connection broke are lost, as on any TCP link.
-There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe and re-send. Every
+(the bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``,
+5 ms doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost,
+as on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe
+and re-send. Every
 connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within seconds that
 its peer's socket is gone.
 """
@@ -61,19 +55,21 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import hashlib
-import hmac
 import logging
+import mmap
 import os
 import select
 import socket
+import ssl
 import struct
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import cast
 from urllib.parse import urlsplit
 
+from uniros_async._log_throttle import LogThrottle
+from uniros_async.backoff import Backoff
 from uniros_async.errors import (
     AuthenticationError,
     ConfigError,
@@ -82,7 +78,16 @@ from uniros_async.errors import (
     TransportClosedError,
 )
 from uniros_async.transports import base as _base
+from uniros_async.transports._tcp_handshake import (
+    FLAG_AUTH,
+    HELLO,
+    MAGIC,
+    PROOF_BYTES,
+    PROTOCOL_VERSION,
+    TcpHandshake,
+)
 from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
+from uniros_async.transports.exposure import check_exposure, is_loopback
 
 __all__ = [
     "FLAG_AUTH",
@@ -93,27 +98,18 @@ __all__ = [
     "TcpListener",
     "TcpTransport",
     "connect",
+    "is_loopback",
     "listen",
 ]
 
 logger = logging.getLogger(__name__)
-
-MAGIC = b"\x89UNIROS\n"
-"""First bytes of every uniros tcp connection (high bit and newline catch 7-bit and text-mode mangling)."""
-PROTOCOL_VERSION = 1
-FLAG_AUTH = 1
-HELLO = struct.Struct("<8sHHQ32s")
-"""magic, version, flags, max_frame_bytes, nonce."""
-PROOF_BYTES = 32
-_LISTENER_LABEL = b"uniros-tcp listener"
-_CLIENT_LABEL = b"uniros-tcp client"
 
 _HEADER = struct.Struct("<I")
 _pack_header = _HEADER.pack
 _unpack_header = _HEADER.unpack_from
 _WIRE_MAX_FRAME = 2**32 - 1  # what a u32 length prefix can announce
 
-_STREAM_BYTES = 256 * 1024  # preallocated receive buffer of each connection
+_STREAM_BYTES = 256 * 1024  # receive buffer of each connection: anonymous memory, only touched pages are resident
 _READ_BYTES = 64 * 1024  # at most this much per read into the stream buffer (bounds the copy of a large frame's start)
 _SMALL_FRAME_BYTES = 16 * 1024  # smaller frames are copied out of the stream buffer; larger get their own buffer
 _JOIN_MAX_BYTES = 16 * 1024  # smaller frames are sent as one joined bytes object
@@ -125,8 +121,6 @@ _RX_HIGH_BYTES = 8 * 1024 * 1024  # pause reading while more than this is queued
 _RX_LOW_BYTES = 2 * 1024 * 1024  # resume below this
 _TX_HIGH_BYTES = 1024 * 1024  # send() waits while the event loop holds more than this unsent
 _TX_LOW_BYTES = 256 * 1024
-_BACKOFF_FIRST_S = 0.005
-_BACKOFF_MAX_S = 0.5
 KEEPALIVE_IDLE_S = 2
 """TCP keepalive: a connection idle this long is probed every ``KEEPALIVE_INTERVAL_S``, and broken after
 ``KEEPALIVE_PROBES`` unanswered probes. A side that only receives (a subscriber, the domain's end of a node's
@@ -150,6 +144,7 @@ def set_keepalive(sock: socket.socket) -> None:
 
 
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
+_EVICT_AFTER_S = 1.0  # beyond max_handshakes, an unfinished handshake this old gives way to a newcomer
 
 # Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
 # reads (ShmTransport's rule): in a request/reply exchange the answer usually comes sooner than a sleeping process
@@ -168,10 +163,6 @@ _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS  # at most this much longer after a large s
 _SELECTOR_COPIES = sys.version_info < (3, 12)
 
 _HANDSHAKE, _FRAMES, _DEAD = 0, 1, 2
-
-
-def _proof(key: bytes, label: bytes, client_nonce: bytes, listener_nonce: bytes) -> bytes:
-    return hmac.new(key, label + client_nonce + listener_nonce, hashlib.sha256).digest()
 
 
 def _unexported(buf: bytearray) -> bool:
@@ -194,27 +185,7 @@ def _as_bytes_view(part: Buffer) -> memoryview:
     return view
 
 
-class _LogThrottle:
-    """At most one warning per second per listener; the next one says how many were not logged."""
-
-    def __init__(self) -> None:
-        self._next_s = 0.0
-        self._suppressed = 0
-
-    def warning(self, msg: str, *args: object) -> None:
-        now = time.monotonic()
-        if now < self._next_s:
-            self._suppressed += 1
-            return
-        self._next_s = now + 1.0
-        if self._suppressed:
-            msg += " (%d similar messages suppressed)"
-            args = (*args, self._suppressed)
-            self._suppressed = 0
-        logger.warning(msg, *args)
-
-
-_client_log = _LogThrottle()
+_client_log = LogThrottle(logger)
 
 
 class TcpTransport(Transport, asyncio.BufferedProtocol):
@@ -226,6 +197,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     delivery = Delivery.RELIABLE
     scheme = "tcp"
+    _encrypted = False  # TlsTransport: True (the socket carries ciphertext; receive never reads it itself)
     spin_ns: int = 50_000
     """When ``receive`` may be waiting for an answer (this end sent a frame since it last received one), it reads
     the socket itself for up to this long before it sleeps in the event loop, yielding the CPU between reads, while
@@ -246,7 +218,10 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._send_limit = self._recv_limit
         self._send_limit_is_peers = False
         # receive side
-        self._rbuf = bytearray(_STREAM_BYTES)
+        # An anonymous mapping, not a bytearray: a bytearray is zero-filled (all 256 KiB resident at once), while
+        # a mapping's pages become resident only when data lands in them. A connection that sees small frames
+        # (or only a handshake) keeps its reads in the first pages: ~4 KiB resident instead of 256 KiB.
+        self._rbuf = mmap.mmap(-1, _STREAM_BYTES)
         self._rview = memoryview(self._rbuf)
         self._rhead = self._rview[:_READ_BYTES]  # what get_buffer hands out when the stream buffer is empty
         self._rpos = 0  # start of unparsed bytes
@@ -280,10 +255,19 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._lost: asyncio.Future[None] = self._loop.create_future()
         self._ready: asyncio.Future[None] = self._loop.create_future()  # handshake done (client side)
         self._ready.add_done_callback(_consume_exception)
-        self._hs_step = 0
+        self._hs = TcpHandshake(
+            key=self._key, listener=listener is not None, max_frame_bytes=self._recv_limit, peer=self._peer
+        )
         self._hs_timer: asyncio.TimerHandle | None = None
-        self._nonce = os.urandom(32)
-        self._peer_nonce = b""
+        self._hs_started_s = 0.0
+        self._hs_dropped = False  # the peer hung up (or reset) during the handshake: a full listener does that
+        self._counted = listener is not None  # in the listener's open connections until connection_lost
+        self._unmade_timer: asyncio.TimerHandle | None = None
+        if listener is not None and self._encrypted:
+            # Under TLS the event loop makes this protocol before the TLS handshake and never tells it when that
+            # handshake fails (no connection_made, no connection_lost); the handshake is bounded by
+            # handshake_timeout_s, so a connection not made a second after that never will be: stop counting it.
+            self._unmade_timer = self._loop.call_later(options.handshake_timeout_s + 1.0, self._uncount)
 
     # ------------------------------------------------------------------------------------------ public API
 
@@ -307,8 +291,11 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         return self._error is not None or bool(self._frames)
 
     def fileno(self) -> int:
-        """The connection's socket descriptor (-1 before connecting or once closed): a caller outside the event
-        loop can ``select`` on it to learn, without reading, whether the peer sent data the loop has not taken."""
+        """The connection's socket descriptor (-1 before connecting, once closed, or under TLS, where readable
+        ciphertext says nothing about whole frames): a caller outside the event loop can ``select`` on it to learn,
+        without reading, whether the peer sent data the loop has not taken."""
+        if self._encrypted:
+            return -1
         sock = self._tr.get_extra_info("socket") if self._tr is not None else None
         return sock.fileno() if sock is not None else -1
 
@@ -551,24 +538,32 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         tr = cast(asyncio.Transport, transport)  # uvloop's transports do not subclass asyncio's
         self._tr = tr
+        if self._unmade_timer is not None:
+            self._unmade_timer.cancel()
+            self._unmade_timer = None
         sock = tr.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             set_keepalive(sock)
-        if sock is not None and hasattr(os, "readv"):
-            self._fd = sock.fileno()
+        if sock is not None and hasattr(os, "readv") and not self._encrypted:
+            self._fd = sock.fileno()  # under TLS the socket carries ciphertext: only the event loop reads it
         peer = tr.get_extra_info("peername")
         if peer:
-            self._peer = _format_uri(peer[0], peer[1])
+            self._peer = _format_uri(peer[0], peer[1], self.scheme)
         tr.set_write_buffer_limits(high=_TX_HIGH_BYTES, low=_TX_LOW_BYTES)
         self._stdlib = type(tr).__module__ == "asyncio.selector_events"
         self._copies_on_write = self._stdlib and _SELECTOR_COPIES
         self._vectored = not self._copies_on_write
-        flags = FLAG_AUTH if self._key is not None else 0
-        tr.write(HELLO.pack(MAGIC, PROTOCOL_VERSION, flags, self._recv_limit, self._nonce))
+        self._hs.peer = self._peer
         if self._listener is not None:
-            self._listener._handshaking.add(self)
-            self._hs_timer = self._loop.call_later(self._options.connect_timeout_s, self._handshake_expired)
+            if not self._listener._handshake_started(self):
+                self._state = _DEAD
+                self._set_error(f"{self._peer} refused: too many unfinished handshakes")
+                tr.abort()  # before our HELLO: the peer sees a reset, not a finished handshake, and retries
+                return
+            self._hs_started_s = self._loop.time()
+            self._hs_timer = self._loop.call_later(self._options.handshake_timeout_s, self._handshake_expired)
+        tr.write(self._hs.hello())
 
     def get_buffer(self, sizehint: int) -> memoryview:
         if self._big is not None:
@@ -602,6 +597,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     def eof_received(self) -> bool:
         if self._state == _HANDSHAKE:
+            self._hs_dropped = self._retryable_drop()
             self._handshake_failed(TransportBrokenError(f"{self._peer} closed the connection during the handshake"))
         elif self._error is None:
             if self._big is not None or self._rend > self._rpos:
@@ -615,7 +611,9 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._fd = -1  # the event loop closes the socket; its number may soon name another file
+        self._uncount()
         if self._state == _HANDSHAKE:
+            self._hs_dropped = (exc is None or isinstance(exc, ConnectionError)) and self._retryable_drop()
             self._handshake_failed(
                 TransportBrokenError(f"connection to {self._peer} lost during the handshake: {exc or 'closed'}"),
                 cause=exc,
@@ -724,6 +722,19 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 self._spin_credit = _SPIN_CREDIT
                 return
 
+    def _retryable_drop(self) -> bool:
+        """Whether a hang-up during the handshake may be a full listener (worth a retry). Under TLS a listener
+        that refuses our certificate hangs up too, before its HELLO: only a drop after the HELLO (an eviction)
+        counts there."""
+        return not self._encrypted or self._hs.peer_max_frame_bytes is not None
+
+    def _uncount(self) -> None:
+        """Leave the listener's count of open connections (once)."""
+        if self._counted and self._listener is not None:
+            self._counted = False
+            self._listener._open -= 1
+        self._unmade_timer = None
+
     def _take_buffer(self, n: int) -> memoryview:
         """A buffer for a large frame: a pooled one that nobody holds any more, or a new one."""
         pool = self._pool
@@ -758,87 +769,25 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     # ------------------------------------------------------------------------------------------ handshake
 
     def _handshake_data(self) -> None:
-        view = self._rview
-        while True:
-            pos, avail = self._rpos, self._rend - self._rpos
-            if self._hs_step == 0:
-                check = min(avail, len(MAGIC))
-                if view[pos : pos + check] != MAGIC[:check]:
-                    head = bytes(view[pos : pos + min(avail, 16)])
-                    self._handshake_failed(
-                        TransportBrokenError(f"{self._peer} is not a uniros tcp peer: it sent {head!r}")
-                    )
-                    return
-                if avail < HELLO.size:
-                    return
-                _, version, flags, max_frame, nonce = HELLO.unpack_from(self._rbuf, pos)
-                self._rpos = pos + HELLO.size
-                if not self._hello_received(version, flags, max_frame, nonce):
-                    return
-            elif self._hs_step == 1:
-                if avail < PROOF_BYTES:
-                    return
-                proof = bytes(view[pos : pos + PROOF_BYTES])
-                self._rpos = pos + PROOF_BYTES
-                if not self._proof_received(proof):
-                    return
-            else:
-                return
-
-    def _hello_received(self, version: int, flags: int, max_frame: int, nonce: bytes) -> bool:
-        tr = self._tr
-        assert tr is not None
-        if version != PROTOCOL_VERSION:
-            self._handshake_failed(
-                TransportBrokenError(f"{self._peer} speaks uniros tcp version {version}, we speak {PROTOCOL_VERSION}")
-            )
-            return False
-        if bool(flags & FLAG_AUTH) != (self._key is not None):
-            if self._key is None:
-                msg = f"{self._peer} requires an auth_key and we have none"
-            else:
-                msg = f"{self._peer} does not authenticate (no auth_key) but ours is set"
-            self._handshake_failed(AuthenticationError(msg))
-            return False
-        if max_frame < self._send_limit:
-            self._send_limit = max_frame
-            self._send_limit_is_peers = True
-        self._peer_nonce = nonce
-        if self._listener is not None:
-            if self._key is not None:
-                tr.write(_proof(self._key, _LISTENER_LABEL, nonce, self._nonce))
-                self._hs_step = 1
-                return True
+        pos = self._rpos
+        try:
+            used, reply = self._hs.feed(self._rview[pos : self._rend])
+        except (TransportBrokenError, AuthenticationError) as exc:
+            self._handshake_failed(exc)
+            return
+        self._rpos = pos + used
+        if reply and self._tr is not None:
+            self._tr.write(reply)
+        if self._hs.done:
+            peer_max = self._hs.peer_max_frame_bytes
+            if peer_max is not None and peer_max < self._send_limit:
+                self._send_limit = peer_max
+                self._send_limit_is_peers = True
             self._handshake_done()
-            return False
-        if self._key is not None:
-            self._hs_step = 1
-            return True
-        self._handshake_done()
-        return False
-
-    def _proof_received(self, proof: bytes) -> bool:
-        assert self._key is not None and self._tr is not None
-        if self._listener is not None:
-            expected = _proof(self._key, _CLIENT_LABEL, self._peer_nonce, self._nonce)
-            if not hmac.compare_digest(proof, expected):
-                self._handshake_failed(AuthenticationError(f"{self._peer} failed to prove the shared auth_key"))
-                return False
-        else:
-            expected = _proof(self._key, _LISTENER_LABEL, self._nonce, self._peer_nonce)
-            if not hmac.compare_digest(proof, expected):
-                self._handshake_failed(
-                    AuthenticationError(f"listener {self._peer} failed to prove the shared auth_key (keys differ)")
-                )
-                return False
-            self._tr.write(_proof(self._key, _CLIENT_LABEL, self._nonce, self._peer_nonce))
-        self._handshake_done()
-        return False
 
     def _handshake_done(self) -> None:
         self._state = _FRAMES
         self._ok = True
-        self._hs_step = 2
         if self._hs_timer is not None:
             self._hs_timer.cancel()
             self._hs_timer = None
@@ -869,7 +818,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     def _handshake_expired(self) -> None:
         self._hs_timer = None
-        timeout_s = self._options.connect_timeout_s
+        timeout_s = self._options.handshake_timeout_s
         msg = f"{self._peer} did not complete the handshake within {timeout_s} s"
         self._handshake_failed(TransportBrokenError(msg))
 
@@ -949,7 +898,14 @@ def _consume_exception(fut: asyncio.Future[None]) -> None:
 
 
 class TcpListener(Listener):
-    """Accepts TCP connections; each peer that passes the handshake is handed out by ``accept``."""
+    """Accepts TCP connections; each peer that passes the handshake is handed out by ``accept``.
+
+    Caps (``TransportOptions``): at most ``max_connections`` open at once (a connection beyond it is closed as soon
+    as it is accepted, before any byte is read or any buffer allocated), at most ``max_handshakes`` unfinished (a new
+    connection beyond it evicts the oldest unfinished one if that waited 1 s, else is refused and retries), and each
+    handshake must finish within
+    ``handshake_timeout_s``. Every refusal is counted in ``rejected`` and logged at most once a second.
+    """
 
     def __init__(self, options: TransportOptions) -> None:
         self._options = options
@@ -958,10 +914,11 @@ class TcpListener(Listener):
         self._address: tuple[str, int] = ("", 0)
         self._ready: collections.deque[TcpTransport] = collections.deque()
         self._accept_waiter: asyncio.Future[None] | None = None
-        self._handshaking: set[TcpTransport] = set()
+        self._handshaking: dict[TcpTransport, None] = {}  # insertion order: the oldest is evicted first
+        self._open = 0  # connections made and not yet lost, accepted ones included
         self._rejected = 0
         self._closed = False
-        self._log = _LogThrottle()
+        self._log = LogThrottle(logger)
 
     @property
     def uri(self) -> str:
@@ -975,6 +932,16 @@ class TcpListener(Listener):
     @property
     def rejected(self) -> int:
         return self._rejected
+
+    @property
+    def open_connections(self) -> int:
+        """Connections open now (handshaking, waiting for ``accept``, and accepted)."""
+        return self._open
+
+    @property
+    def handshaking(self) -> int:
+        """Connections whose handshake is unfinished."""
+        return len(self._handshaking)
 
     async def accept(self) -> TcpTransport:
         """Wait for the next peer that completed the handshake. Cancelling loses no peer.
@@ -1012,8 +979,38 @@ class TcpListener(Listener):
         for t in pending:
             await t.aclose()
 
+    def _protocol(self, make: Callable[[], TcpTransport]) -> asyncio.BaseProtocol:
+        """The protocol for a connection just accepted: a transport, or a refusal once ``max_connections`` are
+        open."""
+        if self._open >= self._options.max_connections:
+            return _Refusal(self)
+        self._open += 1
+        return make()
+
+    def _handshake_started(self, t: TcpTransport) -> bool:
+        """Admit ``t`` among the unfinished handshakes; False: refuse it (the caller drops it before its HELLO).
+
+        Beyond ``max_handshakes`` the oldest unfinished one is evicted if it has waited at least
+        ``_EVICT_AFTER_S`` (a stranger holding connections open), else the newcomer is refused (a burst of peers,
+        whose handshakes are about to finish: they retry)."""
+        handshaking = self._handshaking
+        limit = self._options.max_handshakes
+        if len(handshaking) >= limit:
+            oldest = next(iter(handshaking))
+            waited_s = asyncio.get_running_loop().time() - oldest._hs_started_s
+            if waited_s < min(_EVICT_AFTER_S, self._options.handshake_timeout_s / 2):
+                self._count_rejection(t.peer, f"over max_handshakes={limit}")
+                return False
+            oldest._handshake_failed(
+                TransportBrokenError(
+                    f"{oldest.peer} evicted after {waited_s:.1f} s: more than max_handshakes={limit} unfinished"
+                )
+            )
+        handshaking[t] = None
+        return True
+
     def _handshake_succeeded(self, t: TcpTransport) -> None:
-        self._handshaking.discard(t)
+        self._handshaking.pop(t, None)
         if self._closed:
             t._tr.close()  # type: ignore[union-attr]
             return
@@ -1022,7 +1019,7 @@ class TcpListener(Listener):
             self._accept_waiter.set_result(None)
 
     def _handshake_rejected(self, t: TcpTransport, reason: str) -> None:
-        self._handshaking.discard(t)
+        self._handshaking.pop(t, None)
         if not self._closed:
             self._count_rejection(t.peer, reason)
 
@@ -1031,50 +1028,89 @@ class TcpListener(Listener):
         self._log.warning("tcp listener %s rejected %s: %s", self._uri, peer, reason)
 
 
-def _host_port(uri: str, default_host: str) -> tuple[str, int]:
-    scheme, _ = split_uri(uri)
-    if scheme != "tcp":
-        raise ConfigError(f"expected a tcp:// URI, got {uri!r}")
+class _Refusal(asyncio.Protocol):
+    """Closes a connection over ``max_connections`` as soon as it is made: no buffer, no handshake, no timer."""
+
+    def __init__(self, listener: TcpListener) -> None:
+        self._listener = listener
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        peer = transport.get_extra_info("peername")
+        cast(asyncio.Transport, transport).abort()
+        limit = self._listener._options.max_connections
+        self._listener._count_rejection(str(peer), f"over max_connections={limit}")
+
+
+def _host_port(uri: str, default_host: str, scheme: str = "tcp") -> tuple[str, int]:
+    got, _ = split_uri(uri)
+    if got != scheme:
+        raise ConfigError(f"expected a {scheme}:// URI, got {uri!r}")
     parts = urlsplit(uri)
     if parts.path not in ("", "/") or parts.query or parts.fragment:
-        raise ConfigError(f"expected tcp://HOST:PORT, got {uri!r}")
+        raise ConfigError(f"expected {scheme}://HOST:PORT, got {uri!r}")
     try:
         port = parts.port or 0
     except ValueError as exc:
-        raise ConfigError(f"expected tcp://HOST:PORT with a port in 0..65535, got {uri!r}") from exc
+        raise ConfigError(f"expected {scheme}://HOST:PORT with a port in 0..65535, got {uri!r}") from exc
     return parts.hostname or default_host, port
 
 
-def _format_uri(host: str, port: int) -> str:
-    return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
+def _format_uri(host: str, port: int, scheme: str = "tcp") -> str:
+    return f"{scheme}://[{host}]:{port}" if ":" in host else f"{scheme}://{host}:{port}"
 
 
 async def listen(uri: str, options: TransportOptions) -> TcpListener:
     """Listen at ``tcp://HOST:PORT``; port 0 picks a free port and ``uri`` of the result reports it.
 
-    HOST is the interface bound; without one (``tcp://:0``), ``options.bind_host`` (loopback by default).
-    A peer has ``options.connect_timeout_s`` to complete the handshake.
+    HOST is the interface bound; without one (``tcp://:0``), ``options.bind_host`` (loopback by default). A
+    non-loopback HOST needs ``options.auth_key`` (or ``options.insecure``). The listener's caps are
+    ``options.max_connections``, ``max_handshakes`` and ``handshake_timeout_s`` (see ``TcpListener``).
 
     Raises:
-        ConfigError: the URI is malformed.
+        ConfigError: the URI is malformed, or a non-loopback HOST without auth_key and without insecure.
         OSError: the address cannot be bound (in use, no such interface).
     """
-    host, port = _host_port(uri, options.bind_host)
+    return await open_listener(uri, options, TcpTransport)
+
+
+async def open_listener(
+    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
+) -> TcpListener:
+    """``listen`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.listen`` uses it)."""
+    host, port = _host_port(uri, options.bind_host, cls.scheme)
+    if ssl_context is None:
+        check_exposure(
+            uri,
+            host,
+            authenticated=options.auth_key is not None,
+            insecure=options.insecure,
+            how="Set an auth_key (TransportOptions(auth_key=...); `uniros robot serve`: $UNIROS_AUTH_KEY or "
+            "--auth-key-env) or use tls:// with client certificates",
+        )
     lst = TcpListener(options)
     loop = asyncio.get_running_loop()
-    server = await loop.create_server(lambda: TcpTransport(options, listener=lst), host, port, reuse_address=True)
+    server = await loop.create_server(
+        lambda: lst._protocol(lambda: cls(options, listener=lst)),
+        host,
+        port,
+        reuse_address=True,
+        ssl=ssl_context,
+        ssl_handshake_timeout=options.handshake_timeout_s if ssl_context is not None else None,
+    )
     lst._server = server
     sockname = server.sockets[0].getsockname()
     lst._address = (sockname[0], sockname[1])
-    lst._uri = _format_uri(sockname[0], sockname[1])
+    lst._uri = _format_uri(sockname[0], sockname[1], cls.scheme)
     return lst
 
 
 async def connect(uri: str, options: TransportOptions) -> TcpTransport:
     """Connect to a listener at ``tcp://HOST:PORT`` and complete the handshake.
 
-    Refused connections (a listener still starting) are retried with backoff from 5 ms doubling to 500 ms, until
-    ``options.connect_timeout_s`` has passed since the call, handshake included. Cancelling leaves nothing open.
+    Refused connections (a listener still starting), and connections the listener drops during the handshake (it
+    is at ``max_connections``, or evicted us among more than ``max_handshakes`` at once), are retried with backoff
+    from 5 ms doubling to 500 ms, until ``options.connect_timeout_s`` has passed since the call, handshake included.
+    Cancelling leaves nothing open.
 
     Raises:
         ConfigError: the URI has no host or port.
@@ -1082,37 +1118,58 @@ async def connect(uri: str, options: TransportOptions) -> TcpTransport:
         AuthenticationError: the key settings differ or the listener failed to prove the shared key.
         TransportBrokenError: the peer is not a uniros listener (or speaks another version).
     """
-    host, port = _host_port(uri, "")
+    return await open_connection(uri, options, TcpTransport)
+
+
+async def open_connection(
+    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
+) -> TcpTransport:
+    """``connect`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.connect`` uses it)."""
+    host, port = _host_port(uri, "", cls.scheme)
     if not host or not port:
-        raise ConfigError(f"connect needs tcp://HOST:PORT with a nonzero port, got {uri!r}")
+        raise ConfigError(f"connect needs {cls.scheme}://HOST:PORT with a nonzero port, got {uri!r}")
     loop = asyncio.get_running_loop()
     timeout_s = options.connect_timeout_s
     deadline = loop.time() + timeout_s
-    delay = _BACKOFF_FIRST_S
-    last: OSError | None = None
+    backoff = Backoff(first_s=0.005, max_s=0.5)
+    last: Exception | None = None
     while True:
         try:
             async with asyncio.timeout_at(deadline):
-                _, t = await loop.create_connection(lambda: TcpTransport(options, uri=uri), host, port)
-            break
+                _, t = await loop.create_connection(
+                    lambda: cls(options, uri=uri),
+                    host,
+                    port,
+                    ssl=ssl_context,
+                    server_hostname=host if ssl_context is not None else None,
+                )
         except TimeoutError:
             raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {last})") from last
+        except ssl.SSLError as exc:  # a certificate refused: retrying cannot help
+            raise AuthenticationError(f"TLS handshake with {uri} failed: {exc}") from exc
         except OSError as exc:  # refused while the listener starts, unreachable, ... : retry until the deadline
             last = exc
-            remaining = deadline - loop.time()
-            if remaining <= 0:
-                raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {exc})") from exc
-            await asyncio.sleep(min(delay, remaining))
-            delay = min(delay * 2, _BACKOFF_MAX_S)
-    try:
-        async with asyncio.timeout_at(deadline):
-            await asyncio.shield(t._ready)
-    except TimeoutError as exc:
-        await t.aclose()
-        raise TimeoutError(
-            f"{uri} accepted the connection but did not complete the handshake within {timeout_s} s"
-        ) from exc
-    except BaseException:
-        await t.aclose()
-        raise
-    return t
+        else:
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await asyncio.shield(t._ready)
+                return t
+            except TimeoutError as exc:
+                await t.aclose()
+                raise TimeoutError(
+                    f"{uri} accepted the connection but did not complete the handshake within {timeout_s} s"
+                ) from exc
+            except TransportBrokenError as exc:
+                await t.aclose()
+                if not t._hs_dropped:
+                    raise
+                # The listener hung up mid-handshake: it is at max_connections, or evicted us among too many
+                # unfinished handshakes (a burst of connections). Both pass: retry until the deadline.
+                last = exc
+            except BaseException:
+                await t.aclose()
+                raise
+        remaining = deadline - loop.time()
+        if remaining <= 0:
+            raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {last})") from last
+        await backoff.sleep(limit_s=remaining)

@@ -13,6 +13,8 @@ from typing import Any
 from urllib.parse import urlsplit
 from xml.parsers.expat import ExpatError
 
+from uniros_async._log_throttle import LogThrottle
+
 __all__ = ["XmlRpcCallError", "XmlRpcServer", "call", "call_ros"]
 
 logger = logging.getLogger(__name__)
@@ -103,6 +105,9 @@ async def call_ros(uri: str, method: str, *params: Any, timeout_s: float) -> tup
     return int(result[0]), str(result[1]), result[2]
 
 
+_handler_log = LogThrottle(logger)  # any client can make a handler fail: one warning a second
+
+
 class XmlRpcServer:
     """Serves XML-RPC methods over HTTP/1.1 POST on an asyncio server (one request per connection).
 
@@ -149,7 +154,8 @@ class XmlRpcServer:
     def _dispatch(self, body: bytes) -> bytes:
         try:
             params, method = xmlrpc.client.loads(body)
-        except (xmlrpc.client.ResponseError, ExpatError, ValueError, TypeError) as exc:
+        # xmlrpc.client raises IndexError, KeyError, ... as well as its own errors on malformed documents
+        except (xmlrpc.client.ResponseError, ExpatError, ValueError, TypeError, IndexError, KeyError) as exc:
             return xmlrpc.client.dumps(xmlrpc.client.Fault(-32700, f"parse error: {exc}")).encode()
         handler = self._methods.get(method or "")
         if handler is None:
@@ -157,7 +163,7 @@ class XmlRpcServer:
         try:
             result = handler(*params)
         except Exception as exc:
-            logger.warning("XML-RPC %s%r failed", method, params, exc_info=True)
+            _handler_log.warning("XML-RPC %s%r failed: %r", method, params, exc)
             return xmlrpc.client.dumps(xmlrpc.client.Fault(1, f"{method}: {type(exc).__name__}: {exc}")).encode()
         return xmlrpc.client.dumps((result,), methodresponse=True, allow_none=True).encode()
 

@@ -36,6 +36,7 @@ from uniros_async.adapters.ros1.topics import (
 )
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.errors import CodecError, ConfigError, RobotError, TransportClosedError
+from uniros_async.transports.exposure import check_exposure
 
 __all__ = ["DEFAULT_MASTER_URI", "Ros1Node", "Ros1Publisher", "Ros1Subscriber", "open_ros1_node"]
 
@@ -267,7 +268,8 @@ class Ros1Node:
         ours = pub.msg_type
         if md5 not in ("*", ours._md5sum):
             callerid = header.get("callerid", "?")
-            logger.warning(_type_mismatch(topic, f"subscriber {callerid}", header.get("type", ""), md5, ours))
+            if _log_limit(f"mismatch {self.name}"):
+                logger.warning(_type_mismatch(topic, f"subscriber {callerid}", header.get("type", ""), md5, ours))
             # rospy's own words (rospy/impl/tcpros_pubsub.py), so ROS users recognise the failure
             if header.get("type", ours._type) != ours._type:
                 return f"topic types do not match: [{header['type']}] vs. [{ours._type}]"
@@ -302,7 +304,8 @@ class Ros1Node:
         except (OSError, TimeoutError) as exc:
             logger.debug("TCPROS connection from %s ended: %r", peer, exc)
         except Exception:  # a peer's bad input must not take the node (and its TaskGroup) down
-            logger.exception("TCPROS connection from %s failed; dropped it", peer)
+            if _log_limit(f"tcpros failed {self.name}"):
+                logger.exception("TCPROS connection from %s failed; dropped it", peer)
         finally:
             self._tcpros_writers.discard(writer)
             writer.close()
@@ -326,7 +329,8 @@ class Ros1Node:
 
     def _shutdown_request(self, caller_id: str, msg: str = "") -> list[Any]:
         # The master sends this when another node registers our name. We keep running: the caller owns our life.
-        logger.warning("%s: %s asked this ROS 1 node to shut down (%s); ignoring", self.name, caller_id, msg)
+        if _log_limit(f"shutdown {self.name}"):
+            logger.warning("%s: %s asked this ROS 1 node to shut down (%s); ignoring", self.name, caller_id, msg)
         return [1, "", 0]
 
     @staticmethod
@@ -362,6 +366,7 @@ async def open_ros1_node(
     master_uri: str | None = None,
     host: str = "127.0.0.1",
     timeout_s: float = 5.0,
+    insecure: bool = False,
 ) -> AsyncIterator[Ros1Node]:
     """Run a ROS 1 node called ``name`` for the duration of the block.
 
@@ -371,10 +376,12 @@ async def open_ros1_node(
         master_uri: the rosmaster's URI; default ``$ROS_MASTER_URI``, else ``http://127.0.0.1:11311/``.
         host: the address this node listens on and tells peers (must be reachable by the driver's machine).
         timeout_s: bound on every call to the master or a peer, and on unregistering at close.
+        insecure: allow a ``host`` beyond loopback. ROS 1 cannot authenticate peers: whoever reaches the node's
+            XML-RPC and TCPROS ports may publish to its subscribers and read its topics.
 
     Raises:
         RobotError: the master is unreachable (the message names the URI and how to start one).
-        ConfigError: ``name`` is not a valid ROS 1 node name.
+        ConfigError: ``name`` is not a valid ROS 1 node name, or ``host`` is beyond loopback without ``insecure``.
 
     Leaving the block (also by cancellation) unregisters every topic from the master within ``timeout_s`` (a dead
     master costs at most that), then closes the XML-RPC server and every TCPROS connection.
@@ -383,6 +390,14 @@ async def open_ros1_node(
         raise ConfigError(f"{name!r} is not a valid ROS 1 node name (letters, digits, _ and /, e.g. /uniros_bridge)")
     if timeout_s <= 0:
         raise ConfigError(f"timeout_s={timeout_s}: expected > 0")
+    check_exposure(
+        f"{host} (ROS 1 node {name}: XML-RPC and TCPROS)",
+        host,
+        authenticated=False,
+        insecure=insecure,
+        how="ROS 1 cannot authenticate its peers: keep the ROS graph on a trusted network and say so with "
+        "insecure=True (--insecure, or insecure: true in the env's ros1 settings)",
+    )
     uri = master_uri or os.environ.get("ROS_MASTER_URI") or DEFAULT_MASTER_URI
     node = Ros1Node(name if name.startswith("/") else f"/{name}", uri, host, timeout_s)
     async with unwrap_task_group() as tg:

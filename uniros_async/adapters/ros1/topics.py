@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar
 from uniros_async.adapters.ros1 import _tcpros
 from uniros_async.adapters.ros1._xmlrpc import call_ros
 from uniros_async.adapters.ros1.msgs import Ros1Message
+from uniros_async.backoff import Backoff
 from uniros_async.errors import CodecError, TransportClosedError
 
 if TYPE_CHECKING:
@@ -31,8 +32,6 @@ logger = logging.getLogger(__name__)
 M = TypeVar("M", bound=Ros1Message)
 
 _conn_ids = itertools.count(1)
-_RETRY_MIN_S = 0.2
-_RETRY_MAX_S = 5.0
 
 
 class _RateLimit:
@@ -121,22 +120,23 @@ class _Subscription:
 
     async def _link(self, uri: str) -> None:
         # Like rospy: while the master lists the publisher, reconnect after failures with a growing delay.
-        delay_s = _RETRY_MIN_S
+        backoff = Backoff(first_s=0.2, max_s=5.0)
         while True:
             try:
                 if not await self._connect_and_read(uri):
                     return  # refused for good (type mismatch or an error header): wait for the master to relist
-                delay_s = _RETRY_MIN_S
+                backoff.reset()
             except asyncio.IncompleteReadError:
                 logger.debug("%s: publisher %s closed the connection", self.topic, uri)
             except (OSError, TimeoutError, CodecError) as exc:
-                level = logging.INFO if delay_s == _RETRY_MIN_S else logging.DEBUG
+                level = logging.INFO if backoff.at_first else logging.DEBUG
                 msg = "%s: cannot read from publisher %s (%r); retrying in %.1f s"
-                logger.log(level, msg, self.topic, uri, exc, delay_s)
+                logger.log(level, msg, self.topic, uri, exc, backoff.delay_s)
             except Exception:  # a peer's bad input must not take the node (and its TaskGroup) down
-                logger.exception("%s: connection to publisher %s failed; retrying in %.1f s", self.topic, uri, delay_s)
-            await asyncio.sleep(delay_s)
-            delay_s = min(2 * delay_s, _RETRY_MAX_S)
+                logger.exception(
+                    "%s: connection to publisher %s failed; retrying in %.1f s", self.topic, uri, backoff.delay_s
+                )
+            await backoff.sleep()
 
     async def _connect_and_read(self, uri: str) -> bool:
         node, ours = self.node, self.msg_type

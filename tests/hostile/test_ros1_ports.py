@@ -1,0 +1,140 @@
+"""Hostile peers against the ROS 1 adapter's ports: a served arm as a ROS 1 driver (`uniros robot serve rx200
+--ros1-master URI`, a real process on a real rosmaster) has an XML-RPC slave API and a TCPROS publisher port; every
+attack of ``_attacks`` goes to each, while a legitimate ROS 1 subscriber (our adapter) reads every joint state and
+a legitimate XML-RPC client keeps calling ``getPid``.
+
+Asserted: the driver survives, no joint state is lost (their header seq stays contiguous), every ``getPid`` is
+answered, RSS grows by less than 64 MiB while 1,000 connections are held, and the log stays rate-limited.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import select
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+
+from tests.hostile import _attacks
+from uniros_async.adapters.ros1 import msgs, open_ros1_node
+from uniros_async.adapters.ros1._xmlrpc import call_ros
+from uniros_async.testing.ros1 import open_rosmaster, ros1_missing
+
+pytestmark = pytest.mark.slow
+
+RSS_LIMIT = 64 * 1024 * 1024
+TOPIC = "/rx200/joint_states"
+
+
+@pytest.fixture
+def ros_master(tmp_path: Path) -> Iterator[str]:
+    reason = ros1_missing()
+    if reason is not None:
+        pytest.fail(f"ROS 1 is needed for the hostile ROS 1 tests and is missing: {reason}")
+    with open_rosmaster(tmp_path, timeout_s=10.0) as uri:
+        yield uri
+
+
+def _start_driver(master: str, log: Path) -> subprocess.Popen[str]:
+    env = {**os.environ, "PYTHONPATH": os.getcwd() + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    env.pop("ROS_IP", None)
+    env.pop("ROS_HOSTNAME", None)
+    with open(log, "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--ros1-master", master],
+            stdout=subprocess.PIPE,
+            stderr=err,
+            stdin=subprocess.DEVNULL,
+            text=True,
+            env=env,
+        )
+    assert proc.stdout is not None
+    ready, _, _ = select.select([proc.stdout], [], [], 60)
+    if not ready or not proc.stdout.readline().strip():
+        proc.kill()
+        proc.wait()
+        proc.stdout.close()
+        raise AssertionError(f"the ROS 1 driver did not start; its log:\n{log.read_text()[-2000:]}")
+    return proc
+
+
+def _host_port(uri: str) -> tuple[str, int]:
+    parts = urlsplit(uri)
+    assert parts.hostname is not None and parts.port is not None
+    return parts.hostname, parts.port
+
+
+async def test_ros1_driver_ports_keep_serving_under_attack(ros_master: str, tmp_path: Path) -> None:
+    _attacks.raise_fd_limit()
+    log = tmp_path / "driver.log"
+    proc = _start_driver(ros_master, log)
+    try:
+        async with asyncio.timeout(300), open_ros1_node("/hostile_legit", master_uri=ros_master) as ros:
+            seqs: list[int] = []
+            got_one = asyncio.Event()
+
+            def on_state(msg: msgs.JointState) -> None:
+                seqs.append(msg.header.seq)
+                got_one.set()
+
+            await ros.subscribe(TOPIC, msgs.JointState, on_state)
+            await got_one.wait()
+            code, _, slave_uri = await call_ros(ros_master, "lookupNode", "/hostile", "/uniros_sim_rx200", timeout_s=5)
+            assert code == 1, slave_uri
+            code, _, proto = await call_ros(slave_uri, "requestTopic", "/hostile", TOPIC, [["TCPROS"]], timeout_s=5)
+            assert code == 1 and proto[0] == "TCPROS", proto
+            tcpros_host, tcpros_port = str(proto[1]), int(proto[2])
+
+            answers = 0
+            stop = asyncio.Event()
+
+            async def ask_slave() -> None:
+                nonlocal answers
+                while not stop.is_set():
+                    code, _, pid = await call_ros(slave_uri, "getPid", "/hostile_legit", timeout_s=5)
+                    assert code == 1 and pid == proc.pid
+                    answers += 1
+                    await asyncio.sleep(0.05)
+
+            t0 = time.monotonic()
+            reports = {}
+            async with asyncio.TaskGroup() as tg:
+                asker = tg.create_task(ask_slave())
+                host, port = _host_port(slave_uri)
+                reports["xml-rpc"] = await _attacks.run_attacks(host, port, _attacks.xmlrpc(), server_pid=proc.pid)
+                reports["tcpros"] = await _attacks.run_attacks(
+                    tcpros_host, tcpros_port, _attacks.tcpros(TOPIC), server_pid=proc.pid
+                )
+                n_before = len(seqs)
+                await asyncio.sleep(1.0)
+                stop.set()
+                await asker
+            elapsed = time.monotonic() - t0
+
+            assert proc.poll() is None, f"the ROS 1 driver died; its log:\n{log.read_text()[-3000:]}"
+            assert len(seqs) > n_before, "joint states stopped flowing after the attacks"
+            gaps = [(a, b) for a, b in zip(seqs, seqs[1:], strict=False) if b != a + 1]
+            assert not gaps, f"legitimate joint states lost or reordered: {gaps[:5]} (of {len(seqs)})"
+            assert answers >= 10, f"only {answers} getPid calls answered in {elapsed:.1f} s"
+            for what, r in reports.items():
+                assert r.peak_rss_growth < RSS_LIMIT, f"{what}: driver RSS grew {r.peak_rss_growth / 2**20:.1f} MiB"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
+    lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
+    assert len(lines) <= 4 * elapsed + 20, f"{len(lines)} log lines in {elapsed:.0f} s:\n" + "\n".join(lines[:40])
+    sys.stdout.write(
+        "\n".join(f"{k}: {v}" for k, v in reports.items()) + f"\nlog lines: {len(lines)} in {elapsed:.1f} s\n"
+    )
