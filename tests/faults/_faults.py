@@ -14,8 +14,10 @@ from uniros_async.testing.netfault import EventPeer, NetnsPair, fault_figures
 
 FAULT_S = 2.0
 RECOVER_S = 15.0
-SLACK_S = 0.25
-"""Scheduling slack on a shared 2-core machine."""
+SLACK_S = 0.5
+"""Scheduling slack on a shared 2-core machine: both ends run real-time when permitted, yet a hold or a notice came
+up to 0.4 s late in about one run of three while other jobs loaded the host (docs/reliability.md reports the figures
+themselves)."""
 
 
 @dataclass
