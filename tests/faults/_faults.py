@@ -106,6 +106,8 @@ def run_fault(
     assert not uncaught, uncaught[0]["tb"]
     if check_ages:
         assert row["stale_commands_applied"] == 0, row
+        # no step returned on a state older than the timeout, by its own stamp (the arm shares this clock)
+        assert row["max_state_stamp_age_at_step_s"] <= robot_timeout_s + 0.05, row
     assert any(e["ev"] == "cmd" and e["applied"] and e["t_ns"] <= t_fault for e in arm.events), "no command before"
     if must_notice:
         assert row["robot_errors"], f"{name}: the agent saw no RobotError"

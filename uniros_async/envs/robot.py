@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import collections
 import contextlib
 import dataclasses
 import logging
@@ -63,6 +64,8 @@ period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the
 must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and
 action cycles that are multiples of their periods) keep one phase, give or take each member's
 ``RobotEnv.loop_phase_ns`` of a few ms: the agent gets every member's returns about equally fresh."""
+TRANSIT_WINDOW_S = 60.0
+"""How far back ``RobotEnv._transit_delay_ns`` looks for the quickest joint state (stamp to arrival)."""
 REJOIN_RETRY_S = 0.1
 """First wait between attempts to join the arm's domain again after the connection to it was lost (doubling to
 1 s)."""
@@ -87,6 +90,32 @@ def _local_host_toward(uri: str) -> str:
             return str(s.getsockname()[0])
     except OSError as exc:
         raise ConfigError(f"robot={uri!r}: no route to {host} from this machine ({exc})") from exc
+
+
+class _TransitWindow:
+    """The smallest stamp-to-arrival time of the joint states of the last ``TRANSIT_WINDOW_S`` (a monotonic deque:
+    O(1) per state)."""
+
+    def __init__(self) -> None:
+        self.sub: Any = None
+        self.seen = -1
+        self._q: collections.deque[tuple[int, int]] = collections.deque()
+
+    def reset(self, sub: Any) -> None:
+        self.sub, self.seen = sub, -1
+        self._q.clear()
+
+    def add(self, now: int, transit_ns: int) -> None:
+        q = self._q
+        while q and q[-1][1] >= transit_ns:
+            q.pop()
+        q.append((now, transit_ns))
+
+    def floor(self, now: int) -> int:
+        q, horizon = self._q, now - round(TRANSIT_WINDOW_S * 1e9)
+        while len(q) > 1 and q[0][0] < horizon:
+            q.popleft()
+        return q[0][1]
 
 
 async def _settle() -> None:
@@ -133,6 +162,7 @@ class RobotEnv(BaseEnv):
         clock), the same instant for every member; used once, then cleared (see ``_step_deadline``)."""
         self._last_return_wall_ns: int | None = None
         self._cmd_seq = 0
+        self._transit = _TransitWindow()
         self.unsafe_actions = 0
         self.robot_process: Any = None  # the ServoSimProcess of robot="sim-process" / "emulated-real"
 
@@ -352,24 +382,38 @@ class RobotEnv(BaseEnv):
         self.timing.command_ns.append(now)
 
     def _state_age_s(self) -> float:
-        """How old the newest joint state is: since it arrived (wall clock; the arm's clock need not be ours), or
-        since its stamp (sim clock: the sim in this process stamps it on the same clock)."""
+        """How old the newest joint state is. On a sim clock: since its stamp (the sim in this process stamps it on
+        the same clock). On a wall clock: since it arrived, plus how much longer than the quickest recent state it
+        took to arrive (``_transit_delay_ns``): a state that waited in a starved link or a socket buffer counts as
+        old as it is, while the arm's clock need not be ours."""
         js = self._js.latest()
         if js is None:
             return float("inf")
         if isinstance(self._clock, SimClock):
             return (self._clock.now_ns() - js.header.stamp_ns) / 1e9
-        return (time.monotonic_ns() - self._js.latest_recv_ns) / 1e9
+        now = time.monotonic_ns()
+        return (now - self._js.latest_recv_ns + self._transit_delay_ns(js, now)) / 1e9
+
+    def _transit_delay_ns(self, js: JointState, now: int) -> int:
+        """How much longer than the quickest state of the last ``TRANSIT_WINDOW_S`` the newest one took from its
+        stamp to its arrival. The difference of two clocks cancels out (so does a fixed delay); what is left is
+        time spent queued on the way. A sliding window, not the minimum ever seen, so that a restarted arm (a new
+        clock) is judged afresh after one window."""
+        sub = self._js
+        window = self._transit
+        if window.sub is not sub:
+            window.reset(sub)
+        if sub.received != window.seen:
+            window.seen = sub.received
+            window.add(now, sub.latest_recv_ns - js.header.stamp_ns)
+        return max(0, sub.latest_recv_ns - js.header.stamp_ns - window.floor(now))
 
     def _stale_at_ns(self) -> int:
         """When, on the env's clock, the newest joint state turns older than ``robot_timeout_s``."""
-        js = self._js.latest()
-        if js is None:
+        age_s = self._state_age_s()
+        if age_s == float("inf"):
             return self._clock.now_ns()
-        timeout_ns = round(self.config.robot_timeout_s * 1e9)
-        if isinstance(self._clock, SimClock):
-            return js.header.stamp_ns + timeout_ns
-        return self._clock.now_ns() + self._js.latest_recv_ns + timeout_ns - time.monotonic_ns()
+        return self._clock.now_ns() + round((self.config.robot_timeout_s - age_s) * 1e9)
 
     def _stale_error(self, what: str) -> RobotError:
         """Stop commanding the arm (its watchdog holds it) and say how old its newest joint state is."""

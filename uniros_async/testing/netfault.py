@@ -249,7 +249,8 @@ def fault_figures(
     after the last command the arm applied before it), ``notice_after_fault_s`` (the agent's first RobotError),
     ``agent_saw`` (its message), ``robot_errors``, ``recovery_after_clear_s`` (the agent's first step after the
     fault was cleared), ``stale_commands_applied`` (commands applied older than ``robot_timeout_s``, over the whole
-    run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s`` and ``uncaught_exceptions``.
+    run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s``, ``max_state_stamp_age_at_step_s``
+    (the oldest joint state, by its stamp, that a step returned on since the fault) and ``uncaught_exceptions``.
     """
     s = 1e-9
     cmds = [e for e in list(arm.events) if e["ev"] == "cmd"]
@@ -271,6 +272,9 @@ def fault_figures(
         "stale_commands_applied": sum(1 for e in cmds if e["applied"] and e["age_ns"] > robot_timeout_s / s),
         "stale_commands_dropped": sum(1 for e in since_fault if not e["applied"]),
         "max_age_applied_s": round(max((e["age_ns"] for e in since_fault if e["applied"]), default=0) * s, 3),
+        "max_state_stamp_age_at_step_s": round(
+            max((e.get("state_stamp_age_s", -1.0) for e in agent.after(t_fault, "step")), default=-1.0), 3
+        ),
         "uncaught_exceptions": len([e for e in agent.events if e["ev"] == "error"]),
     }
 
@@ -334,7 +338,10 @@ def drive(
                     continue
                 _, _, terminated, truncated, info = env.step(action)
                 age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
-                _emit("step", obs_age_ns=age, state_age_s=u._state_age_s())
+                js = u._js.latest()
+                # by the state's own stamp: meaningful when the arm shares this machine's monotonic clock
+                stamp_age = (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0
+                _emit("step", obs_age_ns=age, state_age_s=u._state_age_s(), state_stamp_age_s=stamp_age)
                 need_reset = terminated or truncated
             except RobotError as exc:
                 _emit("robot_error", msg=str(exc))
