@@ -3,9 +3,18 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
+
+EXTENSION_DIR = Path(__file__).resolve().parent / "extension"
+"""Holds ``acme_arms``, a user's own package that registers an arm, a placement and task ids from outside
+uniros_async; tests name it as ``"acme_arms:..."``, which imports it when the test runs (never at collection, so
+the ids other tests sweep at collection stay the built-in ones)."""
+if str(EXTENSION_DIR) not in sys.path:
+    sys.path.append(str(EXTENSION_DIR))
 
 
 @pytest.fixture(scope="session", autouse=True)

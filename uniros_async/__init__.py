@@ -2,7 +2,11 @@
 
 The bus (``uniros_async.bus``: domains, nodes, topics, timers, services, parameters) runs over pluggable
 transports (``uniros_async.transports``: memory, shm, tcp); robots, environments and training build on it.
+Robots, placements (where an arm runs) and tasks are registries your own package adds to at import, without editing
+this one: ``register_robot``, ``register_placement``, ``register_task`` and ``register_env_id``.
 """
+
+from typing import TYPE_CHECKING, Any
 
 from uniros_async.errors import (
     ConfigError,
@@ -13,6 +17,12 @@ from uniros_async.errors import (
     UnirosError,
     WorkerError,
 )
+from uniros_async.placements import register_placement
+from uniros_async.robots import register_robot
+
+if TYPE_CHECKING:
+    from uniros_async.runtime import make, make_vec
+    from uniros_async.tasks.registry import register_env_id, register_task
 
 __version__ = "0.1.0"
 
@@ -27,6 +37,10 @@ __all__ = [
     "__version__",
     "make",
     "make_vec",
+    "register_env_id",
+    "register_placement",
+    "register_robot",
+    "register_task",
 ]
 
 
@@ -43,11 +57,15 @@ from uniros_async._post_import import when_imported as _when_imported  # noqa: E
 _when_imported("gymnasium", _register_ids)
 
 
-def __getattr__(name: str) -> object:
+def __getattr__(name: str) -> Any:
     # make / make_vec load the runtime (worker processes) only when asked for: a transport-only process or a
     # spawned worker does not import it.
     if name in ("make", "make_vec"):
         from uniros_async import runtime
 
         return getattr(runtime, name)
+    if name in ("register_task", "register_env_id"):  # gymnasium is imported for them (the task registry)
+        from uniros_async.tasks import registry
+
+        return getattr(registry, name)
     raise AttributeError(f"module 'uniros_async' has no attribute {name!r}")

@@ -61,7 +61,9 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--arms", nargs="+", default=["rx200", "ned2"], help="robots to run (default rx200 ned2)")
     be.add_argument("--action-cycle", type=float, default=0.8, help="seconds (default 0.8)")
     be.add_argument(
-        "--robot", default="sim", help="sim, sim-process, emulated-real, tcp://host:port or ros1://host:port"
+        "--robot",
+        default="sim",
+        help="sim, sim-process, emulated-real, tcp://host:port, ros1://host:port or ros2://[domain]",
     )
     be.add_argument("--concurrent", action="store_true", help="run the arms at the same time")
     be.add_argument(
@@ -126,6 +128,18 @@ def _build_parser() -> argparse.ArgumentParser:
     br.add_argument("--per-block", type=int, default=500, help="round trips per block (default %(default)s)")
     br.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     br.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
+    b2 = bench.add_parser("ros2", help="ROS 2 round trips: our DDS participant against rclpy (needs the rclpy venv)")
+    b2.add_argument("--blocks", type=int, default=11, help="blocks per client, in turns; the first is warm-up")
+    b2.add_argument("--per-block", type=int, default=500, help="round trips per block (default %(default)s)")
+    b2.add_argument("--domain-id", type=int, default=0, help="ROS 2 domain id (default %(default)s)")
+    b2.add_argument("--no-netns", action="store_true", help="run on this host's loopback, not in a network namespace")
+    b2.add_argument(
+        "--rclpy-shm",
+        action="store_true",
+        help="let rclpy-to-rclpy use Fast DDS's shared memory (default: UDP, as ours)",
+    )
+    b2.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    b2.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds per case (default 60)")
     bs.add_argument("--episodes", type=int, default=3, help="reach episodes to time (default 3)")
@@ -358,6 +372,20 @@ def _run_bench(args: argparse.Namespace) -> int:
             ros1.Ros1BenchConfig(
                 blocks=args.blocks,
                 per_block=args.per_block,
+                json_path=args.json_path,
+                progress=not args.no_progress,
+            )
+        )
+    elif args.scenario == "ros2":
+        from uniros_async.bench import ros2
+
+        ros2.main(
+            ros2.Ros2BenchConfig(
+                blocks=args.blocks,
+                per_block=args.per_block,
+                domain_id=args.domain_id,
+                netns=not args.no_netns,
+                rclpy_shm=args.rclpy_shm,
                 json_path=args.json_path,
                 progress=not args.no_progress,
             )

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from uniros_async.testing.ros1 import open_rosmaster, ros1_missing, rospy_process
+from uniros_async.testing.ros2 import skip_or_fail
 
 PEER_SCRIPT = Path(__file__).with_name("ros1_peer.py")
 
@@ -23,7 +24,7 @@ def ros_master(tmp_path: Path) -> Iterator[str]:
     """A real ``rosmaster --core`` on a free loopback port; yields its URI ("http://127.0.0.1:PORT/")."""
     reason = ros1_missing()
     if reason is not None:
-        pytest.skip(reason)
+        skip_or_fail(reason)
     with open_rosmaster(tmp_path, timeout_s=10.0) as uri:
         yield uri
 

@@ -40,14 +40,17 @@ def _md5() -> str:
 
 @pytest.fixture
 def fake_arm(ros_master: str, tmp_path: Path) -> Iterator[Callable[..., subprocess.Popen[str]]]:
-    """Starts the stand-in driver for a robot with its default ROS topics (``ROS1_DEFAULTS``), or others."""
-    from uniros_async.adapters.ros1_bridge import ROS1_DEFAULTS
+    """Starts the stand-in driver for a robot with its default ROS 1 driver's topics (``adapters.drivers``), or
+    others."""
+    from uniros_async.adapters.drivers import ros_driver_defaults
 
     with contextlib.ExitStack() as stack:
 
         def start(robot: str, *, drop_joint: str = "", **topics: str) -> subprocess.Popen[str]:
             spec = get_robot_spec(robot)
-            t = {**ROS1_DEFAULTS[robot], **topics}
+            defaults = ros_driver_defaults("ros1", robot)
+            assert defaults is not None
+            t = {**defaults.as_settings(), **topics}
             proc = stack.enter_context(
                 rospy_process(
                     FAKE_ARM,

@@ -14,13 +14,14 @@ import pytest
 
 from uniros_async.errors import ConfigError
 from uniros_async.testing.ros1 import ros1_missing
+from uniros_async.testing.ros2 import skip_or_fail
 
 
 @pytest.fixture(autouse=True)
 def _needs_ros1() -> None:
     reason = ros1_missing()
     if reason is not None:
-        pytest.skip(reason)
+        skip_or_fail(reason)
 
 
 def test_both_clients_are_timed_through_the_echo(tmp_path: Path) -> None:

@@ -9,8 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 
+import uniros_async.robots as robots
 from uniros_async.errors import ConfigError
-from uniros_async.robots import ROBOT_NAMES, RobotSpec, ServoProfile, get_robot_spec
+from uniros_async.robots import ROBOT_NAMES, RobotSpec, ServoProfile, get_robot_spec, robot_names
 from uniros_async.robots.ned2 import NED2
 from uniros_async.robots.rx200 import RX200
 
@@ -18,14 +19,17 @@ from ._helpers import arm_actuator_ids, arm_qpos_adr
 
 
 def test_registry_returns_the_package_specs() -> None:
-    assert ROBOT_NAMES == ("ned2", "rx200")
+    assert {"ned2", "rx200"} <= set(ROBOT_NAMES)  # and any robot a user's package registered
+    assert robots.ROBOT_NAMES == robot_names()  # read from the registry when asked for
     assert get_robot_spec("rx200") is RX200
     assert get_robot_spec("ned2") is NED2
 
 
 def test_unknown_robot_lists_valid_names() -> None:
-    with pytest.raises(ConfigError, match=r"unknown robot 'ur5'; valid names are \['ned2', 'rx200'\]"):
+    with pytest.raises(ConfigError, match=r"unknown robot 'ur5'; registered: \[.*'ned2', 'rx200'"):
         get_robot_spec("ur5")
+    with pytest.raises(ConfigError, match=r"unknown robot 'rx20' \(did you mean 'rx200'\?\)"):
+        get_robot_spec("rx20")
 
 
 def test_specs_hold_the_documented_numbers() -> None:

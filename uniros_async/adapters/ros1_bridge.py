@@ -37,10 +37,11 @@ import logging
 import os
 import time
 from collections.abc import AsyncIterator, Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from uniros_async.adapters.drivers import ros_driver_defaults
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.bus.qos import latest
@@ -49,13 +50,18 @@ from uniros_async.robots import get_robot_spec
 from uniros_async.robots.spec import RobotSpec
 from uniros_async.transports.base import TransportOptions
 
+if TYPE_CHECKING:
+    from uniros_async.envs.config import EnvConfig
+    from uniros_async.placements import ArmLink, PlacementRequest
+
 __all__ = [
     "COMMAND_TYPES",
-    "ROS1_DEFAULTS",
     "ROS1_SETTINGS",
     "Ros1Bridge",
     "Ros1BridgeConfig",
+    "check_ros1_placement",
     "open_ros1_bridge",
+    "open_ros1_placement",
     "parse_ros1_uri",
     "serve_ros1_bridge",
 ]
@@ -68,29 +74,22 @@ COMMAND_TYPES = (
     "std_msgs/Float64MultiArray",
 )
 
-ROS1_DEFAULTS: dict[str, dict[str, str]] = {
-    # Interbotix xs_sdk: joint_states and the group command in the robot's own namespace
-    "rx200": {
-        "joint_states": "/rx200/joint_states",
-        "command": "/rx200/commands/joint_group",
-        "command_type": "interbotix_xs_msgs/JointGroupCommand",
-    },
-    # Niryo's ned_ros stack: a ros_control JointTrajectoryController
-    "ned2": {
-        "joint_states": "/joint_states",
-        "command": "/niryo_robot_follow_joint_trajectory_controller/command",
-        "command_type": "trajectory_msgs/JointTrajectory",
-    },
-}
-"""Per robot: the driver's joint-state topic, its command topic and that topic's type."""
-
 LIMIT_CLAMP_RAD = 0.05
 """How far beyond a joint limit a command may reach and still be sent, clamped to the limit (counted in
 ``commands_clamped``), as the servo sim and the servos themselves clip it: holding where the arm measures itself
 (the env's hold) can ask for a hair past a limit the arm sits at, through sensor noise or overshoot. Further out,
 a command is refused."""
 _instances = itertools.count(1)
-ROS1_SETTINGS = ("joint_states", "command", "command_type", "group", "ros_host", "state_timeout_s", "insecure")
+ROS1_SETTINGS = (
+    "driver",
+    "joint_states",
+    "command",
+    "command_type",
+    "group",
+    "ros_host",
+    "state_timeout_s",
+    "insecure",
+)
 """The bridge settings an env takes in its ``ros1`` dict (``EnvConfig.ros1``)."""
 
 
@@ -115,10 +114,12 @@ class Ros1BridgeConfig:
         robot: robot name (``rx200``, ``ned2``); its spec gives the joint names, order and limits.
         master_uri: the ROS master (``http://HOST:PORT/``); None: ``$ROS_MASTER_URI``, else
             ``http://127.0.0.1:11311/``.
-        joint_states: the driver's ``sensor_msgs/JointState`` topic; None: ``ROS1_DEFAULTS``.
-        command: the driver's command topic; None: ``ROS1_DEFAULTS``.
-        command_type: one of ``COMMAND_TYPES``; None: ``ROS1_DEFAULTS``.
-        group: the joint group of a ``JointGroupCommand`` (Interbotix: ``arm``).
+        driver: which of the robot's registered ROS 1 drivers (``adapters.drivers``) gives the defaults of the
+            settings below; None: the robot's default driver.
+        joint_states: the driver's ``sensor_msgs/JointState`` topic; None: the driver's default.
+        command: the driver's command topic; None: the driver's default.
+        command_type: one of ``COMMAND_TYPES``; None: the driver's default.
+        group: the joint group of a ``JointGroupCommand``; None: the driver's default, else ``arm`` (Interbotix).
         ros_host: the address ROS peers reach this process at (its XML-RPC and TCPROS servers); None:
             ``$ROS_IP``, else ``$ROS_HOSTNAME`` (as rospy reads them), else ``127.0.0.1``.
         state_timeout_s: how long to wait for the driver's first joint state before giving up.
@@ -129,10 +130,11 @@ class Ros1BridgeConfig:
 
     robot: str
     master_uri: str | None = None
+    driver: str | None = None
     joint_states: str | None = None
     command: str | None = None
     command_type: str | None = None
-    group: str = "arm"
+    group: str | None = None
     ros_host: str | None = None
     state_timeout_s: float = 10.0
     node_name: str = "ros1_bridge"
@@ -140,12 +142,18 @@ class Ros1BridgeConfig:
 
     def __post_init__(self) -> None:
         spec = get_robot_spec(self.robot)  # ConfigError listing the robots
-        defaults = ROS1_DEFAULTS.get(spec.name, {})
+        driver = ros_driver_defaults("ros1", spec.name, self.driver)  # ConfigError naming the robot's drivers
+        defaults = {} if driver is None else driver.as_settings()
         for key in ("joint_states", "command", "command_type"):
             if getattr(self, key) is None:
                 if key not in defaults:
-                    raise ConfigError(f"Ros1BridgeConfig: robot {self.robot!r} has no default {key}; give one")
+                    raise ConfigError(
+                        f"Ros1BridgeConfig: robot {self.robot!r} has no ROS 1 driver registered "
+                        f"(adapters.drivers.register_ros_driver), so {key} has no default; give one"
+                    )
                 object.__setattr__(self, key, defaults[key])
+        if self.group is None:
+            object.__setattr__(self, "group", str(defaults.get("group", "arm")))
         if self.command_type not in COMMAND_TYPES:
             raise ConfigError(
                 f"Ros1BridgeConfig.command_type must be one of {COMMAND_TYPES}, got {self.command_type!r}"
@@ -296,7 +304,7 @@ class Ros1Bridge:
         """The driver's command message for arm positions ``q``."""
         m, kind = self._msgs, self.config.command_type
         if kind == "interbotix_xs_msgs/JointGroupCommand":
-            return m.JointGroupCommand(name=self.config.group, cmd=q.astype(np.float32))
+            return m.JointGroupCommand(name=str(self.config.group), cmd=q.astype(np.float32))
         if kind == "std_msgs/Float64MultiArray":
             return m.Float64MultiArray(data=q.astype(np.float64))
         t_ns = round(max(float(duration_s), self.period_s) * 1e9)
@@ -416,3 +424,30 @@ async def serve_ros1_bridge(
         if on_ready is not None:
             on_ready(dom.uri)
         await asyncio.Event().wait()  # until cancelled
+
+
+# ------------------------------------------------------------------------------------------------ the placement
+
+
+def check_ros1_placement(robot: str, config: EnvConfig) -> None:
+    """The ``ros1://`` placement's check of an env config: the master's URI and the ``ros1`` settings' names.
+
+    Raises:
+        ConfigError: a malformed URI or an unknown setting.
+    """
+    parse_ros1_uri(robot)
+    unknown = sorted(set(config.ros1 or {}) - set(ROS1_SETTINGS))
+    if unknown:
+        raise ConfigError(f"ros1: unknown setting(s) {unknown}; expected some of {list(ROS1_SETTINGS)}")
+
+
+@contextlib.asynccontextmanager
+async def open_ros1_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+    """``robot="ros1://HOST:PORT"``: the bridge in the env's process, on a memory domain the env joins as it joins
+    an in-process sim; the bridge's settings are the env's ``ros1`` dict over the driver's defaults."""
+    from uniros_async.placements import ArmLink
+
+    cfg = request.config
+    bridge_cfg = Ros1BridgeConfig(robot=request.robot.name, master_uri=parse_ros1_uri(cfg.robot), **(cfg.ros1 or {}))
+    async with open_domain("memory://") as domain, open_ros1_bridge(bridge_cfg, domain=domain):
+        yield ArmLink(domain=domain)

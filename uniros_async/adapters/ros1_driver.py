@@ -4,7 +4,7 @@
     env = gym.make("uniros/Rx200Reach-v0", robot="ros1://127.0.0.1:11311")          # drives it through the bridge
 
 The mirror of ``ros1_bridge``. The sim speaks the real driver's topics and messages on the ROS graph
-(``ROS1_DEFAULTS``):
+(the robot's ROS 1 driver in ``adapters.drivers``):
 
 - it publishes ``sensor_msgs/JointState`` at the hardware rate, stamped with the wall clock as a driver's are;
 - it takes the driver's command type: an Interbotix ``JointGroupCommand`` for the group ``group``, a

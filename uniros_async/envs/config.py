@@ -14,12 +14,12 @@ from pydantic import Field, PlainValidator
 
 from uniros_async.config import Bool, ConfigModel, Float, Int, Str
 from uniros_async.errors import ConfigError
+from uniros_async.placements import placement_spec
 
 __all__ = ["CLOCKS", "UNSAFE_ACTIONS", "EnvConfig"]
 
 CLOCKS = ("wall", "sim")
 UNSAFE_ACTIONS = ("hold", "project")
-ROBOT_PLACEMENTS = ("sim", "sim-process", "emulated-real")
 
 
 def _latency_input(v: Any) -> float | str:
@@ -43,8 +43,10 @@ class EnvConfig(ConfigModel):
     """Where the arm is: ``"sim"`` (servo sim in the env's own process, memory transport), ``"sim-process"``
     (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as a tcp service in its own
     process), ``"tcp://host:port"`` (the domain of an arm served elsewhere, e.g. by ``uniros robot serve`` or
-    ``uniros robot bridge``), or ``"ros1://host:port"`` (an arm whose driver is a ROS 1 node, reached through that
-    ROS master by a bridge in the env's process: ``adapters/ros1_bridge.py``)."""
+    ``uniros robot bridge``), ``"ros1://host:port"`` (an arm whose driver is a ROS 1 node, reached through that ROS
+    master by a bridge in the env's process: ``adapters/ros1_bridge.py``), ``"ros2://[domain][/namespace][?...]"``
+    (an arm whose driver is a ROS 2 node, its settings in the URI's query: ``adapters/ros2_bridge.py``), or any
+    other placement registered with ``uniros_async.register_placement``."""
     clock: Literal["wall", "sim"] | None = None
     """``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``, or
     ``robot="emulated-real"``, which then runs the same emulation model (perturbed dynamics, sensor noise, command
@@ -85,9 +87,9 @@ class EnvConfig(ConfigModel):
     instead of freezing; ``SafetyChecker.project``). Either way ``info["not_executable"]`` is set (the reach task's
     -5 applies); projected actions also set ``info["action_projected"]``."""
     ros1: dict[str, Any] | None = None
-    """With ``robot="ros1://..."``: settings of the bridge (``Ros1BridgeConfig`` fields ``joint_states``,
-    ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``); unset: the robot's defaults
-    (``ROS1_DEFAULTS``)."""
+    """With ``robot="ros1://..."``: settings of the bridge (``Ros1BridgeConfig`` fields ``driver``,
+    ``joint_states``, ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``, ``insecure``);
+    unset: the defaults of the robot's ROS 1 driver (``adapters.drivers``)."""
 
     @pydantic.model_validator(mode="before")
     @classmethod
@@ -99,23 +101,14 @@ class EnvConfig(ConfigModel):
     @pydantic.model_validator(mode="after")
     def _check(self) -> EnvConfig:
         """The checks that span keys (placement, its settings, clock)."""
-        if self.robot not in ROBOT_PLACEMENTS and not self.robot.startswith(("tcp://", "ros1://")):
-            raise ConfigError(
-                f"robot must be one of {ROBOT_PLACEMENTS}, a tcp://host:port URI or a ros1://host:port ROS master, "
-                f"got {self.robot!r}"
-            )
-        if self.robot.startswith("ros1://"):
-            from uniros_async.adapters.ros1_bridge import ROS1_SETTINGS, parse_ros1_uri
-
-            parse_ros1_uri(self.robot)
-            unknown = sorted(set(self.ros1 or {}) - set(ROS1_SETTINGS))
-            if unknown:
-                raise ConfigError(f"ros1: unknown setting(s) {unknown}; expected some of {list(ROS1_SETTINGS)}")
-        elif self.ros1 is not None:
+        placement = placement_spec(self.robot)  # ConfigError: the registered placements and the closest one
+        placement.check_config(self)  # its URI and settings
+        if self.ros1 is not None and placement.name != "ros1://":
             raise ConfigError(f"ros1 settings apply only to robot='ros1://HOST:PORT', got robot={self.robot!r}")
-        if self.clock == "sim" and self.robot not in ("sim", "emulated-real"):
+        if self.clock == "sim" and not placement.sim_clock:
             raise ConfigError(
-                f"clock='sim' needs robot='sim' or 'emulated-real' (run in this process), got robot={self.robot!r}"
+                f"clock='sim' needs robot='sim' or 'emulated-real' (or another placement with sim_clock=True: one "
+                f"that runs the arm in this process), got robot={self.robot!r}"
             )
         return self
 

@@ -19,7 +19,9 @@ baseline, judges and applies everything once per step instead.)
 
 The arm is reached only through its topics (``joint_states``, ``command``) and services (``hold``, ``reset``)
 in namespace ``/<robot>``, so the same code drives the sim in this process, a sim in another process, the
-emulated real arm over tcp, or a real arm behind an adapter.
+emulated real arm over tcp, or a real arm behind an adapter. Where the arm runs is the placement that
+``config.robot`` names in ``uniros_async.placements``: it yields the domain the env's node joins, and says whether
+``reset`` may teleport the arm home (``can_teleport``) or must drive it there and wait for it to settle.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from uniros_async.bus import open_domain, open_node
+from uniros_async.bus import open_node
 from uniros_async.bus.messages import Data, Header, JointCommand, JointState, Trigger
 from uniros_async.clock import Clock, grid_after, wall_clock
 from uniros_async.envs.base import BaseEnv
@@ -46,6 +48,7 @@ from uniros_async.envs.safety import SafetyChecker, SafetyConfig
 from uniros_async.envs.timing import Timing
 from uniros_async.errors import ConfigError, DomainError, NameConflictError, RobotError, TransportError
 from uniros_async.kinematics import Kinematics
+from uniros_async.placements import PlacementRequest, placement_spec
 from uniros_async.robots import get_robot_spec
 from uniros_async.sim_clock import SimClock
 from uniros_async.transports.base import TransportOptions, options_from_environ
@@ -136,6 +139,8 @@ class RobotEnv(BaseEnv):
     def __init__(self, arm: str, config: EnvConfig, safety: SafetyConfig | None = None) -> None:
         super().__init__(config)
         self.robot_spec = get_robot_spec(arm)
+        self.placement = placement_spec(config.robot)
+        """Where the arm runs (``config.robot``'s entry in ``uniros_async.placements``)."""
         spec = self.robot_spec
         self.kin = Kinematics.from_spec(spec)
         self.safety = SafetyChecker(spec, self.kin, safety)
@@ -164,7 +169,7 @@ class RobotEnv(BaseEnv):
         self._cmd_seq = 0
         self._transit = _TransitWindow()
         self.unsafe_actions = 0
-        self.robot_process: Any = None  # the ServoSimProcess of robot="sim-process" / "emulated-real"
+        self.robot_process: Any = None  # a process the placement runs the arm in (ArmLink.process), or None
 
     @property
     def _period_ns(self) -> int:
@@ -204,7 +209,7 @@ class RobotEnv(BaseEnv):
     # ------------------------------------------------------------------------------------------ the loop
 
     def _start(self) -> None:
-        timeout = 60.0 if self.config.robot != "sim" else 30.0
+        timeout = self.placement.start_timeout_s
         self._start_runtime(self._main, name=f"{self.robot_spec.name} env loop", timeout_s=timeout)
 
     async def _main(self, started: Any) -> None:
@@ -213,47 +218,10 @@ class RobotEnv(BaseEnv):
             async with contextlib.AsyncExitStack() as stack:
                 clock: Clock = SimClock(time_scale=None) if cfg.clock == "sim" else wall_clock()
                 self._clock = clock
-                transport = "auto"
-                if cfg.robot == "sim" or (cfg.robot == "emulated-real" and cfg.clock == "sim"):
-                    from uniros_async.sim.emulated import EmulationConfig
-                    from uniros_async.sim.node import open_servo_sim
-
-                    # accelerated emulated real arm: the same emulation model, in sim time, in this process
-                    emulation = EmulationConfig(seed=cfg.emulation_seed) if cfg.robot == "emulated-real" else None
-                    domain: Any = await stack.enter_async_context(open_domain("memory://"))
-                    await stack.enter_async_context(
-                        open_servo_sim(spec, domain=domain, clock=clock, emulation=emulation)
-                    )
-                elif cfg.robot in ("sim-process", "emulated-real"):
-                    from uniros_async.sim.emulated import EmulationConfig
-                    from uniros_async.sim.serve import open_servo_sim_process
-
-                    domain = await stack.enter_async_context(open_domain("tcp://127.0.0.1:0"))
-                    emulated = cfg.robot == "emulated-real"
-                    transport = "tcp" if emulated else "auto"
-                    self.robot_process = await stack.enter_async_context(
-                        open_servo_sim_process(
-                            spec.name,
-                            domain=domain,
-                            emulation=EmulationConfig(seed=cfg.emulation_seed) if emulated else None,
-                            transport=transport,
-                        )
-                    )
-                elif cfg.robot.startswith("ros1://"):
-                    from uniros_async.adapters.ros1_bridge import (
-                        Ros1BridgeConfig,
-                        open_ros1_bridge,
-                        parse_ros1_uri,
-                    )
-
-                    # a ROS 1 arm: the bridge runs in this process, the env reaches it over memory like the sim
-                    domain = await stack.enter_async_context(open_domain("memory://"))
-                    bridge_cfg = Ros1BridgeConfig(
-                        robot=spec.name, master_uri=parse_ros1_uri(cfg.robot), **(cfg.ros1 or {})
-                    )
-                    await stack.enter_async_context(open_ros1_bridge(bridge_cfg, domain=domain))
-                else:
-                    domain, transport = cfg.robot, "tcp"
+                request = PlacementRequest(robot=spec, config=cfg, clock=clock)
+                link = await stack.enter_async_context(self.placement.open(request))
+                self.robot_process = link.process
+                domain, transport = link.domain, link.transport
                 options = None
                 if isinstance(domain, str) and domain.startswith("tcp://"):
                     # the arm subscribes to our commands: listen where it can reach us (loopback for an arm on loopback;
@@ -549,7 +517,7 @@ class RobotEnv(BaseEnv):
             assert js is not None
             stamp = clock.now_ns()
             if self._wall_turn_based:  # as old as that state is: no loop keeps it fresh
-                stamp = js.header.stamp_ns if cfg.robot == "sim" else self._js.latest_recv_ns
+                stamp = js.header.stamp_ns if self.placement.stamps_on_env_clock else self._js.latest_recv_ns
             self._cache = (stamp, self._compute_returns(js, js.position[self._arm_idx]))
         assert self._cache is not None
         stamp, (obs, reward, terminated, info) = self._cache
@@ -593,7 +561,7 @@ class RobotEnv(BaseEnv):
         # no reset on a state older than robot_timeout_s: an arm that went silent is reported, not settled on its
         # last known pose (RobotError within robot_timeout_s, or at once when the state is already that old)
         await self._wait_for_fresh_state("reset")
-        if cfg.robot in ("sim", "sim-process"):  # a nominal sim can be teleported home: exact and fast
+        if self.placement.can_teleport:  # a nominal sim can be teleported home: exact and fast
             # a teleport answers within a tick: an arm that does not answer within robot_timeout_s is not there
             timeout_s = min(cfg.reset_timeout_s, cfg.robot_timeout_s)
             try:

@@ -1,46 +1,147 @@
-"""Robot descriptions: one subpackage per arm (MJCF model + RobotSpec), and a registry by name.
+"""Robot descriptions: one subpackage per arm (MJCF model + RobotSpec), and a registry by name open to user code.
 
 >>> from uniros_async.robots import get_robot_spec
 >>> get_robot_spec("rx200").hardware_rate_hz
 10.0
+
+A package of your own adds an arm without touching this one, as gymnasium's ``register`` adds an env: it builds a
+``RobotSpec`` whose ``mjcf_path`` is a file it ships (``packaged_file("my_pkg", "myarm.xml")``) and calls
+``register_robot(MYARM)`` at import, or ``register_robot("my_pkg.config:MYARM", name="myarm")`` to import the
+spec on first use. Every consumer (envs, sims, kinematics, the ``uniros robot`` commands) looks robots up here when
+it needs one, so a registered arm is known everywhere in that process; ``"my_pkg:myarm"`` imports ``my_pkg``
+first, so a CLI or another process finds the arm by that name alone.
 """
 
 from __future__ import annotations
 
+import difflib
 import importlib
+from typing import Any
 
 from uniros_async.errors import ConfigError
 from uniros_async.robots.spec import RobotSpec, ServoProfile
 
-__all__ = ["ROBOT_NAMES", "RobotSpec", "ServoProfile", "get_robot_spec"]
+__all__ = ["ROBOT_NAMES", "RobotSpec", "ServoProfile", "get_robot_spec", "register_robot", "robot_names"]
 
-# name -> "module:attribute"; modules are imported on first use, so importing this package stays cheap.
-_REGISTRY: dict[str, str] = {
+# name -> the spec, or "module:attribute" naming it (imported on first use, so importing this package stays cheap)
+_REGISTRY: dict[str, RobotSpec | str] = {
     "rx200": "uniros_async.robots.rx200.config:RX200",
     "ned2": "uniros_async.robots.ned2.config:NED2",
 }
 
-ROBOT_NAMES: tuple[str, ...] = tuple(sorted(_REGISTRY))
+
+def register_robot(spec: RobotSpec | str, *, name: str | None = None, override: bool = False) -> None:
+    """Register a robot so that every part of uniros_async finds it by name (``arm="myarm"``).
+
+    Registering the same spec (or entry point) again is a no-op, so a module may register at import however often
+    it is imported.
+
+    Args:
+        spec: the robot's RobotSpec, or ``"module:attribute"`` naming one (imported on first lookup).
+        name: the registry name; for a RobotSpec, None means ``spec.name`` and anything else must equal it. An
+            entry point needs it.
+        override: replace another robot already registered under the name.
+
+    Raises:
+        ConfigError: no name for an entry point, a name that differs from the spec's, a malformed entry point, or
+            the name is taken by another robot and ``override`` is False.
+    """
+    if isinstance(spec, RobotSpec):
+        if name is not None and name != spec.name:
+            raise ConfigError(f"register_robot: name={name!r} differs from the spec's name {spec.name!r}")
+        name = spec.name
+    elif isinstance(spec, str):
+        module, sep, attribute = spec.partition(":")
+        if not (sep and module and attribute):
+            raise ConfigError(f"register_robot: expected a RobotSpec or 'module:attribute', got {spec!r}")
+        if name is None:
+            raise ConfigError(f"register_robot({spec!r}): an entry point needs name=, the robot's name")
+    else:
+        raise ConfigError(f"register_robot: expected a RobotSpec or 'module:attribute', got {type(spec).__name__}")
+    if not name or ":" in name or "/" in name or name != name.strip():
+        raise ConfigError(f"register_robot: the name must be a plain word (a topic namespace), got {name!r}")
+    old = _REGISTRY.get(name)
+    if old is not None and old != spec and not override:
+        known = _resolve(name, old)
+        if known is not None and known == _resolve(name, spec):
+            return  # the entry point and the spec are the same robot
+        raise ConfigError(f"robot {name!r} is already registered ({_describe(old)}); pass override=True to replace it")
+    _REGISTRY[name] = spec
+
+
+def robot_names() -> tuple[str, ...]:
+    """The registered robots' names, sorted (built-in and user-registered, as of this call)."""
+    return tuple(sorted(_REGISTRY))
+
+
+def _describe(entry: RobotSpec | str) -> str:
+    return entry if isinstance(entry, str) else f"a RobotSpec with model {entry.mjcf_path}"
+
+
+def _resolve(name: str, entry: RobotSpec | str) -> RobotSpec | None:
+    """The spec of a registry entry, or None when it cannot be loaded (then it equals nothing)."""
+    if isinstance(entry, RobotSpec):
+        return entry
+    try:
+        return _load(name, entry)
+    except ConfigError:
+        return None
+
+
+def _load(name: str, target: str) -> RobotSpec:
+    module_name, _, attribute = target.partition(":")
+    try:
+        spec = getattr(importlib.import_module(module_name), attribute)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"robot {name!r}: cannot load {target!r} ({exc})") from exc
+    if not isinstance(spec, RobotSpec):
+        raise ConfigError(f"robot {name!r}: {target} is {type(spec).__name__}, not a RobotSpec")
+    if spec.name != name:
+        raise ConfigError(f"robot {name!r}: {target} is the spec of {spec.name!r}")
+    return spec
 
 
 def get_robot_spec(name: str) -> RobotSpec:
     """Return the spec of the robot registered as ``name``.
 
     Args:
-        name: a registered robot name, e.g. ``"rx200"`` or ``"ned2"``.
+        name: a registered robot name, e.g. ``"rx200"`` or ``"ned2"``; or ``"module:name"``, which imports
+            ``module`` (that registers the robot) first.
 
     Returns:
         The robot's RobotSpec.
 
     Raises:
-        ConfigError: ``name`` is not registered; the message lists the valid names.
+        ConfigError: ``name`` is not registered (the message lists the registered names and the closest one), or
+            its module cannot be imported or registers no such robot.
     """
+    if not isinstance(name, str):
+        raise ConfigError(f"robot: expected a registered robot's name, got {type(name).__name__} {name!r}")
+    if ":" in name:
+        module, _, name = name.rpartition(":")
+        try:
+            importlib.import_module(module)
+        except ImportError as exc:
+            raise ConfigError(
+                f"robot '{module}:{name}': cannot import {module!r}, which should register it: {exc}"
+            ) from exc
     try:
         target = _REGISTRY[name]
-    except (KeyError, TypeError):
-        raise ConfigError(f"unknown robot {name!r}; valid names are {list(ROBOT_NAMES)}") from None
-    module_name, attribute = target.split(":")
-    spec = getattr(importlib.import_module(module_name), attribute)
-    if not isinstance(spec, RobotSpec):
-        raise TypeError(f"{target} is {type(spec).__name__}, not a RobotSpec")
+    except KeyError:
+        close = difflib.get_close_matches(name, _REGISTRY, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ConfigError(
+            f"unknown robot {name!r}{hint}; registered: {list(robot_names())} (register_robot adds one)"
+        ) from None
+    if isinstance(target, RobotSpec):
+        return target
+    spec = _load(name, target)
+    _REGISTRY[name] = spec
     return spec
+
+
+def __getattr__(name: str) -> Any:
+    # ROBOT_NAMES is read from the registry when asked for, so it lists the robots registered by then
+    if name == "ROBOT_NAMES":
+        return robot_names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,7 +1,10 @@
 """RobotSpec: the static description of one arm (joints, limits, rates, home, model file, servo profile).
 
-A spec is plain data with no MuJoCo or pinocchio import, so every layer (sim, envs, cli) can read it cheaply.
-Each robot folder instantiates it once in ``config.py`` (``RX200 = RobotSpec(...)``), next to its MJCF file.
+A spec is plain data with no MuJoCo or pinocchio import, so every layer (sim, envs, cli) can read it cheaply, and
+it pickles: a child process gets the spec itself, without importing the package that registered it. Each robot
+folder instantiates it once in ``config.py`` (``RX200 = RobotSpec(...)``), next to its MJCF file; a package of
+your own does the same with ``packaged_file("my_pkg", "myarm.xml")`` and registers it with
+``uniros_async.robots.register_robot``.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ def packaged_file(package: str, filename: str) -> Path:
     """Return the filesystem path of a data file shipped inside ``package`` (e.g. an MJCF model).
 
     Args:
-        package: dotted name of a regular package, e.g. ``"uniros_async.robots.rx200"``.
+        package: dotted name of a regular package, e.g. ``"uniros_async.robots.rx200"`` or one of your own.
         filename: the file's name inside that package.
 
     Raises:

@@ -37,6 +37,7 @@ import asyncio
 import concurrent.futures
 import contextlib
 import dataclasses
+import difflib
 import functools
 import importlib
 import logging
@@ -135,9 +136,11 @@ def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
     if placement is not None and isinstance(reg_id, str) and reg_id not in registry:
         return
     if not isinstance(reg_id, str) or reg_id not in registry:
+        close = difflib.get_close_matches(str(reg_id), list(registry), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ConfigError(
-            f"unknown env id {env_id!r}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must be"
-            " registered in this process, or given as 'module:Id' (the module registers Id, in every worker too)"
+            f"unknown env id {env_id!r}{hint}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must"
+            " be registered in this process, or given as 'module:Id' (the module registers Id, in every worker too)"
         )
     entry = registry[reg_id].entry_point
     if not isinstance(entry, str) or not entry.startswith("uniros_async."):

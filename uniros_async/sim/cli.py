@@ -2,6 +2,7 @@
 
     uniros robot serve rx200 --port 0 --emulate-real   # prints the domain URI, serves until SIGINT/SIGTERM
     uniros robot bridge rx200 --ros-master http://robot-pc:11311/   # a ROS 1 arm on the bus; prints the URI
+    uniros robot bridge rx200 --ros2 0                 # a ROS 2 arm (domain 0) on the bus; prints the URI
     uniros robot render rx200 --out pic.png --goal 0.3 0.1 0.25
     uniros robot view rx200                            # needs a display
 
@@ -25,6 +26,8 @@ __all__ = ["add_parser", "main", "run"]
 
 logger = logging.getLogger(__name__)
 
+ROBOT_HELP = "a registered robot (rx200, ned2), or MODULE:NAME for one that MODULE registers when imported"
+
 AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
 """Where ``uniros robot serve`` and ``bridge`` read the domain's shared key by default (as domains and nodes do:
 ``transports.base.options_from_environ``)."""
@@ -33,12 +36,12 @@ AUTH_KEY_ENV = "UNIROS_AUTH_KEY"
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``robot`` command to the ``uniros`` subparsers; returns its parser."""
     robot: argparse.ArgumentParser = subparsers.add_parser(
-        "robot", help="simulated, emulated and ROS 1 arms: serve, bridge, render, view"
+        "robot", help="simulated, emulated, ROS 1 and ROS 2 arms: serve, bridge, render, view"
     )
     actions = robot.add_subparsers(dest="robot_action", required=True)
 
     serve = actions.add_parser("serve", help="serve a servo sim in an own tcp domain; prints the domain URI")
-    serve.add_argument("robot", help="robot name (rx200, ned2)")
+    serve.add_argument("robot", help=ROBOT_HELP)
     serve.add_argument("--host", default="127.0.0.1", help="bind host of the domain and the node (default %(default)s)")
     serve.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     serve.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
@@ -82,15 +85,31 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "adapters/ros1_driver.py) instead of in a uniros domain; prints the master's URI",
     )
     serve.add_argument("--ros-host", default=None, help="with --ros1-master: address ROS peers reach this process at")
+    serve.add_argument(
+        "--ros2",
+        nargs="?",
+        const="ros2://",
+        default=None,
+        metavar="URI",
+        help="serve the arm as a ROS 2 driver (the real driver's topics, messages and QoS, adapters/ros2_driver.py) "
+        "instead of in a uniros domain: ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet] or a "
+        "domain id (default $ROS_DOMAIN_ID, else 0); prints the ros2:// URI to drive it by",
+    )
     _add_exposure_flags(serve)
 
     bridge = actions.add_parser(
         "bridge",
-        help="put an arm whose driver is a ROS 1 node on the bus (adapters/ros1_bridge.py); prints the domain URI",
+        help="put an arm whose driver is a ROS 1 (or, with --ros2, ROS 2) node on the bus; prints the domain URI",
     )
-    bridge.add_argument("robot", help="robot name (rx200, ned2)")
+    bridge.add_argument("robot", help=ROBOT_HELP)
     bridge.add_argument(
         "--ros-master", default=None, help="the ROS master, http://HOST:PORT/ (default $ROS_MASTER_URI, else :11311)"
+    )
+    bridge.add_argument(
+        "--driver",
+        default=None,
+        help="which of the robot's registered ROS 1 (with --ros2: ROS 2) drivers gives the defaults below "
+        "(default: the robot's default)",
     )
     bridge.add_argument("--joint-states", default=None, help="the driver's sensor_msgs/JointState topic")
     # dest: "command" is the uniros subcommand's own
@@ -100,7 +119,19 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         default=None,
         help="interbotix_xs_msgs/JointGroupCommand, trajectory_msgs/JointTrajectory or std_msgs/Float64MultiArray",
     )
-    bridge.add_argument("--group", default="arm", help="joint group of a JointGroupCommand (default %(default)s)")
+    bridge.add_argument(
+        "--ros2",
+        nargs="?",
+        const="ros2://",
+        default=None,
+        metavar="URI",
+        help="the driver is a ROS 2 node (adapters/ros2_bridge.py): ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&"
+        "discovery=localhost|subnet] or a domain id (default $ROS_DOMAIN_ID, else 0); --ros-master and --ros-host "
+        "do not apply",
+    )
+    bridge.add_argument(
+        "--group", default=None, help="joint group of a JointGroupCommand (default: the driver's, else arm)"
+    )
     bridge.add_argument(
         "--ros-host",
         default=None,
@@ -115,7 +146,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
 
     render = actions.add_parser("render", help="render the arm to a PNG offscreen")
-    render.add_argument("robot", help="robot name (rx200, ned2)")
+    render.add_argument("robot", help=ROBOT_HELP)
     render.add_argument("--out", default="pic.png", help="output PNG (default %(default)s)")
     render.add_argument("--q", type=float, nargs="+", default=None, help="arm joint positions (default: home)")
     render.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="goal marker (m)")
@@ -124,7 +155,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     render.add_argument("--camera", default="overview", help="MJCF camera name; 'free' for a free camera")
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
-    view.add_argument("robot", help="robot name (rx200, ned2)")
+    view.add_argument("robot", help=ROBOT_HELP)
     return robot
 
 
@@ -161,12 +192,45 @@ def run(args: argparse.Namespace) -> int:
     raise AssertionError(f"unknown robot action {action!r}")
 
 
+def _ros2_uri(value: str) -> str:
+    return f"ros2://{value}" if value.isdigit() else value
+
+
+def _bridge_ros2(args: argparse.Namespace) -> int:
+    from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig, serve_ros2_bridge
+    from uniros_async.errors import ConfigError
+
+    if args.ros_master is not None or args.ros_host is not None:
+        raise ConfigError("--ros2 bridges a ROS 2 driver: --ros-master and --ros-host are ROS 1's")
+    settings = {
+        "driver": args.driver,
+        "joint_states": args.joint_states,
+        "command": args.command_topic,
+        "command_type": args.command_type,
+        "group": args.group,
+        "state_timeout_s": args.state_timeout,
+        "insecure": args.insecure or None,
+    }
+    cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), **settings)
+    from uniros_async.transports.base import TransportOptions
+
+    options = TransportOptions(auth_key=_auth_key(args), insecure=args.insecure)
+    serve = serve_ros2_bridge(
+        cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready, options=options
+    )
+    return _run_until_signal(serve)
+
+
 def _bridge(args: argparse.Namespace) -> int:
     from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, serve_ros1_bridge
+
+    if args.ros2 is not None:
+        return _bridge_ros2(args)
 
     cfg = Ros1BridgeConfig(
         robot=args.robot,
         master_uri=args.ros_master,
+        driver=args.driver,
         joint_states=args.joint_states,
         command=args.command_topic,
         command_type=args.command_type,
@@ -216,13 +280,37 @@ def _serve_ros1(args: argparse.Namespace) -> int:
     return _run_until_signal(serve)
 
 
+def _serve_ros2(args: argparse.Namespace) -> int:
+    from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig
+    from uniros_async.adapters.ros2_driver import serve_ros2_driver
+    from uniros_async.errors import ConfigError
+    from uniros_async.sim.emulated import EmulationConfig
+    from uniros_async.sim.servo import ServoSimConfig
+
+    if args.sim_time or args.markers or args.namespace is not None or args.ros1_master is not None:
+        raise ConfigError(
+            "--ros2 serves on a ROS 2 domain in wall time: --sim-time, --markers, --namespace (give it in the URI) "
+            "and --ros1-master do not apply"
+        )
+    cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), insecure=args.insecure or None)
+    emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
+    servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
+    return _run_until_signal(serve_ros2_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
+
+
 def _print_ready(uri: str) -> None:
     """Say on stdout how to reach what now serves: a shell line to paste (or ``eval``) elsewhere, then a hint.
 
-    The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, or ``export ROS_MASTER_URI=http://...``
-    when a ROS 1 master carries the arm; scripts read the URI after the ``=``.
+    The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, ``export ROS_MASTER_URI=http://...``
+    when a ROS 1 master carries the arm, or ``export ROS_DOMAIN_ID=N`` for a ROS 2 driver (the hint line then gives
+    the ``ros2://`` URI to drive it by); scripts read the value after the ``=``.
     """
-    if uri.startswith("http://"):
+    if uri.startswith("ros2://"):
+        domain_id = uri.removeprefix("ros2://").split("/", 1)[0]
+        sys.stdout.write(
+            f"export ROS_DOMAIN_ID={domain_id}\n# the arm serves a ROS 2 driver's topics in this domain: robot={uri}\n"
+        )
+    elif uri.startswith("http://"):
         sys.stdout.write(f"export ROS_MASTER_URI={uri}\n# the arm serves a ROS 1 driver's topics on this master\n")
     else:
         sys.stdout.write(f"export UNIROS_DOMAIN={uri}\n# in another shell, the line above, then: uniros topic list\n")
@@ -262,6 +350,8 @@ def _serve(args: argparse.Namespace) -> int:
     from uniros_async.sim.serve import ServeConfig, serve_servo_sim
     from uniros_async.sim.servo import ServoSimConfig
 
+    if args.ros2 is not None:
+        return _serve_ros2(args)
     if args.ros1_master is not None:
         return _serve_ros1(args)
     cfg = ServeConfig(
@@ -294,7 +384,8 @@ def _add_exposure_flags(parser: argparse.ArgumentParser) -> None:
         "--insecure",
         action="store_true",
         help="allow listening beyond loopback without authentication (--host other than 127.0.0.1 without a key; "
-        "any ROS 1 listener beyond loopback, since ROS 1 cannot authenticate)",
+        "any ROS 1 listener beyond loopback, since ROS 1 cannot authenticate; ROS 2 discovery=subnet, as DDS without "
+        "SROS2 cannot either)",
     )
 
 

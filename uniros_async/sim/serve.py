@@ -34,6 +34,7 @@ from uniros_async._signals import cancel_on_signals
 from uniros_async.bus.domain import Domain, open_domain
 from uniros_async.clock import Clock
 from uniros_async.errors import ConfigError, RobotError
+from uniros_async.robots.spec import RobotSpec
 from uniros_async.sim.emulated import EmulationConfig
 from uniros_async.sim.servo import ServoSimConfig
 from uniros_async.sim_clock import SimClock
@@ -51,7 +52,8 @@ class ServeConfig:
     """Everything a servo sim process needs (picklable, for ``spawn``).
 
     Attributes:
-        robot: robot name.
+        robot: a registered robot's name, or its RobotSpec (picklable plain data: the child then needs no import
+            of the package that registered it).
         domain: URI of the domain to join; None: open an own domain on ``tcp://host:port``.
         host: bind host of an own domain and of the node's endpoints.
         port: port of an own domain (0: a free one).
@@ -69,7 +71,7 @@ class ServeConfig:
         trace: write every command's age and every watchdog hold as a JSON line on stdout (``ServoSimNode.on_event``).
     """
 
-    robot: str
+    robot: str | RobotSpec
     domain: str | None = None
     host: str = "127.0.0.1"
     port: int = 0
@@ -145,7 +147,7 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
                 on_event=print_event if config.trace else None,
             )
         )
-        logger.info("serving %s as %s in %s", config.robot, sim_node.node.name, uri)
+        logger.info("serving %s as %s in %s", sim_node.sim.robot.name, sim_node.node.name, uri)
         if on_ready is not None:
             on_ready(uri)
         await asyncio.Event().wait()  # until cancelled
@@ -235,7 +237,7 @@ async def _recv(conn: multiprocessing.connection.Connection, timeout_s: float) -
 
 @contextlib.asynccontextmanager
 async def open_servo_sim_process(
-    robot: str,
+    robot: str | RobotSpec,
     *,
     domain: str | Domain,
     namespace: str | None = None,
@@ -252,7 +254,8 @@ async def open_servo_sim_process(
     """Run a servo sim node in its own process, in the caller's domain, for the duration of the block.
 
     Args:
-        robot: robot name.
+        robot: a registered robot's name, or its RobotSpec (a robot registered by user code: the child gets the
+            spec itself, so it needs no import of the user's module).
         domain: the Domain or its ``tcp://`` URI (a ``memory://`` domain cannot be joined from another process).
         namespace: topic namespace; default ``/<robot>``.
         config: servo settings.
@@ -273,6 +276,7 @@ async def open_servo_sim_process(
         RobotError: the child failed to start (its traceback is in the message) or did not start in time.
     """
     uri = domain.uri if isinstance(domain, Domain) else domain
+    name = robot if isinstance(robot, str) else robot.name
     cfg = ServeConfig(
         robot=robot,
         domain=uri,
@@ -288,19 +292,19 @@ async def open_servo_sim_process(
     ctx = multiprocessing.get_context("spawn")
     parent_conn, child_conn = ctx.Pipe()
     # daemon=True: if this process dies, the child must not be left running the arm
-    proc = ctx.Process(target=_child_main, args=(cfg, child_conn), name=f"servo_sim {robot}", daemon=True)
+    proc = ctx.Process(target=_child_main, args=(cfg, child_conn), name=f"servo_sim {name}", daemon=True)
     proc.start()
     child_conn.close()
     try:
         try:
             kind, info = await _recv(parent_conn, start_timeout_s)
         except TimeoutError:
-            raise RobotError(f"the {robot} servo sim process did not start within {start_timeout_s} s") from None
+            raise RobotError(f"the {name} servo sim process did not start within {start_timeout_s} s") from None
         except EOFError:
-            raise RobotError(f"the {robot} servo sim process exited during start (exit code {proc.exitcode})") from None
+            raise RobotError(f"the {name} servo sim process exited during start (exit code {proc.exitcode})") from None
         if kind != "ready":
-            raise RobotError(f"the {robot} servo sim process failed to start:\n{info}")
-        yield ServoSimProcess(proc, uri, namespace if namespace is not None else f"/{robot}")
+            raise RobotError(f"the {name} servo sim process failed to start:\n{info}")
+        yield ServoSimProcess(proc, uri, namespace if namespace is not None else f"/{name}")
     finally:
         await _stop_process(proc, parent_conn, stop_timeout_s)
 

@@ -1,1 +1,1 @@
-"""Tasks: one module per task, each registering its gymnasium ids (reach.py)."""
+"""Tasks: one module per task (``reach.py``), and the registry of tasks and their gymnasium ids (``registry.py``)."""

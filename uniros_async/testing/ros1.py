@@ -2,7 +2,8 @@
 
 ROS 1 (Noetic, or Debian's own packages) lives in the system interpreter, not in ours: ``ros1_python()`` names it
 (``$UNIROS_ROS1_PYTHON``, default ``/usr/bin/python3``) and ``rosmaster_bin()`` the master (``$UNIROS_ROSMASTER``,
-default ``/usr/bin/rosmaster``). ``requires_ros1`` skips a test when either is missing, saying what to install::
+default ``/usr/bin/rosmaster``). ``requires_ros1`` skips a test when either is missing, saying what to install
+(under ``UNIROS_REQUIRE_ROS=1``, as ``.ci/run`` sets it, such a test runs and fails instead)::
 
     @requires_ros1
     def test_x(ros_master: str, tmp_path: Path) -> None:
@@ -84,6 +85,8 @@ def __getattr__(name: str) -> Any:
     if name == "requires_ros1":
         import pytest
 
+        if os.environ.get("UNIROS_REQUIRE_ROS") == "1":  # .ci/run: ROS 1 must be there; a test without it fails
+            return pytest.mark.usefixtures()
         return pytest.mark.skipif(ros1_missing() is not None, reason=ros1_missing() or "")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
