@@ -121,6 +121,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     bth.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bth.add_argument("--transport", choices=("shm", "tcp"), default="shm", help="make_vec's workers over (default shm)")
+    bth.add_argument(
+        "--backend",
+        choices=("local", "ray"),
+        default="local",
+        help="ray: add rows of workers placed by Ray, local tcp workers and a Ray actor call per step (a local"
+        " two-node cluster unless --ray-address; on a shared host run it under unshare --net, see docs/performance.md)",
+    )
+    bth.add_argument("--ray-address", default=None, metavar="HOST:PORT", help="the Ray cluster for --backend ray")
     bth.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     br = bench.add_parser("ros1", help="ROS 1 round trips: our asyncio client against rospy (needs ROS 1 installed)")
@@ -363,6 +371,8 @@ def _run_bench(args: argparse.Namespace) -> int:
                 json_path=args.json_path,
                 transport=args.transport,
                 progress=not args.no_progress,
+                backend=args.backend,
+                ray_address=args.ray_address,
             )
         )
     elif args.scenario == "ros1":

@@ -1,4 +1,4 @@
-"""The worker protocol's frames (runtime/worker.py ``pack``/``unpack``): arrays by value whatever their layout,
+"""The worker protocol's frames (runtime/protocol.py ``pack``/``unpack``): arrays by value whatever their layout,
 numpy scalars as Python ones, malformed frames refused by name. No processes: the codec alone."""
 
 from __future__ import annotations
@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from uniros_async.bus.codec import array_bytes
 from uniros_async.errors import CodecError
-from uniros_async.runtime.worker import (
+from uniros_async.runtime.protocol import (
     STEP_TAG,
     PackedRequest,
-    _array_part,
     array_head,
     pack,
     pack_step_reply,
@@ -41,8 +41,12 @@ def test_arrays_round_trip_by_value_and_come_back_writable(a: np.ndarray) -> Non
 
 
 def test_scalars_objects_and_odd_keys() -> None:
-    msg = unpack(pack({"r": np.float32(0.5), "n": np.int64(3), "o": np.array([1, "x"], dtype=object), (1, 2): "t"}))
+    msg = unpack(pack({"r": np.float64(0.5), "n": np.int64(3), "o": np.array([1, "x"], dtype=object), (1, 2): "t"}))
     assert msg["r"] == 0.5 and type(msg["r"]) is float and msg["n"] == 3 and type(msg["n"]) is int
+    # other numpy scalars keep their dtype (a vector env batches an info's float32 into a float32 array)
+    kept = unpack(pack({"f": np.float32(0.5), "i": np.int8(-3), "u": np.uint16(7), "b": np.bool_(True)}))
+    assert type(kept["f"]) is np.float32 and kept["f"] == 0.5 and type(kept["i"]) is np.int8 and kept["i"] == -3
+    assert type(kept["u"]) is np.uint16 and kept["u"] == 7 and kept["b"] is True
     assert msg["o"] == [1, "x"]
     assert msg["(1, 2)"] == "t"  # a tuple key comes back as its str
 
@@ -117,7 +121,7 @@ def test_a_step_reply_read_into_place_matches_unpack_and_writes_nothing_it_canno
 
 
 _REQ = bytes([STEP_TAG, 1])  # a request's tag and kind; then mode, encoding, and 8 bytes of reference time
-_ARRAY_HEAD = _array_part(np.zeros(4, np.float32))[:-16]  # the header of a 4-float array, without its data
+_ARRAY_HEAD = array_bytes(np.zeros(4, np.float32))[:-16]  # the header of a 4-float array, without its data
 
 
 @pytest.mark.parametrize(

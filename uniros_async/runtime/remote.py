@@ -6,7 +6,7 @@ to a worker on another host. A spec is placed on a launcher with the ``worker`` 
     make_vec([("uniros/Rx200Reach-v0", {"worker": "tcp://10.0.0.5:7000"}), "uniros/Ned2Reach-v0"])
     make("uniros/Ned2Reach-v0", worker=RemoteWorker("tcp://10.0.0.5:7000", auth_key=b"..."))
 
-Protocol (msgpack frames of ``worker.pack``, over one tcp connection per remote worker, HMAC-authenticated when the
+Protocol (msgpack frames of ``protocol.pack``, over one tcp connection per remote worker, HMAC-authenticated when the
 launcher has a key): the agent sends ``{"op": "start", "index", "env_id", "kwargs", "start_timeout_s"}``; the
 launcher checks the id and kwargs against its own registry (``check_env_args``), spawns a worker exactly as the
 supervisor does (``worker_entry``, a ``WorkerSpec`` whose parent is the launcher), reads the worker's listen URI
@@ -42,12 +42,13 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 from urllib.parse import urlsplit
 
-import msgpack
 import numpy as np
 
 from uniros_async._signals import cancel_on_signals
-from uniros_async.errors import ConfigError, TransportError, WorkerError
-from uniros_async.runtime.worker import WorkerSpec, _error_reply, pack, unpack, worker_entry
+from uniros_async.bus.codec import encode_plain
+from uniros_async.errors import CodecError, ConfigError, TransportError, WorkerError
+from uniros_async.runtime.protocol import error_reply, pack, unpack
+from uniros_async.runtime.worker import WorkerSpec, worker_entry
 from uniros_async.transports.base import Transport, TransportOptions
 from uniros_async.transports.tcp import TcpTransport
 
@@ -161,8 +162,8 @@ def check_plain(kwargs: dict[str, Any], env_id: str) -> None:
     """ConfigError unless ``kwargs`` can travel to a launcher as plain data (no pickles cross the wire)."""
     for k, v in kwargs.items():
         try:
-            msgpack.packb(v, default=_strict_default, use_bin_type=True)
-        except (TypeError, ValueError, OverflowError) as exc:
+            encode_plain(v, _strict_default)
+        except CodecError as exc:
             raise ConfigError(
                 f"{env_id}: keyword {k!r} cannot be sent to a remote worker ({exc}); use plain data"
             ) from None
@@ -413,7 +414,7 @@ class Launcher:
                 logger.warning("worker launcher: refused a request from %s: %s", peer, exc)
                 with contextlib.suppress(TransportError, TimeoutError):
                     async with asyncio.timeout(2.0):
-                        await transport.send(pack(_error_reply(exc, "could not start a worker")))
+                        await transport.send(pack(error_reply(exc, "could not start a worker")))
                 return
             async with asyncio.timeout(5.0):
                 await transport.send(pack({"ok": True, "result": {"uri": w.uri, "pid": w.process.pid}}))
@@ -435,7 +436,7 @@ class Launcher:
             await transport.aclose()
 
     async def _launch(self, request: dict[str, Any], peer: str) -> _Launched:
-        from uniros_async.runtime.supervisor import check_env_args
+        from uniros_async.runtime.envargs import check_env_args
 
         if request.get("op") != "start":
             op = request.get("op")

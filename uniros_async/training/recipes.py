@@ -260,7 +260,7 @@ def _vec_env(cfg: TrainConfig, env: gym.Env[Any, Any], layout: EnvLayout, resume
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     vec: Any = DummyVecEnv([lambda: Monitor(env, info_keywords=("is_success",))])
-    if cfg.placement == "workers" and _use_her(cfg, layout):
+    if cfg.placement in ("workers", "ray") and _use_her(cfg, layout):
         # HER relabels batches of goals through env_method("compute_reward"): answer it here, not in the workers
         try:
             from uniros_async.training.her import LocalGoalReward
