@@ -93,6 +93,23 @@ def _build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="let idle cores halt (default: a SCHED_IDLE busy-poll process per core keeps them awake, like cyclictest)",
     )
+    bl.add_argument(
+        "--load",
+        dest="loads",
+        nargs="+",
+        default=[],
+        choices=["cpu", "gil", "torch", "gc"],
+        help="run the scenario under each load (spinning processes, a GIL-holding thread, torch threads = cores, "
+        "heavy allocation and gc) and print the load table",
+    )
+    bl.add_argument(
+        "--sched",
+        dest="sched_classes",
+        nargs="+",
+        default=["rt", "off"],
+        choices=["rt", "off"],
+        help="with --load: scheduling classes to compare (UNIROS_LOOP_PRIORITY; default: rt off)",
+    )
     bl.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
@@ -391,6 +408,8 @@ def _run_bench(args: argparse.Namespace) -> int:
                 plot_path=args.plot_path,
                 progress=not args.no_progress,
                 keep_cores_awake=not args.allow_idle,
+                loads=tuple(args.loads),
+                sched_classes=tuple(args.sched_classes),
             )
         )
     elif args.scenario == "envloop":

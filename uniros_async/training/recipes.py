@@ -27,6 +27,7 @@ import collections
 import contextlib
 import csv
 import dataclasses
+import io
 import json
 import logging
 import signal
@@ -52,6 +53,7 @@ from uniros_async.training.checkpoint import (
     load_replay_buffer,
     read_meta,
     save_checkpoint,
+    write_atomic,
 )
 from uniros_async.training.config import TrainConfig, config_to_dict
 from uniros_async.training.evaluate import EvalResult, evaluate_policy
@@ -294,8 +296,20 @@ def build_model(cfg: TrainConfig, vec_env: Any, layout: EnvLayout, run_dir: Path
 # ---------------------------------------------------------------- logs
 
 
+def _row_step(row: dict[str, Any], fields: tuple[str, ...]) -> int | None:
+    """The step of a CSV row, or None for a row cut short (a process killed mid-write) or not a number."""
+    if any(row.get(k) is None for k in fields):
+        return None
+    try:
+        return int(float(row["step"]))
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 class _CsvLog:
-    """An append-only CSV file; on resume, rows after the checkpoint's step are dropped first."""
+    """An append-only CSV file; on resume, rows after the checkpoint's step (and a last row cut short by a kill) are
+    dropped first, and the kept rows replace the file atomically (``write_atomic``): a kill during a resume's
+    rewrite loses no row."""
 
     def __init__(self, path: Path, fields: tuple[str, ...], *, keep_until_step: int | None) -> None:
         self.path = path
@@ -303,13 +317,18 @@ class _CsvLog:
         rows: list[dict[str, str]] = []
         if keep_until_step is not None and path.is_file():
             with open(path, newline="") as f:
-                rows = [r for r in csv.DictReader(f) if int(float(r["step"])) <= keep_until_step]
-        self._f = open(path, "w", newline="")  # noqa: SIM115 (closed in close())
-        self._w = csv.DictWriter(self._f, fieldnames=list(fields))
-        self._w.writeheader()
+                for r in csv.DictReader(f):
+                    step = _row_step(r, fields)
+                    if step is not None and step <= keep_until_step:
+                        rows.append(r)
+        text = io.StringIO(newline="")
+        w = csv.DictWriter(text, fieldnames=list(fields))
+        w.writeheader()
         for r in rows:
-            self._w.writerow({k: r.get(k, "") for k in fields})
-        self._f.flush()
+            w.writerow({k: r.get(k, "") for k in fields})
+        write_atomic(path, text.getvalue().encode())
+        self._f = open(path, "a", newline="")  # noqa: SIM115 (closed in close())
+        self._w = csv.DictWriter(self._f, fieldnames=list(fields))
 
     def write(self, **row: Any) -> None:
         self._w.writerow(row)
@@ -536,7 +555,8 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
             vec = _vec_env(cfg, env, layout)
             model = build_model(cfg, vec, layout, run_dir)
             start = 0
-        (run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        # atomic: `--resume --run-dir` reads it back, also after a SIGKILL during this write
+        write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False).encode())
         keep = start if ckpt is not None else None
         episodes_log = _CsvLog(run_dir / "episodes.csv", EPISODE_FIELDS, keep_until_step=keep)
         logs.append(episodes_log)
