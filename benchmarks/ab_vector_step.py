@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.runtime.protocol import pack
 from uniros_async.runtime.supervisor import LATER, Supervisor, _raise_unexpected
 from uniros_async.runtime.vector import UnirosVectorEnv, _Returns, make_vec
-from uniros_async.runtime.worker import pack
 
 STEPS = 2000
 

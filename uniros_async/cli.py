@@ -6,7 +6,6 @@
     uniros param get|set|load|list        parameters of a domain, as rosparam
     uniros robot ...                      simulated and emulated arms (sim/cli.py)
     uniros train|eval|plot                TD3 / TD3+HER training, checkpoint evaluation, curves (training/cli.py)
-    uniros worker serve                   a launcher of env workers for agents on other hosts (runtime/remote.py)
 
 Every introspection command takes ``--domain URI`` or reads ``UNIROS_DOMAIN``. Errors print one line and exit 2;
 nothing here starts a domain (``open_domain()`` does that from Python).
@@ -94,6 +93,23 @@ def _build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="let idle cores halt (default: a SCHED_IDLE busy-poll process per core keeps them awake, like cyclictest)",
     )
+    bl.add_argument(
+        "--load",
+        dest="loads",
+        nargs="+",
+        default=[],
+        choices=["cpu", "gil", "torch", "gc"],
+        help="run the scenario under each load (spinning processes, a GIL-holding thread, torch threads = cores, "
+        "heavy allocation and gc) and print the load table",
+    )
+    bl.add_argument(
+        "--sched",
+        dest="sched_classes",
+        nargs="+",
+        default=["rt", "off"],
+        choices=["rt", "off"],
+        help="with --load: scheduling classes to compare (UNIROS_LOOP_PRIORITY; default: rt off)",
+    )
     bl.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
@@ -104,6 +120,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     bth.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bth.add_argument("--transport", choices=("shm", "tcp"), default="shm", help="make_vec's workers over (default shm)")
+    bth.add_argument(
+        "--backend",
+        choices=("local", "ray"),
+        default="local",
+        help="ray: add rows of workers placed by Ray, local tcp workers and a Ray actor call per step (a local"
+        " two-node cluster unless --ray-address; on a shared host run it under unshare --net, see docs/performance.md)",
+    )
+    bth.add_argument("--ray-address", default=None, metavar="HOST:PORT", help="the Ray cluster for --backend ray")
     bth.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     br = bench.add_parser("ros1", help="ROS 1 round trips: our asyncio client against rospy (needs ROS 1 installed)")
@@ -168,19 +192,6 @@ def _build_parser() -> argparse.ArgumentParser:
     pli = param.add_parser("list", help="names of parameters")
     _domain_arg(pli)
     pli.add_argument("prefix", nargs="?", default="/", help="list only names under it (default /)")
-
-    worker = sub.add_parser("worker", help="env workers for agents on other hosts").add_subparsers(
-        dest="action", required=True
-    )
-    ws = worker.add_parser("serve", help="start env workers on request (make_vec/make with worker='tcp://HOST:PORT')")
-    ws.add_argument("--listen", default="tcp://0.0.0.0:7000", help="tcp://HOST:PORT (default tcp://0.0.0.0:7000)")
-    ws.add_argument(
-        "--auth-key-env",
-        default=None,
-        metavar="VAR",
-        help="read the shared auth key from this environment variable (default: $UNIROS_WORKER_AUTH_KEY if set)",
-    )
-    ws.add_argument("--max-workers", type=int, default=None, metavar="N", help="refuse more than N workers at once")
 
     from uniros_async.sim import cli as robot_cli  # imports no MuJoCo until a robot command runs
 
@@ -346,6 +357,8 @@ def _run_bench(args: argparse.Namespace) -> int:
                 json_path=args.json_path,
                 transport=args.transport,
                 progress=not args.no_progress,
+                backend=args.backend,
+                ray_address=args.ray_address,
             )
         )
     elif args.scenario == "ros1":
@@ -395,6 +408,8 @@ def _run_bench(args: argparse.Namespace) -> int:
                 plot_path=args.plot_path,
                 progress=not args.no_progress,
                 keep_cores_awake=not args.allow_idle,
+                loads=tuple(args.loads),
+                sched_classes=tuple(args.sched_classes),
             )
         )
     elif args.scenario == "envloop":
@@ -421,26 +436,6 @@ def _run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_worker(args: argparse.Namespace) -> int:
-    import os
-
-    from uniros_async.runtime import remote
-
-    var = args.auth_key_env or remote.AUTH_KEY_ENV
-    key = os.environ.get(var) or None
-    if args.auth_key_env and key is None:
-        raise UnirosError(f"--auth-key-env {var}: the environment variable {var} is not set (or empty)")
-
-    def ready(launcher: remote.Launcher) -> None:
-        print(f"worker launcher listening on {launcher.uri} (auth {'on' if key else 'off'})", flush=True)
-
-    try:
-        remote.run_launcher(args.listen, auth_key=key, max_workers=args.max_workers, ready=ready)
-    except OSError as exc:
-        raise UnirosError(f"cannot listen on {args.listen}: {exc}") from exc
-    return 0
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``uniros`` command; returns the exit code."""
     args = _build_parser().parse_args(argv)
@@ -464,8 +459,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             from uniros_async.sim import cli as robot_cli
 
             return int(robot_cli.run(args))
-        if args.command == "worker":
-            return _run_worker(args)
     except KeyboardInterrupt:
         return 130
     except (UnirosError, KeyError, TimeoutError) as exc:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +84,9 @@ def test_records_and_table_name_every_metric_even_without_samples() -> None:
         ({"action_cycle_s": -1.0}, ["action_cycle_s", "-1.0"]),
         ({"plot_path": "fig.bmp"}, ["fig.bmp", ".png"]),
         ({"learning_starts": 0}, ["learning_starts", "0"]),
+        ({"loads": ("cpu", "disk")}, ["'disk'", "gil", "torch"]),
+        ({"scenario": "sweep", "loads": ("cpu",)}, ["'sweep'", "learner scenario"]),
+        ({"loads": ("gc",), "sched_classes": ("fifo",)}, ["'fifo'", "rt", "off"]),
     ],
 )
 def test_bad_settings_name_the_value_and_the_choices(kwargs: dict[str, Any], words: list[str]) -> None:
@@ -106,6 +110,62 @@ def test_a_missing_async_learner_is_refused_before_any_process_starts(monkeypatc
     monkeypatch.setattr(latency, "async_td3_available", lambda: False)
     with pytest.raises(ConfigError, match="--learner sb3-td3"):
         latency.run(latency.LatencyBenchConfig(scenario="concurrent", duration_s=1.0, progress=False))
+
+
+# ---------------------------------------------------------------------------------------------- loads
+
+
+def _cpu_ticks(pid: int) -> int:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return int(fields[11]) + int(fields[12])  # utime + stime
+
+
+def test_cpu_load_spins_one_process_per_core_and_leaves_none() -> None:
+    with latency.open_load("cpu") as stats:
+        assert len(stats.spinners) == len(os.sched_getaffinity(0))
+        before = [_cpu_ticks(pid) for pid in stats.spinners]
+        deadline = time.monotonic() + 10
+        while not all(_cpu_ticks(pid) > b for pid, b in zip(stats.spinners, before, strict=True)):
+            assert time.monotonic() < deadline, "the spinners did not run"
+            time.sleep(0.05)
+    assert not [pid for pid in stats.spinners if Path(f"/proc/{pid}").exists()]  # killed and reaped
+
+
+@pytest.mark.parametrize("kind", ["gil", "gc"])
+def test_gil_and_gc_loads_hold_the_gil_in_stretches_and_stop(kind: str) -> None:
+    import threading
+
+    with latency.open_load(kind) as stats:
+        deadline = time.monotonic() + 20
+        while len(stats.stretches_ms) < 2:
+            assert time.monotonic() < deadline, f"no {kind} stretch"
+            time.sleep(0.01)
+    assert not [t for t in threading.enumerate() if t.name == f"{kind} load"]
+    assert min(stats.stretches_ms) > 0
+    assert (stats.collections >= 2) == (kind == "gc")
+
+
+@pytest.mark.slow
+def test_load_run_prints_the_load_table(tmp_path: Path) -> None:
+    out = tmp_path / "load.json"
+    cfg = latency.LatencyBenchConfig(
+        scenario="single",
+        learners=("async-td3",),
+        duration_s=3.0,
+        learning_starts=2,
+        loads=("gc",),
+        sched_classes=("off",),
+        json_path=str(out),
+        progress=False,
+    )
+    lines: list[str] = []
+    records = latency.main(cfg, log=lines.append)
+    _check(records, out, "single", {"rx200 sim"}, {"async-td3 +gc off"})
+    text = "\n".join(lines)
+    assert "--load gc --sched off" in text and "actuator cycle (act.) and action cycle, ms, under load" in text
+    load_table = text.split("under load", 1)[1]
+    (row,) = [line for line in load_table.splitlines() if line.startswith("rx200 sim")]
+    assert len(row.split()) == 2 + 3 + 5  # env, label, five figures (no goal verdict without the rt class)
 
 
 # ---------------------------------------------------------------------------------------------- scenarios

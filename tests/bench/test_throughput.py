@@ -25,11 +25,13 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
     records = throughput.main(
         throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, json_path=str(out)), log=lines.append
     )
-    err = capsys.readouterr().err  # the progress bar: 3 rx200 rows, 3 CartPole rows, 3 rows of two envs in turn
-    assert "throughput bench" in err and "9/9" in err
+    # the progress bar: 3 rx200 rows, 3 CartPole rows, 3 rows of two envs in turn, 3 Dict-env rows, 3 image-env rows
+    err = capsys.readouterr().err
+    assert "throughput bench" in err and "15/15" in err
     assert json.loads(out.read_text()) == records
     rows = {(r["env"], r["impl"]) for r in records}
-    assert rows == {(e, i) for e in (throughput.ENV_ID, throughput.TRIVIAL_ID) for i in throughput.IMPLS}
+    envs = (throughput.ENV_ID, throughput.TRIVIAL_ID, *throughput.SPACE_IDS)
+    assert rows == {(e, i) for e in envs for i in throughput.IMPLS}
     in_turns = [r for r in records if r.get("envs_in_turn")]
     assert sorted(r["impl"] for r in in_turns) == sorted(throughput.IMPLS)
     assert all(r["env"] == throughput.TRIVIAL_ID and r["envs_in_turn"] == 2 for r in in_turns)
@@ -39,6 +41,9 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
             lo, hi = r["overhead_ci_us"]
             assert lo <= r["overhead_us"] <= hi
             assert 0.0 <= r["steal_pct"] <= 100.0  # measured over the interleaved run (this is Linux)
+        elif r["env"] in throughput.SPACE_IDS:  # 475 paired steps
+            lo, hi = r["overhead_ci_us"]
+            assert lo <= r["overhead_us"] <= hi
         else:  # 5 steps, the first of the block left out: too few for a 95 % interval
             assert r["overhead_ci_us"] is None
         assert r["n_envs"] == 1 and r["steps_per_s"] > 0 and r["bare_ms"] > 0 and r["step_ms"] > 0
@@ -49,6 +54,8 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
     text = "\n".join(lines)
     assert "gymnasium-async" in text and "sb3-subproc" in text and "physics bound" in text
     assert "stepped in turn" in text
+    assert "UnirosBenchDictObs-v0 (Dict observation" in text and "UnirosBenchImageObs-v0 (84x84x3 uint8" in text
+    assert "image env: uniros overhead / gymnasium-async overhead = " in text
     assert "95 % CI" in text and "too few steps" in text
     assert "--n-envs 1 --steps 1500" in text  # 5 rx200 steps: the hint to pin N = 1 down
     assert "make_vec's workers over shm (ring end: compiled)" in text  # which shm ring end the rows ran on

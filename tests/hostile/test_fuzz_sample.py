@@ -8,15 +8,9 @@ import pytest
 from uniros_async.testing import fuzz
 
 SAMPLE = 1500
-# runtime/worker.py's decoder lets struct.error and SyntaxError escape from malformed array headers (_array_from);
-# the runtime's owners fix it there. Strict: this test fails as soon as the crashes are gone, to drop the mark.
-KNOWN = {"worker": "runtime/worker.py _array_from: struct.error, SyntaxError escape (not a CodecError)"}
 
 
-@pytest.mark.parametrize(
-    "parser",
-    [pytest.param(p, marks=pytest.mark.xfail(strict=True, reason=KNOWN[p])) if p in KNOWN else p for p in fuzz.PARSERS],
-)
+@pytest.mark.parametrize("parser", list(fuzz.PARSERS))
 def test_parser_survives_generated_inputs(parser: str) -> None:
     counts = fuzz.run(parser, SAMPLE, seed=1)
     report = fuzz.format_table([counts])

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import multiprocessing
 import time
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from _children import children
 
 from uniros_async.errors import ConfigError, WorkerError
 from uniros_async.runtime import UnirosVectorEnv, make_vec
@@ -57,7 +57,7 @@ def test_mixed_rx200_ned2_are_padded_and_say_so_in_infos() -> None:
     finally:
         venv.close()
         venv.close()
-    assert multiprocessing.active_children() == []
+    assert children() == []
 
 
 def test_step_async_sends_without_running_the_loop_and_falls_back_when_it_cannot(
@@ -157,7 +157,7 @@ def test_spaces_that_cannot_be_combined_name_the_envs() -> None:
     assert RX in str(e.value)
     with pytest.raises(ConfigError, match="cannot be combined"):
         make_vec([RX, NED], clock="sim", pad=False)
-    assert multiprocessing.active_children() == []
+    assert children() == []
 
 
 def test_bad_spec_fails_before_any_process() -> None:
@@ -165,7 +165,7 @@ def test_bad_spec_fails_before_any_process() -> None:
         make_vec([RX, 42])  # type: ignore[list-item]
     with pytest.raises(ConfigError, match="registered uniros ids"):
         make_vec([RX, "uniros/Nope-v0"])
-    assert multiprocessing.active_children() == []
+    assert children() == []
 
 
 def test_sb3_td3_trains_on_mixed_rx200_ned2() -> None:
@@ -204,7 +204,7 @@ def test_a_worker_that_cannot_start_is_named_and_the_others_are_closed() -> None
         make_vec([RX, (NED, {"goal_min": [0.3, 0.0, 0.2]})], clock="sim")  # above the arm's default goal_max
     assert e.value.index == 1 and NED in str(e.value) and "goal_min/goal_max" in str(e.value)
     assert "ConfigError" in e.value.remote_traceback
-    assert multiprocessing.active_children() == []
+    assert children() == []
 
 
 def test_real_time_mixed_placements() -> None:
@@ -237,7 +237,7 @@ def test_real_time_mixed_placements() -> None:
             assert abs(offset - (TICK_OFFSET_NS + rank * LOOP_PHASE_STEP_NS)) < 400_000, (rank, offset)
     finally:
         venv.close()
-    assert multiprocessing.active_children() == []
+    assert children() == []
 
 
 def test_sb3_her_uses_compute_reward_in_the_workers() -> None:
@@ -317,8 +317,8 @@ def test_replies_read_into_place_and_replies_that_cannot_be_give_the_same_return
     cannot read that way (another dtype than the space's, ``step_wait``'s results) are cast and stacked as before:
     the returns are the same arrays either way."""
     from uniros_async.runtime import vector
+    from uniros_async.runtime.protocol import pack_step_reply
     from uniros_async.runtime.vector import _Returns
-    from uniros_async.runtime.worker import pack_step_reply
 
     in_place = []
     real = vector.unpack_step_reply_into

@@ -1,16 +1,18 @@
-"""The worker protocol's frames (runtime/worker.py ``pack``/``unpack``): arrays by value whatever their layout,
+"""The worker protocol's frames (runtime/protocol.py ``pack``/``unpack``): arrays by value whatever their layout,
 numpy scalars as Python ones, malformed frames refused by name. No processes: the codec alone."""
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 import pytest
 
+from uniros_async.bus.codec import array_bytes
 from uniros_async.errors import CodecError
-from uniros_async.runtime.worker import (
+from uniros_async.runtime.protocol import (
     STEP_TAG,
     PackedRequest,
-    _array_part,
     array_head,
     pack,
     pack_step_reply,
@@ -41,8 +43,12 @@ def test_arrays_round_trip_by_value_and_come_back_writable(a: np.ndarray) -> Non
 
 
 def test_scalars_objects_and_odd_keys() -> None:
-    msg = unpack(pack({"r": np.float32(0.5), "n": np.int64(3), "o": np.array([1, "x"], dtype=object), (1, 2): "t"}))
+    msg = unpack(pack({"r": np.float64(0.5), "n": np.int64(3), "o": np.array([1, "x"], dtype=object), (1, 2): "t"}))
     assert msg["r"] == 0.5 and type(msg["r"]) is float and msg["n"] == 3 and type(msg["n"]) is int
+    # other numpy scalars keep their dtype (a vector env batches an info's float32 into a float32 array)
+    kept = unpack(pack({"f": np.float32(0.5), "i": np.int8(-3), "u": np.uint16(7), "b": np.bool_(True)}))
+    assert type(kept["f"]) is np.float32 and kept["f"] == 0.5 and type(kept["i"]) is np.int8 and kept["i"] == -3
+    assert type(kept["u"]) is np.uint16 and kept["u"] == 7 and kept["b"] is True
     assert msg["o"] == [1, "x"]
     assert msg["(1, 2)"] == "t"  # a tuple key comes back as its str
 
@@ -117,7 +123,7 @@ def test_a_step_reply_read_into_place_matches_unpack_and_writes_nothing_it_canno
 
 
 _REQ = bytes([STEP_TAG, 1])  # a request's tag and kind; then mode, encoding, and 8 bytes of reference time
-_ARRAY_HEAD = _array_part(np.zeros(4, np.float32))[:-16]  # the header of a 4-float array, without its data
+_ARRAY_HEAD = array_bytes(np.zeros(4, np.float32))[:-16]  # the header of a 4-float array, without its data
 
 
 @pytest.mark.parametrize(
@@ -131,8 +137,25 @@ _ARRAY_HEAD = _array_part(np.zeros(4, np.float32))[:-16]  # the header of a 4-fl
         (_REQ + bytes([1, 1]) + bytes(8) + _ARRAY_HEAD + bytes(3), "needs 16 bytes, got 3"),
         (bytes([STEP_TAG, 2, 0, 0, 1, 0, 0, 0]) + bytes(8) + b"\xc0\x91\x01", "info must be a map, got list"),
         (bytes([STEP_TAG, 2, 0, 1, 99, 0, 0, 0]) + bytes(8) + _ARRAY_HEAD, "its array ends at 115"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x03<f4\x05" + bytes(8), "5 dimensions ends at byte 57"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x06(2)f4,\x00" + bytes(8), "not a dtype string"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x02|O\x01" + struct.pack("<q", 1) + bytes(8), "object arrays"),
+        (_REQ + bytes([1, 1]) + bytes(8) + b"\x03<f4\x02" + struct.pack("<2q", -1, -4) + bytes(16), "negative"),
     ],
-    ids=["truncated", "mode", "kind", "encoding", "action", "array", "info", "obs past the end"],
+    ids=[
+        "truncated",
+        "mode",
+        "kind",
+        "encoding",
+        "action",
+        "array",
+        "info",
+        "obs past the end",
+        "ndim past the end",
+        "dtype literal",
+        "object dtype",
+        "negative shape",
+    ],
 )
 def test_malformed_step_frames_are_refused_by_name(frame: bytes, what: str) -> None:
     with pytest.raises(CodecError, match=f"malformed step frame.*{what}"):

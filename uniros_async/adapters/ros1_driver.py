@@ -116,10 +116,16 @@ class Ros1Driver:
 
 @contextlib.asynccontextmanager
 async def open_ros1_driver(
-    config: Ros1BridgeConfig, *, emulation: Any = None, servo: Any = None
+    config: Ros1BridgeConfig,
+    *,
+    emulation: Any = None,
+    servo: Any = None,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
 ) -> AsyncIterator[Ros1Driver]:
     """Run ``config.robot``'s servo sim (``emulation``: an ``EmulationConfig`` for the emulated real arm) as a ROS 1
-    driver on ``config.master_uri``, on the topics of ``config``, until the block ends.
+    driver on ``config.master_uri``, on the topics of ``config``, until the block ends. ``on_event`` gets the sim's
+    command and watchdog events (``ServoSimNode.on_event``; a command's age counts from its arrival here, as the
+    driver's command messages carry no stamp).
 
     Raises:
         RobotError: the master cannot be reached (the message names it).
@@ -131,7 +137,9 @@ async def open_ros1_driver(
     assert config.command_type is not None  # filled in by Ros1BridgeConfig
     async with contextlib.AsyncExitStack() as stack:
         dom = await stack.enter_async_context(open_domain("memory://"))
-        await stack.enter_async_context(open_servo_sim(spec, domain=dom, config=servo, emulation=emulation))
+        await stack.enter_async_context(
+            open_servo_sim(spec, domain=dom, config=servo, emulation=emulation, on_event=on_event)
+        )
         node = await stack.enter_async_context(open_node("ros1_driver", domain=dom, namespace=f"/{spec.name}"))
         cmd = await node.create_publisher(JointCommand, "command", qos=latest())
         ros = await stack.enter_async_context(
@@ -165,10 +173,11 @@ async def serve_ros1_driver(
     emulation: Any = None,
     servo: Any = None,
     on_ready: Callable[[str], Any] | None = None,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
 ) -> None:
     """``open_ros1_driver`` until cancelled (``uniros robot serve ROBOT --ros1-master URI``); ``on_ready`` gets the
     master's URI once the topics are up."""
-    async with open_ros1_driver(config, emulation=emulation, servo=servo) as driver:
+    async with open_ros1_driver(config, emulation=emulation, servo=servo, on_event=on_event) as driver:
         if on_ready is not None:
             on_ready(driver.master_uri)
         await asyncio.Event().wait()  # until cancelled

@@ -20,6 +20,21 @@ Scenarios:
 ``--duration`` is the wall time of each phase (each learner, mode or sweep point); learners get
 ``learning_starts`` small so that they train during a short run. TD3 follows the paper's hyperparameters.
 
+Under load (``--load cpu gil torch gc``, with ``single`` or ``concurrent``): the scenario runs once per load and
+scheduling class (``--sched rt off``: the ``UNIROS_LOOP_PRIORITY`` the workers and the acting thread start with),
+and a load table follows the main one (``LOADS``):
+
+- ``cpu``: one process per core spins at normal priority (nice 0) beside everything;
+- ``gil``: a thread in the agent's process holds the GIL in long stretches (``sum(range(N))``, one C call that
+  never lets the GIL go, ~10-30 ms each here), with no pause in between;
+- ``torch``: the learner's updates use as many torch threads as the machine has cores;
+- ``gc``: a thread in the agent's process allocates a few hundred thousand small objects and collects them
+  (``gc.collect()``), again and again.
+
+The load table gives per env the actuator cycle's median, p99 and max and the action cycle's median and IQR, and
+checks the actuator goal under load with the real-time class (``LOAD_P99_GOAL_MS``, ``LOAD_MAX_GOAL_MS`` above
+the period).
+
 Idle cores are kept awake during a run (``priority.cores_kept_awake``: one SCHED_IDLE busy-poll process per core,
 which any other thread preempts), as cyclictest keeps cores out of idle states: on a virtual machine a halted core
 goes back to the host, and waking it for a tick costs the host's scheduling delay (hypervisor steal; the table's
@@ -30,9 +45,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
 import importlib.util
 import logging
 import math
+import os
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -54,11 +73,19 @@ from uniros_async.bench.stats import cpu_times, report, steal_percent
 from uniros_async.errors import ConfigError
 from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread
 
-__all__ = ["LEARNERS", "SCENARIOS", "LatencyBenchConfig", "main"]
+__all__ = ["LEARNERS", "LOADS", "SCENARIOS", "SCHED_CLASSES", "LatencyBenchConfig", "main", "open_load"]
 
 logger = logging.getLogger(__name__)
 
 SCENARIOS = ("single", "concurrent", "turn-based", "sweep")
+LOADS = ("cpu", "gil", "torch", "gc")
+SCHED_CLASSES = ("rt", "off")
+"""``UNIROS_LOOP_PRIORITY`` values a load run compares: the real-time class when permitted, and none."""
+LOAD_P99_GOAL_MS = 2.0
+LOAD_MAX_GOAL_MS = 10.0
+GIL_STRETCH_N = 1_500_000
+"""``sum(range(GIL_STRETCH_N))``: one C call that holds the GIL throughout (~10-30 ms here)."""
+GC_OBJECTS = 300_000
 LEARNERS = ("sb3-td3", "async-td3")
 # the default run (concurrent) needs 15-40 s beside its phase (torch, 4 workers, 2 emulated arms, the plot)
 DEFAULT_DURATION_S = {"single": 60.0, "concurrent": 80.0, "turn-based": 60.0, "sweep": 12.0}
@@ -94,6 +121,8 @@ class LatencyBenchConfig:
         progress: show a progress bar (tqdm, on stderr).
         keep_cores_awake: run ``priority.cores_kept_awake`` (one SCHED_IDLE busy-poll process per core) during the
             scenario, as cyclictest keeps cores out of idle states; False lets idle cores halt (``--allow-idle``).
+        loads: run the scenario under each of these ``LOADS`` (``single`` and ``concurrent`` only); () for none.
+        sched_classes: with ``loads``: the ``SCHED_CLASSES`` to run each load under.
     """
 
     scenario: str = "concurrent"
@@ -107,10 +136,25 @@ class LatencyBenchConfig:
     plot_path: str | None = None
     progress: bool = True
     keep_cores_awake: bool = True
+    loads: tuple[str, ...] = ()
+    sched_classes: tuple[str, ...] = SCHED_CLASSES
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
             raise ConfigError(f"unknown scenario {self.scenario!r}; choose from {list(SCENARIOS)}")
+        bad_loads = [x for x in self.loads if x not in LOADS]
+        if bad_loads or len(set(self.loads)) != len(self.loads):
+            raise ConfigError(f"loads: expected distinct ones of {list(LOADS)}, got {list(self.loads)}")
+        if self.loads and self.scenario not in DEFAULT_LEARNERS:
+            raise ConfigError(
+                f"--load runs a learner scenario ({sorted(DEFAULT_LEARNERS)}), not {self.scenario!r}: the loads "
+                "stand beside a learner"
+            )
+        bad_cls = [x for x in self.sched_classes if x not in SCHED_CLASSES]
+        if bad_cls or not self.sched_classes or len(set(self.sched_classes)) != len(self.sched_classes):
+            raise ConfigError(
+                f"sched_classes: expected distinct ones of {list(SCHED_CLASSES)}, got {list(self.sched_classes)}"
+            )
         if self.duration_s is not None and not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise ConfigError(f"duration_s must be a number > 0, got {self.duration_s}")
         if self.learners is not None:
@@ -156,7 +200,8 @@ class LatencyBenchConfig:
             return len(_sweep_points())
         if self.scenario == "turn-based":
             return 2  # real-time, then turn-based, both on the wall clock
-        return max(1, len(self.run_learners))
+        per_load = max(1, len(self.run_learners))
+        return per_load * len(self.loads) * len(self.sched_classes) if self.loads else per_load
 
 
 def _sweep_points() -> list[tuple[float, float]]:
@@ -299,18 +344,31 @@ def _step_recorder(venv: Any) -> Any:
 
 
 def _run_learner(
-    name: str, vec: Any, labels: Sequence[tuple[str, str]], cfg: LatencyBenchConfig, progress: _Progress
+    name: str,
+    vec: Any,
+    labels: Sequence[tuple[str, str]],
+    cfg: LatencyBenchConfig,
+    progress: _Progress,
+    *,
+    torch_threads: int = 1,
+    tag: str = "",
+    load: str | None = None,
 ) -> list[Series]:
-    """Train learner ``name`` on ``vec`` (a UnirosVectorEnv) for one phase; the timing of each of its envs."""
+    """Train learner ``name`` on ``vec`` (a UnirosVectorEnv) for one phase, under ``load`` (``open_load``) if given;
+    the timing of each of its envs (``tag`` is appended to the learner's label)."""
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import Logger
 
-    torch.set_num_threads(1)  # beside env loops on 2 cores, more threads stall updates
+    # one thread: beside env loops on 2 cores, more threads stall updates (the torch load asks for more)
+    torch.set_num_threads(torch_threads)
     cls = _learner_class(name)
     rec = _step_recorder(vec.as_sb3())
     n_actions = int(np.prod(vec.single_action_space.shape))
-    model = cls("MlpPolicy", rec, **_td3_kwargs(n_actions, cfg))
+    kwargs = _td3_kwargs(n_actions, cfg)
+    if name == "async-td3":
+        kwargs["torch_threads"] = torch_threads
+    model = cls("MlpPolicy", rec, **kwargs)
     # the bench reads nothing SB3 logs: without a logger of its own, every learn() makes a /tmp/SB3-<time> folder
     model.set_logger(Logger(folder=None, output_formats=[]))
     steps = max(2, math.ceil(cfg.phase_s / cfg.action_cycle_s))
@@ -330,8 +388,17 @@ def _run_learner(
         # + 30 s: learn()'s own start (its reset) must not cut the phase short; the step count ends it. The
         # asynchronous learner joins its update thread before learn() returns or raises.
         # the agent's acting thread runs real-time when permitted, like the env loops (uniros_async.priority)
-        with real_time_thread(), gil_switch_interval():
+        loaded = open_load(load) if load is not None else contextlib.nullcontext(LoadStats())
+        with loaded as stats, real_time_thread(), gil_switch_interval():
             model.learn(total_timesteps=steps * vec.num_envs, callback=_Deadline(time.monotonic() + cfg.phase_s + 30.0))
+    if stats.stretches_ms:
+        logger.info(
+            "%s load: the GIL held %.1f ms median, %.1f ms max per stretch (%d stretches)",
+            load,
+            float(np.median(stats.stretches_ms)),
+            max(stats.stretches_ms),
+            len(stats.stretches_ms),
+        )
     snaps = [since(now, then) for now, then in zip(vec.call("timing_snapshot"), before, strict=True)]
     rates = vec.get_attr("env_loop_rate_hz")
     any_done = {k for k, d in enumerate(rec.dones) if bool(np.any(d))}
@@ -340,7 +407,7 @@ def _run_learner(
         out.append(
             Series(
                 env=env,
-                learner=name,
+                learner=name + tag,
                 samples=loop_metrics(snap, reset_after=any_done, recv_ns=rec.recv_ns),
                 period_ms=1e3 / float(rate),
                 action_cycle_ms=cfg.action_cycle_s * 1e3,
@@ -361,6 +428,8 @@ def _run_learner_scenario(
     from uniros_async.runtime import make_vec
 
     labels = [(_env_label(e, r), _env_label(e, r)) for e, r in specs]
+    if cfg.loads:
+        return _run_under_loads(specs, labels, cfg, progress)
     vec = make_vec(  # absolute targets, as the recorded figures were measured (the task default is deltas)
         [(e, {"robot": r}) for e, r in specs],
         action_cycle_s=cfg.action_cycle_s,
@@ -374,6 +443,172 @@ def _run_learner_scenario(
         return out
     finally:
         vec.close()
+
+
+# ------------------------------------------------------------------------------------------ loads
+
+
+@contextlib.contextmanager
+def loop_priority(mode: str) -> Iterator[None]:
+    """``UNIROS_LOOP_PRIORITY=mode`` for the block: workers started in it, and the acting thread, take that class."""
+    old = os.environ.get("UNIROS_LOOP_PRIORITY")
+    os.environ["UNIROS_LOOP_PRIORITY"] = mode
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("UNIROS_LOOP_PRIORITY", None)
+        else:
+            os.environ["UNIROS_LOOP_PRIORITY"] = old
+
+
+_SPINNER = """
+import ctypes, os, signal, sys
+parent = int(sys.argv[1])
+try:
+    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG: die with the parent
+except (OSError, AttributeError):
+    pass
+try:
+    os.setpriority(os.PRIO_PROCESS, 0, 0)  # normal priority, also when the bench runs under nice
+except OSError:
+    pass
+sys.stdout.write("up\\n"); sys.stdout.flush()
+while os.getppid() == parent:
+    for _ in range(100_000):
+        pass
+"""
+
+
+@dataclasses.dataclass
+class LoadStats:
+    """What a load did while it ran: GIL stretches held (ms), collections run, the spinning processes' pids."""
+
+    stretches_ms: list[float] = dataclasses.field(default_factory=list)
+    collections: int = 0
+    spinners: list[int] = dataclasses.field(default_factory=list)
+
+
+@contextlib.contextmanager
+def open_load(kind: str) -> Iterator[LoadStats]:
+    """Run load ``kind`` (``cpu``, ``gil`` or ``gc``; ``torch`` is the learner's own threads) for the block; every
+    process and thread it started has ended when the block is left.
+
+    Raises:
+        ConfigError: an unknown kind.
+    """
+    stats = LoadStats()
+    if kind == "torch":
+        yield stats
+        return
+    if kind == "cpu":
+        n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        procs = []
+        try:
+            for _ in range(n):
+                procs.append(
+                    subprocess.Popen(
+                        [sys.executable, "-c", _SPINNER, str(os.getpid())],
+                        stdin=subprocess.DEVNULL,
+                        stdout=subprocess.PIPE,
+                        stderr=subprocess.DEVNULL,
+                    )
+                )
+            for p in procs:
+                assert p.stdout is not None
+                if p.stdout.readline() != b"up\n":
+                    raise RuntimeError(f"a cpu load process (pid {p.pid}) did not start: exit code {p.poll()}")
+            stats.spinners = [p.pid for p in procs]
+            yield stats
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+            for p in procs:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    p.wait(timeout=5.0)
+                if p.stdout is not None:
+                    p.stdout.close()
+        return
+    if kind not in ("gil", "gc"):
+        raise ConfigError(f"unknown load {kind!r}; choose from {list(LOADS)}")
+    stop = threading.Event()
+
+    def hold_gil() -> None:
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            sum(range(GIL_STRETCH_N))  # one C call: the GIL is not released until it returns
+            stats.stretches_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def churn() -> None:
+        while not stop.is_set():
+            junk = [{"i": i, "t": (i, str(i))} for i in range(GC_OBJECTS)]
+            junk.append({"self": junk})  # a cycle: only the collector frees it
+            del junk
+            t0 = time.perf_counter()
+            gc.collect()
+            stats.stretches_ms.append((time.perf_counter() - t0) * 1e3)
+            stats.collections += 1
+
+    thread = threading.Thread(target=hold_gil if kind == "gil" else churn, name=f"{kind} load", daemon=True)
+    thread.start()
+    try:
+        yield stats
+    finally:
+        stop.set()
+        thread.join(10.0)
+
+
+def _run_under_loads(
+    specs: Sequence[tuple[str, str]], labels: Sequence[tuple[str, str]], cfg: LatencyBenchConfig, progress: _Progress
+) -> list[Series]:
+    from uniros_async.runtime import make_vec
+
+    n_cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    out: list[Series] = []
+    for cls in cfg.sched_classes:
+        with loop_priority(cls):  # the workers take their class when they start
+            vec = make_vec(  # absolute targets, as in _run_learner_scenario
+                [(e, {"robot": r}) for e, r in specs],
+                action_cycle_s=cfg.action_cycle_s,
+                action_mode="absolute",
+                call_timeout_s=60.0,
+            )
+            try:
+                for load in cfg.loads:
+                    for name in cfg.run_learners:
+                        threads = n_cores if load == "torch" else 1
+                        out += _run_learner(
+                            name, vec, labels, cfg, progress, torch_threads=threads, tag=f" +{load} {cls}", load=load
+                        )
+            finally:
+                vec.close()
+    return out
+
+
+def format_load_table(series: Sequence[Series]) -> str:
+    """Per load, class and env: actuator cycle median, p99 and max, action cycle median and IQR (ms), and whether
+    the real-time class met the goal under load (p99 within ``LOAD_P99_GOAL_MS`` and max within
+    ``LOAD_MAX_GOAL_MS`` of the period)."""
+    from uniros_async.bench.stats import summary
+
+    head = (
+        f"{'env':<20} {'learner, load, class':<24} {'act. med':>9} {'act. p99':>9} {'act. max':>9} "
+        f"{'cycle med':>10} {'cycle IQR':>10}  goal (rt: p99 <= period + {LOAD_P99_GOAL_MS:g}, max <= period + "
+        f"{LOAD_MAX_GOAL_MS:g})"
+    )
+    lines = ["actuator cycle (act.) and action cycle, ms, under load", head, "-" * len(head)]
+    for s in series:
+        a, c = summary(s.samples.get("actuator_cycle", [])), summary(s.samples.get("action_cycle", []))
+        verdict = ""
+        if s.learner.endswith(" rt") and s.period_ms is not None and a["count"]:
+            ok = a["p99"] <= s.period_ms + LOAD_P99_GOAL_MS and a["max"] <= s.period_ms + LOAD_MAX_GOAL_MS
+            verdict = "met" if ok else "MISSED"
+        lines.append(
+            f"{s.env:<20} {s.learner:<24} {a['p50']:>9.2f} {a['p99']:>9.2f} {a['max']:>9.2f} "
+            f"{c['p50']:>10.2f} {c['iqr']:>10.2f}  {verdict}".rstrip()
+        )
+    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------------------ scripted agents
@@ -502,6 +737,9 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
     else:
         why = "no SCHED_IDLE here" if config.keep_cores_awake else "--allow-idle"
         machine += f"\nidle cores: allowed to halt ({why})"
+    if config.loads:
+        title += f" --load {' '.join(config.loads)} --sched {' '.join(config.sched_classes)}"
+        machine += "\n\n" + format_load_table(series)
     report(f"{title}\n{format_table(series, records)}{machine}", records, config.json_path, log)
     if config.plot_path is not None:
         from uniros_async.bench._plot import box_plots

@@ -34,6 +34,16 @@ after its pause must not find itself sharing the agent's core. The rows of both 
 their blocks interleaved in a shuffled order (``_run_trivial``), so that each meets the same moments of the host's
 load; ``steal_pct`` in their records is the hypervisor's steal over that run, printed above them. The physics
 bound on aggregate steps/s is printed beside: min(N, cores) / bare step time.
+
+``--backend ray`` adds, in the same run, workers placed by Ray (on another node over our tcp, and on the agent's
+node over shm), local workers over tcp and a plain Ray actor call per step to the trivial env's table, and the
+Ray-placed workers to the rx200 rows (``bench/_ray_rows.py``).
+
+A fourth and a fifth table measure the same way, N = 1, envs whose observations are what other pipelines carry
+(``bench/envs.py``; their steps cost next to nothing): a goal env's Dict observation (three float64 arrays), and an
+Atari-style 84x84x3 uint8 frame, which ``make_vec`` carries in its shm ring and gymnasium's AsyncVectorEnv in its
+shared memory, SB3's SubprocVecEnv through its pickled pipe. A line under them gives the image env's uniros
+overhead as a fraction of gymnasium's.
 """
 
 from __future__ import annotations
@@ -48,6 +58,8 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.bench._ray_rows import RAY_IMPLS, RayRows, overhead_lines
+from uniros_async.bench.envs import DICT_ID, IMAGE_ID
 from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
 from uniros_async.errors import ConfigError
 from uniros_async.transports._shm_ring import describe_ring_end
@@ -59,12 +71,17 @@ ENV_ID = "uniros/Rx200Reach-v0"
 # absolute joint targets: the action mode the recorded figures were measured with (the task default is deltas)
 ENV_KW: dict[str, Any] = {"turn_based": True, "action_mode": "absolute", "max_episode_steps": 10**9}
 TRIVIAL_ID = "CartPole-v1"
+SPACE_IDS = (DICT_ID, IMAGE_ID)
+SPACE_STEPS = 500
+"""Steps per row of the Dict and image envs' tables (interleaved as the trivial env's)."""
 QUIET_S = 0.001
 """Untimed pause before each block of the trivial env's interleaved rows: longer than a worker's poll for its next
 request (``worker.TURN_SPIN_NS``, 200 us), so no row starts while the previous row's worker still polls."""
 TRIVIAL_STEPS = 1000
 """Steps per row of the trivial env's tables (50 rounds of every row, interleaved: ``_run_trivial``): a few
 seconds in all, in a slow hour too."""
+_RAY: RayRows | None = None
+"""The Ray rows' cluster while ``main`` runs with ``backend="ray"`` (``_vector`` builds their vector envs)."""
 TRAIL_S = 0.005
 """Untimed pause after each vector block of the alternating phase: a worker replies before the servo tick that its
 step's last sim event also woke (~1 ms of physics), which would otherwise run during the bare step timed next."""
@@ -79,6 +96,9 @@ class ThroughputBenchConfig:
     transport: str = "shm"
     """How ``make_vec`` reaches its workers (``shm`` or ``tcp`` on loopback); the peers use their pipes either way."""
     progress: bool = True
+    backend: str = "local"
+    """``ray``: add the Ray rows (``bench/_ray_rows.py``) on the cluster at ``ray_address`` (None: a local one)."""
+    ray_address: str | None = None
     """A progress bar over the rows (tqdm, on stderr)."""
 
     def __post_init__(self) -> None:
@@ -86,6 +106,8 @@ class ThroughputBenchConfig:
             raise ConfigError(f"n_envs must be >= 1 and steps >= 5, got {self.n_envs}, {self.steps}")
         if self.transport not in ("shm", "tcp"):
             raise ConfigError(f"transport must be 'shm' or 'tcp', got {self.transport!r}")
+        if self.backend not in ("local", "ray"):
+            raise ConfigError(f"backend must be 'local' or 'ray', got {self.backend!r}")
 
 
 def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
@@ -93,6 +115,8 @@ def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
 
     if env_id.startswith("uniros/"):
         import uniros_async  # noqa: F401  (registers the uniros ids, also in a spawned process)
+    if env_id in SPACE_IDS:
+        import uniros_async.bench.envs  # noqa: F401  (registers them, also in a spawned process)
 
     return gym.make(env_id, **kwargs)
 
@@ -101,6 +125,8 @@ def _vector(
     impl: str, n: int, env_id: str, kwargs: dict[str, Any], transport: str = "shm"
 ) -> tuple[Any, Callable[[], Any], Callable[[Any], Any]]:
     """(vec env, reset(): seeds 0..n-1, step(actions)) for one implementation."""
+    if _RAY is not None and impl in RAY_IMPLS:
+        return _RAY.vector(impl, n, env_id, kwargs, pad=env_id == ENV_ID)
     if impl == "uniros":
         from uniros_async.runtime import make_vec
 
@@ -367,6 +393,8 @@ def _measure(
     bar: Callable[..., None],
 ) -> None:
     """Run every row into ``records``, counting each on ``bar``."""
+    impls = IMPLS + (("uniros-ray",) if _RAY is not None else ())
+    trivial_impls = IMPLS + (RAY_IMPLS if _RAY is not None else ())
     bare = _make_env(ENV_ID, ENV_KW)
     try:
         floor: _Floor | None = _Floor(ENV_ID, ENV_KW)
@@ -374,7 +402,7 @@ def _measure(
         floor = None
     try:
         for n in ns:
-            for impl in IMPLS:
+            for impl in impls:
                 floor_n = floor if n == 1 else None
                 records.append(_run(impl, n, bare, ENV_ID, ENV_KW, steps, floor_n, transport=config.transport))
                 bar(1)
@@ -385,7 +413,7 @@ def _measure(
     trivial = _make_env(TRIVIAL_ID, {})
     try:
         cpu0 = cpu_times()
-        rows = _run_trivial(IMPLS, in_turns, trivial, TRIVIAL_ID, TRIVIAL_STEPS, transport=config.transport)
+        rows = _run_trivial(trivial_impls, in_turns, trivial, TRIVIAL_ID, TRIVIAL_STEPS, transport=config.transport)
         steal = steal_percent(cpu0, cpu_times())
         for r in rows:
             r["steal_pct"] = None if steal is None else round(steal, 2)
@@ -393,6 +421,15 @@ def _measure(
         bar(len(rows))
     finally:
         trivial.close()
+    space_steps = min(SPACE_STEPS, TRIVIAL_STEPS // 5) if config.quick else SPACE_STEPS
+    for env_id in SPACE_IDS:
+        env = _make_env(env_id, {})
+        try:
+            rows = _run_trivial(IMPLS, (), env, env_id, space_steps, transport=config.transport)
+            records += rows
+            bar(len(rows))
+        finally:
+            env.close()
 
 
 def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
@@ -403,12 +440,25 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     cores = os.cpu_count() or 1
     records: list[dict[str, Any]] = []
     in_turns = IMPLS[:2] if config.quick else IMPLS  # (--quick: against gymnasium's only, to keep within its minute)
-    n_rows = len(ns) * len(IMPLS) + len(IMPLS) + len(in_turns)
-    bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
+    ray = config.backend == "ray"
+    n_rows = len(ns) * (len(IMPLS) + ray) + len(IMPLS) + len(RAY_IMPLS) * ray + len(in_turns)
+    n_rows += len(SPACE_IDS) * len(IMPLS)
+    global _RAY
+    if ray:
+        _RAY = RayRows(config.ray_address)
     try:
-        _measure(config, ns, steps, in_turns, records, bar)
+        if _RAY is not None:
+            _RAY.start()
+        bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
+        try:
+            _measure(config, ns, steps, in_turns, records, bar)
+        finally:
+            bar(0, done=True)
+        where = _RAY.describe() if _RAY is not None else ""
     finally:
-        bar(0, done=True)
+        if _RAY is not None:
+            _RAY.close()
+        _RAY = None
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
     head = (
         f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'its 95 % CI':>18} {'step ms':>8}"
@@ -438,11 +488,16 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
                     + " meanwhile (the VM's cores were taken away that long)",
                 ]
             lines += ["", f"{TRIVIAL_ID} ({what})", head, "-" * len(head)]
+        if r["env"] in SPACE_IDS and r["impl"] == IMPLS[0]:
+            what = "Dict observation, 3 float64 arrays" if r["env"] == DICT_ID else "84x84x3 uint8 frame observation"
+            lines += ["", f"{r['env'].partition(':')[2]} ({what}; N = 1, rows interleaved)", head, "-" * len(head)]
         lines.append(
             f"{r['n_envs']:>3} {r['impl']:<16} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}"
             f" {_interval(r['overhead_ci_us']):>18} {r['step_ms']:>8.3f} {r['bare_ms']:>8.3f}"
         )
     lines.append("")
+    if ray:
+        lines += [where, *overhead_lines(records, TRIVIAL_ID)]
     for r in records:
         if "floor_ms" in r:
             lines.append(
@@ -457,5 +512,9 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
             f"N={n}: uniros / gymnasium-async steps/s = {ratio:.2f}x; physics bound min(N, {cores} cores) / bare step"
             f" = {bound:.0f} steps/s"
         )
+    image = {r["impl"]: r for r in records if r["env"] == IMAGE_ID}
+    if image["gymnasium-async"]["overhead_us"] > 0:
+        frac = image["uniros"]["overhead_us"] / image["gymnasium-async"]["overhead_us"]
+        lines.append(f"image env: uniros overhead / gymnasium-async overhead = {frac:.2f}")
     report("\n".join(lines), records, config.json_path, log)
     return records

@@ -10,12 +10,25 @@ is an ExtType(1) whose data is the index into that table; the blob bytes travel 
 ``encode`` returns the frame as a list of buffers (header bytes, then each array's own memory, no join), which
 transports send back to back. ``decode`` checks the type name, field count, dtypes and ndims, and raises
 CodecError naming the field.
+
+Two more encodings live here, so that this stays the only module that imports msgpack:
+
+- plain data (``encode_plain`` / ``decode_plain``): the registry's and handshakes' control traffic;
+- values with arrays (``pack_value`` / ``unpack_value``): the worker protocol's messages (runtime/protocol.py), in
+  which every numpy array travels as an ExtType (code 42: ``array_bytes``, dtype, shape and raw bytes), numpy
+  float64, int64 and bool scalars as Python numbers and other numpy scalars as an ExtType (code 43: their dtype
+  kept), converted by msgpack's own ``default`` / ``ext_hook`` hooks, so the C packer walks
+  the value and Python sees only the arrays. ``array_bytes`` / ``array_from_bytes`` are also the step frames' own
+  array format, outside msgpack.
 """
 
 from __future__ import annotations
 
+import math
+import re
 import struct
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import msgpack
@@ -24,7 +37,18 @@ import numpy as np
 from uniros_async.bus.messages import FieldSpec, message_type
 from uniros_async.errors import CodecError
 
-__all__ = ["decode", "decode_plain", "encode", "encode_plain", "frame_type_name"]
+__all__ = [
+    "array_bytes",
+    "array_from_bytes",
+    "array_head",
+    "decode",
+    "decode_plain",
+    "encode",
+    "encode_plain",
+    "frame_type_name",
+    "pack_value",
+    "unpack_value",
+]
 
 _ARRAY_EXT = 1
 _U32 = struct.Struct("<I")
@@ -216,11 +240,19 @@ def _build(cls: type, values: Any, table: list[Any], blob: memoryview) -> Any:
         raise CodecError(f"{cls.__name__}: {exc}") from exc
 
 
-def encode_plain(value: Any) -> bytes:
-    """msgpack for control traffic (registry, handshakes): plain data only."""
+def encode_plain(value: Any, default: Callable[[Any], Any] | None = None) -> bytes:
+    """msgpack for control traffic (registry, handshakes): plain data only.
+
+    Args:
+        value: the data.
+        default: called with what msgpack cannot pack itself, returns what to pack instead (or raises TypeError).
+
+    Raises:
+        CodecError: ``value`` holds something that is not plain data (and ``default`` did not turn it into some).
+    """
     try:
-        return msgpack.packb(value, use_bin_type=True)  # type: ignore[no-any-return]
-    except (TypeError, ValueError) as exc:
+        return msgpack.packb(value, use_bin_type=True, default=default)  # type: ignore[no-any-return]
+    except (TypeError, ValueError, OverflowError) as exc:
         raise CodecError(f"value is not msgpack-able: {exc}") from exc
 
 
@@ -230,3 +262,157 @@ def decode_plain(frame: bytes | memoryview) -> Any:
         return msgpack.unpackb(frame, raw=False, strict_map_key=False)
     except (ValueError, TypeError, msgpack.UnpackException) as exc:
         raise CodecError(f"malformed control frame: {exc}") from exc
+
+
+# ---------------------------------------------------------------- values with arrays (runtime/protocol.py)
+
+_ND_EXT = 42
+_SCALAR_EXT = 43  # a numpy scalar of a type Python's numbers do not keep (float32, int8, ...): dtype kept
+_PLAIN_SCALARS = (np.float64, np.int64, np.bool_)
+"""Numpy scalars that travel as Python numbers: a vector env's info batches them into arrays of the same dtype."""
+_SHAPE = struct.Struct("<q")
+_DTYPE_STR = re.compile(r"[<>|=][a-zA-Z][0-9]{0,6}(\[[0-9]{0,6}[a-zA-Z]{1,2}\])?")
+"""The dtype strings ``array_bytes`` writes (``dtype.str``: byte order, kind, item size, a datetime unit): anything
+else is refused before numpy parses it (numpy evaluates some dtype strings as Python literals, with warnings and
+SyntaxError)."""
+
+
+_PACKED_HEADS: dict[tuple[np.dtype[Any], tuple[int, ...]], bytes] = {}
+"""Array headers by (dtype, shape), the packing side of ``_HEADS``: the same few every step (keyed by the dtype
+itself: ``dtype.str`` builds a new string every call, which costs more than the lookup)."""
+
+
+def _default(value: Any) -> Any:
+    """msgpack's hook for what it cannot pack itself: arrays as ExtType, numpy float64, int64 and bool scalars as
+    Python ones, other numpy scalars as ExtType (their dtype kept)."""
+    if isinstance(value, np.ndarray):
+        if value.dtype.hasobject:
+            return value.tolist()
+        return msgpack.ExtType(_ND_EXT, array_bytes(value))
+    if isinstance(value, np.generic):
+        if type(value) in _PLAIN_SCALARS or value.dtype.hasobject:
+            return value.item()
+        return msgpack.ExtType(_SCALAR_EXT, array_bytes(np.asarray(value)))
+    if isinstance(value, tuple | list):  # subclasses msgpack refuses (named tuples are packed as lists)
+        return list(value)
+    return repr(value)
+
+
+def array_bytes(value: np.ndarray) -> bytes:
+    """An array on the wire: a header (dtype string, ndim, shape; cached by dtype and shape) and the data in C
+    order, whatever the strides. The payload of the array ExtType, and a step frame's array as it is."""
+    head = _PACKED_HEADS.get((value.dtype, value.shape))
+    if head is None:
+        head = array_head(value.dtype, value.shape)
+    return head + value.tobytes()
+
+
+def array_head(dtype: np.dtype[Any], shape: tuple[int, ...]) -> bytes:
+    """The header ``array_bytes`` writes before the data of an array of ``dtype`` and ``shape``."""
+    head = _PACKED_HEADS.get((dtype, shape))
+    if head is None:
+        d = dtype.str.encode()
+        head = bytes((len(d),)) + d + bytes((len(shape),)) + b"".join(_SHAPE.pack(n) for n in shape)
+        if len(_PACKED_HEADS) < 256:
+            _PACKED_HEADS[(dtype, shape)] = head
+    return head
+
+
+_HEADS: dict[bytes, tuple[np.dtype[Any], tuple[int, ...], int]] = {}
+"""Parsed array headers (dtype, shape, element count) by their bytes: a worker sees the same few every step, and
+parsing one (a dtype from its string, a struct unpack per dimension) costs more than the array itself."""
+
+
+def array_from_bytes(
+    buf: bytes | memoryview, start: int = 0, stop: int | None = None, what: str = "array"
+) -> np.ndarray:
+    """The array ``array_bytes`` wrote in ``buf[start:stop]``, as a writable copy.
+
+    Raises:
+        CodecError: not such an array (the data does not match its header, a bad dtype, too short), named ``what``.
+    """
+    try:
+        return _array_from_bytes(buf, start, len(buf) if stop is None else stop)
+    except (ValueError, TypeError, IndexError, struct.error, SyntaxError) as exc:
+        raise CodecError(f"malformed {what}: {exc}") from exc
+
+
+def _array_from_bytes(buf: bytes | memoryview, start: int, stop: int) -> np.ndarray:
+    n = buf[start]
+    ndim = buf[start + 1 + n]
+    data_start = start + 2 + n + 8 * ndim
+    head = bytes(buf[start:data_start])
+    parsed = _HEADS.get(head)
+    if parsed is None:
+        dtype_str = head[1 : 1 + n].decode("ascii")
+        if not _DTYPE_STR.fullmatch(dtype_str):
+            raise ValueError(f"dtype {dtype_str!r:.40} is not a dtype string such as '<f4'")
+        dtype = np.dtype(dtype_str)
+        if dtype.hasobject:
+            raise ValueError(f"dtype {dtype_str!r}: object arrays do not travel")
+        if start + len(head) != data_start:
+            raise ValueError(f"its header of {ndim} dimensions ends at byte {data_start}, past the frame's end")
+        shape = tuple(_SHAPE.unpack_from(head, 2 + n + 8 * i)[0] for i in range(ndim))
+        if any(d < 0 for d in shape):
+            raise ValueError(f"shape {shape} has a negative dimension")
+        parsed = (dtype, shape, math.prod(shape))
+        if len(_HEADS) < 256:
+            _HEADS[head] = parsed
+    dtype, shape, count = parsed
+    if stop - data_start != count * dtype.itemsize:
+        raise ValueError(f"an array of {dtype} {shape} needs {count * dtype.itemsize} bytes, got {stop - data_start}")
+    return np.frombuffer(buf, dtype=dtype, count=count, offset=data_start).reshape(shape).copy()
+
+
+def _value_ext_hook(code: int, data: bytes) -> Any:
+    if code == _ND_EXT:
+        return array_from_bytes(data)
+    if code == _SCALAR_EXT:
+        return array_from_bytes(data)[()]
+    return msgpack.ExtType(code, data)
+
+
+def _str_list_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    return {str(tuple(k)) if isinstance(k, list) else k: v for k, v in pairs}
+
+
+_local = threading.local()
+
+
+def pack_value(value: Any) -> bytes:
+    """``msgpack.packb(value, default=_default, use_bin_type=True)`` with a Packer kept per thread: ``packb`` builds
+    a new Packer every call, which costs a quarter of packing a step reply (a Packer is not thread-safe: the
+    ``default`` hook lets other threads run in the middle of a pack, hence one per thread). A pack that raises
+    leaves the Packer reset.
+
+    Raises:
+        CodecError: ``value`` holds something msgpack refuses even through the hook (a dict key of an odd type, an
+            int beyond 64 bits).
+    """
+    packer = getattr(_local, "packer", None)
+    if packer is None:
+        packer = _local.packer = msgpack.Packer(default=_default, use_bin_type=True)
+    try:
+        return packer.pack(value)  # type: ignore[no-any-return]
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise CodecError(f"value is not msgpack-able: {exc}") from exc
+
+
+def unpack_value(data: bytes | memoryview, what: str = "step frame") -> Any:
+    """The value ``pack_value`` packed, its arrays writable copies; map keys that came as lists (tuple keys) as their
+    str, as runtime/protocol.py's ``to_wire`` does.
+
+    Raises:
+        CodecError: ``data`` is not msgpack (named ``what``).
+    """
+    try:
+        try:
+            return msgpack.unpackb(data, raw=False, strict_map_key=False, ext_hook=_value_ext_hook)
+        except TypeError:  # a map key that came as a list (a tuple key)
+            return msgpack.unpackb(
+                data, raw=False, strict_map_key=False, ext_hook=_value_ext_hook, object_pairs_hook=_str_list_keys
+            )
+    except CodecError:
+        raise
+    except (ValueError, TypeError, IndexError, msgpack.UnpackException) as exc:
+        raise CodecError(f"malformed {what}: {exc}") from exc

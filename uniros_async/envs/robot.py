@@ -28,10 +28,14 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import collections
 import contextlib
+import dataclasses
 import logging
+import socket
 import time
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -42,11 +46,12 @@ from uniros_async.envs.base import BaseEnv
 from uniros_async.envs.config import EnvConfig
 from uniros_async.envs.safety import SafetyChecker, SafetyConfig
 from uniros_async.envs.timing import Timing
-from uniros_async.errors import RobotError
+from uniros_async.errors import ConfigError, DomainError, NameConflictError, RobotError, TransportError
 from uniros_async.kinematics import Kinematics
 from uniros_async.placements import PlacementRequest, placement_spec
 from uniros_async.robots import get_robot_spec
 from uniros_async.sim_clock import SimClock
+from uniros_async.transports.base import TransportOptions, options_from_environ
 
 __all__ = ["RobotEnv"]
 
@@ -62,9 +67,58 @@ period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the
 must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and
 action cycles that are multiples of their periods) keep one phase, give or take each member's
 ``RobotEnv.loop_phase_ns`` of a few ms: the agent gets every member's returns about equally fresh."""
+TRANSIT_WINDOW_S = 60.0
+"""How far back ``RobotEnv._transit_delay_ns`` looks for the quickest joint state (stamp to arrival)."""
+REJOIN_RETRY_S = 0.1
+"""First wait between attempts to join the arm's domain again after the connection to it was lost (doubling to
+1 s)."""
 LOOP_PHASE_MAX_FRACTION = 4
 """``RobotEnv.loop_phase_ns`` is capped at a quarter of the loop's period, so a tick still sees the state its servo
 published at the period's start."""
+
+
+def _local_host_toward(uri: str) -> str:
+    """This machine's address on the interface that reaches the host of ``tcp://HOST:PORT`` (no packet is sent: a
+    UDP socket's ``connect`` only picks the route), so that a node's listener is bound there and nowhere else.
+
+    Raises:
+        ConfigError: HOST has no route from here (the message names it).
+    """
+    parts = urlsplit(uri)
+    host, port = parts.hostname or "127.0.0.1", parts.port or 1
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+        with socket.socket(family[0], socket.SOCK_DGRAM) as s:
+            s.connect(family[4])
+            return str(s.getsockname()[0])
+    except OSError as exc:
+        raise ConfigError(f"robot={uri!r}: no route to {host} from this machine ({exc})") from exc
+
+
+class _TransitWindow:
+    """The smallest stamp-to-arrival time of the joint states of the last ``TRANSIT_WINDOW_S`` (a monotonic deque:
+    O(1) per state)."""
+
+    def __init__(self) -> None:
+        self.sub: Any = None
+        self.seen = -1
+        self._q: collections.deque[tuple[int, int]] = collections.deque()
+
+    def reset(self, sub: Any) -> None:
+        self.sub, self.seen = sub, -1
+        self._q.clear()
+
+    def add(self, now: int, transit_ns: int) -> None:
+        q = self._q
+        while q and q[-1][1] >= transit_ns:
+            q.pop()
+        q.append((now, transit_ns))
+
+    def floor(self, now: int) -> int:
+        q, horizon = self._q, now - round(TRANSIT_WINDOW_S * 1e9)
+        while len(q) > 1 and q[0][0] < horizon:
+            q.popleft()
+        return q[0][1]
 
 
 async def _settle() -> None:
@@ -113,6 +167,7 @@ class RobotEnv(BaseEnv):
         clock), the same instant for every member; used once, then cleared (see ``_step_deadline``)."""
         self._last_return_wall_ns: int | None = None
         self._cmd_seq = 0
+        self._transit = _TransitWindow()
         self.unsafe_actions = 0
         self.robot_process: Any = None  # a process the placement runs the arm in (ArmLink.process), or None
 
@@ -167,25 +222,83 @@ class RobotEnv(BaseEnv):
                 link = await stack.enter_async_context(self.placement.open(request))
                 self.robot_process = link.process
                 domain, transport = link.domain, link.transport
-                node = await stack.enter_async_context(
-                    open_node("env", domain=domain, namespace=f"/{spec.name}", clock=clock, transport=transport)
-                )
-                self._node = node
-                self._js = await node.create_subscription(JointState, "joint_states")
-                self._cmd = await node.create_publisher(JointCommand, "command")
-                self._reset_cli = node.create_client(Data, Trigger, "reset")
+                options = None
+                if isinstance(domain, str) and domain.startswith("tcp://"):
+                    # the arm subscribes to our commands: listen where it can reach us (loopback for an arm on loopback;
+                    # beyond it, the domain's key from $UNIROS_AUTH_KEY is required, as for every listener)
+                    options = dataclasses.replace(options_from_environ(), bind_host=_local_host_toward(domain))
+                await self._join(domain, transport, options)
+                stack.push_async_callback(self._leave)
                 await self._js.wait_for_publishers(1, timeout_s=30.0)
                 await self._wait_for_state(after_ns=None)
                 if isinstance(clock, SimClock):
                     clock.pause()
-                if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
-                    start = grid_after(clock.now_ns(), self._period_ns, TICK_OFFSET_NS + self._phase_ns)
-                    node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
+                self._start_timer()
                 started(None)
-                await asyncio.Event().wait()  # until close() cancels main
+                while True:  # until close() cancels main
+                    await self._registry_lost()
+                    await self._rejoin(domain, transport, options)
         except BaseException as exc:
             started(exc)
             raise
+
+    async def _join(self, domain: Any, transport: str, options: TransportOptions | None) -> None:
+        """Join the arm's domain as node ``env``: its joint-state subscription, command publisher and reset client.
+        The node lives in ``self._node_stack``."""
+        stack = contextlib.AsyncExitStack()
+        try:
+            node = await stack.enter_async_context(
+                open_node(
+                    "env",
+                    domain=domain,
+                    namespace=f"/{self.robot_spec.name}",
+                    clock=self._clock,
+                    transport=transport,
+                    options=options,
+                )
+            )
+            self._js = await node.create_subscription(JointState, "joint_states")
+            self._cmd = await node.create_publisher(JointCommand, "command")
+            self._reset_cli = node.create_client(Data, Trigger, "reset")
+        except BaseException:
+            await stack.aclose()
+            raise
+        self._node = node
+        self._node_stack = stack
+
+    async def _leave(self) -> None:
+        await self._node_stack.aclose()
+
+    def _start_timer(self) -> None:
+        if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
+            start = grid_after(self._clock.now_ns(), self._period_ns, TICK_OFFSET_NS + self._phase_ns)
+            self._node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
+
+    async def _registry_lost(self) -> None:
+        """Return when the node's connection to the domain registry is gone (a tcp reset, the arm's host
+        restarted): the domain then forgets the node, and the arm its subscription to our commands."""
+        node = self._node
+        reader = [t for t in node._tasks if t.get_name() == f"{node.name} registry"]
+        if reader:  # none: it has ended already
+            await asyncio.wait(reader)  # the registry reader ends when the connection does
+
+    async def _rejoin(self, domain: Any, transport: str, options: TransportOptions | None) -> None:
+        """Leave the dead node and join the domain again, retrying with backoff until it answers. Meanwhile the
+        newest joint state only ages: steps and resets fail with RobotError, nothing is commanded."""
+        logger.warning("%s: lost the arm's domain %s; joining it again", self.robot_spec.name, domain)
+        await self._node_stack.aclose()
+        delay = REJOIN_RETRY_S
+        while True:
+            try:
+                await self._join(domain, transport, options)
+                break
+            except (DomainError, NameConflictError, TransportError, TimeoutError, OSError) as exc:
+                # NameConflictError: the domain has not yet noticed that our old connection is gone (TCP keepalive)
+                logger.info("%s: domain %s not back yet (%s)", self.robot_spec.name, domain, exc)
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, 1.0)
+        self._start_timer()
+        logger.warning("%s: joined the arm's domain %s again", self.robot_spec.name, domain)
 
     @property
     def _relative_action(self) -> bool:
@@ -199,6 +312,11 @@ class RobotEnv(BaseEnv):
         self.timing.tick_ns.append(now)
         js = self._js.latest()
         if js is None or self._ended:
+            return
+        if self._state_age_s() > self.config.robot_timeout_s:
+            # where the arm is is unknown: no returns are built and no command is sent (a target computed from an
+            # old state could be seconds out of date by the time it arrives); the arm's watchdog holds it
+            self.timing.stale_ticks += 1
             return
         q_arm = js.position[self._arm_idx]
         returns = self._compute_returns(js, q_arm)
@@ -232,12 +350,72 @@ class RobotEnv(BaseEnv):
         self.timing.command_ns.append(now)
 
     def _state_age_s(self) -> float:
+        """How old the newest joint state is. On a sim clock: since its stamp (the sim in this process stamps it on
+        the same clock). On a wall clock: since it arrived, plus how much longer than the quickest recent state it
+        took to arrive (``_transit_delay_ns``): a state that waited in a starved link or a socket buffer counts as
+        old as it is, while the arm's clock need not be ours."""
         js = self._js.latest()
         if js is None:
             return float("inf")
         if isinstance(self._clock, SimClock):
             return (self._clock.now_ns() - js.header.stamp_ns) / 1e9
-        return (time.monotonic_ns() - self._js.latest_recv_ns) / 1e9
+        now = time.monotonic_ns()
+        return (now - self._js.latest_recv_ns + self._transit_delay_ns(js, now)) / 1e9
+
+    def _transit_delay_ns(self, js: JointState, now: int) -> int:
+        """How much longer than the quickest state of the last ``TRANSIT_WINDOW_S`` the newest one took from its
+        stamp to its arrival. The difference of two clocks cancels out (so does a fixed delay); what is left is
+        time spent queued on the way. A sliding window, not the minimum ever seen, so that a restarted arm (a new
+        clock) is judged afresh after one window."""
+        sub = self._js
+        window = self._transit
+        if window.sub is not sub:
+            window.reset(sub)
+        if sub.received != window.seen:
+            window.seen = sub.received
+            window.add(now, sub.latest_recv_ns - js.header.stamp_ns)
+        return max(0, sub.latest_recv_ns - js.header.stamp_ns - window.floor(now))
+
+    def _stale_at_ns(self) -> int:
+        """When, on the env's clock, the newest joint state turns older than ``robot_timeout_s``."""
+        age_s = self._state_age_s()
+        if age_s == float("inf"):
+            return self._clock.now_ns()
+        return self._clock.now_ns() + round((self.config.robot_timeout_s - age_s) * 1e9)
+
+    def _stale_error(self, what: str) -> RobotError:
+        """Stop commanding the arm (its watchdog holds it) and say how old its newest joint state is."""
+        self._stop_commanding()
+        age_s = self._state_age_s()
+        newest = (
+            f"the newest joint state on {self._js.topic} is {age_s:.2f} s old"
+            if self._js.latest() is not None
+            else f"no joint state on {self._js.topic} since the env joined the arm's domain again"
+        )
+        return RobotError(
+            f"{self.robot_spec.name}: {what}: {newest} (robot_timeout_s={self.config.robot_timeout_s}); no command "
+            "is sent until joint states arrive again, and the arm's watchdog holds it"
+        )
+
+    async def _wait_for_fresh_state(self, what: str) -> JointState:
+        """The newest joint state if it is at most ``robot_timeout_s`` old, else the first that arrives within
+        ``robot_timeout_s``.
+
+        Raises:
+            RobotError: none arrived in that time (names the robot and the newest state's age).
+        """
+        timeout_s = self.config.robot_timeout_s
+        js = self._js.latest()
+        if js is not None and self._state_age_s() <= timeout_s:
+            return js
+        seen = self._js.received
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            await asyncio.sleep(min(0.2 / self.robot_spec.hardware_rate_hz, max(deadline - time.monotonic(), 0.0)))
+            js = self._js.latest()
+            if self._js.received != seen and js is not None and self._state_age_s() <= timeout_s:
+                return js
+        raise self._stale_error(what)
 
     async def _wait_for_state(self, after_ns: int | None, timeout_s: float | None = None) -> JointState:
         """The first joint state stamped after ``after_ns`` (any, when None), waiting on the env's clock."""
@@ -310,6 +488,8 @@ class RobotEnv(BaseEnv):
             latency = self._agent_latency_s()
             if latency > 0:
                 await clock.sleep(latency)
+        if self._state_age_s() > cfg.robot_timeout_s:  # no action is applied to a state that old
+            raise self._stale_error("step")
         self._set_action(action)
         self._on_action(action)
         now = clock.now_ns()
@@ -322,7 +502,15 @@ class RobotEnv(BaseEnv):
         # no spin: the returns were built by the tick just before, and a few tens of microseconds later matter
         # less than a core held: ranked workers spinning for their deadlines kept lower-ranked ones from their
         # ticks (with 4 workers on 2 cores the ned2 ticks before a deadline started 1.4-1.7 ms late)
-        await clock.sleep_until(deadline, spin=False)
+        while True:  # until the deadline, or until the newest joint state turns older than robot_timeout_s
+            await clock.sleep_until(min(deadline, self._stale_at_ns()), spin=False)
+            if self._state_age_s() > cfg.robot_timeout_s:
+                self._deadline_ns = deadline
+                if isinstance(clock, SimClock):
+                    clock.pause()
+                raise self._stale_error("step")
+            if clock.now_ns() >= deadline:
+                break
         self._deadline_ns = deadline
         if cfg.turn_based:  # the baseline: returns built now, from the newest joint state received
             js = self._js.latest()
@@ -331,13 +519,6 @@ class RobotEnv(BaseEnv):
             if self._wall_turn_based:  # as old as that state is: no loop keeps it fresh
                 stamp = js.header.stamp_ns if self.placement.stamps_on_env_clock else self._js.latest_recv_ns
             self._cache = (stamp, self._compute_returns(js, js.position[self._arm_idx]))
-        age_s = self._state_age_s()
-        if age_s > cfg.robot_timeout_s:
-            await self._ahold()
-            raise RobotError(
-                f"{self.robot_spec.name}: the newest joint state on {self._js.topic} is {age_s:.2f} s old "
-                f"(robot_timeout_s={cfg.robot_timeout_s}); the arm was told to hold"
-            )
         assert self._cache is not None
         stamp, (obs, reward, terminated, info) = self._cache
         end = clock.now_ns()
@@ -377,11 +558,19 @@ class RobotEnv(BaseEnv):
         self._target, self._target_unsafe, self._action_t_ns = None, None, None
         self._action, self._ended, self._projected = None, False, False
         t0 = clock.now_ns()
+        # no reset on a state older than robot_timeout_s: an arm that went silent is reported, not settled on its
+        # last known pose (RobotError within robot_timeout_s, or at once when the state is already that old)
+        await self._wait_for_fresh_state("reset")
         if self.placement.can_teleport:  # a nominal sim can be teleported home: exact and fast
-            reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=cfg.reset_timeout_s)
+            # a teleport answers within a tick: an arm that does not answer within robot_timeout_s is not there
+            timeout_s = min(cfg.reset_timeout_s, cfg.robot_timeout_s)
+            try:
+                reply = await self._reset_cli.call(Data(value={"q": self.home_q.tolist()}), timeout_s=timeout_s)
+            except TimeoutError:
+                raise self._stale_error(f"reset: no reply from {self._reset_cli.name} within {timeout_s} s") from None
             if not reply.success:
                 raise RobotError(f"{self.robot_spec.name}: reset refused: {reply.message}")
-            js = await self._wait_for_state(after_ns=t0)
+            js = await self._wait_for_state(after_ns=t0, timeout_s=cfg.robot_timeout_s)
         else:
             self._target = self.home_q.copy()  # the loop re-sends it every tick until settled
             if self._wall_turn_based:  # no loop: one command home
@@ -465,6 +654,8 @@ class RobotEnv(BaseEnv):
         deadline = time.monotonic() + timeout_s
         while True:
             await self._clock.sleep(1.0 / self.robot_spec.hardware_rate_hz)
+            if self._state_age_s() > self.config.robot_timeout_s:  # settling is judged on fresh states only
+                raise self._stale_error("reset")
             js = self._js.latest()
             if js is not None:
                 q = js.position[self._arm_idx]
@@ -479,9 +670,16 @@ class RobotEnv(BaseEnv):
                 )
                 raise RobotError(f"{self.robot_spec.name}: did not settle at home within {timeout_s} s ({err})")
 
+    def _stop_commanding(self) -> None:
+        """Send nothing more until a new target is set (the arm's watchdog holds it)."""
+        self._target, self._target_unsafe, self._action_t_ns = None, None, None
+        self._action, self._projected = None, False
+
     async def _ahold(self) -> None:
         js = self._js.latest()
-        self._target_unsafe, self._action_t_ns, self._action, self._projected = None, None, None, False
-        if js is not None:  # hold = keep commanding where it is (action repeat of the current position)
+        self._stop_commanding()
+        # hold = keep commanding where it is (action repeat of the current position); never where a stale state
+        # says it was
+        if js is not None and self._state_age_s() <= self.config.robot_timeout_s:
             self._target = js.position[self._arm_idx].copy()
             self._send(self._target, self._clock.now_ns())

@@ -19,7 +19,8 @@ class Timing:
     - ``action_ns``: when each action reached the loop (with ``clock="sim"`` and a modelled agent latency, that
       latency after the previous ``step`` returned);
     - ``observation_age_ns``: how old the returned observation was when ``step`` returned;
-    - ``action_latency_ns``: from an action reaching the loop to the first command sent with it.
+    - ``action_latency_ns``: from an action reaching the loop to the first command sent with it;
+    - ``stale_ticks``: ticks that found the newest joint state older than ``robot_timeout_s`` (nothing built or sent).
     """
 
     history: int = 100_000
@@ -30,6 +31,7 @@ class Timing:
     observation_age_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     action_latency_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     step_overruns: int = 0
+    stale_ticks: int = 0
     _SERIES = ("tick_ns", "command_ns", "step_ns", "action_ns", "observation_age_ns", "action_latency_ns")
 
     def __post_init__(self) -> None:
@@ -40,12 +42,14 @@ class Timing:
         for f in self._SERIES:
             getattr(self, f).clear()
         self.step_overruns = 0
+        self.stale_ticks = 0
 
     def snapshot(self) -> dict[str, list[int] | int]:
         """Plain copies of every series (lists of ints) and ``step_overruns``: msgpack-able, so a benchmark can
         fetch it from a worker process with ``env.call("timing_snapshot")``."""
         out: dict[str, list[int] | int] = {f: list(getattr(self, f)) for f in self._SERIES}  # list(deque) holds the GIL
         out["step_overruns"] = self.step_overruns
+        out["stale_ticks"] = self.stale_ticks
         return out
 
     @staticmethod

@@ -7,8 +7,8 @@ and a call then costs no hand-over to another thread (~16 us of loop start/stop 
 wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_steps`` sends requests
 and returns at once; the replies are collected by ``_Pending.result``. A step does not run the loop at all: the
 requests go out with the transport's ``try_send`` and the replies come in with its ``receive_blocking`` (shm and
-tcp, local and remote workers), in the calling thread (``send_steps_now``, ``receive_steps_now`` and
-``_take_replies``); whatever that cannot do (no room, a hang-up, a deadline, a launcher's news of a remote worker)
+tcp, local and Ray-placed workers), in the calling thread (``send_steps_now``, ``receive_steps_now`` and
+``_take_replies``); whatever that cannot do (no room, a hang-up, a deadline, a Ray actor's news of its worker)
 is left to the loop, which also reports it.
 Every wait on a worker has a deadline; a worker that does not answer in time, whose connection breaks or whose
 process died is marked broken and every later request to it raises WorkerError naming its index. A call
@@ -16,19 +16,20 @@ interrupted by Ctrl-C while the loop waits is finished (its replies consumed) be
 interrupted inside a request's own code marks that worker broken, since its next reply could no longer be matched
 to a request.
 
-Start-up: every process is started first (spawn, daemon), then each worker's listen URI (``shm://`` by default,
+Start-up: every process is started first (``launch.start_worker``: ``python -m uniros_async.runtime``, which
+imports nothing of the agent's ``__main__``), then each worker's listen URI (``shm://`` by default,
 ``tcp://127.0.0.1:0`` with ``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the
 supervisor connects to all of them and asks each for its spaces, in parallel.
 If any worker fails to start, all are closed and the error names the worker and why.
 
-Remote workers: a spec whose kwargs hold ``worker="tcp://HOST:PORT"`` (or a ``remote.RemoteWorker``) is
-started by the launcher there (``uniros worker serve``, runtime/remote.py) instead of ``_spawn``; the launcher
-answers with the worker's tcp URI and the supervisor connects to it directly, as to a local one. Its ``process`` is
-a ``RemoteWorkerProcess`` (pid and exit code as the launcher reports them); a broken connection is reported with
-the exit code the launcher saw, ``restart`` starts the new worker through the same launcher, and ``close`` has the
-launcher terminate and kill what does not exit by itself. Local and remote workers mix freely.
-
-``make(env_id, **kwargs)`` returns ``ProxyEnv``, a gymnasium.Env over one worker.
+Workers placed by Ray: a spec whose ``worker`` is a Ray placement (``"ray"``, ``{"ray": {...}}``, a
+``ray_backend.RayPlacement``) is started instead of ``_spawn`` by a Ray actor on the node Ray's scheduler picks
+(runtime/ray_backend.py); the actor answers with the worker's URI and the supervisor connects to it directly, as
+to a local one. Its ``process`` is a ``RayWorkerProcess`` (pid and exit code as the actor reports them); a broken
+connection is reported with the exit code the actor saw, ``restart`` starts the new worker through Ray with the
+same placement, and ``close`` has the actor terminate and kill what does not exit by itself. The placements are
+checked against the cluster's nodes before any worker starts, and the workers of one supervisor share a random key
+(tcp or shm with HMAC). Local and Ray-placed workers mix freely.
 """
 
 from __future__ import annotations
@@ -37,35 +38,26 @@ import asyncio
 import concurrent.futures
 import contextlib
 import dataclasses
-import difflib
 import functools
-import importlib
 import logging
-import multiprocessing
 import os
+import secrets
 import threading
 import time
 from collections.abc import Callable, Coroutine, Sequence
 from typing import Any, Generic, TypeVar
 
 import gymnasium as gym
-import numpy as np
-from gymnasium.envs.registration import registry
 
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.priority import MAX_LOOP_RANK
-from uniros_async.runtime.remote import RemoteWorker, RemoteWorkerProcess, check_plain, parse_placement
-from uniros_async.runtime.worker import (
-    STEP_TAG,
-    PackedRequest,
-    WorkerSpec,
-    pack,
-    space_from_plain,
-    unpack,
-    worker_entry,
-)
+from uniros_async.runtime.envargs import check_env_args, registration, split_placement
+from uniros_async.runtime.launch import WorkerProcess, start_worker
+from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
+from uniros_async.runtime.ray_backend import RayPlacement, RayWorkerProcess, check_placements
+from uniros_async.runtime.worker import WorkerSpec
 
-__all__ = ["ProxyEnv", "Supervisor", "WorkerHandle", "check_env_args", "make"]
+__all__ = ["Supervisor", "WorkerHandle"]
 
 logger = logging.getLogger(__name__)
 
@@ -88,80 +80,14 @@ LATER: Any = object()
 # how the supervisor reaches its workers: shared memory on one machine (the default), or tcp on loopback
 _LISTEN_URIS = {"shm": "shm://", "tcp": "tcp://127.0.0.1:0"}
 
-# gymnasium.make's own keyword arguments (not passed to the env constructor)
-_MAKE_KWARGS = {"max_episode_steps", "disable_env_checker", "autoreset", "apply_api_compatibility"}
-# where the worker runs (runtime/remote.py); taken out of the kwargs before they reach the env
-_PLACEMENT_KWARG = "worker"
-
-
-def split_placement(kwargs: dict[str, Any]) -> tuple[RemoteWorker | None, dict[str, Any]]:
-    """The placement of a spec (None: a local worker) and the kwargs without it.
-
-    Raises:
-        ConfigError: a malformed ``worker`` value.
-    """
-    if _PLACEMENT_KWARG not in kwargs:
-        return None, kwargs
-    rest = {k: v for k, v in kwargs.items() if k != _PLACEMENT_KWARG}
-    return parse_placement(kwargs[_PLACEMENT_KWARG]), rest
-
-
-def check_env_args(env_id: str, kwargs: dict[str, Any]) -> None:
-    """Check, in the caller, that ``env_id`` is registered and (for uniros envs) that ``kwargs`` are known.
-
-    ``worker`` (where the worker runs, see runtime/remote.py) is accepted and checked, never passed to the env. For
-    a spec placed on a launcher, an id unknown here is left to the launcher's registry to judge.
-
-    Raises:
-        ConfigError: an unknown id (the registered uniros ids are listed) or unknown keyword arguments (the
-            valid ones are listed), or an invalid run-time setting (EnvConfig's own checks), or a malformed
-            ``worker``, or (remote) kwargs that are not plain data.
-    """
-    from uniros_async.tasks.registry import ENV_IDS, register_envs
-
-    placement, kwargs = split_placement(kwargs)
-    if placement is not None:
-        check_plain(kwargs, str(env_id))
-    register_envs()
-    reg_id = env_id  # the id in the registry
-    if isinstance(env_id, str) and ":" in env_id:  # gymnasium's "module:Id": importing the module registers Id
-        module, _, reg_id = env_id.partition(":")
-        try:
-            importlib.import_module(module)
-        except ImportError as exc:
-            if placement is None:  # a launcher may have the module where this machine has not
-                raise ConfigError(
-                    f"env id {env_id!r}: cannot import {module!r}, which should register {reg_id!r}: {exc}"
-                ) from exc
-    if placement is not None and isinstance(reg_id, str) and reg_id not in registry:
-        return
-    if not isinstance(reg_id, str) or reg_id not in registry:
-        close = difflib.get_close_matches(str(reg_id), list(registry), n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ConfigError(
-            f"unknown env id {env_id!r}{hint}; registered uniros ids: {sorted(ENV_IDS)}; another gymnasium id must"
-            " be registered in this process, or given as 'module:Id' (the module registers Id, in every worker too)"
-        )
-    entry = registry[reg_id].entry_point
-    if not isinstance(entry, str) or not entry.startswith("uniros_async."):
-        return
-    module, _, name = entry.partition(":")
-    cls = getattr(importlib.import_module(module), name)
-    if not hasattr(cls, "TASK_KEYS"):
-        return
-    from uniros_async.envs.task import split_kwargs
-
-    env_kwargs = {k: v for k, v in kwargs.items() if k not in _MAKE_KWARGS and k not in registry[reg_id].kwargs}
-    split_kwargs(cls, env_kwargs)
-
 
 @dataclasses.dataclass
 class WorkerHandle:
     """The supervisor's side of one worker."""
 
     spec: WorkerSpec
-    process: multiprocessing.process.BaseProcess | RemoteWorkerProcess
-    conn: Any = None  # the start-up pipe end (None for a remote worker)
+    process: WorkerProcess | RayWorkerProcess
+    conn: Any = None  # the start-up pipe end (None for a Ray-placed worker)
     transport: Any = None
     broken: str | None = None
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -183,10 +109,10 @@ class WorkerHandle:
         return self.spec.index
 
     @functools.cached_property
-    def remote(self) -> RemoteWorkerProcess | None:
-        """The launcher's handle of a remote worker, or None for a local one (read on every step; a handle keeps
-        its process: a restart makes a new handle)."""
-        return self.process if isinstance(self.process, RemoteWorkerProcess) else None
+    def remote(self) -> RayWorkerProcess | None:
+        """The handle of a worker started elsewhere (by a Ray actor), or None for a local one (read on every step; a
+        handle keeps its process: a restart makes a new handle)."""
+        return self.process if isinstance(self.process, RayWorkerProcess) else None
 
     async def request(self, message: dict[str, Any], timeout_s: float) -> Any:
         """Send ``message`` and wait for the reply's result.
@@ -205,7 +131,7 @@ class WorkerHandle:
             raise WorkerError(self.index, self.broken)
         self.check_idle()
         remote = self.remote
-        if remote is not None and remote.lifeline_has_news():  # its launcher reported the exit, or died
+        if remote is not None and remote.lifeline_has_news():  # its actor reported the exit, or died
             self.broken = await self._death_reason()
             raise WorkerError(self.index, self.broken)
         op = message.get("op")
@@ -229,13 +155,13 @@ class WorkerHandle:
 
     def try_send_request(self, frame: bytes) -> bool:
         """Send an already packed request at once, outside the event loop, when nothing stands in the way (not
-        broken, no news from a remote worker's launcher, room in the transport); True if sent (``receive_reply`` must
+        broken, no news from a Ray-placed worker's actor, room in the transport); True if sent (``receive_reply`` must
         follow). False: nothing was sent, ``send_request`` must do it (and raises what is wrong)."""
         try_send = self.try_send
         if self.broken is not None or self.in_flight or try_send is None:
             return False
         remote = self.remote
-        if remote is not None and remote.lifeline_has_news():  # send_request reports the launcher's news
+        if remote is not None and remote.lifeline_has_news():  # send_request reports the actor's news
             return False
         if not try_send(frame):
             return False
@@ -303,11 +229,11 @@ class WorkerHandle:
     async def _death_reason(self) -> str:
         remote = self.remote
         if remote is not None:
-            code = await remote.poll_exit(0.5)  # the launcher reports the exit a moment after the connection broke
+            code = await remote.poll_exit(0.5)  # the actor reports the exit a moment after the connection broke
             if code is not None:
                 return f"the remote worker process ({self.spec.env_id}, {remote.where()}) died with exit code {code}"
-            if remote.launcher_lost:
-                return f"the remote worker ({self.spec.env_id}, {remote.where()}) is lost: {remote.launcher_lost}"
+            if remote.lost:
+                return f"the remote worker ({self.spec.env_id}, {remote.where()}) is lost: {remote.lost}"
             return f"the connection to the remote worker ({self.spec.env_id}, {remote.where()}) broke"
         for _ in range(20):  # the connection usually breaks a moment before the process is reaped
             if self.process.exitcode is not None:
@@ -328,7 +254,7 @@ class Supervisor:
         call_timeout_s: bound on any one request (reset, step, ...).
         close_timeout_s: bound on ``close`` per stage (ask, join, terminate).
         transport: ``"shm"`` (same machine, the default) or ``"tcp"`` (loopback), for local workers; a spec with
-            ``worker="tcp://HOST:PORT"`` in its kwargs runs on that launcher, over tcp.
+            a Ray placement in its ``worker`` keyword runs where Ray places it (runtime/ray_backend.py).
     """
 
     def __init__(
@@ -349,11 +275,14 @@ class Supervisor:
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
         self.listen_uri = _LISTEN_URIS[transport]
+        # specs of different envs: every info says which env it came from (info["env_id"])
+        self.tag_infos = len({env_id for env_id, _ in specs}) > 1
         self.workers: list[WorkerHandle] = []
         self._closed = False
         self._loop = asyncio.new_event_loop()
         self._lock = threading.Lock()
         self._orphans: list[asyncio.Task[Any]] = []  # calls interrupted inside the loop (see _drive)
+        self._ray_key = secrets.token_bytes(32)  # the key of this vector env's Ray-placed workers
         try:
             self._start(specs, start_timeout_s)
         except BaseException:
@@ -364,8 +293,9 @@ class Supervisor:
 
     def _start(self, specs: Sequence[tuple[str, dict[str, Any]]], timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
-        for index, (env_id, kwargs) in enumerate(specs):
-            placement, env_kwargs = split_placement(kwargs)
+        split = [split_placement(kwargs) for _, kwargs in specs]
+        check_placements([p for p, _ in split if isinstance(p, RayPlacement)])  # before anything starts
+        for index, ((env_id, _), (placement, env_kwargs)) in enumerate(zip(specs, split, strict=True)):
             # the first worker the highest real-time priority: the order in which a step's requests are sent
             rank = min(len(specs) - 1 - index, MAX_LOOP_RANK)
             self.workers.append(self._new_handle(index, env_id, env_kwargs, placement, timeout_s, rank))
@@ -378,21 +308,19 @@ class Supervisor:
         index: int,
         env_id: str,
         kwargs: dict[str, Any],
-        placement: RemoteWorker | None,
+        placement: RayPlacement | None,
         timeout_s: float,
         rt_rank: int = 0,
     ) -> WorkerHandle:
-        """A local worker, started now, or a remote one, to be started by ``_launch``."""
+        """A local worker, started now, or a Ray-placed one, to be started by ``_launch``."""
         if placement is None:
             return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri, rt_rank)
-        spec = WorkerSpec(
-            index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s, listen_uri=placement.uri
-        )
-        return WorkerHandle(spec=spec, process=RemoteWorkerProcess(placement))
+        spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s)
+        return WorkerHandle(spec=spec, process=RayWorkerProcess(placement.keyed(self._ray_key)))
 
     def _launch(self, workers: list[WorkerHandle], deadline: float) -> list[str]:
-        """Ask the launchers of the remote ``workers`` to start them (in parallel, while the local ones start), then
-        read the local ones' URIs; the workers' URIs in order."""
+        """Ask the Ray actors of the Ray-placed ``workers`` to start them (in parallel, while the local ones start),
+        then read the local ones' URIs; the workers' URIs in order."""
         remote = [w for w in workers if w.remote is not None]
         if remote:
             remaining = max(0.1, deadline - time.monotonic())
@@ -413,7 +341,6 @@ class Supervisor:
     def _spawn(
         index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
     ) -> WorkerHandle:
-        ctx = multiprocessing.get_context("spawn")
         spec = WorkerSpec(
             index=index,
             env_id=env_id,
@@ -422,14 +349,10 @@ class Supervisor:
             accept_timeout_s=timeout_s,
             listen_uri=listen_uri,
             rt_rank=rt_rank,
+            registration=registration(env_id),
         )
-        parent_conn, child_conn = ctx.Pipe(duplex=False)
-        # daemon=True: if the supervisor's process exits, multiprocessing terminates the workers (and a
-        # SIGKILLed supervisor is noticed by each worker's watchdog)
-        proc = ctx.Process(target=worker_entry, args=(spec, child_conn), name=f"uniros-worker-{index}", daemon=True)
-        proc.start()
-        child_conn.close()
-        return WorkerHandle(spec=spec, process=proc, conn=parent_conn)
+        proc, conn = start_worker(spec)  # a fresh interpreter: nothing of this process's __main__ is imported
+        return WorkerHandle(spec=spec, process=proc, conn=conn)
 
     def restart(self, index: int, timeout_s: float = 60.0) -> WorkerHandle:
         """Stop worker ``index`` (whatever its state) and start a new one with the same spec.
@@ -445,7 +368,7 @@ class Supervisor:
         deadline = time.monotonic() + timeout_s
         if old_remote is None:
             new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri, old.spec.rt_rank)
-        else:  # through the same launcher
+        else:  # through Ray, with the same placement
             new = self._new_handle(index, old.spec.env_id, old.spec.kwargs, old_remote.placement, timeout_s)
         self.workers[index] = new
         try:
@@ -456,10 +379,9 @@ class Supervisor:
             new.broken = "restart failed"
             self._discard(new)
             if old_remote is not None and isinstance(exc, WorkerError | ConfigError):
-                where = old_remote.placement.uri
                 raise WorkerError(
                     index,
-                    f"could not restart the remote worker through its launcher {where}: {exc}",
+                    f"could not restart the remote worker through {old_remote.placement.uri}: {exc}",
                     remote_traceback=getattr(exc, "remote_traceback", ""),
                 ) from exc
             raise
@@ -479,7 +401,7 @@ class Supervisor:
 
     @staticmethod
     def _wait_uri(w: WorkerHandle, deadline: float) -> str:
-        hint = "see its stderr; a script that starts workers needs `if __name__ == '__main__':` (spawn start method)"
+        hint = "see its stderr"
         while not w.conn.poll(0.05):
             if not w.process.is_alive():
                 raise WorkerError(
@@ -490,7 +412,7 @@ class Supervisor:
         try:
             uri = w.conn.recv()
         except EOFError:
-            if isinstance(w.process, multiprocessing.process.BaseProcess):
+            if isinstance(w.process, WorkerProcess):
                 w.process.join(1.0)
             raise WorkerError(
                 w.index, f"{w.spec.env_id}: the worker exited with code {w.process.exitcode} at start; {hint}"
@@ -507,10 +429,10 @@ class Supervisor:
                 w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s, auth_key=key))
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
-            w.info = await w.request({"op": "spaces"}, timeout_s)
+            w.info = await w.request({"op": "spaces", "tag_infos": self.tag_infos}, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
                 w.transport.spin_ns = REPLY_SPIN_NS
-            w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a remote worker too)
+            w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a Ray-placed worker too)
             w.receive_blocking = getattr(w.transport, "receive_blocking", None)
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
@@ -795,7 +717,7 @@ class Supervisor:
             except Exception:  # noqa: BLE001 - shutting down whatever state they are in
                 logger.warning("asking the workers to close failed", exc_info=True)
         remote = [(w.remote, ok) for w, ok in zip(self.workers, acked, strict=True) if w.remote is not None]
-        if remote and not self._loop.is_closed():  # the launchers join, terminate and kill them (bounded)
+        if remote and not self._loop.is_closed():  # their actors join, terminate and kill them (bounded)
 
             async def stop_remote() -> None:
                 await asyncio.gather(*(r.stop(t, asked=ok) for r, ok in remote), return_exceptions=True)
@@ -807,7 +729,7 @@ class Supervisor:
         local = [
             (w, w.process, ok)
             for w, ok in zip(self.workers, acked, strict=True)
-            if isinstance(w.process, multiprocessing.process.BaseProcess)
+            if isinstance(w.process, WorkerProcess)
         ]
         deadline = time.monotonic() + t
         for _, p, ok in local:
@@ -879,7 +801,7 @@ async def _aclose(transport: Any) -> None:
         await transport.aclose()
 
 
-def _stop_process(process: multiprocessing.process.BaseProcess, timeout_s: float) -> None:
+def _stop_process(process: WorkerProcess, timeout_s: float) -> None:
     """join, terminate, kill: each bounded."""
     if process.is_alive():
         process.terminate()
@@ -994,100 +916,3 @@ class _SentPending(_Pending[list[Any]]):
             wait_s = max(deadline - time.monotonic(), 0.0)
             coro = sup.request_all(left, return_exceptions=True, present=present, wait_s=wait_s)
             self._task = sup._loop.create_task(coro)
-
-
-class ProxyEnv(gym.Env[Any, Any]):
-    """A gymnasium.Env whose env runs in a worker process (see ``make``)."""
-
-    def __init__(self, supervisor: Supervisor) -> None:
-        super().__init__()
-        self._sup = supervisor
-        self._worker = supervisor.workers[0]
-        info = self._worker.info
-        self.observation_space = space_from_plain(info["observation_space"])
-        self.action_space = space_from_plain(info["action_space"])
-        self.metadata = {**self.metadata, **info.get("metadata", {})}
-        self.env_id = self._worker.spec.env_id
-        self.pid = self._worker.process.pid
-        self._closed = False
-
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
-        """Reset the env in the worker. Raises WorkerError on any failure there."""
-        super().reset(seed=seed)
-        self._check_open()
-        obs, info = self._sup.call(
-            self._worker.request({"op": "reset", "seed": seed, "options": options}, self._sup.call_timeout_s)
-        )
-        return obs, info
-
-    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        """Step the env in the worker. Raises WorkerError on any failure there (a bad action included)."""
-        self._check_open()
-        obs, reward, terminated, truncated, info = self._sup.call(
-            self._worker.request({"op": "step", "action": np.asarray(action)}, self._sup.call_timeout_s)
-        )
-        return obs, reward, terminated, truncated, info
-
-    def call(self, name: str, *args: Any, **kwargs: Any) -> Any:
-        """Call the env's method ``name`` (or read its attribute) in the worker; plain data in and out."""
-        self._check_open()
-        msg = {"op": "call", "name": name, "args": list(args), "kwargs": kwargs}
-        return self._sup.call(self._worker.request(msg, self._sup.call_timeout_s))
-
-    def close(self) -> None:
-        """Close the env and stop the worker; idempotent, bounded in time."""
-        if self._closed:
-            return
-        self._closed = True
-        self._sup.close()
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise gym.error.ClosedEnvironmentError(f"the proxy of {self.env_id} is closed; make a new one")
-
-    def __repr__(self) -> str:
-        return f"<ProxyEnv {self.env_id} pid={self.pid}>"
-
-
-def make(
-    env_id: str,
-    *,
-    in_process: bool = False,
-    start_timeout_s: float = 60.0,
-    call_timeout_s: float = 60.0,
-    transport: str = "shm",
-    **kwargs: Any,
-) -> gym.Env[Any, Any]:
-    """Make ``env_id`` in its own worker process and return a gymnasium.Env proxy for it.
-
-    Args:
-        env_id: a registered id, e.g. ``"uniros/Rx200Reach-v0"``, or ``"module:Id"`` for an env of your own
-            (``module`` registers ``Id``; the worker, a fresh interpreter, imports it too).
-        in_process: return the plain ``gymnasium.make`` env instead (for debugging).
-        start_timeout_s: bound on starting the worker and building the env.
-        call_timeout_s: bound on each reset/step.
-        transport: how the agent side talks to the worker: ``"shm"`` (default) or ``"tcp"`` (loopback).
-        **kwargs: passed to ``gymnasium.make`` in the worker (clock, robot, reward_type, ...), except ``worker``:
-            where the worker runs, None (here) or a launcher on another host, ``"tcp://HOST:PORT"`` or a
-            ``RemoteWorker`` (see runtime/remote.py; the key defaults to ``$UNIROS_WORKER_AUTH_KEY``).
-
-    Raises:
-        ConfigError: an unknown id or keyword argument (raised here, before any process starts; for a remote
-            worker, by the launcher's registry).
-        WorkerError: the worker failed to start or to build the env (its traceback attached), or its launcher
-            is unreachable or refused it.
-    """
-    check_env_args(env_id, kwargs)
-    if in_process:
-        if kwargs.get(_PLACEMENT_KWARG) is not None:
-            raise ConfigError("in_process=True and worker=... exclude each other")
-        kwargs = {k: v for k, v in kwargs.items() if k != _PLACEMENT_KWARG}
-        return gym.make(env_id, **kwargs)
-    sup = Supervisor(
-        [(env_id, kwargs)], start_timeout_s=start_timeout_s, call_timeout_s=call_timeout_s, transport=transport
-    )
-    try:
-        return ProxyEnv(sup)
-    except BaseException:
-        sup.close()
-        raise

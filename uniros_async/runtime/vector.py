@@ -28,15 +28,18 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
 from uniros_async.errors import ConfigError, WorkerError
-from uniros_async.runtime.supervisor import Supervisor
-from uniros_async.runtime.worker import (
+from uniros_async.runtime.protocol import (
     PackedRequest,
     array_head,
+    conform,
     pack_step_request,
+    result_value,
     space_from_plain,
     unpack,
     unpack_step_reply_into,
 )
+from uniros_async.runtime.ray_backend import apply_backend
+from uniros_async.runtime.supervisor import Supervisor
 
 __all__ = ["UnirosVectorEnv", "make_vec"]
 
@@ -108,37 +111,30 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         pad: bool = True,
         restart_on_failure: bool = False,
         start_timeout_s: float = 60.0,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
         self._sup = supervisor
+        self.autoreset_mode = _autoreset_mode(autoreset_mode)
+        self._autoreset = _AUTORESET_WIRE[self.autoreset_mode]
         self.restart_on_failure = restart_on_failure
         self.restarts = [0] * len(supervisor.workers)
         self._start_timeout_s = start_timeout_s
         self._pad_msg: dict[str, Any] | None = None
         self._closed_vec = False
         self._pending: Any = None  # the Supervisor._Pending of step_async
+        self._last_obs: Any = None  # the last vector observation returned (reset with a reset_mask keeps its rows)
         workers = supervisor.workers
         self.num_envs = len(workers)
         self.env_ids = [w.spec.env_id for w in workers]
         self.pids = supervisor.pids()
         names = [f"{i}:{e}" for i, e in enumerate(self.env_ids)]
-        if pad:
-            obs_boxes = [_vector_box(space_from_plain(w.info["observation_space"])) for w in workers]
-            act_boxes = [_vector_box(space_from_plain(w.info["action_space"])) for w in workers]
-            bad = [n for n, o, a in zip(names, obs_boxes, act_boxes, strict=True) if o is None or a is None]
-            if bad:
-                raise ConfigError(
-                    f"cannot pad envs {bad}: padding needs 1-D Box observations (or a Dict with a 1-D "
-                    "'observation') and 1-D Box actions"
-                )
-            obs_size = max(b.shape[0] for b in obs_boxes if b is not None)
-            act_size = max(b.shape[0] for b in act_boxes if b is not None)
-            msg = {"op": "pad", "obs_size": obs_size, "action_size": act_size}
-            self._pad_msg = msg
-            infos = supervisor.call(supervisor.request_all([msg] * self.num_envs))
-            for w, info in zip(workers, infos, strict=True):
-                w.info = {**w.info, **info}
         obs_spaces = [space_from_plain(w.info["observation_space"]) for w in workers]
         act_spaces = [space_from_plain(w.info["action_space"]) for w in workers]
+        same = all(o == obs_spaces[0] for o in obs_spaces) and all(a == act_spaces[0] for a in act_spaces)
+        if pad and not same:  # identical spaces are never padded
+            self._pad(names, obs_spaces, act_spaces)
+            obs_spaces = [space_from_plain(w.info["observation_space"]) for w in workers]
+            act_spaces = [space_from_plain(w.info["action_space"]) for w in workers]
         self.single_observation_space = _merge(obs_spaces, names, union=True, what="observation")
         self.single_action_space = _merge(act_spaces, names, union=False, what="action")
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
@@ -151,33 +147,97 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             self._obs_head = array_head(obs_space.dtype, obs_space.shape)
             self._obs_batch = ((self.num_envs, *obs_space.shape), np.dtype(obs_space.dtype))
         self._action_form: tuple[Any, ...] = (None,)  # _action_form of single_action_space, made at the first step
-        self.metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}
-        self.render_mode = None
+        # a value of another space than a Box crosses the wire without its tuples and numpy scalars (protocol.conform)
+        self._conform_obs = not isinstance(obs_space, gym.spaces.Box)
+        # a Dict of Boxes (a goal env's observation) is batched key by key into arrays made here: what gymnasium's
+        # concatenate returns, at a fifth of its cost (its create_empty_array and per-key walk cost ~15 us a step)
+        self._dict_form: tuple[tuple[str, tuple[int, ...], np.dtype[Any]], ...] | None = None
+        if isinstance(obs_space, gym.spaces.Dict) and all(
+            isinstance(sub, gym.spaces.Box) for sub in obs_space.spaces.values()
+        ):
+            self._dict_form = tuple(
+                (key, sub.shape or (), np.dtype(sub.dtype)) for key, sub in obs_space.spaces.items()
+            )
+        first = workers[0].info
+        self.metadata = {**first.get("metadata", {}), "autoreset_mode": self.autoreset_mode}
+        self.render_mode = first.get("render_mode")
         self.spec = None
         self.closed = False
+
+    def _pad(self, names: list[str], obs_spaces: list[gym.Space[Any]], act_spaces: list[gym.Space[Any]]) -> None:
+        """Have every worker pad its env to the largest observation and action sizes (``PadSpaces``).
+
+        Raises:
+            ConfigError: the spaces differ and cannot be padded (not 1-D Boxes), naming the envs and their spaces.
+        """
+        obs_boxes = [_vector_box(s) for s in obs_spaces]
+        act_boxes = [_vector_box(s) for s in act_spaces]
+        bad = [i for i, (o, a) in enumerate(zip(obs_boxes, act_boxes, strict=True)) if o is None or a is None]
+        if bad:
+            listing = "; ".join(
+                f"{names[i]}: observation {obs_spaces[i]}, action {act_spaces[i]}" for i in range(len(names))
+            )
+            raise ConfigError(
+                f"the envs' spaces differ and cannot be padded ({listing}); padding needs 1-D Box observations (or a "
+                f"Dict with a 1-D 'observation') and 1-D Box actions, which {[names[i] for i in bad]} do not have"
+            )
+        obs_size = max(b.shape[0] for b in obs_boxes if b is not None)
+        act_size = max(b.shape[0] for b in act_boxes if b is not None)
+        msg = {"op": "pad", "obs_size": obs_size, "action_size": act_size}
+        self._pad_msg = msg
+        sup = self._sup
+        infos = sup.call(sup.request_all([msg] * self.num_envs))
+        for w, info in zip(sup.workers, infos, strict=True):
+            w.info = {**w.info, **info}
 
     # ---- gymnasium VectorEnv API
 
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Any, dict[str, Any]]:
-        """Reset every sub-env; an int seed gives sub-env i the seed ``seed + i``.
+        """Reset every sub-env; an int seed gives sub-env i the seed ``seed + i``. With ``options["reset_mask"]`` (a
+        bool array, one per sub-env; gymnasium's DISABLED autoreset mode) only those sub-envs reset, and the others
+        keep their last observation.
 
         Raises:
             WorkerError: a worker failed (index and traceback attached).
+            ValueError, TypeError: a malformed ``reset_mask`` (as gymnasium's vector envs say it).
         """
         self._check_open()
         self._drop_pending()
         seeds = self._seeds(seed)
-        replies = self._sup.call(self._sup.request_all([{"op": "reset", "seed": s, "options": options} for s in seeds]))
-        return self._stack_obs([r[0] for r in replies]), self._infos([r[1] for r in replies])
+        mask = None
+        if options is not None and "reset_mask" in options:
+            options = dict(options)
+            mask = _check_reset_mask(options.pop("reset_mask"), self.num_envs)
+            if mask.all() or self._last_obs is None:  # every row is reset: an ordinary reset
+                mask = None
+        msgs: list[Any] = [{"op": "reset", "seed": s, "options": options} for s in seeds]
+        if mask is not None:
+            msgs = [m if keep else None for m, keep in zip(msgs, mask, strict=True)]
+        replies = self._sup.call(self._sup.request_all(msgs))
+        if mask is None:
+            obs = self._stack_obs([r[0] for r in replies])
+            infos = self._infos([r[1] for r in replies])
+        else:
+            rows = list(iterate(self.observation_space, self._last_obs))
+            for i, r in enumerate(replies):
+                if r is not None:
+                    rows[i] = r[0]
+            obs = self._stack_obs(rows)
+            infos = {}
+            for i, r in enumerate(replies):
+                if r is not None:
+                    infos = self._add_info(infos, r[1], i)
+        self._last_obs = obs
+        return obs, infos
 
     def step_async(self, actions: Any) -> None:
         """Send one action to every worker and return at once."""
         self._check_open()
         if self._pending is not None:
             raise gym.error.AlreadyPendingCallError("step_async was called twice without step_wait", "step")
-        msgs = self._step_messages(actions, "next_step")
+        msgs = self._step_messages(actions, self._autoreset)
         self._pending = self._sup.submit_steps(msgs)
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -198,22 +258,52 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             self._check_open()
         if self._pending is not None:
             raise gym.error.AlreadyPendingCallError("step was called while a step_async is pending", "step")
-        msgs = self._step_messages(actions, "next_step")
+        msgs = self._step_messages(actions, self._autoreset)
         sup = self._sup
         sent = sup.send_steps_now(msgs)
         returns = _Returns(self)  # made while the workers step
         return returns.finish(self._collect(sup.receive_steps_now(msgs, sent, returns.decode)))
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
-        """Call method ``name`` (or read attribute ``name``) of every sub-env; plain data in and out."""
+        """Call method ``name`` of every sub-env (or read attribute ``name``), looked up through its wrappers as
+        gymnasium's vector envs do; arguments and results are plain data, spaces and arrays (anything else comes
+        back as its repr)."""
         self._check_open()
         msg = {"op": "call", "name": name, "args": list(args), "kwargs": kwargs}
-        return tuple(self._sup.call(self._sup.request_all([msg] * self.num_envs)))
+        return tuple(result_value(r) for r in self._sup.call(self._sup.request_all([msg] * self.num_envs)))
 
     def get_attr(self, name: str) -> tuple[Any, ...]:
-        """Attribute ``name`` of every sub-env (plain data)."""
+        """Attribute ``name`` of every sub-env: ``call(name)``, as gymnasium's vector envs have it (a method is
+        called)."""
+        return self.call(name)
+
+    def set_attr(self, name: str, values: list[Any] | tuple[Any, ...] | Any) -> None:
+        """Set attribute ``name`` of every sub-env: ``values[i]`` for sub-env i when a list or tuple, else the one
+        value for all.
+
+        Raises:
+            ValueError: a list or tuple whose length is not the number of envs.
+        """
         self._check_open()
-        return tuple(self._sup.call(self._sup.request_all([{"op": "get", "name": name}] * self.num_envs)))
+        if not isinstance(values, list | tuple):
+            values = [values] * self.num_envs
+        if len(values) != self.num_envs:
+            raise ValueError(
+                "Values must be a list or tuple with length equal to the number of environments. "
+                f"Got `{len(values)}` values for {self.num_envs} environments."
+            )
+        msgs = [{"op": "set", "name": name, "value": v} for v in values]
+        self._sup.call(self._sup.request_all(msgs))
+
+    def render(self) -> tuple[Any, ...] | None:
+        """Every sub-env's ``render()`` (with ``render_mode="rgb_array"``: one frame each)."""
+        self._check_open()
+        return tuple(self._sup.call(self._sup.request_all([{"op": "render"}] * self.num_envs)))
+
+    @property
+    def np_random_seed(self) -> tuple[int, ...]:  # type: ignore[override]
+        """Every sub-env's ``np_random_seed`` (as gymnasium's vector envs read it)."""
+        return self.get_attr("np_random_seed")
 
     def close(self, **kwargs: Any) -> None:
         """Stop every worker; idempotent and bounded in time."""
@@ -244,7 +334,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             raise ConfigError(f"expected {self.num_envs} seeds, got {len(seeds)}")
         return seeds
 
-    def _step_messages(self, actions: Any, autoreset: str) -> list[PackedRequest]:
+    def _step_messages(self, actions: Any, autoreset: str | None) -> list[PackedRequest]:
         """One packed step request per worker (``pack_step_request``: no message map to build or walk)."""
         space = self.single_action_space
         form = self._action_form
@@ -254,12 +344,14 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         if kind == "box":
             per_env: Any = np.asarray(actions, dtype)
             if per_env.shape != shape:
-                raise gym.error.InvalidAction(f"actions must have shape {shape}, got {per_env.shape}")
+                _bad_actions(shape, per_env.shape)
         elif kind == "discrete":  # gymnasium's iterate over the batch space costs ~7 us here
             batch = np.asarray(actions, dtype)
             if batch.shape != shape:
-                raise gym.error.InvalidAction(f"actions must have shape {shape}, got {batch.shape}")
+                _bad_actions(shape, batch.shape)
             per_env = batch.tolist()
+        elif type(actions) is list and len(actions) == self.num_envs and kind == "composite":
+            per_env = actions  # one action per sub-env, as SB3 passes them (a batch of a Dict or Tuple is no list)
         else:
             per_env = list(iterate(self.action_space, actions))
         # one reference time for the whole step, for the members on this machine (CLOCK_MONOTONIC is machine-wide):
@@ -268,7 +360,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         t = time.monotonic_ns()
         workers = self._sup.workers
         if len(per_env) != len(workers):
-            raise gym.error.InvalidAction(f"expected one action per env ({len(workers)}), got {len(per_env)}")
+            raise InvalidActionsError(f"expected one action per env ({len(workers)}), got {len(per_env)}")
         return [
             pack_step_request(a, autoreset, t if w.remote is None else None)
             for a, w in zip(per_env, workers)  # noqa: B905  (lengths checked: the strict check costs ~0.5 us here)
@@ -318,6 +410,17 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
 
     def _stack_obs(self, obs: list[Any]) -> Any:
         space = self.single_observation_space
+        form = self._dict_form
+        if form is not None:
+            out_dict = {}
+            for key, shape, dtype in form:
+                batch = np.empty((len(obs), *shape), dtype)
+                for i, o in enumerate(obs):
+                    batch[i] = o[key]
+                out_dict[key] = batch
+            return out_dict
+        if self._conform_obs:
+            obs = [conform(space, o) for o in obs]
         if isinstance(space, gym.spaces.Box):  # gymnasium's concatenate does this, after an allocation of its own
             return np.array(obs, dtype=space.dtype)  # as np.stack, a quarter of its cost
         out: Any = create_empty_array(self.single_observation_space, self.num_envs)
@@ -369,13 +472,70 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
 _FLOAT64, _BOOL = np.dtype(np.float64), np.dtype(np.bool_)
 
 
+class InvalidActionsError(gym.error.InvalidAction, ValueError):
+    """Actions that are not one per sub-env (a ValueError too, as gymnasium's vector envs raise)."""
+
+
+def _bad_actions(expected: tuple[int, ...], got: tuple[int, ...]) -> None:
+    """Raise what a vector step with actions of shape ``got`` raises: TypeError for a scalar (no action per sub-env
+    at all), else InvalidActionsError."""
+    if got == ():
+        raise TypeError(f"actions must have shape {expected}, one per sub-env, got a scalar")
+    raise InvalidActionsError(f"actions must have shape {expected}, got {got}")
+
+
+def _check_reset_mask(mask: Any, n: int) -> np.ndarray:
+    """``options["reset_mask"]`` checked as gymnasium's vector envs check it (their messages).
+
+    Raises:
+        TypeError: not a bool array.
+        ValueError: not of shape ``(n,)``, or no True in it.
+    """
+    if not isinstance(mask, np.ndarray):
+        raise TypeError(f"`options['reset_mask': mask]` must be a numpy array, got {type(mask)}")
+    if mask.shape != (n,):
+        raise ValueError(f"`options['reset_mask']` must have shape `({n},)`, got {mask.shape}")
+    if mask.dtype != np.bool_:
+        raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got {mask.dtype}")
+    if not np.any(mask):
+        raise ValueError(
+            f"`options['reset_mask']` must contain a boolean array with at least one True value, got reset_mask={mask}"
+        )
+    return mask
+
+
+_AUTORESET_WIRE = {
+    AutoresetMode.NEXT_STEP: "next_step",
+    AutoresetMode.SAME_STEP: "same_step",
+    AutoresetMode.DISABLED: None,
+}
+"""Each gymnasium autoreset mode as the step request names it (protocol.AUTORESET_MODES)."""
+
+
+def _autoreset_mode(mode: AutoresetMode | str) -> AutoresetMode:
+    """``mode`` as an AutoresetMode (its value, e.g. ``"SameStep"``, or its name, ``"same_step"``, accepted).
+
+    Raises:
+        ConfigError: anything else.
+    """
+    if isinstance(mode, AutoresetMode):
+        return mode
+    for m in AutoresetMode:
+        if isinstance(mode, str) and mode in (m.value, m.name, m.name.lower()):
+            return m
+    raise ConfigError(f"autoreset_mode must be one of {[m.value for m in AutoresetMode]}, got {mode!r}")
+
+
 def _action_form(space: gym.Space[Any], n: int) -> tuple[Any, ...]:
     """(space, kind, batch shape, dtype) of a vector env's actions: kind "box" (an array of ``n`` rows), "discrete"
-    (``n`` ints) or "other" (iterated as gymnasium does)."""
+    (``n`` ints), "composite" (a Dict or Tuple: a batch iterated as gymnasium does, or a list of one action per
+    sub-env) or "other" (iterated as gymnasium does)."""
     if isinstance(space, gym.spaces.Box):
         return space, "box", (n, *space.shape), np.dtype(space.dtype)
     if isinstance(space, gym.spaces.Discrete):
         return space, "discrete", (n,), np.dtype(np.int64)
+    if isinstance(space, gym.spaces.Dict | gym.spaces.Tuple):
+        return space, "composite", None, None
     return space, "other", None, None
 
 
@@ -430,9 +590,12 @@ class _Returns:
                     obs[i] = o
                 else:
                     others.append(o)
+            if venv._conform_obs and "final_obs" in info:
+                info["final_obs"] = conform(venv.single_observation_space, info["final_obs"])
             infos = venv._add_info(infos, info, i)
         if obs is None:
             obs = venv._stack_obs(others)
+        venv._last_obs = obs
         return obs, self.rewards, self.terminated, self.truncated, infos
 
 
@@ -446,19 +609,22 @@ def _sb3_class() -> type:
     from stable_baselines3.common.vec_env.base_vec_env import VecEnv as SB3VecEnv
 
     class UnirosSB3VecEnv(SB3VecEnv):
-        """An SB3 VecEnv over the workers of a UnirosVectorEnv (same-step autoreset; SB3's info conventions)."""
+        """An SB3 VecEnv over the workers of a UnirosVectorEnv, with SB3's conventions (as DummyVecEnv): the step
+        that ends an episode resets at once; its info holds ``terminal_observation`` and ``TimeLimit.truncated``;
+        the reset's info goes to ``reset_infos``."""
 
         def __init__(self, venv: UnirosVectorEnv) -> None:
             self.venv = venv
             super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
 
         def reset(self) -> Any:
-            seeds = list(self._seeds)
-            options = self._options[0] if self._options and self._options[0] else None
             v = self.venv
             v._check_open()
             v._drop_pending()
-            msgs = [{"op": "reset", "seed": s, "options": options} for s in seeds]
+            msgs = [
+                {"op": "reset", "seed": self._seeds[i], "options": self._options[i] or None}
+                for i in range(self.num_envs)
+            ]
             replies = v._sup.call(v._sup.request_all(msgs))
             self.reset_infos = [r[1] for r in replies]
             self._reset_seeds()
@@ -474,43 +640,89 @@ def _sb3_class() -> type:
             v._pending = v._sup.submit_steps(msgs)
 
         def step_wait(self) -> tuple[Any, np.ndarray, np.ndarray, list[dict[str, Any]]]:
-            replies = self.venv._wait(None)
+            v = self.venv
+            replies = v._wait(None)
             infos: list[dict[str, Any]] = []
             dones = np.zeros(self.num_envs, dtype=np.bool_)
+            space = v.single_observation_space
             for i, (_, _, terminated, truncated, info) in enumerate(replies):
-                dones[i] = terminated or truncated
-                if "final_obs" in info:
-                    info["terminal_observation"] = info.pop("final_obs")
-                    info["TimeLimit.truncated"] = bool(truncated and not terminated)
-                elif dones[i]:  # a restarted worker: its final observation died with it
+                done = dones[i] = terminated or truncated
+                if "final_obs" in info:  # the worker reset after the step (protocol: same_step)
+                    reset_info = {k: x for k, x in info.items() if k not in ("final_obs", "final_info")}
+                    self.reset_infos[i] = reset_info
+                    final = info["final_obs"]
+                    info = dict(info["final_info"])
+                    info["terminal_observation"] = conform(space, final) if v._conform_obs else final
+                elif done:  # a restarted worker: its final observation died with it
                     info["terminal_observation"] = replies[i][0]
-                    info["TimeLimit.truncated"] = True
+                info["TimeLimit.truncated"] = bool(truncated and not terminated)
                 infos.append(info)
-            obs = self.venv._stack_obs([r[0] for r in replies])
+            obs = v._stack_obs([r[0] for r in replies])
             rewards = np.array([r[1] for r in replies], dtype=np.float32)
             return obs, rewards, dones, infos
 
         def close(self) -> None:
             self.venv.close()
 
+        def get_images(self) -> Sequence[np.ndarray | None]:
+            if self.render_mode != "rgb_array":
+                import warnings
+
+                warnings.warn(
+                    f"The render mode is {self.render_mode}, but this method assumes it is `rgb_array` to obtain "
+                    "images.",
+                    stacklevel=2,
+                )
+                return [None] * self.num_envs
+            return list(self.venv.render() or ())
+
         def _targets(self, indices: Any) -> list[int]:
+            """``indices`` as SB3 takes them (None: all; an int; an iterable; negative ones count from the end).
+
+            Raises:
+                IndexError: an index out of range.
+            """
+            n = self.num_envs
             if indices is None:
-                return list(range(self.num_envs))
+                return list(range(n))
             if isinstance(indices, int | np.integer):
-                return [int(indices)]
-            return [int(i) for i in indices]
+                indices = [indices]
+            out = []
+            for i in indices:
+                k = int(i)
+                if not -n <= k < n:
+                    raise IndexError(f"env index {k} out of range for {n} envs")
+                out.append(k % n)
+            return out
 
         def _each(self, msg: dict[str, Any], indices: Any) -> list[Any]:
+            """``msg`` to each worker of ``indices``, in their order (an index named twice gets it twice); the
+            results in that order."""
             v = self.venv
-            targets = set(self._targets(indices))
-            msgs = [msg if i in targets else None for i in range(self.num_envs)]
-            try:
-                out = v._sup.call(v._sup.request_all(msgs))
-            except WorkerError as exc:
-                if "AttributeError" in str(exc):
-                    raise AttributeError(str(exc)) from exc
-                raise
-            return [out[i] for i in sorted(targets)]
+            v._check_open()
+            targets = self._targets(indices)
+            results: list[Any] = [None] * len(targets)
+            todo = list(enumerate(targets))
+            while todo:  # one request per worker at a time: a repeated index waits for the next round
+                round_: list[tuple[int, int]] = []
+                later: list[tuple[int, int]] = []
+                seen: set[int] = set()
+                for pos, i in todo:
+                    (later if i in seen else round_).append((pos, i))
+                    seen.add(i)
+                msgs: list[Any] = [None] * self.num_envs
+                for _, i in round_:
+                    msgs[i] = msg
+                try:
+                    out = v._sup.call(v._sup.request_all(msgs))
+                except WorkerError as exc:
+                    if "AttributeError" in str(exc):
+                        raise AttributeError(str(exc)) from exc
+                    raise
+                for pos, i in round_:
+                    results[pos] = result_value(out[i])
+                todo = later
+            return results
 
         def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
             return self._each({"op": "get", "name": attr_name}, indices)
@@ -525,8 +737,9 @@ def _sb3_class() -> type:
             return self._each(msg, indices)
 
         def env_is_wrapped(self, wrapper_class: type, indices: Any = None) -> list[bool]:
-            # wrappers live in the workers; only the padding wrapper is ever added there, never SB3's
-            return [False for _ in self._targets(indices)]
+            """Asked of each worker's env (its wrappers live there)."""
+            name = f"{wrapper_class.__module__}:{wrapper_class.__qualname__}"
+            return [bool(r) for r in self._each({"op": "is_wrapped", "wrapper": name}, indices)]
 
     _SB3_CLASS.append(UnirosSB3VecEnv)
     return UnirosSB3VecEnv
@@ -540,6 +753,8 @@ def make_vec(
     start_timeout_s: float = 60.0,
     call_timeout_s: float = 60.0,
     transport: str = "shm",
+    autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+    backend: str = "local",
     **common_kwargs: Any,
 ) -> UnirosVectorEnv:
     """A gymnasium VectorEnv over one worker process per spec.
@@ -547,31 +762,44 @@ def make_vec(
     Args:
         specs: env ids or ``(env_id, kwargs)`` pairs, e.g. ``["uniros/Rx200Reach-v0", ("uniros/Ned2Reach-v0",
             {"robot": "emulated-real"})]``; any gymnasium id, and for an env of your own gymnasium's
-            ``"module:Id"`` (the worker imports ``module``, which registers ``Id``). ``{"worker":
-            "tcp://HOST:PORT"}`` (or a ``RemoteWorker``) runs that spec's worker on a launcher on another host
-            (``uniros worker serve``, runtime/remote.py; its pid in ``pids`` is on that host); ``"worker": None``
-            keeps it here.
-        pad: pad observations and actions to the largest sizes (required when the envs differ); without it the
-            spaces must match.
+            ``"module:Id"`` (the worker imports ``module``, which registers ``Id``). ``{"worker": "ray"}``
+            or ``{"worker": {"ray": {...}}}`` has Ray place that spec's worker on a node of its cluster (see
+            ``backend``; its pid in ``pids`` is on that node); ``"worker": None`` keeps it here.
+        pad: when the envs' spaces differ, pad observations and actions to the largest sizes (1-D Box spaces, or a
+            Dict with a 1-D ``observation``); identical spaces are never padded. Without it the spaces must match.
         start_timeout_s: bound on starting all workers and building their envs.
         restart_on_failure: when a worker dies (or stops answering) during a step, start a new one, reset its env
             and report that sub-env's step as truncated with ``info["worker_restarted"]``; otherwise the step raises
             WorkerError. Exceptions raised by the env itself are always raised.
         call_timeout_s: bound on each reset/step of a worker.
         transport: how the agent side talks to the workers: ``"shm"`` (default) or ``"tcp"`` (loopback).
+        autoreset_mode: gymnasium's ``AutoresetMode``: ``NEXT_STEP`` (the default, as AsyncVectorEnv: the step
+            after an episode's end resets that sub-env and ignores its action), ``SAME_STEP`` (the step that ends
+            an episode resets at once; ``info["final_obs"]`` and ``info["final_info"]`` hold the ended episode's
+            last returns) or ``DISABLED`` (the caller resets, ``reset(options={"reset_mask": ...})``).
+        backend: where the workers run: ``"local"`` (here, the default) or ``"ray"`` (each placed by Ray's scheduler
+            on a node of the connected cluster, runtime/ray_backend.py; a spec's ``{"worker": {"ray": {"resources":
+            {"rx200_arm": 1}}}}`` or ``node_id`` pins it, ``"worker": None`` keeps it here).
         **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
 
     Raises:
-        ConfigError: a malformed spec, an unknown id or keyword argument (before any process starts; for a remote
-            spec, by its launcher), or spaces that cannot be padded or combined (naming the envs; the workers are
-            closed).
-        WorkerError: a worker failed to start or to build its env, or its launcher is unreachable or refused it
-            (its index and traceback; the others are closed).
+        ConfigError: a malformed spec, an unknown id or keyword argument, a ``worker`` that is neither None nor a
+            Ray placement (before any process starts), or spaces that cannot be padded or combined (naming the
+            envs; the workers are closed).
+        WorkerError: a worker failed to start or to build its env, or Ray could not place or start it (its index
+            and traceback; the others are closed).
     """
     norm = [(env_id, {**common_kwargs, **kw}) for env_id, kw in _normalize_specs(specs)]
+    norm = apply_backend(norm, backend)
     sup = Supervisor(norm, start_timeout_s=start_timeout_s, call_timeout_s=call_timeout_s, transport=transport)
     try:
-        return UnirosVectorEnv(sup, pad=pad, restart_on_failure=restart_on_failure, start_timeout_s=start_timeout_s)
+        return UnirosVectorEnv(
+            sup,
+            pad=pad,
+            restart_on_failure=restart_on_failure,
+            start_timeout_s=start_timeout_s,
+            autoreset_mode=autoreset_mode,
+        )
     except BaseException:
         sup.close()
         raise

@@ -64,6 +64,18 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         default=1.0,
         help="watchdog: hold after this many seconds without a command; 0 disables",
     )
+    serve.add_argument(
+        "--max-command-age",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="drop commands stamped more than S seconds ago (the sender must share this machine's clock); 0: keep all",
+    )
+    serve.add_argument(
+        "--trace",
+        action="store_true",
+        help="print every command's age and every watchdog hold as JSON lines on stdout, after the URI",
+    )
     serve.add_argument("--markers", action="store_true", help="publish EE and goal markers on ROBOT/markers")
     serve.add_argument(
         "--ros1-master",
@@ -248,12 +260,24 @@ def _serve_ros1(args: argparse.Namespace) -> int:
         raise ConfigError(
             "--ros1-master serves on the ROS graph in wall time: --sim-time, --markers and --namespace do not apply"
         )
+    if args.max_command_age:
+        from uniros_async.errors import ConfigError
+
+        raise ConfigError(
+            "--max-command-age needs the sender's stamp, which the ROS 1 driver's command messages do not carry"
+        )
     cfg = Ros1BridgeConfig(
         robot=args.robot, master_uri=args.ros1_master, ros_host=args.ros_host, insecure=args.insecure
     )
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     servo = ServoSimConfig(command_timeout_s=args.command_timeout or None)
-    return _run_until_signal(serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
+    on_event = None
+    if args.trace:
+        from uniros_async.sim.serve import print_event
+
+        on_event = print_event
+    serve = serve_ros1_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready, on_event=on_event)
+    return _run_until_signal(serve)
 
 
 def _serve_ros2(args: argparse.Namespace) -> int:
@@ -302,6 +326,10 @@ def _run_until_signal(serve: Any) -> int:
         cancel_on_signals(signal.SIGINT, signal.SIGTERM)
         await serve
 
+    from uniros_async.priority import raise_loop_priority
+
+    raise_loop_priority()  # an arm's hardware loop (or its bridge): on time beside learners and other loops
+
     try:
         asyncio.run(main())
     except asyncio.CancelledError:  # SIGINT/SIGTERM: an orderly stop
@@ -336,6 +364,8 @@ def _serve(args: argparse.Namespace) -> int:
         clock="sim" if args.sim_time else "wall",
         time_scale=args.time_scale or None,
         publish_markers=args.markers,
+        max_command_age_s=args.max_command_age or None,
+        trace=args.trace,
         auth_key=_auth_key(args),
         insecure=args.insecure,
     )

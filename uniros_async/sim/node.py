@@ -10,6 +10,13 @@ In namespace ``/<robot name>`` (configurable) the node
 - publishes Marker messages on ``markers`` when asked (``publish_markers=True``): the goal marker given by
   ``set_goal_marker(pos)`` or received on ``markers_in``, and the EE marker at every tick.
 
+Commands carry the sender's stamp (``header.stamp_ns``, the domain's clock). With ``max_command_age_s`` the node
+drops a command older than that when it arrives at a tick (``stale_commands``), so a command that sat in a buffer
+of a broken or frozen link never moves the arm when the link comes back; the sender must share the node's clock (a
+process on the same machine: CLOCK_MONOTONIC is one across network namespaces, or a SimClock follower). ``on_event``
+gets a dict for every command taken at a tick (``{"ev": "cmd", "t_ns", "age_ns", "applied"}``) and every watchdog
+hold (``{"ev": "hold", "t_ns"}``): the fault tests measure with it.
+
 Placements (docs/architecture.md): ``open_servo_sim`` runs it in the caller's process; ``open_servo_sim_process``
 (sim/serve.py) in its own process joining the same domain; ``serve_servo_sim`` (sim/serve.py, and
 ``uniros robot serve``) as a remote service with its own tcp domain.
@@ -24,7 +31,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -71,6 +78,9 @@ class ServoSimNode:
         perturbation: the factors drawn for an emulated arm (``perturb_model``), or {}.
         goal_marker: the goal marker position, or None.
         last_state: the last published JointState (after noise), or None.
+        max_command_age_s: commands older than this when taken at a tick are dropped (None: none are).
+        stale_commands: commands dropped for their age.
+        on_event: called with each command and watchdog event (see the module docstring), or None.
     """
 
     def __init__(
@@ -81,7 +91,14 @@ class ServoSimNode:
         emulation: EmulationConfig | None = None,
         perturbation: dict[str, np.ndarray] | None = None,
         publish_markers: bool = False,
+        max_command_age_s: float | None = None,
+        on_event: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
+        if max_command_age_s is not None and not max_command_age_s > 0:
+            raise ConfigError(f"max_command_age_s: expected a value > 0 or None, got {max_command_age_s}")
+        self.max_command_age_s = max_command_age_s
+        self.stale_commands = 0
+        self.on_event = on_event
         self.node = node
         self.sim = sim
         self.emulation = emulation
@@ -157,16 +174,37 @@ class ServoSimNode:
     def _take_command(self) -> JointCommand | None:
         if self._cmd_line is not None:
             cmd, self._pending = self._pending, None
-            return cmd
-        sub = self.commands
-        if sub.received != self._seen:
+        else:
+            sub = self.commands
+            if sub.received == self._seen:
+                return None
             self._seen = sub.received
-            return sub.latest()
-        return None
+            cmd = sub.latest()
+        if cmd is None or (self.max_command_age_s is None and self.on_event is None):
+            return cmd
+        now = self.node.now_ns()
+        age_ns = now - cmd.header.stamp_ns
+        applied = self.max_command_age_s is None or age_ns <= self.max_command_age_s * 1e9
+        if not applied:
+            self.stale_commands += 1
+            if self.stale_commands <= 10 or self.stale_commands % 1000 == 0:
+                logger.warning(
+                    "%s: dropped a command %.3f s old (max_command_age_s=%s; %d dropped)",
+                    self.robot.name,
+                    age_ns / 1e9,
+                    self.max_command_age_s,
+                    self.stale_commands,
+                )
+        if self.on_event is not None:
+            self.on_event({"ev": "cmd", "t_ns": now, "age_ns": age_ns, "applied": applied})
+        return cmd if applied else None
 
     def _on_tick(self) -> None:
         cmd = self._take_command()
+        holds = self.sim.stats.watchdog_holds
         state = self.sim.tick(cmd, stamp_ns=self.node.now_ns())  # SimulationError ends the node: not hidden
+        if self.on_event is not None and self.sim.stats.watchdog_holds != holds:
+            self.on_event({"ev": "hold", "t_ns": self.node.now_ns()})
         if self.emulation is not None and (self.emulation.position_noise_std or self.emulation.velocity_noise_std):
             state = add_sensor_noise(state, self.emulation, self._rng)
         self.last_state = state
@@ -290,6 +328,7 @@ class ServoSimNode:
             out["state_lost"] = self._state_line.lost
         if self._cmd_line is not None:
             out["command_lost"] = self._cmd_line.lost
+        out["stale_commands"] = self.stale_commands
         return Data(value=out)
 
 
@@ -326,6 +365,8 @@ async def open_servo_sim(
     node_name: str = "servo_sim",
     transport: str = "auto",
     options: TransportOptions | None = None,
+    max_command_age_s: float | None = None,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
 ) -> AsyncIterator[ServoSimNode]:
     """Run a servo sim node in this process for the duration of the block.
 
@@ -340,6 +381,8 @@ async def open_servo_sim(
         node_name: the node's name within the namespace.
         transport: the node's transport choice (``auto``, ``memory``, ``shm``, ``tcp``).
         options: transport options.
+        max_command_age_s: drop commands older than this (``ServoSimNode.max_command_age_s``); None: keep all.
+        on_event: called with every command and watchdog event (see the module docstring).
 
     Yields:
         The running ServoSimNode; leaving the block stops it (tasks cancelled, names unregistered). If this node
@@ -355,7 +398,15 @@ async def open_servo_sim(
     async with open_node(
         node_name, domain=domain, namespace=ns, clock=clock, transport=transport, options=options
     ) as node:
-        sim_node = ServoSimNode(node, sim, emulation=emulation, perturbation=factors, publish_markers=publish_markers)
+        sim_node = ServoSimNode(
+            node,
+            sim,
+            emulation=emulation,
+            perturbation=factors,
+            publish_markers=publish_markers,
+            max_command_age_s=max_command_age_s,
+            on_event=on_event,
+        )
         async with unwrap_task_group() as tg:
             await sim_node._start(tg)
             try:

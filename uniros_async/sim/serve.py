@@ -18,11 +18,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import json
 import logging
 import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+import sys
 import traceback
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
@@ -38,7 +40,7 @@ from uniros_async.sim.servo import ServoSimConfig
 from uniros_async.sim_clock import SimClock
 from uniros_async.transports.base import TransportOptions, options_from_environ
 
-__all__ = ["ServeConfig", "ServoSimProcess", "open_servo_sim_process", "serve_servo_sim"]
+__all__ = ["ServeConfig", "ServoSimProcess", "open_servo_sim_process", "print_event", "serve_servo_sim"]
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +67,8 @@ class ServeConfig:
         publish_markers: publish EE and goal markers.
         auth_key: shared key of the domain; None: ``$UNIROS_AUTH_KEY`` if set, else none.
         insecure: allow a non-loopback ``host`` without ``auth_key`` (else the domain refuses to start).
+        max_command_age_s: drop commands older than this (``ServoSimNode.max_command_age_s``); None: keep all.
+        trace: write every command's age and every watchdog hold as a JSON line on stdout (``ServoSimNode.on_event``).
     """
 
     robot: str | RobotSpec
@@ -81,6 +85,8 @@ class ServeConfig:
     publish_markers: bool = False
     auth_key: bytes | None = None
     insecure: bool = False
+    max_command_age_s: float | None = None
+    trace: bool = False
 
     def __post_init__(self) -> None:
         if self.clock not in CLOCKS:
@@ -137,12 +143,20 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
                 node_name=config.node_name,
                 transport=transport,
                 options=options,
+                max_command_age_s=config.max_command_age_s,
+                on_event=print_event if config.trace else None,
             )
         )
         logger.info("serving %s as %s in %s", sim_node.sim.robot.name, sim_node.node.name, uri)
         if on_ready is not None:
             on_ready(uri)
         await asyncio.Event().wait()  # until cancelled
+
+
+def print_event(event: dict[str, Any]) -> None:
+    """Write ``event`` as one JSON line on stdout (``--trace``)."""
+    sys.stdout.write(json.dumps(event) + "\n")
+    sys.stdout.flush()
 
 
 # ================================================================================================ child process

@@ -86,7 +86,7 @@ def __getattr__(name: str) -> Any:
         import pytest
 
         if os.environ.get("UNIROS_REQUIRE_ROS") == "1":  # .ci/run: ROS 1 must be there; a test without it fails
-            return pytest.mark.usefixtures()
+            return pytest.mark.skipif(False, reason="UNIROS_REQUIRE_ROS=1: ROS 1 must be installed")
         return pytest.mark.skipif(ros1_missing() is not None, reason=ros1_missing() or "")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 

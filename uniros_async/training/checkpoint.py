@@ -8,10 +8,14 @@ Layout (under ``<run_dir>/checkpoints``)::
     step_000010000/vec_normalize.pkl   with ``normalize_obs``: the observation statistics (SB3 ``VecNormalize.save``)
     latest                             the name of the newest complete checkpoint
 
-A checkpoint is written into a hidden temporary directory, flushed to disk, and renamed into place (a rename is
-atomic); ``latest`` is then replaced (write + ``os.replace``). An interruption at any point (Ctrl-C, SIGTERM, a
-dead worker, a full disk) leaves the previous checkpoint and ``latest`` intact. Old checkpoints beyond ``keep`` are
-removed only after ``latest`` names the new one.
+A checkpoint is written into a hidden temporary directory in the same directory (``.tmp-step_...``), every file
+flushed and fsynced, the directory fsynced, then renamed into place (``os.replace``: atomic within one file system)
+and the parent directory fsynced; ``latest`` is then replaced the same way (``write_atomic``: a temporary file
+beside it, flush + fsync, ``os.replace``, fsync of the directory). An interruption at any point, SIGKILL and power
+loss included, leaves the previous checkpoint and ``latest`` intact: a reader finds either the old or the new one,
+never a part. Old checkpoints beyond ``keep`` are removed only after ``latest`` names the new one. What an
+interrupted write leaves behind (``.tmp-*``, ``.old-*``) is removed or, for an ``.old-`` checkpoint whose
+replacement never landed, put back by ``clean_partial`` when the run resumes.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ __all__ = [
     "load_replay_buffer",
     "read_meta",
     "save_checkpoint",
+    "write_atomic",
 ]
 
 logger = logging.getLogger(__name__)
@@ -130,7 +135,13 @@ def _fsync_file(path: Path) -> None:
         os.fsync(f.fileno())
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
+def write_atomic(path: Path, data: bytes) -> None:
+    """Replace ``path`` with ``data`` atomically: a reader (or a process started after a crash) sees the old
+    contents or the new, never a part.
+
+    Raises:
+        OSError: the disk refused; ``path`` is untouched (a ``.NAME.tmp`` may be left beside it).
+    """
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "wb") as f:
         f.write(data)
@@ -209,7 +220,7 @@ def save_checkpoint(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    _write_atomic(root / LATEST_FILE, (name + "\n").encode())
+    write_atomic(root / LATEST_FILE, (name + "\n").encode())
     complete = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("step_"))
     for old in complete[:-keep]:
         if old != final:
@@ -236,12 +247,24 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
 
 
 def clean_partial(run_dir: str | Path) -> None:
-    """Remove temporary directories an interrupted checkpoint left behind."""
+    """Tidy what an interrupted checkpoint left behind: unfinished ``.tmp-*`` directories and files are removed; an
+    ``.old-step_N-PID`` (a complete checkpoint moved aside to be replaced by a rewrite of the same step) goes back
+    to ``step_N`` when the rewrite never landed, else it is removed."""
     root = Path(run_dir) / "checkpoints"
-    if root.is_dir():
-        for p in root.iterdir():
-            if p.name.startswith((".tmp-", ".old-")):
+    if not root.is_dir():
+        return
+    for p in sorted(root.iterdir()):
+        if p.name.startswith(".old-"):
+            name = p.name.removeprefix(".old-").rsplit("-", 1)[0]
+            if name.startswith("step_") and not (root / name).exists() and _complete(p):
+                os.replace(p, root / name)
+                _fsync_dir(root)
+            else:
                 shutil.rmtree(p, ignore_errors=True)
+        elif p.name.startswith(".tmp-"):
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.name.startswith(".") and p.name.endswith(".tmp") and p.is_file():
+            p.unlink(missing_ok=True)
 
 
 def find_checkpoint(path: str | Path) -> Path:

@@ -52,7 +52,7 @@ __all__ = [
 ]
 
 LEARNERS = ("sync", "async")
-PLACEMENTS = ("inprocess", "workers")
+PLACEMENTS = ("inprocess", "workers", "ray")
 REPLAY_BUFFERS = ("auto", "standard", "her")
 GOAL_STRATEGIES = ("future", "final", "episode")
 _NAME_PATTERN = r"^[A-Za-z0-9_.+-]+$"
@@ -194,9 +194,11 @@ class TrainConfig(ConfigModel):
     observations and actions padded to the largest sizes). Each is an id or ``{id, kwargs, name}``."""
     env_defaults: dict[str, Any] = Field(default_factory=lambda: {"clock": "sim"})
     """Keyword arguments given to every env unless it sets them."""
-    placement: Literal["inprocess", "workers"] = "inprocess"
-    """``inprocess`` (envs in the agent's process: fastest with accelerated sim) or ``workers`` (each env in a
-    worker process through ``uniros_async.make``)."""
+    placement: Literal["inprocess", "workers", "ray"] = "inprocess"
+    """``inprocess`` (envs in the agent's process: fastest with accelerated sim), ``workers`` (each env in a
+    worker process through ``uniros_async.make``) or ``ray`` (each env's worker placed by Ray on a node of the
+    connected cluster, ``make(..., backend="ray")``; an env's ``kwargs: {worker: {ray: {resources: {rx200_arm:
+    1}}}}`` pins it, docs/howto/cluster.md)."""
     learner: Literal["sync", "async"] = "sync"
     """``sync`` (SB3 TD3: collect, then update) or ``async`` (AsyncTD3: updates beside collection)."""
     concurrent: Bool = False
@@ -296,7 +298,7 @@ class TrainConfig(ConfigModel):
                 or ``env_defaults.clock`` for a value that comes from ``env_defaults``): an unknown id or keyword
                 argument, or a bad value.
         """
-        from uniros_async.runtime.supervisor import check_env_args
+        from uniros_async.runtime.envargs import check_env_args
 
         problems: list[tuple[str, str]] = []
         for where, entries in (("envs", self.envs), ("eval.envs", self.eval.envs)):

@@ -107,7 +107,7 @@ def computes_reward_locally(venv: VecEnv) -> bool:
     a ``LocalGoalReward`` somewhere in the wrapper chain, or SB3's DummyVecEnv at its bottom over envs that are
     not worker proxies (``uniros_async.make``'s ProxyEnv, or an env holding them in ``.envs`` such as
     ``training.multitask.TaskSamplerEnv`` with ``placement: workers``)."""
-    from uniros_async.runtime.supervisor import ProxyEnv
+    from uniros_async.runtime.proxy import ProxyEnv
 
     env: Any = venv
     while True:

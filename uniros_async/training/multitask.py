@@ -53,24 +53,25 @@ def build_env(
     ``pad_to = (obs_size, action_size)``.
 
     Args:
-        placement: ``inprocess`` (``gymnasium.make`` here) or ``workers`` (``uniros_async.make``: its own process).
+        placement: ``inprocess`` (``gymnasium.make`` here), ``workers`` (``uniros_async.make``: its own process) or
+            ``ray`` (``uniros_async.make(..., backend="ray")``: a process on the node Ray places it on).
         drop_observation: see ``DropObservation``.
 
     Raises:
         ConfigError: an unknown id or keyword argument, or an env larger than ``pad_to``.
         WorkerError: the worker failed to start (``workers``).
     """
-    from uniros_async.runtime.supervisor import check_env_args
+    from uniros_async.runtime.envargs import check_env_args
 
     check_env_args(env_id, kwargs)
     if placement == "inprocess":
         env: gym.Env[Any, Any] = gym.make(env_id, **kwargs)
-    elif placement == "workers":
+    elif placement in ("workers", "ray"):
         from uniros_async.runtime import make
 
-        env = make(env_id, **kwargs)
+        env = make(env_id, backend="local" if placement == "workers" else "ray", **kwargs)
     else:
-        raise ConfigError(f"placement must be 'inprocess' or 'workers', got {placement!r}")
+        raise ConfigError(f"placement must be 'inprocess', 'workers' or 'ray', got {placement!r}")
     try:
         if drop_observation:
             env = DropObservation(env, tuple(drop_observation))

@@ -34,6 +34,7 @@ import collections
 import contextlib
 import csv
 import dataclasses
+import io
 import json
 import logging
 import signal
@@ -60,6 +61,7 @@ from uniros_async.training.checkpoint import (
     load_replay_buffer,
     read_meta,
     save_checkpoint,
+    write_atomic,
 )
 from uniros_async.training.config import TrainConfig, config_to_dict
 from uniros_async.training.evaluate import EvalResult, evaluate_policy, evaluate_vec_policy
@@ -307,7 +309,7 @@ def _vec_env(cfg: TrainConfig, env: Any, layout: EnvLayout, resume_from: Path | 
         vec: Any = VecMonitor(env, info_keywords=("is_success",))
     else:
         vec = DummyVecEnv([lambda: Monitor(env, info_keywords=("is_success",))])
-    if cfg.placement == "workers" and _use_her(cfg, layout):
+    if cfg.placement in ("workers", "ray") and _use_her(cfg, layout):
         # HER relabels batches of goals through env_method("compute_reward"): answer it here, not in the workers
         try:
             from uniros_async.training.her import LocalGoalReward
@@ -343,8 +345,21 @@ def build_model(cfg: TrainConfig, vec_env: Any, layout: EnvLayout, run_dir: Path
 # ---------------------------------------------------------------- logs
 
 
+def _row_step(row: dict[str, Any], fields: tuple[str, ...]) -> int | None:
+    """The step of a CSV row, or None for a row cut short (a process killed mid-write) or not a number. A column
+    the file's header lacks (a run logged before it existed) does not count as cut short."""
+    if any(v is None for v in row.values()):
+        return None
+    try:
+        return int(float(row["step"]))
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 class _CsvLog:
-    """An append-only CSV file; on resume, rows after the checkpoint's step are dropped first."""
+    """An append-only CSV file; on resume, rows after the checkpoint's step (and a last row cut short by a kill) are
+    dropped first, and the kept rows replace the file atomically (``write_atomic``): a kill during a resume's
+    rewrite loses no row."""
 
     def __init__(self, path: Path, fields: tuple[str, ...], *, keep_until_step: int | None) -> None:
         self.path = path
@@ -352,15 +367,20 @@ class _CsvLog:
         rows: list[dict[str, str]] = []
         if keep_until_step is not None and path.is_file():
             with open(path, newline="") as f:
-                rows = [r for r in csv.DictReader(f) if int(float(r["step"])) <= keep_until_step]
+                for r in csv.DictReader(f):
+                    step = _row_step(r, fields)
+                    if step is not None and step <= keep_until_step:
+                        rows.append(r)
         self.kept_wall_s = [float(r["wall_s"]) for r in rows if r.get("wall_s")]
         """The ``wall_s`` of the rows kept (a resumed run's wall clock goes on from their largest)."""
-        self._f = open(path, "w", newline="")  # noqa: SIM115 (closed in close())
-        self._w = csv.DictWriter(self._f, fieldnames=list(fields))
-        self._w.writeheader()
+        text = io.StringIO(newline="")
+        w = csv.DictWriter(text, fieldnames=list(fields))
+        w.writeheader()
         for r in rows:
-            self._w.writerow({k: r.get(k, "") for k in fields})
-        self._f.flush()
+            w.writerow({k: r.get(k, "") for k in fields})
+        write_atomic(path, text.getvalue().encode())
+        self._f = open(path, "a", newline="")  # noqa: SIM115 (closed in close())
+        self._w = csv.DictWriter(self._f, fieldnames=list(fields))
 
     def write(self, **row: Any) -> None:
         self._w.writerow(row)
@@ -734,7 +754,8 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
             vec = _vec_env(cfg, env, layout)
             model = build_model(cfg, vec, layout, run_dir)
             start = 0
-        (run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        # atomic: `--resume --run-dir` reads it back, also after a SIGKILL during this write
+        write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False).encode())
         keep = start if ckpt is not None else None
         episodes_log = _CsvLog(run_dir / "episodes.csv", EPISODE_FIELDS, keep_until_step=keep)
         logs.append(episodes_log)

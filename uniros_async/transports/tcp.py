@@ -46,7 +46,9 @@ Reconnection: a connection that breaks stays broken (TransportBrokenError on eve
 (the bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``,
 5 ms doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost,
 as on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe
-and re-send.
+and re-send. Every
+connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within seconds that
+its peer's socket is gone.
 """
 
 from __future__ import annotations
@@ -119,6 +121,28 @@ _RX_HIGH_BYTES = 8 * 1024 * 1024  # pause reading while more than this is queued
 _RX_LOW_BYTES = 2 * 1024 * 1024  # resume below this
 _TX_HIGH_BYTES = 1024 * 1024  # send() waits while the event loop holds more than this unsent
 _TX_LOW_BYTES = 256 * 1024
+KEEPALIVE_IDLE_S = 2
+"""TCP keepalive: a connection idle this long is probed every ``KEEPALIVE_INTERVAL_S``, and broken after
+``KEEPALIVE_PROBES`` unanswered probes. A side that only receives (a subscriber, the domain's end of a node's
+registry connection) otherwise never learns that its peer's socket is gone (a reset that reached only the peer, a
+peer host that restarted): the probe is answered with a reset, and the owner reconnects."""
+KEEPALIVE_INTERVAL_S = 1
+KEEPALIVE_PROBES = 3
+
+
+def set_keepalive(sock: socket.socket) -> None:
+    """Turn on TCP keepalive with this module's timings (``KEEPALIVE_IDLE_S`` and after): a dead peer is noticed
+    within about 5 s of silence."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for opt, value in (
+        ("TCP_KEEPIDLE", KEEPALIVE_IDLE_S),
+        ("TCP_KEEPINTVL", KEEPALIVE_INTERVAL_S),
+        ("TCP_KEEPCNT", KEEPALIVE_PROBES),
+    ):
+        if hasattr(socket, opt):  # Linux; elsewhere the system's defaults apply
+            sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, opt), value)
+
+
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
 _EVICT_AFTER_S = 1.0  # beyond max_handshakes, an unfinished handshake this old gives way to a newcomer
 
@@ -520,6 +544,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         sock = tr.get_extra_info("socket")
         if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            set_keepalive(sock)
         if sock is not None and hasattr(os, "readv") and not self._encrypted:
             self._fd = sock.fileno()  # under TLS the socket carries ciphertext: only the event loop reads it
         peer = tr.get_extra_info("peername")

@@ -12,6 +12,7 @@ import struct
 from collections.abc import Callable
 
 from uniros_async.errors import CodecError
+from uniros_async.transports.tcp import set_keepalive
 
 __all__ = [
     "FrameReader",
@@ -21,7 +22,7 @@ __all__ = [
     "encode_header",
     "frame",
     "read_header",
-    "set_nodelay",
+    "tune_socket",
 ]
 
 _U32 = struct.Struct("<I")
@@ -86,11 +87,13 @@ def frame(body: bytes) -> bytes:
     return _U32.pack(len(body)) + body
 
 
-def set_nodelay(writer: asyncio.StreamWriter | asyncio.BaseTransport) -> None:
-    """TCP_NODELAY: small control messages must not wait for Nagle's algorithm."""
+def tune_socket(writer: asyncio.StreamWriter | asyncio.BaseTransport) -> None:
+    """TCP_NODELAY (small control messages must not wait for Nagle's algorithm) and keepalive (a subscriber only
+    reads: without probes it never learns that a reset reached only its publisher, and never reconnects)."""
     sock = writer.get_extra_info("socket")
     if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        set_keepalive(sock)
 
 
 class FrameReader(asyncio.Protocol):

@@ -282,7 +282,7 @@ class Ros1Node:
     async def _serve_tcpros(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
         try:
-            _tcpros.set_nodelay(writer)
+            _tcpros.tune_socket(writer)
             try:
                 async with asyncio.timeout(self.timeout_s):
                     header = await _tcpros.read_header(reader)

@@ -149,7 +149,7 @@ class _Subscription:
         async with asyncio.timeout(node.timeout_s):
             transport, reader = await loop.create_connection(_tcpros.FrameReader, str(proto[1]), int(proto[2]))
         try:
-            _tcpros.set_nodelay(transport)
+            _tcpros.tune_socket(transport)
             transport.write(
                 _tcpros.encode_header(
                     {

@@ -1,0 +1,110 @@
+"""Workers placed by Ray that die, restart, lose their node, and close: on a real multi-node Ray cluster."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+
+from uniros_async.errors import WorkerError
+from uniros_async.runtime import make_vec
+
+RX = "uniros/Rx200Reach-v0"
+ARM = {"worker": {"ray": {"resources": {"rx200_arm": 1}}}}
+
+pytestmark = pytest.mark.usefixtures("nothing_left")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _wait_dead(pid: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while _alive(pid):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def test_a_killed_worker_is_reported_with_its_index_and_node(cluster: dict[str, Any]) -> None:
+    venv = make_vec([RX, (RX, ARM)], backend="ray", clock="sim")
+    try:
+        venv.reset(seed=0)
+        pid = venv.pids[1]
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        assert _wait_dead(pid, 5.0)
+        with pytest.raises(WorkerError) as err:
+            for _ in range(3):  # the kill may land just after a reply was sent
+                venv.step(np.zeros((2, 5), np.float32))
+        assert err.value.index == 1
+        msg = str(err.value)
+        assert "-9" in msg and cluster["arm_id"][:12] in msg, msg
+    finally:
+        venv.close()
+
+
+def test_restart_on_failure_restarts_through_ray_and_truncates_the_episode(cluster: dict[str, Any]) -> None:
+    venv = make_vec([RX, (RX, ARM)], backend="ray", clock="sim", restart_on_failure=True)
+    try:
+        venv.reset(seed=0)
+        old = venv.pids[1]
+        assert old is not None
+        os.kill(old, signal.SIGKILL)
+        assert _wait_dead(old, 5.0)
+        restarted = None
+        for _ in range(3):
+            obs, rewards, terminated, truncated, info = venv.step(np.zeros((2, 5), np.float32))
+            if info.get("_worker_restarted", np.zeros(2, bool))[1]:
+                restarted = (obs, rewards, terminated, truncated, info)
+                break
+        assert restarted is not None, "the dead worker was not restarted"
+        obs, rewards, terminated, truncated, info = restarted
+        assert truncated[1] and not terminated[1] and rewards[1] == 0.0
+        assert venv.restarts == [0, 1] and venv.pids[1] not in (None, old)
+        assert venv._sup.workers[1].process.node_id == cluster["arm_id"]  # placed by Ray again, on the arm node
+        obs, *_ = venv.step(np.zeros((2, 5), np.float32))
+        assert np.isfinite(obs).all()
+    finally:
+        venv.close()
+
+
+def test_a_removed_node_is_reported_by_the_next_step(cluster: dict[str, Any]) -> None:
+    c = cluster["cluster"]
+    spare = c.add_node(num_cpus=2, resources={"spare_pc": 1}, object_store_memory=80 * 1024 * 1024)
+    c.wait_for_nodes()
+    venv = make_vec(
+        [RX, (RX, {"worker": {"ray": {"resources": {"spare_pc": 1}}}})],
+        backend="ray",
+        clock="sim",
+        call_timeout_s=30.0,
+    )
+    try:
+        venv.reset(seed=0)
+        node = venv._sup.workers[1].process.node_id
+        assert node == spare.node_id
+        pid = venv.pids[1]
+        assert pid is not None
+        c.remove_node(spare, allow_graceful=False)  # the node's raylet and its processes are SIGKILLed
+        assert _wait_dead(pid, 5.0), "the worker outlived its node"
+        t0 = time.monotonic()
+        with pytest.raises(WorkerError) as err:
+            for _ in range(3):  # the step in flight when the node went may still have been answered
+                venv.step(np.zeros((2, 5), np.float32))
+        took = time.monotonic() - t0
+        assert err.value.index == 1
+        msg = str(err.value)
+        assert node[:12] in msg and "within" not in msg, msg  # the broken link, not the call timeout
+        assert took < 30.0
+    finally:
+        venv.close()

@@ -1,0 +1,171 @@
+"""Starting a local worker process: ``python -m uniros_async.runtime`` in a fresh interpreter.
+
+A worker is a process of its own that talks to its supervisor over the project's transports, so it needs nothing of
+the agent's ``__main__``. It is started as ``python -m uniros_async.runtime`` (``runtime/__main__.py``), not with
+multiprocessing's spawn, which re-imports the parent's main module in every worker: then a script without
+``if __name__ == "__main__":`` would start workers recursively, code piped to ``python -`` or typed into a notebook
+could not be re-imported at all, and a main script that imports torch would make every worker import torch too.
+
+The start-up handshake uses two pipes: the worker reads its ``WorkerSpec`` (and the parent's ``sys.path``, so a
+``"module:Id"`` next to the agent's script is found) from its stdin, and writes its listen URI to an inherited
+pipe end (``--uri-fd``), read here as a ``multiprocessing.connection.Connection``. The worker's output goes where
+the agent's goes.
+
+``WorkerProcess`` stands in for ``multiprocessing.Process`` (``pid``, ``exitcode``, ``is_alive``, ``join``,
+``terminate``, ``kill``, ``sentinel``). Workers still running when the agent's interpreter exits are terminated
+(the ``atexit`` hook below, what multiprocessing does for daemonic children); a SIGKILLed agent is noticed by each
+worker's parent-pid watchdog (runtime/worker.py).
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import multiprocessing.connection
+import os
+import pickle
+import subprocess
+import sys
+import threading
+import weakref
+from typing import Any
+
+import uniros_async
+from uniros_async.runtime.worker import WorkerSpec
+
+__all__ = ["WorkerProcess", "live_workers", "start_worker"]
+
+_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(uniros_async.__file__)))
+"""The directory that holds the ``uniros_async`` package: first on the worker's PYTHONPATH, so ``python -m`` finds
+this very copy of it even when the agent put it on ``sys.path`` by hand."""
+
+_LIVE: weakref.WeakSet[WorkerProcess] = weakref.WeakSet()
+_LIVE_LOCK = threading.Lock()
+
+
+class WorkerProcess:
+    """A worker started by ``start_worker``, with the part of ``multiprocessing.Process``'s interface the
+    supervisor uses."""
+
+    def __init__(self, popen: subprocess.Popen[bytes], name: str) -> None:
+        self._popen = popen
+        self.name = name
+        self.pid: int = popen.pid
+        self._sentinel = -1
+
+    @property
+    def exitcode(self) -> int | None:
+        """None while it runs; its exit status (``-signum`` if a signal ended it) once it exited (reaped here)."""
+        return self._popen.poll()
+
+    def is_alive(self) -> bool:
+        return self._popen.poll() is None
+
+    def join(self, timeout: float | None = None) -> None:
+        """Wait until it exits, at most ``timeout`` seconds (None: no bound)."""
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._popen.wait(timeout)
+
+    def terminate(self) -> None:
+        """SIGTERM (the worker cancels its root task and closes its env)."""
+        if self._popen.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                self._popen.terminate()
+
+    def kill(self) -> None:
+        if self._popen.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                self._popen.kill()
+
+    @property
+    def sentinel(self) -> int:
+        """A file descriptor that becomes readable when the process exits (a pidfd), for ``add_reader``."""
+        if self._sentinel < 0:
+            self._sentinel = os.pidfd_open(self.pid)
+        return self._sentinel
+
+    def close(self) -> None:
+        """Release the sentinel (the process itself is left as it is)."""
+        if self._sentinel >= 0:
+            os.close(self._sentinel)
+            self._sentinel = -1
+
+    def __del__(self) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<WorkerProcess {self.name} pid={self.pid} exitcode={self.exitcode}>"
+
+
+def start_worker(spec: WorkerSpec) -> tuple[WorkerProcess, multiprocessing.connection.Connection]:
+    """Start a worker for ``spec`` (``python -m uniros_async.runtime``) and return it with the pipe end on which it
+    sends its listen URI (``Connection.recv``; EOFError if it exits before).
+
+    Raises:
+        OSError: the interpreter could not be started.
+    """
+    read_fd, write_fd = os.pipe()
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (_PACKAGE_ROOT, env.get("PYTHONPATH", "")) if p)
+    try:
+        popen = subprocess.Popen(
+            [sys.executable, "-m", "uniros_async.runtime", "--uri-fd", str(write_fd)],
+            stdin=subprocess.PIPE,
+            pass_fds=(write_fd,),
+            env=env,
+            close_fds=True,
+        )
+    except BaseException:
+        os.close(read_fd)
+        raise
+    finally:
+        os.close(write_fd)
+    assert popen.stdin is not None
+    # sys.path first, in a pickle of its own: the spec's kwargs may name things from modules found only through it
+    payload = pickle.dumps(list(sys.path)) + pickle.dumps(spec, protocol=pickle.HIGHEST_PROTOCOL)
+    try:
+        popen.stdin.write(payload)
+        popen.stdin.close()
+    except BrokenPipeError:  # it exited already: the start-up pipe's EOF says so
+        pass
+    proc = WorkerProcess(popen, f"uniros-worker-{spec.index}")
+    with _LIVE_LOCK:
+        _LIVE.add(proc)
+    return proc, multiprocessing.connection.Connection(read_fd, writable=False)
+
+
+def live_workers() -> list[WorkerProcess]:
+    """The workers started here that still run."""
+    with _LIVE_LOCK:
+        return [p for p in _LIVE if p.is_alive()]
+
+
+def read_spec(stream: Any) -> WorkerSpec:
+    """The worker's side of ``start_worker``: read the spec from ``stream`` and take the parent's ``sys.path``.
+
+    Raises:
+        RuntimeError: the payload is not what ``start_worker`` writes.
+    """
+    path = pickle.load(stream)
+    if not isinstance(path, list):
+        raise RuntimeError(f"expected the parent's sys.path on stdin, got {type(path).__name__}")
+    for p in reversed(path):
+        if isinstance(p, str) and p not in sys.path:
+            sys.path.insert(0, p)
+    spec = pickle.load(stream)
+    if not isinstance(spec, WorkerSpec):
+        raise RuntimeError(f"expected a WorkerSpec on stdin, got {type(spec).__name__}")
+    return spec
+
+
+@atexit.register
+def _stop_live_workers() -> None:
+    """What multiprocessing does for daemonic children at exit: terminate what still runs, then kill."""
+    procs = live_workers()
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        p.join(2.0)
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)

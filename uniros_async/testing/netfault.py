@@ -1,0 +1,382 @@
+"""Faults on an arm's link, injected with the kernel's own tools, for the fault tests (tests/faults/).
+
+``open_netns_pair()`` creates two network namespaces, ``arm`` and ``env``, joined by a veth pair with the addresses
+``ARM_IP`` and ``ENV_IP`` (a /30 that exists only inside them: nothing is routed anywhere else), and removes both
+namespaces (and so the link) when the block ends, also on failure. Processes run in them with ``ip netns exec``
+(``NetnsPair.popen``). The faults, all on the arm's end of the link:
+
+- ``partition()``: nftables drops every packet in and out;
+- ``loss(pct)``: nftables drops ``pct`` % of the packets each way (``numgen random mod 100 < pct drop``);
+- ``tcp_reset()``: nftables answers every tcp segment that arrives with a reset (``reject with tcp reset``);
+- ``starve(rate)``: a ``tbf`` qdisc on both ends limits the link to ``rate`` (e.g. ``"8kbit"``);
+- ``link_down()`` / ``link_up()``: the veth end goes down and up;
+- ``clear()``: removes the nftables table and the qdiscs.
+
+A frozen peer is ``os.kill(pid, SIGSTOP)`` / ``SIGCONT`` of the arm's process. This kernel has no ``netem``
+(CONFIG_NET_SCH_NETEM is off), so delay and jitter would need a delaying relay in the test itself.
+
+``python -m uniros_async.testing.netfault drive --robot tcp://HOST:PORT ...`` is the agent side: it makes a reach
+env on that arm and steps it forever, resetting after every episode end and every RobotError, and prints each
+event as a JSON line with its ``time.monotonic_ns()`` (one clock for every namespace of the machine): ``reset``,
+``step`` (with the observation's age), ``robot_error`` (the message) and ``error`` (anything else: an uncaught
+exception, with its traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import itertools
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["ARM_IP", "ENV_IP", "EventPeer", "NetnsPair", "fault_figures", "netfault_missing", "open_netns_pair"]
+
+ARM_IP = "10.200.0.1"
+ENV_IP = "10.200.0.2"
+PREFIX_LEN = 30
+TABLE = "uniros_fault"
+_counter = itertools.count()
+
+
+def _run(*cmd: str, check: bool = True, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=10, input=stdin)
+    if check and out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({out.returncode}): {out.stderr.strip()}")
+    return out
+
+
+def netfault_missing() -> str | None:
+    """Why the fault tests cannot run here (not root, ``ip``, ``nft`` or ``tc`` missing, namespaces refused), or
+    None when they can."""
+    if os.geteuid() != 0:
+        return "fault injection needs root (network namespaces, nftables)"
+    for tool, pkg in (("ip", "iproute2"), ("tc", "iproute2"), ("nft", "nftables")):
+        if shutil.which(tool) is None:
+            return f"fault injection needs `{tool}`: apt-get install -y {pkg}"
+    name = f"uniros-probe-{os.getpid()}"
+    probe = _run("ip", "netns", "add", name, check=False)
+    if probe.returncode != 0:
+        return f"cannot create a network namespace: {probe.stderr.strip()}"
+    _run("ip", "netns", "del", name, check=False)
+    return None
+
+
+@dataclass
+class NetnsPair:
+    """Two namespaces joined by a veth pair (see the module docstring); from ``open_netns_pair``."""
+
+    arm_ns: str
+    env_ns: str
+    arm_dev: str
+    env_dev: str
+    arm_ip: str = ARM_IP
+    env_ip: str = ENV_IP
+
+    def popen(self, side: str, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[str]:
+        """Start ``argv`` in the ``arm`` or ``env`` namespace (text mode, stdout piped unless told otherwise)."""
+        ns = self.arm_ns if side == "arm" else self.env_ns
+        kwargs.setdefault("stdout", subprocess.PIPE)
+        kwargs.setdefault("text", True)
+        return subprocess.Popen(["ip", "netns", "exec", ns, *argv], **kwargs)
+
+    def _nft(self, rule_in: str, rule_out: str | None) -> None:
+        self.clear_nft()
+        script = [f"table inet {TABLE} {{", "  chain input {", "    type filter hook input priority 0; policy accept;"]
+        script += [f"    {rule_in}", "  }"]
+        if rule_out:
+            script += ["  chain output {", "    type filter hook output priority 0; policy accept;", f"    {rule_out}"]
+            script += ["  }"]
+        script += ["}", ""]
+        _run("ip", "netns", "exec", self.arm_ns, "nft", "-f", "-", stdin="\n".join(script))
+
+    def partition(self) -> None:
+        """Drop every packet into and out of the arm's namespace."""
+        self._nft(f'iifname "{self.arm_dev}" drop', f'oifname "{self.arm_dev}" drop')
+
+    def loss(self, pct: int) -> None:
+        """Drop ``pct`` % of the packets each way, at random."""
+        if not 0 < pct < 100:
+            raise ValueError(f"loss: expected a percentage in 1..99, got {pct}")
+        self._nft(
+            f'iifname "{self.arm_dev}" numgen random mod 100 < {pct} drop',
+            f'oifname "{self.arm_dev}" numgen random mod 100 < {pct} drop',
+        )
+
+    def tcp_reset(self) -> None:
+        """Answer every tcp segment that reaches the arm with a reset (connections break, new ones are refused)."""
+        self._nft(f'iifname "{self.arm_dev}" meta l4proto tcp reject with tcp reset', None)
+
+    def starve(self, rate: str = "8kbit") -> None:
+        """Limit the link to ``rate`` each way (a ``tbf`` qdisc on both ends; excess waits up to 200 ms, then is
+        dropped)."""
+        for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
+            _run("ip", "netns", "exec", ns, "tc", "qdisc", "replace", "dev", dev, "root", "tbf", "rate", rate,
+                 "burst", "1600", "latency", "200ms")  # fmt: skip
+
+    def link_down(self) -> None:
+        _run("ip", "-n", self.arm_ns, "link", "set", self.arm_dev, "down")
+
+    def link_up(self) -> None:
+        _run("ip", "-n", self.arm_ns, "link", "set", self.arm_dev, "up")
+
+    def clear_nft(self) -> None:
+        _run("ip", "netns", "exec", self.arm_ns, "nft", "delete", "table", "inet", TABLE, check=False)
+
+    def clear(self) -> None:
+        """Remove every fault: the nftables table, the qdiscs, and a link left down."""
+        self.clear_nft()
+        for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
+            _run("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", dev, "root", check=False)
+        self.link_up()
+
+
+@contextlib.contextmanager
+def open_netns_pair() -> Iterator[NetnsPair]:
+    """Two fresh namespaces joined by a veth pair, both removed when the block ends (see the module docstring).
+
+    Raises:
+        RuntimeError: an ``ip`` command failed (its message is included); whatever was created is removed.
+    """
+    n = next(_counter)
+    tag = f"{os.getpid()}-{n}"
+    pair = NetnsPair(
+        arm_ns=f"uniros-arm-{tag}",
+        env_ns=f"uniros-env-{tag}",
+        arm_dev=f"ua{os.getpid() % 100000}{n}",  # interface names are at most 15 characters
+        env_dev=f"ue{os.getpid() % 100000}{n}",
+    )
+    try:
+        _run("ip", "netns", "add", pair.arm_ns)
+        _run("ip", "netns", "add", pair.env_ns)
+        _run("ip", "link", "add", pair.arm_dev, "netns", pair.arm_ns, "type", "veth",
+             "peer", "name", pair.env_dev, "netns", pair.env_ns)  # fmt: skip
+        for ns, dev, ip in ((pair.arm_ns, pair.arm_dev, pair.arm_ip), (pair.env_ns, pair.env_dev, pair.env_ip)):
+            _run("ip", "-n", ns, "addr", "add", f"{ip}/{PREFIX_LEN}", "dev", dev)
+            _run("ip", "-n", ns, "link", "set", dev, "up")
+            _run("ip", "-n", ns, "link", "set", "lo", "up")
+        yield pair
+    finally:
+        # deleting a namespace deletes the veth end in it, and with it the other end
+        for ns in (pair.arm_ns, pair.env_ns):
+            _run("ip", "netns", "del", ns, check=False)
+
+
+# ================================================================================================ event lines
+
+
+@dataclass
+class EventPeer:
+    """A process that prints JSON event lines (``{"ev": ..., "t_ns": ...}``) on stdout, read by a thread."""
+
+    proc: subprocess.Popen[str]
+    events: list[dict[str, Any]] = field(default_factory=list)
+    lines: list[str] = field(default_factory=list)
+    reader: threading.Thread | None = None
+
+    def start_reader(self) -> None:
+        def read() -> None:
+            assert self.proc.stdout is not None
+            for line in self.proc.stdout:
+                self.lines.append(line)
+                if line.startswith("{"):
+                    with contextlib.suppress(ValueError):
+                        self.events.append(json.loads(line))
+
+        self.reader = threading.Thread(target=read, daemon=True)
+        self.reader.start()
+
+    def after(self, t_ns: int, ev: str) -> list[dict[str, Any]]:
+        """Events of kind ``ev`` at or after ``t_ns``."""
+        return [e for e in list(self.events) if e["ev"] == ev and e["t_ns"] >= t_ns]
+
+    def wait_for(self, t_ns: int, ev: str, timeout_s: float, what: str) -> dict[str, Any]:
+        """The first ``ev`` event at or after ``t_ns``, waiting up to ``timeout_s``.
+
+        Raises:
+            AssertionError: none came, or the process ended (its last lines are in the message).
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            found = self.after(t_ns, ev)
+            if found:
+                return found[0]
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                tail = "".join(self.lines[-20:])
+                raise AssertionError(f"no {ev!r} event ({what}) within {timeout_s} s; output:\n{tail}")
+            time.sleep(0.02)
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        """Resume it if frozen, send ``sig``, kill after 10 s; reap it and close its pipe."""
+        proc = self.proc
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGCONT)  # a frozen process cannot handle the signal
+            proc.send_signal(sig)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+        if self.reader is not None:
+            self.reader.join(5)
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+
+def fault_figures(
+    name: str,
+    arm: EventPeer,
+    agent: EventPeer,
+    *,
+    t_fault: int,
+    t_clear: int,
+    recovered_ns: int,
+    robot_timeout_s: float,
+) -> dict[str, Any]:
+    """One fault's figures from the arm's and the agent's event lines (times in s from the fault or its clearing):
+
+    ``hold_after_fault_s`` (the arm's first watchdog hold after the fault), ``hold_after_last_command_s`` (that hold
+    after the last command the arm applied before it), ``notice_after_fault_s`` (the agent's first RobotError),
+    ``agent_saw`` (its message), ``robot_errors``, ``recovery_after_clear_s`` (the agent's first step after the
+    fault was cleared), ``stale_commands_applied`` (commands applied older than ``robot_timeout_s``, over the whole
+    run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s``, ``max_state_stamp_age_at_step_s``
+    (the oldest joint state, by its stamp, that a step returned on since the fault) and ``uncaught_exceptions``.
+    """
+    s = 1e-9
+    cmds = [e for e in list(arm.events) if e["ev"] == "cmd"]
+    errors = [e for e in agent.after(t_fault, "robot_error") if e["t_ns"] <= t_clear]
+    holds = arm.after(t_fault, "hold")
+    hold = holds[0] if holds else None
+    before_hold = [e for e in cmds if e["applied"] and hold is not None and e["t_ns"] < hold["t_ns"]]
+    since_fault = [e for e in cmds if e["t_ns"] >= t_fault]
+    return {
+        "fault": name,
+        "hold_after_fault_s": round((hold["t_ns"] - t_fault) * s, 3) if hold else None,
+        "hold_after_last_command_s": (
+            round((hold["t_ns"] - before_hold[-1]["t_ns"]) * s, 3) if hold and before_hold else None
+        ),
+        "notice_after_fault_s": round((errors[0]["t_ns"] - t_fault) * s, 3) if errors else None,
+        "agent_saw": errors[0]["msg"] if errors else "no error",
+        "robot_errors": len(errors),
+        "recovery_after_clear_s": round((recovered_ns - t_clear) * s, 3),
+        "stale_commands_applied": sum(1 for e in cmds if e["applied"] and e["age_ns"] > robot_timeout_s / s),
+        "stale_commands_dropped": sum(1 for e in since_fault if not e["applied"]),
+        "max_age_applied_s": round(max((e["age_ns"] for e in since_fault if e["applied"]), default=0) * s, 3),
+        "max_state_stamp_age_at_step_s": round(
+            max((e.get("state_stamp_age_s", -1.0) for e in agent.after(t_fault, "step")), default=-1.0), 3
+        ),
+        "uncaught_exceptions": len([e for e in agent.events if e["ev"] == "error"]),
+    }
+
+
+# ================================================================================================ the agent side
+
+
+def _emit(event: str, **fields: Any) -> None:
+    sys.stdout.write(json.dumps({"ev": event, "t_ns": time.monotonic_ns(), **fields}) + "\n")
+    sys.stdout.flush()
+
+
+def drive(
+    robot: str,
+    *,
+    env_id: str,
+    robot_timeout_s: float,
+    action_cycle_s: float,
+    reset_timeout_s: float,
+    ros_host: str | None = None,
+) -> None:
+    """Step a reach env on ``robot`` until SIGTERM, printing every event (see the module docstring)."""
+    import gymnasium as gym
+    import numpy as np
+
+    import uniros_async  # noqa: F401  (registers the ids)
+    from uniros_async.errors import RobotError
+
+    stop = False
+
+    def on_term(signum: int, frame: Any) -> None:
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGTERM, on_term)
+    from uniros_async.priority import raise_loop_priority
+
+    raise_loop_priority()  # the env loop runs in this process, as in a worker (which asks the same)
+    # ROS 1 cannot authenticate peers: a bridge beyond loopback must be allowed explicitly (here: inside the test's
+    # own namespaces, which nothing else reaches)
+    extra: dict[str, Any] = {"ros1": {"ros_host": ros_host, "insecure": True}} if ros_host else {}
+    env = gym.make(
+        env_id,
+        robot=robot,
+        robot_timeout_s=robot_timeout_s,
+        action_cycle_s=action_cycle_s,
+        reset_timeout_s=reset_timeout_s,
+        **extra,
+    )
+    u: Any = env.unwrapped
+    action = np.zeros(env.action_space.shape or (), np.float32)
+    _emit("ready")
+    need_reset = True
+    try:
+        while not stop:
+            try:
+                if need_reset:
+                    env.reset()
+                    need_reset = False
+                    _emit("reset")
+                    continue
+                _, _, terminated, truncated, info = env.step(action)
+                age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
+                js = u._js.latest()
+                # by the state's own stamp: meaningful when the arm shares this machine's monotonic clock
+                stamp_age = (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0
+                _emit("step", obs_age_ns=age, state_age_s=u._state_age_s(), state_stamp_age_s=stamp_age)
+                need_reset = terminated or truncated
+            except RobotError as exc:
+                _emit("robot_error", msg=str(exc))
+                need_reset = True
+            except Exception as exc:  # noqa: BLE001 - counted as uncaught by the tests, never hidden
+                _emit("error", kind=type(exc).__name__, msg=str(exc), tb=traceback.format_exc())
+                need_reset = True
+                time.sleep(0.1)
+    finally:
+        env.close()
+        _emit("closed")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m uniros_async.testing.netfault drive ...``."""
+    parser = argparse.ArgumentParser(prog="python -m uniros_async.testing.netfault")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    d = sub.add_parser("drive", help="step a reach env on an arm, printing events as JSON lines")
+    d.add_argument("--robot", required=True, help="tcp://HOST:PORT or ros1://HOST:PORT")
+    d.add_argument("--env-id", default="uniros/Rx200Reach-v0")
+    d.add_argument("--robot-timeout", type=float, default=0.5)
+    d.add_argument("--action-cycle", type=float, default=0.2)
+    d.add_argument("--reset-timeout", type=float, default=10.0)
+    d.add_argument("--ros-host", default=None, help="with ros1://: the address ROS peers reach the bridge at")
+    args = parser.parse_args(argv)
+    drive(
+        args.robot,
+        env_id=args.env_id,
+        robot_timeout_s=args.robot_timeout,
+        action_cycle_s=args.action_cycle,
+        reset_timeout_s=args.reset_timeout,
+        ros_host=args.ros_host,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
