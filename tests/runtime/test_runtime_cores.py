@@ -1,5 +1,6 @@
 """A worker that finds itself on its agent's core moves off it (``ShmTransport.on_shared_core``,
-``worker._move_off_core``): real processes, real CPU affinity, read back from /proc."""
+``worker._move_off_core``); workers that outnumber the cores are pinned round robin and run their steps through
+(``worker.shared_cores_mode``): real processes, real CPU affinity and scheduling policy, read back from /proc."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ import time
 import numpy as np
 import pytest
 
+from uniros_async.errors import ConfigError
+from uniros_async.priority import STEP_SLICE_NS
 from uniros_async.runtime import make_vec
+from uniros_async.runtime.supervisor import REPLY_SPIN_NS
 from uniros_async.transports.base import this_cpu
 
 pytestmark = pytest.mark.skipif(
@@ -68,4 +72,96 @@ def test_an_agent_alone_on_its_core_is_not_moved() -> None:
         assert os.sched_getaffinity(0) == {here} and this_cpu() == here
     finally:
         os.sched_setaffinity(0, cpus)
+        venv.close()
+
+
+def _slice_ns(pid: int) -> int | None:
+    """The scheduler slice of ``pid``'s main thread (``se.slice`` in /proc/<pid>/sched), None where not shown."""
+    try:
+        with open(f"/proc/{pid}/sched") as f:
+            for line in f:
+                if line.startswith("se.slice"):
+                    return int(line.split(":")[1])
+    except OSError:
+        pass
+    return None
+
+
+def _takes_a_slice() -> bool:
+    """Linux 6.12 on: EEVDF takes a slice per thread (``sched_setattr``'s ``sched_runtime``)."""
+    try:
+        major, minor = (int(x) for x in os.uname().release.split(".")[:2])
+    except ValueError:
+        return False
+    return (major, minor) >= (6, 12)
+
+
+def test_workers_that_outnumber_the_cores_are_pinned_round_robin_and_run_their_steps_through() -> None:
+    cpus = sorted(os.sched_getaffinity(0))
+    n = len(cpus) + 1
+    venv = make_vec(["CartPole-v1"] * n, pad=False)
+    try:
+        venv.reset(seed=0)
+        for k in range(10):
+            obs, reward, *_ = venv.step(np.full(n, k % 2))
+            assert obs.shape == (n, 4) and reward.shape == (n,)
+        for i, (w, pid) in enumerate(zip(venv._sup.workers, venv.pids, strict=True)):
+            assert pid is not None
+            assert w.info["cores_shared"] and w.info["pinned_cpu"] == cpus[i % len(cpus)]
+            assert os.sched_getaffinity(pid) == {cpus[i % len(cpus)]} and _last_cpu(pid) == cpus[i % len(cpus)]
+            assert os.sched_getscheduler(pid) == os.SCHED_BATCH
+            assert os.getpriority(os.PRIO_PROCESS, pid) == os.getpriority(os.PRIO_PROCESS, 0)  # its nice value kept
+            if _takes_a_slice() and _slice_ns(pid) is not None:
+                assert _slice_ns(pid) == STEP_SLICE_NS
+            assert w.transport.spin_ns == 0  # the agent does not poll for their replies
+    finally:
+        venv.close()
+
+
+def test_as_many_workers_as_cores_are_left_where_the_scheduler_puts_them() -> None:
+    cpus = os.sched_getaffinity(0)
+    venv = make_vec(["CartPole-v1"] * len(cpus), pad=False)
+    try:
+        venv.reset(seed=0)
+        venv.step(np.zeros(len(cpus), dtype=np.int64))
+        for w, pid in zip(venv._sup.workers, venv.pids, strict=True):
+            assert pid is not None
+            assert not w.info["cores_shared"] and w.info["pinned_cpu"] is None
+            # (the policy it started with: a gymnasium env's worker may run SCHED_RR, see worker._real_time)
+            assert os.sched_getaffinity(pid) == cpus and os.sched_getscheduler(pid) != os.SCHED_BATCH
+            assert w.transport.spin_ns == REPLY_SPIN_NS
+    finally:
+        venv.close()
+
+
+@pytest.mark.parametrize(("mode", "batch", "spin_ns"), [("through", True, 0), ("off", False, None)])
+def test_uniros_shared_cores_chooses_what_crowded_workers_do(
+    monkeypatch: pytest.MonkeyPatch, mode: str, batch: bool, spin_ns: int | None
+) -> None:
+    monkeypatch.setenv("UNIROS_SHARED_CORES", mode)
+    cpus = os.sched_getaffinity(0)
+    n = len(cpus) + 1
+    venv = make_vec(["CartPole-v1"] * n, pad=False)
+    try:
+        venv.reset(seed=0)
+        venv.step(np.zeros(n, dtype=np.int64))
+        for w, pid in zip(venv._sup.workers, venv.pids, strict=True):
+            assert pid is not None
+            assert w.info["cores_shared"] == (mode == "through") and w.info["pinned_cpu"] is None
+            assert os.sched_getaffinity(pid) == cpus and (os.sched_getscheduler(pid) == os.SCHED_BATCH) == batch
+            assert w.transport.spin_ns == (REPLY_SPIN_NS if spin_ns is None else spin_ns)
+    finally:
+        venv.close()
+
+
+def test_a_bad_uniros_shared_cores_is_refused_by_name(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("UNIROS_SHARED_CORES", "sometimes")
+    with pytest.raises(ConfigError, match=r"UNIROS_SHARED_CORES must be one of .*'off'\), got 'sometimes'"):
+        make_vec(["CartPole-v1"], pad=False)
+    monkeypatch.delenv("UNIROS_SHARED_CORES")
+    venv = make_vec(["CartPole-v1"], pad=False)  # nothing was left half started: the next one comes up and serves
+    try:
+        obs, _ = venv.reset(seed=0)
+        assert obs.shape == (1, 4)
+    finally:
         venv.close()
