@@ -6,7 +6,8 @@ at nice -10). As ros2_control does for its control loops, such a process asks fo
 ``SCHED_RR`` at a low priority (10): it then preempts every ordinary process when its timer fires. These loops
 sleep between ticks (a tick is well under a millisecond of work, physics included), and the kernel's real-time
 throttling (``sched_rt_runtime_us``) keeps 5 % of every core for ordinary processes even if one misbehaved.
-Accelerated (sim clock) workers, which compute flat out, never ask.
+Accelerated (sim clock) workers, which compute flat out, never ask; when they outnumber the cores they ask for the
+opposite, ``SCHED_BATCH`` and a long slice (``run_steps_through``), so each runs its step in one go.
 
 The workers of one vector env get distinct priorities (``raise_loop_priority(rank)``: the first the highest, up to
 ``MAX_LOOP_RANK`` above the base), and an agent's acting thread (``real_time_thread``) one above them all. A step's

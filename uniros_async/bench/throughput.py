@@ -39,6 +39,13 @@ bound on aggregate steps/s is printed beside: min(N, cores) / bare step time.
 node over shm), local workers over tcp and a plain Ray actor call per step to the trivial env's table, and the
 Ray-placed workers to the rx200 rows (``bench/_ray_rows.py``).
 
+Rows of ``CROWDED_N`` (4) or more sub-envs step back to back until the 95 % interval of their steps/s is within
+``CI_GOAL`` (+-5 %) and print it, with their % of the physics bound and the CPU time per env step of the local
+workers and of the agent's process (read from /proc: a figure that does not depend on how busy the host is).
+``--repeat R`` (``main_repeat``) measures only those rows of ``make_vec`` (and of Ray-placed workers with
+``--backend ray``), R runs each with new workers, and prints each run's % of the bound; ``--shared-cores`` adds a
+row per ``UNIROS_SHARED_CORES`` mode (``worker.shared_cores_mode``) in the same runs.
+
 A fourth and a fifth table measure the same way, N = 1, envs whose observations are what other pipelines carry
 (``bench/envs.py``; their steps cost next to nothing): a goal env's Dict observation (three float64 arrays), and an
 Atari-style 84x84x3 uint8 frame, which ``make_vec`` carries in its shm ring and gymnasium's AsyncVectorEnv in its

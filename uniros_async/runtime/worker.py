@@ -482,10 +482,11 @@ class _Server:
         request, run each step through (``priority.run_steps_through``) and, with ``pin``, stay on core ``slot``
         modulo the cores (round robin: as many workers on each core as can be).
 
-        On 2 cores, 4 workers that the scheduler places itself end up 2 and 2 in one run, 3 and 1 in the next:
-        a step wakes them all at once, a woken worker lands on an idle core or beside its waker, and stays there
-        step after step; the core with 3 then takes 3 step times while the other idles after 1 (~67 % of the
-        physics bound). Pinned, each core gets its share, every run. Once set up, the policy stays.
+        Left to the scheduler, where a step's wake-ups put the workers decides how long the step takes (4 on 2
+        cores placed 3 and 1: the core with 3 takes 3 step times while the other idles after 1, ~67 % of the
+        physics bound), and a woken worker tends to land where it ran before, so a placement lasts. Pinned, each
+        core gets its share in every run (docs/performance.md, "More envs than cores"). Once set up, the policy
+        stays.
         """
         if self.cores_shared or self.realtime or not share:
             return
