@@ -20,6 +20,12 @@ env on that arm and steps it forever, resetting after every episode end and ever
 event as a JSON line with its ``time.monotonic_ns()`` (one clock for every namespace of the machine): ``reset``,
 ``step`` (with the observation's age), ``robot_error`` (the message) and ``error`` (anything else: an uncaught
 exception, with its traceback).
+
+``python -m uniros_async.testing.netfault commands --master URI --ros-host IP`` is a bare commander on a ROS 1 arm:
+the ROS 1 bridge (``adapters.ros1_bridge``) and, on its bus, a publisher of ``JointCommand`` at the hardware rate
+that never stops (no env and its own staleness check in front of the bridge). Command ``seq`` moves the waist to
+``command_position(seq)``, so whoever receives the driver's messages can tell which command each was; it prints
+``sent`` (``seq``) for every command and the bridge's counters (``stats``) every second.
 """
 
 from __future__ import annotations
@@ -37,10 +43,20 @@ import threading
 import time
 import traceback
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
-__all__ = ["ARM_IP", "ENV_IP", "EventPeer", "NetnsPair", "fault_figures", "netfault_missing", "open_netns_pair"]
+__all__ = [
+    "ARM_IP",
+    "ENV_IP",
+    "WAIST_STEP_RAD",
+    "EventPeer",
+    "NetnsPair",
+    "command_position",
+    "fault_figures",
+    "netfault_missing",
+    "open_netns_pair",
+]
 
 ARM_IP = "10.200.0.1"
 ENV_IP = "10.200.0.2"
@@ -355,6 +371,61 @@ def drive(
         _emit("closed")
 
 
+WAIST_STEP_RAD = 0.001
+"""``command_position(seq)`` moves the waist by this per ``seq``, modulo 1000 (at most 1 rad from home)."""
+
+
+def command_position(seq: int, n_joints: int) -> list[float]:
+    """The arm position that command ``seq`` asks for (``commands``): the waist at ``(seq % 1000) * WAIST_STEP_RAD``,
+    the other joints at 0; ``round(position[0] / WAIST_STEP_RAD)`` gives ``seq % 1000`` back."""
+    return [(seq % 1000) * WAIST_STEP_RAD] + [0.0] * (n_joints - 1)
+
+
+def commands(robot: str, *, master_uri: str, ros_host: str, max_command_age_s: float | None) -> None:
+    """Run the ROS 1 bridge and command it at the hardware rate until SIGTERM (see the module docstring)."""
+    import asyncio
+
+    import numpy as np
+
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+    from uniros_async.bus import open_domain, open_node
+    from uniros_async.bus.messages import Header, JointCommand
+    from uniros_async.bus.qos import latest
+    from uniros_async.robots import get_robot_spec
+
+    spec = get_robot_spec(robot)
+    config = Ros1BridgeConfig(
+        robot=robot, master_uri=master_uri, ros_host=ros_host, insecure=True, max_command_age_s=max_command_age_s
+    )
+
+    async def run() -> None:
+        stop = asyncio.Event()
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+        async with (
+            open_domain("memory://") as domain,
+            open_ros1_bridge(config, domain=domain) as bridge,
+            open_node("commander", domain=domain, namespace=f"/{spec.name}") as node,
+        ):
+            pub = await node.create_publisher(JointCommand, "command", qos=latest())
+            _emit("ready")
+            period_ns = round(1e9 / spec.hardware_rate_hz)
+            next_ns = time.monotonic_ns()
+            seq = 0
+            while not stop.is_set():
+                seq += 1
+                q = command_position(seq, len(spec.arm_joint_names))
+                _emit("sent", seq=seq)
+                pub.publish(JointCommand(header=Header(stamp_ns=time.monotonic_ns(), seq=seq), position=np.asarray(q)))
+                if seq % round(spec.hardware_rate_hz) == 0:
+                    _emit("stats", **asdict(bridge.stats))
+                next_ns += period_ns
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), max(next_ns - time.monotonic_ns(), 0) / 1e9)
+            _emit("stats", **asdict(bridge.stats))
+
+    asyncio.run(run())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m uniros_async.testing.netfault drive ...``."""
     parser = argparse.ArgumentParser(prog="python -m uniros_async.testing.netfault")
@@ -366,7 +437,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     d.add_argument("--action-cycle", type=float, default=0.2)
     d.add_argument("--reset-timeout", type=float, default=10.0)
     d.add_argument("--ros-host", default=None, help="with ros1://: the address ROS peers reach the bridge at")
+    c = sub.add_parser("commands", help="the ROS 1 bridge, commanded at the hardware rate; prints sent commands")
+    c.add_argument("--robot", default="rx200")
+    c.add_argument("--master", required=True, help="the ROS master, http://HOST:PORT/")
+    c.add_argument("--ros-host", required=True, help="the address ROS peers reach the bridge at")
+    c.add_argument("--max-command-age", type=float, default=0.5, help="the bridge's max_command_age_s; 0: unguarded")
     args = parser.parse_args(argv)
+    if args.cmd == "commands":
+        commands(
+            args.robot, master_uri=args.master, ros_host=args.ros_host, max_command_age_s=args.max_command_age or None
+        )
+        return 0
     drive(
         args.robot,
         env_id=args.env_id,
