@@ -262,10 +262,12 @@ def fault_figures(
     """One fault's figures from the arm's and the agent's event lines (times in s from the fault or its clearing):
 
     ``hold_after_fault_s`` (the arm's first watchdog hold after the fault), ``hold_after_last_command_s`` (that hold
-    after the last command the arm applied before it), ``notice_after_fault_s`` (the agent's first RobotError),
-    ``agent_saw`` (its message), ``robot_errors``, ``recovery_after_clear_s`` (the agent's first step after the
-    fault was cleared), ``stale_commands_applied`` (commands applied older than ``robot_timeout_s``, over the whole
-    run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s``, ``max_state_stamp_age_at_step_s``
+    after the last command the arm applied before it), ``hold_ticks_after_last_command`` (the same in the arm's own
+    ticks, one hardware period of sim time each, whatever the host's scheduling), ``notice_after_fault_s`` (the
+    agent's first RobotError), ``agent_saw`` (its message), ``agent_loop_late_s`` (how late the agent's env loop ran
+    before it: the host's scheduling), ``robot_errors``, ``recovery_after_clear_s`` (the agent's first step after
+    the fault was cleared), ``stale_commands_applied`` (commands applied older than ``robot_timeout_s``, over the
+    whole run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s``, ``max_state_stamp_age_at_step_s``
     (the oldest joint state, by its stamp, that a step returned on since the fault) and ``uncaught_exceptions``.
     """
     s = 1e-9
@@ -281,8 +283,12 @@ def fault_figures(
         "hold_after_last_command_s": (
             round((hold["t_ns"] - before_hold[-1]["t_ns"]) * s, 3) if hold and before_hold else None
         ),
+        "hold_ticks_after_last_command": (
+            hold["tick"] - before_hold[-1]["tick"] if hold and before_hold and "tick" in hold else None
+        ),
         "notice_after_fault_s": round((errors[0]["t_ns"] - t_fault) * s, 3) if errors else None,
         "agent_saw": errors[0]["msg"] if errors else "no error",
+        "agent_loop_late_s": errors[0].get("loop_late_s") if errors else None,
         "robot_errors": len(errors),
         "recovery_after_clear_s": round((recovered_ns - t_clear) * s, 3),
         "stale_commands_applied": sum(1 for e in cmds if e["applied"] and e["age_ns"] > robot_timeout_s / s),
@@ -301,6 +307,16 @@ def fault_figures(
 def _emit(event: str, **fields: Any) -> None:
     sys.stdout.write(json.dumps({"ev": event, "t_ns": time.monotonic_ns(), **fields}) + "\n")
     sys.stdout.flush()
+
+
+def _loop_late_s(u: Any, window_s: float) -> float:
+    """How late the env loop's ticks ran over the last ``window_s`` plus two periods (the largest gap between ticks,
+    or since the last one, beyond one hardware period): the host's scheduling, which a notice's time includes."""
+    period_ns = round(1e9 / u.robot_spec.hardware_rate_hz)
+    now = time.monotonic_ns()
+    ticks = [t for t in list(u.timing.tick_ns) if t >= now - round(window_s * 1e9) - 2 * period_ns] + [now]
+    gaps = [b - a for a, b in zip(ticks, ticks[1:], strict=False)]
+    return round(max(max(gaps, default=0) - period_ns, 0) / 1e9, 3)
 
 
 def drive(
@@ -353,14 +369,14 @@ def drive(
                     _emit("reset")
                     continue
                 _, _, terminated, truncated, info = env.step(action)
-                age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
                 js = u._js.latest()
                 # by the state's own stamp: meaningful when the arm shares this machine's monotonic clock
                 stamp_age = (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0
+                age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
                 _emit("step", obs_age_ns=age, state_age_s=u._state_age_s(), state_stamp_age_s=stamp_age)
                 need_reset = terminated or truncated
             except RobotError as exc:
-                _emit("robot_error", msg=str(exc))
+                _emit("robot_error", msg=str(exc), loop_late_s=_loop_late_s(u, robot_timeout_s))
                 need_reset = True
             except Exception as exc:  # noqa: BLE001 - counted as uncaught by the tests, never hidden
                 _emit("error", kind=type(exc).__name__, msg=str(exc), tb=traceback.format_exc())
