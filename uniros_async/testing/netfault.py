@@ -13,13 +13,14 @@ namespaces (and so the link) when the block ends, also on failure. Processes run
 - ``clear()``: removes the nftables table and the qdiscs.
 
 A frozen peer is ``os.kill(pid, SIGSTOP)`` / ``SIGCONT`` of the arm's process. This kernel has no ``netem``
-(CONFIG_NET_SCH_NETEM is off), so delay and jitter would need a delaying relay in the test itself.
+(CONFIG_NET_SCH_NETEM is off), so delay and jitter come from the tests' own delaying relay
+(``testing.delayrelay``): ``delay_through(port, mark)`` redirects every tcp connection across the link to it.
 
 ``python -m uniros_async.testing.netfault drive --robot tcp://HOST:PORT ...`` is the agent side: it makes a reach
 env on that arm and steps it forever, resetting after every episode end and every RobotError, and prints each
 event as a JSON line with its ``time.monotonic_ns()`` (one clock for every namespace of the machine): ``reset``,
-``step`` (with the observation's age), ``robot_error`` (the message) and ``error`` (anything else: an uncaught
-exception, with its traceback).
+``step`` (with the observation's age, and at an episode's end why, from ``info``), ``robot_error`` (the message)
+and ``error`` (anything else: an uncaught exception, with its traceback).
 
 ``python -m uniros_async.testing.netfault commands --master URI --ros-host IP`` is a bare commander on a ROS 1 arm:
 the ROS 1 bridge (``adapters.ros1_bridge``) and, on its bus, a publisher of ``JointCommand`` at the hardware rate
@@ -62,6 +63,7 @@ ARM_IP = "10.200.0.1"
 ENV_IP = "10.200.0.2"
 PREFIX_LEN = 30
 TABLE = "uniros_fault"
+DELAY_TABLE = "uniros_delay"
 _counter = itertools.count()
 
 
@@ -146,8 +148,29 @@ class NetnsPair:
     def link_up(self) -> None:
         _run("ip", "-n", self.arm_ns, "link", "set", self.arm_dev, "up")
 
+    def delay_through(self, relay_port: int, mark: int) -> None:
+        """Redirect every tcp connection across the link, whichever side opens it, to the delaying relay listening
+        on ``relay_port`` in the arm's namespace (``testing.delayrelay``; this kernel has no netem), which connects
+        on to each connection's original destination with ``SO_MARK`` ``mark``, left alone here. Only
+        connections opened after this are redirected (nftables' nat acts on a connection's first packet)."""
+        script = [
+            f"table ip {DELAY_TABLE} {{",
+            "  chain prerouting {",
+            "    type nat hook prerouting priority dstnat; policy accept;",
+            f'    iifname "{self.arm_dev}" meta l4proto tcp redirect to :{relay_port}',
+            "  }",
+            "  chain output {",
+            "    type nat hook output priority -100; policy accept;",
+            f'    oifname "{self.arm_dev}" meta mark != {mark} meta l4proto tcp redirect to :{relay_port}',
+            "  }",
+            "}",
+            "",
+        ]
+        _run("ip", "netns", "exec", self.arm_ns, "nft", "-f", "-", stdin="\n".join(script))
+
     def clear_nft(self) -> None:
         _run("ip", "netns", "exec", self.arm_ns, "nft", "delete", "table", "inet", TABLE, check=False)
+        _run("ip", "netns", "exec", self.arm_ns, "nft", "delete", "table", "ip", DELAY_TABLE, check=False)
 
     def clear(self) -> None:
         """Remove every fault: the nftables table, the qdiscs, and a link left down."""
@@ -309,12 +332,23 @@ def _emit(event: str, **fields: Any) -> None:
     sys.stdout.flush()
 
 
+_END_KEYS = ("is_success", "unsafe_reason", "not_executable", "action_projected", "TimeLimit.truncated")
+"""What a step event carries of ``info`` when the episode ended: why it ended."""
+
+
+def _plain(value: Any) -> Any:
+    """``value`` as JSON can write it (numpy scalars as Python's, anything else unknown as text)."""
+    value = value.item() if hasattr(value, "item") else value
+    return value if isinstance(value, bool | int | float | str) or value is None else str(value)
+
+
 def _loop_late_s(u: Any, window_s: float) -> float:
     """How late the env loop's ticks ran over the last ``window_s`` plus two periods (the largest gap between ticks,
     or since the last one, beyond one hardware period): the host's scheduling, which a notice's time includes."""
-    period_ns = round(1e9 / u.robot_spec.hardware_rate_hz)
+    period_ns = round(1e9 / float(u.robot_spec.hardware_rate_hz))
     now = time.monotonic_ns()
-    ticks = [t for t in list(u.timing.tick_ns) if t >= now - round(window_s * 1e9) - 2 * period_ns] + [now]
+    since = now - round(window_s * 1e9) - 2 * period_ns
+    ticks: list[int] = [int(t) for t in list(u.timing.tick_ns) if t >= since] + [now]
     gaps = [b - a for a, b in zip(ticks, ticks[1:], strict=False)]
     return round(max(max(gaps, default=0) - period_ns, 0) / 1e9, 3)
 
@@ -373,7 +407,16 @@ def drive(
                 # by the state's own stamp: meaningful when the arm shares this machine's monotonic clock
                 stamp_age = (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0
                 age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
-                _emit("step", obs_age_ns=age, state_age_s=u._state_age_s(), state_stamp_age_s=stamp_age)
+                why = {k: _plain(info[k]) for k in _END_KEYS if k in info} if terminated or truncated else {}
+                _emit(
+                    "step",
+                    obs_age_ns=age,
+                    state_age_s=u._state_age_s(),
+                    state_stamp_age_s=stamp_age,
+                    terminated=bool(terminated),
+                    truncated=bool(truncated),
+                    info=why,
+                )
                 need_reset = terminated or truncated
             except RobotError as exc:
                 _emit("robot_error", msg=str(exc), loop_late_s=_loop_late_s(u, robot_timeout_s))
