@@ -6,7 +6,8 @@ ROS 1 cannot authenticate peers, so the driver and the bridge are allowed beyond
 ``ros1={"insecure": True}``): only the two namespaces the test creates can reach them.
 
 A command's age at the arm is not checked here: the driver's ``interbotix_xs_msgs/JointGroupCommand`` carries no
-stamp, so the arm can only count from a command's arrival (``--max-command-age`` is refused for this driver).
+stamp, so the arm can only count from a command's arrival (``--max-command-age`` is refused for this driver). That no
+command older than the robot timeout reaches it after a partition is test_ros1_stale_commands.py.
 """
 
 from __future__ import annotations

@@ -155,8 +155,10 @@ def test_partition_delivers_no_stale_command(arm: Arm, guarded: bool) -> None:
         try:
             time.sleep(FAULT_S)  # the fault's duration: the commander keeps publishing meanwhile
         finally:
-            pair.clear()
-        t_heal = time.monotonic_ns()
+            # the heal: from the moment the table's removal starts (spawning nft can take a while on a loaded host,
+            # and TCP retransmits the moment it is gone)
+            t_heal = time.monotonic_ns()
+            pair.clear_nft()
         recovered = _wait_arrival_sent_after(arm, commander, t_heal, RECOVER_S, "the heal")
         settle_from = time.monotonic_ns() + round(SETTLE_S * 1e9)
         _wait_arrival_sent_after(arm, commander, settle_from, RECOVER_S, "the heal and the settling time")

@@ -54,6 +54,7 @@ import contextlib
 import dataclasses
 import itertools
 import logging
+import math
 import os
 import time
 from collections.abc import AsyncIterator, Callable
@@ -62,6 +63,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from uniros_async.adapters.drivers import ros_driver_defaults
+from uniros_async.backoff import Backoff
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.bus.qos import latest
@@ -246,7 +248,7 @@ class Ros1Bridge:
         self.period_s = 1.0 / spec.hardware_rate_hz
         self.max_age_ns = None if config.max_command_age_s is None else round(config.max_command_age_s * 1e9)
         self.check_s = min(self.period_s, (config.max_command_age_s or self.period_s) / 4)
-        """How often ``guard`` looks at the connections to the driver."""
+        """How often ``run_commands`` looks at the connections to the driver."""
 
     # ------------------------------------------------------------------------------------------- ROS -> bus
 
@@ -418,6 +420,9 @@ class Ros1Bridge:
         too old undelivered, and after a reset, once joint states are fresh again, replaces the publisher (the
         module docstring)."""
         generation = 0
+        # replacements in quick succession (a link that carries states but not commands) back off, up to 5 s
+        backoff = Backoff(first_s=0.5, max_s=5.0)
+        replaced = -math.inf  # when the previous replacement was
         while True:
             try:
                 async with open_publisher(generation) as pub:
@@ -431,11 +436,20 @@ class Ros1Bridge:
                     ready.set_exception(exc)
                     return
                 logger.warning("%s: cannot publish %s anew (%s); retrying", self.spec.name, self.config.command, exc)
-                await asyncio.sleep(max(self.check_s, 0.5))
+            except Exception as exc:
+                if not ready.done():  # open_ros1_bridge raises it
+                    ready.set_exception(exc)
+                    return
+                raise
             finally:
                 self._send = None
             generation += 1
             self.stats.command_node_restarts += 1
+            if time.monotonic() - replaced > 30.0:
+                backoff.reset()
+            else:
+                await backoff.sleep()
+            replaced = time.monotonic()
 
     async def _watch(self, pub: Ros1Publisher[Any]) -> None:
         """Return when a connection of ``pub`` was reset and the joint states are fresh again; never when
