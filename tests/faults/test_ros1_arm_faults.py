@@ -12,6 +12,7 @@ command older than the robot timeout reaches it after a partition is test_ros1_s
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -36,6 +37,8 @@ ROS1_FAULTS = ["partition", "loss 10 %", "tcp reset", "link down", "frozen arm (
 def ros1_link(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Link]:
     reason = ros1_missing()
     if reason is not None:
+        if os.environ.get("UNIROS_REQUIRE_ROS") == "1":  # .ci/run: ROS 1 must be there
+            pytest.fail(f"UNIROS_REQUIRE_ROS=1 but {reason}")
         pytest.skip(reason)
     py = sys.executable
     home = Path(tmp_path_factory.mktemp("ros_home"))

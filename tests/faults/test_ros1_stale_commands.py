@@ -59,6 +59,8 @@ class Arm:
 def arm(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Arm]:
     reason = ros1_missing()
     if reason is not None:
+        if os.environ.get("UNIROS_REQUIRE_ROS") == "1":  # .ci/run: ROS 1 must be there
+            pytest.fail(f"UNIROS_REQUIRE_ROS=1 but {reason}")
         pytest.skip(reason)
     home = Path(tmp_path_factory.mktemp("ros_home"))
     with open_netns_pair() as pair:
