@@ -6,9 +6,10 @@
 
 The bridge is to a real arm what the servo sim node is to a simulated one, its hardware interface on the bus: in
 namespace ``/<robot>`` it publishes ``joint_states`` (our ``JointState``, in the robot's ``joint_state_names``
-order, stamped on arrival) for every ``sensor_msgs/JointState`` the driver publishes, and turns every ``command``
-(our ``JointCommand``) into one message on the driver's command topic. The env reaches the arm only through those
-two topics (``envs/robot.py``), so the same TaskEnv code runs on the sim, the emulated real arm and a ROS 1 arm.
+order, stamped on arrival less the time it waited on the way, ``Ros1Bridge.queued_ns``) for every
+``sensor_msgs/JointState`` the driver publishes, and turns every ``command`` (our ``JointCommand``) into one
+message on the driver's command topic. The env reaches the arm only through those two topics (``envs/robot.py``),
+so the same TaskEnv code runs on the sim, the emulated real arm and a ROS 1 arm.
 
 Command types (``command_type``), each what a common ROS 1 arm driver listens to:
 
@@ -50,6 +51,7 @@ The env's placement sets ``max_command_age_s`` to its ``robot_timeout_s``.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import dataclasses
 import itertools
@@ -102,6 +104,8 @@ LIMIT_CLAMP_RAD = 0.05
 ``commands_clamped``), as the servo sim and the servos themselves clip it: holding where the arm measures itself
 (the env's hold) can ask for a hair past a limit the arm sits at, through sensor noise or overshoot. Further out,
 a command is refused."""
+TRANSIT_WINDOW_S = 60.0
+"""How far back ``Ros1Bridge.queued_ns`` looks for the quickest joint state."""
 _instances = itertools.count(1)
 ROS1_SETTINGS = (
     "driver",
@@ -245,6 +249,7 @@ class Ros1Bridge:
         self.first_state = asyncio.Event()
         self.last_q: np.ndarray | None = None  # newest measured arm positions
         self.last_state_ns: int | None = None  # time.monotonic_ns() when it arrived
+        self._transit: collections.deque[tuple[int, int]] = collections.deque()  # (arrival, transit): increasing
         self.period_s = 1.0 / spec.hardware_rate_hz
         self.max_age_ns = None if config.max_command_age_s is None else round(config.max_command_age_s * 1e9)
         self.check_s = min(self.period_s, (config.max_command_age_s or self.period_s) / 4)
@@ -304,9 +309,10 @@ class Ros1Bridge:
         self.stats.states_in += 1
         self.last_q = fields[0][: self._n_arm].copy()
         self.last_state_ns = time.monotonic_ns()
+        queued = self.queued_ns(int(msg.header.stamp_ns), time.time_ns(), self.last_state_ns)
         self._publish(
             JointState(
-                header=Header(stamp_ns=self._now_ns(), seq=self._seq, frame_id=msg.header.frame_id),
+                header=Header(stamp_ns=self._now_ns() - queued, seq=self._seq, frame_id=msg.header.frame_id),
                 name=self.spec.joint_state_names,
                 position=fields[0],
                 velocity=fields[1],
@@ -314,6 +320,25 @@ class Ros1Bridge:
             )
         )
         self.first_state.set()
+
+    def queued_ns(self, driver_stamp_ns: int, wall_ns: int, now_ns: int) -> int:
+        """How much longer than the quickest joint state of the last ``TRANSIT_WINDOW_S`` this one (stamped
+        ``driver_stamp_ns`` by the driver, ROS time) took to arrive (``wall_ns``, our wall clock): the time it
+        waited on the way, in a socket buffer or a cut link. Its stamp on the bus is that much before its arrival,
+        so an env counts it as old as it is (states a healed link delivers in a burst look fresh otherwise). An
+        offset between the driver's clock and ours cancels out, as does a delay every state has; 0 for a state
+        the driver did not stamp."""
+        if driver_stamp_ns <= 0:
+            return 0
+        transit = wall_ns - driver_stamp_ns
+        q = self._transit
+        while q and q[-1][1] >= transit:
+            q.pop()
+        q.append((now_ns, transit))
+        horizon = now_ns - round(TRANSIT_WINDOW_S * 1e9)
+        while len(q) > 1 and q[0][0] < horizon:
+            q.popleft()
+        return max(0, transit - q[0][1])
 
     # ------------------------------------------------------------------------------------------- bus -> ROS
 
