@@ -40,7 +40,7 @@ from typing import Any
 import uniros_async
 from uniros_async.runtime.worker import WorkerSpec
 
-__all__ = ["WorkerProcess", "live_workers", "start_interpreter", "start_worker"]
+__all__ = ["WorkerProcess", "found_libraries", "live_workers", "start_interpreter", "start_worker"]
 
 _PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(uniros_async.__file__)))
 """The directory that holds the ``uniros_async`` package: first on the worker's PYTHONPATH, so ``python -m`` finds
@@ -185,6 +185,23 @@ def start_worker(spec: WorkerSpec) -> tuple[WorkerProcess, multiprocessing.conne
         proc.discard()
         raise
     return proc, conn
+
+
+def found_libraries() -> dict[str, str]:
+    """Environment variables that hand a local worker the shared libraries this process's imports have found.
+
+    ``import mujoco`` imports ``glfw`` (for ``mujoco.GLContext``), which looks for libglfw by loading each candidate
+    in a Python subprocess of its own to read its version: a second interpreter and an ``ldconfig -p`` in every
+    process that imports MuJoCo, ~50 ms of CPU each. Where this process has made that search already, the worker
+    is given its result (``PYGLFW_LIBRARY``, glfw's own setting) and loads the same library at once; a variable set
+    by the user is left as it is.
+    """
+    found: dict[str, str] = {}
+    glfw_library = sys.modules.get("glfw.library")
+    path = getattr(getattr(glfw_library, "glfw", None), "_name", None)
+    if isinstance(path, str) and path and "PYGLFW_LIBRARY" not in os.environ:
+        found["PYGLFW_LIBRARY"] = path
+    return found
 
 
 def live_workers() -> list[WorkerProcess]:

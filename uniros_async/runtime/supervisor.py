@@ -55,7 +55,7 @@ import gymnasium as gym
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.priority import MAX_LOOP_RANK
 from uniros_async.runtime.envargs import check_env_args, registration, split_placement
-from uniros_async.runtime.launch import WorkerProcess, start_interpreter, start_worker
+from uniros_async.runtime.launch import WorkerProcess, found_libraries, start_interpreter, start_worker
 from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
 from uniros_async.runtime.ray_backend import RayPlacement, RayWorkerProcess, check_placements
 from uniros_async.runtime.worker import WorkerSpec
@@ -361,6 +361,7 @@ class Supervisor:
             listen_uri=listen_uri,
             rt_rank=rt_rank,
             registration=registration(env_id),
+            environ=found_libraries(),
         )
         # a fresh interpreter (nothing of this process's __main__ is imported): one started at __init__, if any
         if self._spares:

@@ -99,6 +99,8 @@ class WorkerSpec:
             phase (``LOOP_PHASE_STEP_NS``).
         registration: ``gymnasium.register`` keyword arguments for ``env_id`` as the agent's process has it
             registered (``envargs.registration``), used when this fresh interpreter does not know the id.
+        environ: environment variables set in the worker before it builds its env (``launch.found_libraries``:
+            what the agent's imports found already, so that the worker's imports need not search again).
     """
 
     index: int
@@ -111,6 +113,7 @@ class WorkerSpec:
     auth_key: bytes | None = None
     rt_rank: int = 0
     registration: dict[str, Any] | None = None
+    environ: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
 # ---------------------------------------------------------------- the worker
@@ -325,6 +328,8 @@ class _Server:
         import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
         from uniros_async.envs.runtime import deferred_start
 
+        for name, value in self.spec.environ.items():
+            os.environ.setdefault(name, value)
         try:
             reg = self.spec.registration
             if reg is not None and reg["id"] not in gym.registry:
