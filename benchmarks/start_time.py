@@ -8,6 +8,10 @@ cached, and prints the medians. Recorded in docs/performance.md.
 setup.py build_ext --inplace``), each process with ``PYTHONPATH`` set to its tree, in ABBA order (this tree, the
 other, the other, this tree, ... REPEATS rounds of each case), so that a load that rises or falls over the run
 weighs on both alike; it prints both medians and their ratio (this tree / the other: below 1 is faster here).
+
+Besides the wall-clock time it prints the CPU time spent (the caller's during ``make_vec``, and its children's:
+the workers, reaped at ``close``, so their shutdown counts too): on a host whose other load varies, that is the
+steadier figure, and on 2 cores four workers' start is mostly CPU-bound.
 """
 
 from __future__ import annotations
@@ -23,28 +27,42 @@ CASES = {
     "1 x CartPole-v1": 'make_vec(["CartPole-v1"], pad=False)',
 }
 SNIPPET = """
-import time
+import resource, time
 from uniros_async.runtime import make_vec
-t0 = time.perf_counter()
+def cpu(who):
+    r = resource.getrusage(who)
+    return r.ru_utime + r.ru_stime
+t0, c0 = time.perf_counter(), cpu(resource.RUSAGE_SELF)
 venv = {call}
-print(time.perf_counter() - t0)
+wall, own = time.perf_counter() - t0, cpu(resource.RUSAGE_SELF) - c0
 venv.close()
+print(wall, own + cpu(resource.RUSAGE_CHILDREN))
 """
 HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 """The tree this script belongs to."""
 
 
-def time_once(call: str, tree: str) -> float:
-    """Seconds that ``call`` took in a fresh interpreter importing ``uniros_async`` from ``tree``."""
+def time_once(call: str, tree: str) -> tuple[float, float]:
+    """Seconds that ``call`` took in a fresh interpreter importing ``uniros_async`` from ``tree``: wall-clock, and
+    CPU (the caller's during the call and its children's whole lives: the workers, reaped at ``close``)."""
     env = {**os.environ, "PYTHONPATH": tree}
     out = subprocess.run(
         [sys.executable, "-c", SNIPPET.format(call=call)], capture_output=True, text=True, check=True, env=env
     )
-    return float(out.stdout.strip().splitlines()[-1])
+    wall, cpu = out.stdout.strip().splitlines()[-1].split()
+    return float(wall), float(cpu)
 
 
 def _runs(times: list[float]) -> str:
     return ", ".join(f"{t:.3f}" for t in times)
+
+
+def _line(name: str, runs: list[tuple[float, float]]) -> str:
+    walls, cpus = [w for w, _ in runs], [c for _, c in runs]
+    return (
+        f"{name} median {statistics.median(walls):.3f} s ({_runs(walls)}); CPU median {statistics.median(cpus):.3f} s"
+        f" ({_runs(cpus)})"
+    )
 
 
 def main() -> None:
@@ -55,19 +73,19 @@ def main() -> None:
     args = parser.parse_args()
     for name, call in CASES.items():
         if args.against is None:
-            times = [time_once(call, HERE) for _ in range(args.repeats)]
-            print(f"{name}: median {statistics.median(times):.3f} s over {args.repeats} ({_runs(times)})")
+            print(_line(f"{name}:", [time_once(call, HERE) for _ in range(args.repeats)]))
             continue
-        here: list[float] = []
-        other: list[float] = []
+        here: list[tuple[float, float]] = []
+        other: list[tuple[float, float]] = []
         for i in range(args.repeats):
             order = [(here, HERE), (other, args.against)]
-            for times, tree in order if i % 2 == 0 else order[::-1]:
-                times.append(time_once(call, tree))
-        h, o = statistics.median(here), statistics.median(other)
-        print(f"{name}: this tree median {h:.3f} s ({_runs(here)})")
-        print(f"{name}: {args.against} median {o:.3f} s ({_runs(other)})")
-        print(f"{name}: ratio this / other {h / o:.3f}")
+            for runs, tree in order if i % 2 == 0 else order[::-1]:
+                runs.append(time_once(call, tree))
+        print(_line(f"{name}: this tree", here))
+        print(_line(f"{name}: {args.against}", other))
+        wall = statistics.median(w for w, _ in here) / statistics.median(w for w, _ in other)
+        cpu = statistics.median(c for _, c in here) / statistics.median(c for _, c in other)
+        print(f"{name}: ratio this / other: wall {wall:.3f}, CPU {cpu:.3f}")
 
 
 if __name__ == "__main__":
