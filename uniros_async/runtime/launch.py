@@ -15,8 +15,8 @@ A worker can be started in two steps: ``start_interpreter`` starts the interpret
 worker needs (gymnasium, numpy, the protocol) and then waits for its spec on stdin; ``WorkerProcess.send_spec``
 hands the spec over. The supervisor starts the interpreters first and checks the env ids and keyword arguments
 meanwhile (for a uniros env that check imports the task's module, ~0.3 s on one core), so the two overlap; a
-check that fails stops the interpreters before any has a spec (``WorkerProcess.discard``: its stdin closes and it
-exits at once, quietly). ``start_worker`` does both steps at once.
+check that fails stops the interpreters before any has a spec (``WorkerProcess.discard``). ``start_worker`` does
+both steps at once.
 
 ``WorkerProcess`` stands in for ``multiprocessing.Process`` (``pid``, ``exitcode``, ``is_alive``, ``join``,
 ``terminate``, ``kill``, ``sentinel``). Workers still running when the agent's interpreter exits are terminated
@@ -77,20 +77,19 @@ class WorkerProcess:
                 stdin.close()
 
     def withdraw(self) -> None:
-        """Close the stdin of an interpreter that has not had its spec: it exits by itself, quietly."""
+        """Stop an interpreter that has not had its spec, without waiting: its stdin closes (once its imports are
+        done it would exit by itself, quietly) and SIGTERM ends it at once (it holds nothing yet: no env, no
+        shared memory; a worker handles SIGTERM only once it serves)."""
         stdin = self._popen.stdin
         if stdin is not None and not stdin.closed:
             with contextlib.suppress(BrokenPipeError):
                 stdin.close()
+        self.terminate()
 
     def discard(self, timeout_s: float = 2.0) -> None:
-        """Stop an interpreter that has not had its spec (``withdraw``), then terminate it if it has not exited
-        within ``timeout_s``, then kill."""
+        """``withdraw``, then wait until it has exited (at most ``timeout_s``, then kill)."""
         self.withdraw()
         self.join(timeout_s)
-        if self.is_alive():
-            self.terminate()
-            self.join(timeout_s)
         if self.is_alive():
             self.kill()
             self.join(timeout_s)
