@@ -9,6 +9,10 @@ setup.py build_ext --inplace``), each process with ``PYTHONPATH`` set to its tre
 other, the other, this tree, ... REPEATS rounds of each case), so that a load that rises or falls over the run
 weighs on both alike; it prints both medians and their ratio (this tree / the other: below 1 is faster here).
 
+Each tree's package is byte-compiled first (``compileall``), as an installed package is: otherwise, where
+``PYTHONDONTWRITEBYTECODE`` is set or the tree is read-only, every process would compile the package's modules
+from source again, and the figures would be the compiler's.
+
 Besides the wall-clock time it prints the CPU time spent (the caller's during ``make_vec``, and its children's:
 the workers, reaped at ``close``, so their shutdown counts too): on a host whose other load varies, that is the
 steadier figure, and on 2 cores four workers' start is mostly CPU-bound.
@@ -17,6 +21,7 @@ steadier figure, and on 2 cores four workers' start is mostly CPU-bound.
 from __future__ import annotations
 
 import argparse
+import compileall
 import os
 import statistics
 import subprocess
@@ -71,6 +76,8 @@ def main() -> None:
     parser.add_argument("repeats", nargs="?", type=int, default=5, help="runs of each case (and tree); default 5")
     parser.add_argument("--against", metavar="TREE", help="another checkout to time alongside, in ABBA order")
     args = parser.parse_args()
+    for tree in [HERE] if args.against is None else [HERE, args.against]:
+        compileall.compile_dir(os.path.join(tree, "uniros_async"), quiet=1)
     for name, call in CASES.items():
         if args.against is None:
             print(_line(f"{name}:", [time_once(call, HERE) for _ in range(args.repeats)]))
