@@ -7,7 +7,9 @@ cached, and prints the medians. Recorded in docs/performance.md.
 ``--against TREE`` also times the checkout at ``TREE`` (a git worktree with its compiled ring end: ``python
 setup.py build_ext --inplace``), each process with ``PYTHONPATH`` set to its tree, in ABBA order (this tree, the
 other, the other, this tree, ... REPEATS rounds of each case), so that a load that rises or falls over the run
-weighs on both alike; it prints both medians and their ratio (this tree / the other: below 1 is faster here).
+weighs on both alike; it prints both medians and their ratio (this tree / the other: below 1 is faster here), and
+the median of each round's own ratio (its two runs are next to each other in time, so a load that comes and goes
+between rounds cancels out).
 
 Each tree's package is byte-compiled first (``compileall``), as an installed package is: otherwise, where
 ``PYTHONDONTWRITEBYTECODE`` is set or the tree is read-only, every process would compile the package's modules
@@ -92,7 +94,8 @@ def main() -> None:
         print(_line(f"{name}: {args.against}", other))
         wall = statistics.median(w for w, _ in here) / statistics.median(w for w, _ in other)
         cpu = statistics.median(c for _, c in here) / statistics.median(c for _, c in other)
-        print(f"{name}: ratio this / other: wall {wall:.3f}, CPU {cpu:.3f}")
+        paired = statistics.median(h[0] / o[0] for h, o in zip(here, other, strict=True))
+        print(f"{name}: ratio this / other: wall {wall:.3f} (median of each round's {paired:.3f}), CPU {cpu:.3f}")
 
 
 if __name__ == "__main__":
