@@ -159,3 +159,19 @@ def test_bad_kwargs_fail_in_the_caller_and_stop_the_interpreters_started_meanwhi
         make_vec(["uniros/Rx200Reach-v0"] * 2, clock="sim", reward_type="spars")
     assert "did you mean 'sparse'?" in str(e.value)
     assert children() == []
+
+
+def test_an_interpreter_started_early_is_told_the_environment_set_since(monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the agent's checks set in the environment while an interpreter was already starting (an imported module
+    may set ``MUJOCO_GL``) goes into the spec's ``environ``; stopped before it had a spec, the interpreter exits."""
+    from uniros_async.runtime.launch import start_interpreter
+
+    proc, conn = start_interpreter()
+    try:
+        assert proc.environ_changes() == {}
+        monkeypatch.setenv("UNIROS_TEST_SET_DURING_CHECKS", "egl")
+        assert proc.environ_changes() == {"UNIROS_TEST_SET_DURING_CHECKS": "egl"}
+    finally:
+        conn.close()
+        proc.discard()
+    assert proc.exitcode is not None

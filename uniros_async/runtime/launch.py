@@ -54,11 +54,20 @@ class WorkerProcess:
     """A worker started by ``start_worker``, with the part of ``multiprocessing.Process``'s interface the
     supervisor uses."""
 
-    def __init__(self, popen: subprocess.Popen[bytes], name: str) -> None:
+    def __init__(self, popen: subprocess.Popen[bytes], name: str, environ: dict[str, str] | None = None) -> None:
         self._popen = popen
         self.name = name
         self.pid: int = popen.pid
         self._sentinel = -1
+        self._environ = environ  # the agent's environment when the interpreter started
+
+    def environ_changes(self) -> dict[str, str]:
+        """The variables of this process's environment set or changed since the interpreter started (by the
+        checks that ran meanwhile: a module imported there may set one, ``MUJOCO_GL`` say), for its spec's
+        ``environ``. A variable removed meanwhile stays in the worker's environment."""
+        if self._environ is None:
+            return {}
+        return {k: v for k, v in os.environ.items() if self._environ.get(k) != v and k != "PYTHONPATH"}
 
     def send_spec(self, spec: WorkerSpec) -> None:
         """Hand the interpreter its spec (once; ``start_interpreter``): it then starts serving ``spec``'s env."""
@@ -163,7 +172,7 @@ def start_interpreter() -> tuple[WorkerProcess, multiprocessing.connection.Conne
         raise
     finally:
         os.close(write_fd)
-    proc = WorkerProcess(popen, f"uniros-worker-{popen.pid}")
+    proc = WorkerProcess(popen, f"uniros-worker-{popen.pid}", dict(os.environ))
     with _LIVE_LOCK:
         _LIVE.add(proc)
     return proc, multiprocessing.connection.Connection(read_fd, writable=False)

@@ -352,6 +352,8 @@ class Supervisor:
     def _spawn(
         self, index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
     ) -> WorkerHandle:
+        # a fresh interpreter (nothing of this process's __main__ is imported): one started at __init__, if any
+        spare = self._spares.pop(0) if self._spares else None
         spec = WorkerSpec(
             index=index,
             env_id=env_id,
@@ -361,19 +363,18 @@ class Supervisor:
             listen_uri=listen_uri,
             rt_rank=rt_rank,
             registration=registration(env_id),
-            environ=found_libraries(),
+            environ={**(spare[0].environ_changes() if spare is not None else {}), **found_libraries()},
         )
-        # a fresh interpreter (nothing of this process's __main__ is imported): one started at __init__, if any
-        if self._spares:
-            proc, conn = self._spares.pop(0)
+        if spare is None:
+            proc, conn = start_worker(spec)
+        else:
+            proc, conn = spare
             try:
                 proc.send_spec(spec)
             except BaseException:
                 conn.close()
                 proc.discard()
                 raise
-        else:
-            proc, conn = start_worker(spec)
         return WorkerHandle(spec=spec, process=proc, conn=conn)
 
     def restart(self, index: int, timeout_s: float = 60.0) -> WorkerHandle:

@@ -99,8 +99,9 @@ class WorkerSpec:
             phase (``LOOP_PHASE_STEP_NS``).
         registration: ``gymnasium.register`` keyword arguments for ``env_id`` as the agent's process has it
             registered (``envargs.registration``), used when this fresh interpreter does not know the id.
-        environ: environment variables set in the worker before it builds its env (``launch.found_libraries``:
-            what the agent's imports found already, so that the worker's imports need not search again).
+        environ: environment variables set in the worker before it builds its env: those the agent set after the
+            worker's interpreter started (``WorkerProcess.environ_changes``), and what the agent's imports found
+            already, so that the worker's imports need not search again (``launch.found_libraries``).
     """
 
     index: int
@@ -328,8 +329,7 @@ class _Server:
         import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
         from uniros_async.envs.runtime import deferred_start
 
-        for name, value in self.spec.environ.items():
-            os.environ.setdefault(name, value)
+        os.environ.update(self.spec.environ)
         try:
             reg = self.spec.registration
             if reg is not None and reg["id"] not in gym.registry:
