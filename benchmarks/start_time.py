@@ -1,4 +1,4 @@
-"""Time to start vector envs: ``python benchmarks/start_time.py [REPEATS] [--against TREE]``.
+"""Time to start vector envs: ``python benchmarks/start_time.py [REPEATS] [--against TREE] [--only TEXT]``.
 
 Times ``make_vec`` (workers started, envs built, spaces exchanged; no reset) of four "uniros/Rx200Reach-v0" envs
 (clock="sim") and of one "CartPole-v1", REPEATS times each (5 by default), each in a fresh process so no import is
@@ -77,10 +77,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("repeats", nargs="?", type=int, default=5, help="runs of each case (and tree); default 5")
     parser.add_argument("--against", metavar="TREE", help="another checkout to time alongside, in ABBA order")
+    parser.add_argument("--only", metavar="TEXT", help="time only the cases whose name contains TEXT (CartPole)")
     args = parser.parse_args()
     for tree in [HERE] if args.against is None else [HERE, args.against]:
         compileall.compile_dir(os.path.join(tree, "uniros_async"), quiet=1)
     for name, call in CASES.items():
+        if args.only is not None and args.only.lower() not in name.lower():
+            continue
         if args.against is None:
             print(_line(f"{name}:", [time_once(call, HERE) for _ in range(args.repeats)]))
             continue
