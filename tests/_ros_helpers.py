@@ -42,18 +42,14 @@ async def command_line(proc: subprocess.Popen[str], timeout_s: float = 10.0) -> 
     return dict(json.loads(line))
 
 
-def command_lines(proc: subprocess.Popen[str], *, gap_s: float, most: int = 1000) -> list[dict[str, Any]]:
-    """The commands a stand-in arm printed until it printed none for ``gap_s`` (at most ``most``)."""
+def moved_commands(proc: subprocess.Popen[str], *, gap_s: float, most: int = 1000) -> tuple[int, list[dict[str, Any]]]:
+    """The commands a stand-in arm printed until it printed none for ``gap_s`` (at most ``most``): how many of them
+    command a position away from zero, and all of them."""
     lines: list[dict[str, Any]] = []
     with contextlib.suppress(TimeoutError):
         while len(lines) < most:
             lines.append(json.loads(wait_for_line(proc, "{", timeout_s=gap_s)))
-    return lines
-
-
-def moved(lines: list[dict[str, Any]]) -> int:
-    """How many of ``lines`` (``command_lines``) command a position away from zero."""
-    return sum(any(abs(v) > 1e-4 for v in ln["positions"]) for ln in lines)
+    return sum(any(abs(v) > 1e-4 for v in ln["positions"]) for ln in lines), lines
 
 
 def plain_fields(msg: Any) -> Any:
@@ -67,8 +63,8 @@ def plain_fields(msg: Any) -> Any:
     return msg
 
 
-def robot_error_text(exc: BaseException) -> str:
-    """The RobotError inside a task group's wrapping."""
+def robot_error(exc: BaseException) -> str:
+    """The message of the RobotError inside a task group's wrapping."""
     while isinstance(exc, BaseExceptionGroup):
         exc = exc.exceptions[0]
     assert isinstance(exc, RobotError), repr(exc)
@@ -111,7 +107,7 @@ async def check_bridge_drives_the_mirror(
         assert bridge.stats.commands_out == 1 and bridge.stats.states_dropped == 0
 
 
-def check_cli_bridge_serves_until_sigint(*args: str) -> None:
+def check_cli_bridge(*args: str) -> None:
     """``uniros robot bridge rx200 ARGS``: its domain's URI printed, the arm's joint states served there over tcp,
     and a clean exit on SIGINT."""
     proc = subprocess.Popen(
@@ -136,7 +132,7 @@ def check_cli_bridge_serves_until_sigint(*args: str) -> None:
         kill_process(proc)
 
 
-def check_vec_mixes_a_ros_arm_with_a_sim_arm(robot: str) -> None:
+def check_mixed_vec(robot: str) -> None:
     """One vector env, two worker processes: the rx200 at ``robot`` (its bridge in its worker) and a sim rx200,
     both driven toward the same target for two steps."""
     from uniros_async.runtime import make_vec

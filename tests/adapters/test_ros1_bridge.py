@@ -20,15 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from _ros_helpers import (
-    check_cli_bridge_serves_until_sigint,
-    check_vec_mixes_a_ros_arm_with_a_sim_arm,
-    command_line,
-    command_lines,
-    joint_command,
-    moved,
-    robot_error_text,
-)
+from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
@@ -214,14 +206,14 @@ async def test_missing_arm_joint_or_silent_driver_is_a_clear_error(ros_master: s
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros1_bridge(cfg, domain=dom):
                 pass
-        text = robot_error_text(err.value)
+        text = robot_error(err.value)
         assert "/rx200/joint_states" in text and "within 1.5 s" in text
         # nothing is published on the other robot's topic: the same clear error, naming that topic
         cfg2 = Ros1BridgeConfig(robot="ned2", master_uri=ros_master, state_timeout_s=0.5)
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros1_bridge(cfg2, domain=dom):
                 pass
-        assert "/joint_states" in robot_error_text(err.value) and "driver running" in robot_error_text(err.value)
+        assert "/joint_states" in robot_error(err.value) and "driver running" in robot_error(err.value)
 
 
 def test_bad_settings_are_refused_before_anything_starts() -> None:
@@ -272,14 +264,14 @@ def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> Non
         assert "unsafe_reason" not in info, info
     finally:
         env.close()
-    lines = command_lines(arm, gap_s=0.5)
-    assert moved(lines) >= 9, lines  # the action re-sent tick after tick: 10 Hz over the two steps (>= 0.9 s)
+    n, lines = moved_commands(arm, gap_s=0.5)
+    assert n >= 9, lines  # the action re-sent tick after tick: 10 Hz over the two steps (>= 0.9 s)
 
 
 @pytest.mark.slow
 def test_cli_bridge_serves_a_domain_until_sigint(ros_master: str, fake_arm: Any) -> None:
     fake_arm("rx200")
-    check_cli_bridge_serves_until_sigint("--ros-master", ros_master)
+    check_cli_bridge("--ros-master", ros_master)
 
 
 def test_cli_bridge_reports_an_unreachable_master() -> None:
@@ -298,9 +290,9 @@ def test_make_vec_mixes_a_ros_arm_with_a_sim_arm(ros_master: str, fake_arm: Any)
     """One vector env, two worker processes: the rx200 behind ROS 1 (the bridge runs in its worker) and a sim rx200."""
     arm = fake_arm("rx200")
     port = ros_master.rstrip("/").rsplit(":", 1)[1]
-    check_vec_mixes_a_ros_arm_with_a_sim_arm(f"ros1://127.0.0.1:{port}")
-    lines = command_lines(arm, gap_s=0.5)
-    assert moved(lines) >= 9, lines
+    check_mixed_vec(f"ros1://127.0.0.1:{port}")
+    n, lines = moved_commands(arm, gap_s=0.5)
+    assert n >= 9, lines
 
 
 def test_ros_host_follows_ros_ip_then_ros_hostname(monkeypatch: pytest.MonkeyPatch) -> None:

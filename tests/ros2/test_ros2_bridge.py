@@ -20,15 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from _ros_helpers import (
-    check_cli_bridge_serves_until_sigint,
-    check_vec_mixes_a_ros_arm_with_a_sim_arm,
-    command_line,
-    command_lines,
-    joint_command,
-    moved,
-    robot_error_text,
-)
+from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
@@ -116,7 +108,7 @@ async def test_silent_driver_or_a_driver_of_another_type_is_a_clear_error(fake_a
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros2_bridge(cfg, domain=dom):
                 pass
-        text = robot_error_text(err.value)
+        text = robot_error(err.value)
         assert "/rx200/joint_states" in text and "domain 4" in text and "within 1.0 s" in text
         assert time.monotonic() - t0 < 5.0
         # a trajectory controller where the bridge was told to expect a position forwarder: refused, naming both
@@ -125,7 +117,7 @@ async def test_silent_driver_or_a_driver_of_another_type_is_a_clear_error(fake_a
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros2_bridge(cfg, domain=dom):
                 pass
-        text = robot_error_text(err.value)
+        text = robot_error(err.value)
         assert "/forward_position_controller/commands" in text
         assert "trajectory_msgs/msg/JointTrajectory" in text and "std_msgs/msg/Float64MultiArray" in text
         with pytest.raises(TimeoutError):  # and nothing was sent
@@ -154,8 +146,8 @@ def test_real_time_env_on_a_ros2_arm_and_the_driver_vanishing(fake_arm: Any, cap
         obs, reward, terminated, truncated, info = env.step(action)
         assert 0.7 < time.monotonic() - t0 < 0.9  # one 0.8 s action cycle, in real time
         assert np.all(np.isfinite(obs)) and math.isfinite(reward) and "unsafe_reason" not in info, info
-        lines = command_lines(arm, gap_s=0.2, most=40)  # the env loop goes on sending: what came in the two steps
-        assert moved(lines) >= 9, lines  # the action re-sent tick after tick: 10 Hz over two steps (>= 0.9 s)
+        n, lines = moved_commands(arm, gap_s=0.2, most=40)  # the env loop goes on sending: what came in the two steps
+        assert n >= 9, lines  # the action re-sent tick after tick: 10 Hz over two steps (>= 0.9 s)
         kill_process(arm)  # the driver vanishes mid-episode
         with pytest.raises(RobotError) as err:
             for _ in range(10):
@@ -171,15 +163,15 @@ def test_real_time_env_on_a_ros2_arm_and_the_driver_vanishing(fake_arm: Any, cap
 def test_make_vec_mixes_a_ros2_arm_with_a_sim_arm(fake_arm: Any) -> None:
     """One vector env, two worker processes: the rx200 behind ROS 2 (the bridge in its worker) and a sim rx200."""
     arm = fake_arm("rx200", FPC)
-    check_vec_mixes_a_ros_arm_with_a_sim_arm(f"ros2://0?driver={FPC}")
-    lines = command_lines(arm, gap_s=0.5, most=100)
-    assert moved(lines) >= 9, lines
+    check_mixed_vec(f"ros2://0?driver={FPC}")
+    n, lines = moved_commands(arm, gap_s=0.5, most=100)
+    assert n >= 9, lines
 
 
 @pytest.mark.slow
 def test_cli_bridge_serves_a_domain_until_sigint(fake_arm: Any) -> None:
     fake_arm("rx200", FPC)
-    check_cli_bridge_serves_until_sigint("--ros2", f"ros2://0?driver={FPC}")
+    check_cli_bridge("--ros2", f"ros2://0?driver={FPC}")
 
 
 def test_cli_bridge_reports_a_silent_driver() -> None:

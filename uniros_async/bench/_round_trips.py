@@ -103,11 +103,15 @@ def _peer_block(proc: subprocess.Popen[str], peer: str, n: int, timeout_s: float
 
 async def take_turns(
     cfg: RoundTripBenchConfig,
-    ours: Callable[[int], Awaitable[Blocks]],
     client: subprocess.Popen[str],
     peer: str,
+    *,
+    pub: Any,
+    receive: Callable[[], Awaitable[Any]],
+    make: Callable[[str], Any],
 ) -> dict[str, Blocks]:
-    """Alternate blocks of ``ours(seq0)`` and of the ``peer`` ``client`` process; the counted results of each.
+    """Alternate blocks of our client (``our_block`` with ``pub``, ``receive`` and ``make``) and of the ``peer``
+    ``client`` process; the counted results of each.
 
     Returns:
         ``{"uniros": ..., peer: ...}``: every counted block's times joined, and the round trips lost.
@@ -116,7 +120,7 @@ async def take_turns(
     step = progress_counter(2 * cfg.blocks, cfg.progress, f"{peer} bench", "block")
     seq = 0
     for b in range(cfg.blocks):
-        mine = await ours(seq)
+        mine = await our_block(pub, receive, make, cfg.per_block, seq, cfg.timeout_s)
         seq += cfg.per_block + mine[1]
         step(1)
         theirs = await asyncio.to_thread(_peer_block, client, peer, cfg.per_block, cfg.timeout_s)

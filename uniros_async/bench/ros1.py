@@ -28,16 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from uniros_async.bench._round_trips import (
-    NAMES,
-    Blocks,
-    RoundTripBenchConfig,
-    open_peers,
-    our_block,
-    print_table,
-    records_of,
-    take_turns,
-)
+from uniros_async.bench import _round_trips
 from uniros_async.errors import ConfigError
 
 __all__ = ["Ros1BenchConfig", "main"]
@@ -46,17 +37,17 @@ ROSPY_SCRIPT = Path(__file__).with_name("_ros1_rospy.py")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class Ros1BenchConfig(RoundTripBenchConfig):
-    """The blocks and sizes of ``uniros bench ros1`` (``RoundTripBenchConfig``)."""
+class Ros1BenchConfig(_round_trips.RoundTripBenchConfig):
+    """The blocks and sizes of ``uniros bench ros1`` (``_round_trips.RoundTripBenchConfig``)."""
 
 
-async def _run(cfg: Ros1BenchConfig, uri: str, client: subprocess.Popen[str]) -> dict[str, Blocks]:
+async def _run(cfg: Ros1BenchConfig, uri: str, client: subprocess.Popen[str]) -> dict[str, _round_trips.Blocks]:
     from uniros_async.adapters.ros1 import msgs, open_ros1_node
 
     def make(token: str) -> Any:
         return msgs.JointState(
             header=msgs.RosHeader(seq=int(token), stamp_ns=0, frame_id=token),
-            name=list(NAMES),
+            name=list(_round_trips.NAMES),
             position=np.full(8, 0.1),
             velocity=np.zeros(8),
             effort=np.zeros(8),
@@ -67,9 +58,7 @@ async def _run(cfg: Ros1BenchConfig, uri: str, client: subprocess.Popen[str]) ->
         sub = await node.subscribe("/uniros_pong", msgs.JointState)
         await pub.wait_for_subscribers(1, timeout_s=15.0)
         await sub.wait_for_publishers(1, timeout_s=15.0)
-        return await take_turns(
-            cfg, lambda seq0: our_block(pub, sub.receive, make, cfg.per_block, seq0, cfg.timeout_s), client, "rospy"
-        )
+        return await _round_trips.take_turns(cfg, client, "rospy", pub=pub, receive=sub.receive, make=make)
 
 
 def main(config: Ros1BenchConfig, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
@@ -85,10 +74,10 @@ def main(config: Ros1BenchConfig, log: Callable[[str], None] = print) -> list[di
         raise ConfigError(f"uniros bench ros1 needs ROS 1 for its master and the rospy peer: {reason}")
     with tempfile.TemporaryDirectory(prefix="uniros_bench_ros1_") as tmp, open_rosmaster(tmp) as uri:
         env = ros_env(uri, home=Path(tmp) / "ros_home")
-        with open_peers([ros1_python(), str(ROSPY_SCRIPT)], env, ready_timeout_s=30.0) as client:
+        with _round_trips.open_peers([ros1_python(), str(ROSPY_SCRIPT)], env, ready_timeout_s=30.0) as client:
             results = asyncio.run(_run(config, uri, client))
-    records = records_of(results)
+    records = _round_trips.records_of(results)
     labels = {"uniros": "uniros (asyncio, this process)", "rospy": "rospy (queue_size=None)"}
     title = "ROS 1 round trips, sensor_msgs/JointState of 8 joints through a rospy echo node"
-    print_table(config, records, labels, title=title, log=log)
+    _round_trips.print_table(config, records, labels, title=title, log=log)
     return records

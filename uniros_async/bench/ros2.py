@@ -35,16 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from uniros_async.bench._round_trips import (
-    NAMES,
-    Blocks,
-    RoundTripBenchConfig,
-    open_peers,
-    our_block,
-    print_table,
-    records_of,
-    take_turns,
-)
+from uniros_async.bench import _round_trips
 from uniros_async.errors import ConfigError
 
 __all__ = ["Ros2BenchConfig", "main"]
@@ -53,8 +44,8 @@ RCLPY_SCRIPT = Path(__file__).with_name("_ros2_rclpy.py")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class Ros2BenchConfig(RoundTripBenchConfig):
-    """The blocks and sizes of ``uniros bench ros2`` (``RoundTripBenchConfig``), and where DDS runs."""
+class Ros2BenchConfig(_round_trips.RoundTripBenchConfig):
+    """The blocks and sizes of ``uniros bench ros2`` (``_round_trips.RoundTripBenchConfig``), and where DDS runs."""
 
     domain_id: int = 0
     netns: bool = True
@@ -69,7 +60,7 @@ class Ros2BenchConfig(RoundTripBenchConfig):
             raise ConfigError(f"domain_id must be in 0..232, got {self.domain_id}")
 
 
-async def _run(cfg: Ros2BenchConfig, client: subprocess.Popen[str]) -> dict[str, Blocks]:
+async def _run(cfg: Ros2BenchConfig, client: subprocess.Popen[str]) -> dict[str, _round_trips.Blocks]:
     from uniros_async.adapters.ros2 import COMMANDS, open_ros2_node
     from uniros_async.adapters.ros2.msgs import message_class
 
@@ -80,7 +71,7 @@ async def _run(cfg: Ros2BenchConfig, client: subprocess.Popen[str]) -> dict[str,
     def make(token: str) -> Any:
         return js(
             header=header(stamp=stamp(sec=0, nanosec=0), frame_id=token),
-            name=list(NAMES),
+            name=list(_round_trips.NAMES),
             position=np.full(8, 0.1),
             velocity=np.zeros(8),
             effort=np.zeros(8),
@@ -92,9 +83,7 @@ async def _run(cfg: Ros2BenchConfig, client: subprocess.Popen[str]) -> dict[str,
         sub = node.create_subscription("/uniros_pong", "sensor_msgs/msg/JointState", inbox.put_nowait, qos=COMMANDS)
         await pub.wait_for_subscribers(1, timeout_s=15.0)
         await sub.wait_for_publishers(1, timeout_s=15.0)
-        return await take_turns(
-            cfg, lambda seq0: our_block(pub, inbox.get, make, cfg.per_block, seq0, cfg.timeout_s), client, "rclpy"
-        )
+        return await _round_trips.take_turns(cfg, client, "rclpy", pub=pub, receive=inbox.get, make=make)
 
 
 def _in_netns(config: Ros2BenchConfig) -> list[dict[str, Any]] | None:
@@ -135,9 +124,9 @@ def main(config: Ros2BenchConfig, log: Callable[[str], None] = print) -> list[di
         env = rclpy_env(config.domain_id, home=tmp)
         if not config.rclpy_shm:
             env["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
-        with open_peers([str(ros2_python()), str(RCLPY_SCRIPT)], env, ready_timeout_s=60.0) as client:
+        with _round_trips.open_peers([str(ros2_python()), str(RCLPY_SCRIPT)], env, ready_timeout_s=60.0) as client:
             results = asyncio.run(_run(config, client))
-    records = records_of(results)
+    records = _round_trips.records_of(results)
     _print(config, records, log, "a network namespace of its own" if in_netns() else "this host's loopback")
     return records
 
@@ -146,4 +135,4 @@ def _print(config: Ros2BenchConfig, records: list[dict[str, Any]], log: Callable
     labels = {"uniros": "uniros (cyclonedds+rosbags, asyncio)", "rclpy": "rclpy (spin_once)"}
     title = "ROS 2 round trips, sensor_msgs/msg/JointState of 8 joints through an rclpy echo node (Jazzy, Fast DDS)"
     medium = "rclpy-to-rclpy over Fast DDS shared memory" if config.rclpy_shm else "every hop over UDP on loopback"
-    print_table(config, records, labels, title=title, ratio_note=f"DDS in {where}; {medium}", log=log)
+    _round_trips.print_table(config, records, labels, title=title, ratio_note=f"DDS in {where}; {medium}", log=log)
