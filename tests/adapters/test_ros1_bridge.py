@@ -23,7 +23,7 @@ import pytest
 from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
 from uniros_async.bus import open_domain, open_node
-from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
+from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
 from uniros_async.testing.ros1 import rospy_process, wait_for_line
