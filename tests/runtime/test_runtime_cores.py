@@ -75,6 +75,16 @@ def test_an_agent_alone_on_its_core_is_not_moved() -> None:
         venv.close()
 
 
+def _unpinned(pid: int, cpus: set[int]) -> bool:
+    """Whether ``pid`` may run on every one of ``cpus``. A worker that polls moves off its agent's core by pinning
+    itself away and then allowing every core again (``worker._move_off_core``), two calls that a look from here can
+    fall between: look until the second has been made (or 2 s have passed)."""
+    deadline = time.monotonic() + 2.0
+    while os.sched_getaffinity(pid) != cpus and time.monotonic() < deadline:
+        time.sleep(0.001)
+    return os.sched_getaffinity(pid) == cpus
+
+
 def _slice_ns(pid: int) -> int | None:
     """The scheduler slice of ``pid``'s main thread (``se.slice`` in /proc/<pid>/sched), None where not shown."""
     try:
@@ -128,7 +138,7 @@ def test_as_many_workers_as_cores_are_left_where_the_scheduler_puts_them() -> No
             assert pid is not None
             assert not w.info["cores_shared"] and w.info["pinned_cpu"] is None
             # (the policy it started with: a gymnasium env's worker may run SCHED_RR, see worker._real_time)
-            assert os.sched_getaffinity(pid) == cpus and os.sched_getscheduler(pid) != os.SCHED_BATCH
+            assert _unpinned(pid, cpus) and os.sched_getscheduler(pid) != os.SCHED_BATCH
             assert w.transport.spin_ns == REPLY_SPIN_NS
     finally:
         venv.close()
@@ -148,7 +158,7 @@ def test_uniros_shared_cores_chooses_what_crowded_workers_do(
         for w, pid in zip(venv._sup.workers, venv.pids, strict=True):
             assert pid is not None
             assert w.info["cores_shared"] == (mode == "through") and w.info["pinned_cpu"] is None
-            assert os.sched_getaffinity(pid) == cpus and (os.sched_getscheduler(pid) == os.SCHED_BATCH) == batch
+            assert _unpinned(pid, cpus) and (os.sched_getscheduler(pid) == os.SCHED_BATCH) == batch
             assert w.transport.spin_ns == (REPLY_SPIN_NS if spin_ns is None else spin_ns)
     finally:
         venv.close()
@@ -163,5 +173,24 @@ def test_a_bad_uniros_shared_cores_is_refused_by_name(monkeypatch: pytest.Monkey
     try:
         obs, _ = venv.reset(seed=0)
         assert obs.shape == (1, 4)
+    finally:
+        venv.close()
+
+
+def test_real_time_workers_that_outnumber_the_cores_keep_their_own_priority_and_placement() -> None:
+    """A real-time env loop has its own scheduling (``priority.raise_loop_priority``): crowding changes nothing."""
+    from uniros_async.transports.shm import ShmTransport
+
+    cpus = os.sched_getaffinity(0)
+    n = len(cpus) + 1
+    venv = make_vec(["uniros/Rx200Reach-v0"] * n, clock="wall", action_cycle_s=0.2)
+    try:
+        venv.reset(seed=0)
+        venv.step(np.zeros((n, 5), np.float32))
+        for w, pid in zip(venv._sup.workers, venv.pids, strict=True):
+            assert pid is not None
+            assert w.info["realtime"] and not w.info["cores_shared"] and w.info["pinned_cpu"] is None
+            assert _unpinned(pid, cpus) and os.sched_getscheduler(pid) != os.SCHED_BATCH
+            assert w.transport.spin_ns == ShmTransport.spin_ns
     finally:
         venv.close()
