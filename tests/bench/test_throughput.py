@@ -115,10 +115,12 @@ def test_repeat_runs_the_crowded_rows_run_by_run_with_their_intervals(monkeypatc
             assert lo <= r["steps_per_s"] <= hi
             assert r["bound_pct_ci"][0] <= r["bound_pct"] <= r["bound_pct_ci"][1]
         assert r["worker_cpu_ms"] > 0 and r["agent_cpu_ms"] >= 0  # the workers' own CPU time, read from /proc
+        assert r["cores_ours_pct"] > 0 and 0 <= r["cores_idle_pct"] <= 100  # and what the cores did meanwhile
     text = "\n".join(lines)
     assert "% of the physics bound, run by run" in text and "host: 1-min load average" in text
     assert "  4 uniros       pin  " in text and "  4 uniros       off  " in text
     assert "run 2 N=4 uniros       off" in text and "CPU per env step: workers" in text
+    assert "; the cores: ours " in text and " other processes " in text
 
 
 @pytest.mark.parametrize(

@@ -296,7 +296,9 @@ def _run(
             vec_t += v[1:]
         pids = list(getattr(venv, "pids", ())) if impl == "uniros" else []  # local workers: their CPU time here
         cpu0 = [_cpu_s(p) for p in pids], time.process_time()
+        host0, t0 = cpu_times(), time.perf_counter()
         tight_t = _tight(step, batch, steps + 1, steps + 1, n, crowded)  # throughput: back to back
+        host1, wall_s = cpu_times(), time.perf_counter() - t0
         cpu1 = [_cpu_s(p) for p in pids], time.process_time()
     finally:
         venv.close()
@@ -305,6 +307,11 @@ def _run(
     if pids and len(workers_s) == len(pids):  # CPU time per env step, whatever else the host runs meanwhile
         record["worker_cpu_ms"] = round(sum(workers_s) / (n * len(tight_t)) * 1e3, 3)
         record["agent_cpu_ms"] = round((cpu1[1] - cpu0[1]) / (n * len(tight_t)) * 1e3, 3)
+        if host0 is not None and host1 is not None:  # what the cores did meanwhile: our processes, idle, others
+            cores = os.cpu_count() or 1
+            ticks = [b - a for a, b in zip(host0, host1, strict=True)]
+            record["cores_ours_pct"] = round(100 * (sum(workers_s) + cpu1[1] - cpu0[1]) / (wall_s * cores), 1)
+            record["cores_idle_pct"] = round(100 * (ticks[3] + ticks[4]) / max(sum(ticks), 1), 1)
     if crowded:
         lo, hi = _sps_ci(tight_t, n)
         record["steps_per_s_ci"] = None if np.isnan(lo) else [round(lo, 1), round(hi, 1)]
@@ -562,7 +569,11 @@ def _pct_interval(record: dict[str, Any]) -> str:
 def _cpu_line(record: dict[str, Any]) -> str:
     if "worker_cpu_ms" not in record:
         return ""
-    return f"; CPU per env step: workers {record['worker_cpu_ms']:.2f} ms, agent {record['agent_cpu_ms']:.3f} ms"
+    line = f"; CPU per env step: workers {record['worker_cpu_ms']:.2f} ms, agent {record['agent_cpu_ms']:.3f} ms"
+    if "cores_ours_pct" in record:
+        ours, idle = record["cores_ours_pct"], record["cores_idle_pct"]
+        line += f"; the cores: ours {ours:.0f} %, idle {idle:.0f} %, other processes {max(100 - ours - idle, 0):.0f} %"
+    return line
 
 
 def _host_state(load0: tuple[float, ...], cpu0: Any) -> str:
