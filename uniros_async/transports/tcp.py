@@ -128,6 +128,7 @@ registry connection) otherwise never learns that its peer's socket is gone (a re
 peer host that restarted): the probe is answered with a reset, and the owner reconnects."""
 KEEPALIVE_INTERVAL_S = 1
 KEEPALIVE_PROBES = 3
+_HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 
 
 def set_keepalive(sock: socket.socket) -> None:
@@ -454,13 +455,14 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._count_sent(n)
         return True
 
-    def receive_blocking(self, timeout_s: float) -> memoryview | None:
+    def receive_blocking(self, timeout_s: float, watch: Sequence[int] = ()) -> memoryview | None:
         """``receive`` in the calling thread while the event loop does not run (the agent's thread waiting for its
         workers' replies): a frame already queued, or one read from the socket here (``_spin``'s reads, then
         ``poll(2)`` on the socket for at most ``timeout_s``). Returns None when it cannot be had this way: nothing
         came in time, something is unsent (only the loop sends it), reading is paused, the peer hung up or broke
-        the protocol, or this end is closed. Nothing was consumed then: ``receive`` must be awaited (it delivers
-        the frame or raises what is wrong)."""
+        the protocol, this end is closed, or one of the sockets in ``watch`` (other connections' descriptors) was
+        hung up or reset meanwhile (``poll(2)``'s POLLRDHUP, POLLHUP or POLLERR). Nothing was consumed then:
+        ``receive`` must be awaited (it delivers the frame or raises what is wrong)."""
         tr = self._tr
         if tr is None or self._closed or not self._ok or tr.get_write_buffer_size():
             return None
@@ -480,8 +482,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 if poller is None:
                     poller = select.poll()
                     poller.register(fd, select.POLLIN)
-                if not poller.poll(-(-left_ns // 1_000_000)):
+                    for other in watch:
+                        poller.register(other, _HANG_UP)
+                ready = poller.poll(-(-left_ns // 1_000_000))
+                if not ready:
                     continue
+                if watch and any(got != fd for got, _ in ready):
+                    return None  # another connection hung up: the caller's business first
                 try:
                     n = os.readv(fd, (self.get_buffer(-1),))
                 except (BlockingIOError, InterruptedError):
