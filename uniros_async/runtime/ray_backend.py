@@ -434,6 +434,7 @@ class RayWorkerProcess:
             accept_timeout_s=timeout_s,
             auth_key=p.auth_key,
             registration=reg,
+            agent_pid=os.getpid(),
         )
         agent_node = ray.get_runtime_context().get_node_id()
         ref = self._actor.start.remote(spec, agent_node, timeout_s)
