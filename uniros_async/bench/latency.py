@@ -17,6 +17,11 @@ Scenarios:
 - ``sweep``: env-loop rates 1 to 100 Hz (action cycle 0.8 s), and action cycles 100 to 1400 ms (10 Hz), with a
   scripted agent: timing only.
 
+``--backend ray`` (``single`` and ``concurrent``): every env's worker placed by Ray instead of started here, the steps
+over our tcp between the nodes; without ``--ray-address``, on a local cluster started for the run: a head (the agent
+and the learner) and one node per arm type, each advertising a resource the arm's envs ask for (``RAY_ARM_NODES``).
+On a shared host run it in a network namespace, where Ray cannot bind the host's interfaces (docs/scaling.md).
+
 ``--duration`` is the wall time of each phase (each learner, mode or sweep point); learners get
 ``learning_starts`` small so that they train during a short run. TD3 follows the paper's hyperparameters.
 

@@ -25,9 +25,11 @@ exit code when it ends and fails when the actor or its node dies), ``poll_exit``
 
 Lifetime: a worker ends when its agent connection goes away (EOF, as for every worker), when its actor dies (the
 parent-pid watchdog, within 0.1 s), and on ``stop``: terminate, then kill, through the actor; then the actor is
-killed (``ray.kill``). A node whose processes die (its raylet stopped or killed) takes its actors and so its workers
-with it, and the agent's next step finds the broken connection; a host that vanishes without closing its sockets is
-found by the call timeout, or by Ray's health checks when ``wait_exit`` fails.
+killed (``ray.kill``). A node whose raylet ends (stopped, killed, the node going down) is lost: the actor watches
+its raylet (``_WorkerHost._watch_node``, a pidfd) and ends the worker at once, so its connection closes, and the
+step in flight raises the worker's WorkerError within milliseconds, naming the node
+(``Supervisor._take_replies`` watches the Ray-placed workers' tcp connections while it waits; docs/reliability.md).
+A host that vanishes without closing its sockets is found by TCP keepalive (~5 s) or the call timeout.
 
 Ray is imported only here, and only when a Ray placement is used (``pip install 'uniros_async[ray]'``).
 """
