@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _processes import wait_gone
 
 from uniros_async.errors import WorkerError
 from uniros_async.runtime import make_vec
@@ -20,23 +21,6 @@ ARM = {"worker": {"ray": {"resources": {"rx200_arm": 1}}}}
 pytestmark = pytest.mark.usefixtures("nothing_left")
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
-
-
-def _wait_dead(pid: int, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while _alive(pid):
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
-
-
 def test_a_killed_worker_is_reported_with_its_index_and_node(cluster: dict[str, Any]) -> None:
     venv = make_vec([RX, (RX, ARM)], backend="ray", clock="sim")
     try:
@@ -44,7 +28,7 @@ def test_a_killed_worker_is_reported_with_its_index_and_node(cluster: dict[str, 
         pid = venv.pids[1]
         assert pid is not None
         os.kill(pid, signal.SIGKILL)
-        assert _wait_dead(pid, 5.0)
+        assert not wait_gone([pid], 5.0)
         with pytest.raises(WorkerError) as err:
             for _ in range(3):  # the kill may land just after a reply was sent
                 venv.step(np.zeros((2, 5), np.float32))
@@ -62,7 +46,7 @@ def test_restart_on_failure_restarts_through_ray_and_truncates_the_episode(clust
         old = venv.pids[1]
         assert old is not None
         os.kill(old, signal.SIGKILL)
-        assert _wait_dead(old, 5.0)
+        assert not wait_gone([old], 5.0)
         restarted = None
         for _ in range(3):
             obs, rewards, terminated, truncated, info = venv.step(np.zeros((2, 5), np.float32))

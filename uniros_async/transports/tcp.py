@@ -31,24 +31,23 @@ Why the poll: each wake-up of a halted core costs 10-25 us on the project's 2-co
 small round trip; reading the socket itself (not turning the event loop, which also takes the CPU a peer on the
 same core needs) keeps the receiving core awake just long enough. Figures: docs/performance.md.
 
-Limits, for peers that are not trusted (docs/security.md): a listener holds at most ``max_connections``
-connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest once that waited 1 s, else
-it is reset and ``connect`` retries), each of which must finish within ``handshake_timeout_s``. The stream buffer
-is anonymous memory, resident only where data has landed, so an idle connection costs a few KiB; refusals are
-counted in ``rejected`` and logged at most once a second.
+Limits, for peers that are not trusted (docs/security.md), kept by the listener (``_tcp_listener``): it holds at
+most ``max_connections`` connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest once
+that waited 1 s, else it is reset and ``connect`` retries), each of which must finish within
+``handshake_timeout_s``. The stream buffer is anonymous memory, resident only where data has landed, so an idle
+connection costs a few KiB; refusals are counted in ``rejected`` and logged at most once a second.
 
 Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, and ``receive_blocking``
 reads the socket in the caller's thread (the poll's reads, then ``poll(2)``), for a caller in the loop's thread while
 the loop is not running (the supervisor between calls). Whatever they cannot do they leave to ``send`` and
 ``receive``, having taken nothing.
 
-Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
-(the bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``,
-5 ms doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost,
-as on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe
-and re-send. Every
-connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within seconds that
-its peer's socket is gone.
+Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it (the
+bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``, 5 ms
+doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost, as
+on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe and
+re-send. Every connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within
+seconds that its peer's socket is gone.
 """
 
 from __future__ import annotations
@@ -64,9 +63,8 @@ import ssl
 import struct
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import cast
-from urllib.parse import urlsplit
 
 from uniros_async._log_throttle import LogThrottle
 from uniros_async.backoff import Backoff
@@ -86,8 +84,9 @@ from uniros_async.transports._tcp_handshake import (
     PROTOCOL_VERSION,
     TcpHandshake,
 )
-from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
-from uniros_async.transports.exposure import check_exposure, is_loopback
+from uniros_async.transports._tcp_listener import TcpListener, format_uri, open_listener, parse_host_port
+from uniros_async.transports.base import Buffer, Delivery, Transport, TransportOptions
+from uniros_async.transports.exposure import is_loopback
 
 __all__ = [
     "FLAG_AUTH",
@@ -100,6 +99,8 @@ __all__ = [
     "connect",
     "is_loopback",
     "listen",
+    "open_connection",
+    "open_listener",
 ]
 
 logger = logging.getLogger(__name__)
@@ -145,7 +146,6 @@ def set_keepalive(sock: socket.socket) -> None:
 
 
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
-_EVICT_AFTER_S = 1.0  # beyond max_handshakes, an unfinished handshake this old gives way to a newcomer
 
 # Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
 # reads (ShmTransport's rule): in a request/reply exchange the answer usually comes sooner than a sleeping process
@@ -567,7 +567,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             self._fd = sock.fileno()  # under TLS the socket carries ciphertext: only the event loop reads it
         peer = tr.get_extra_info("peername")
         if peer:
-            self._peer = _format_uri(peer[0], peer[1], self.scheme)
+            self._peer = format_uri(peer[0], peer[1], self.scheme)
         tr.set_write_buffer_limits(high=_TX_HIGH_BYTES, low=_TX_LOW_BYTES)
         self._stdlib = type(tr).__module__ == "asyncio.selector_events"
         self._copies_on_write = self._stdlib and _SELECTOR_COPIES
@@ -948,168 +948,6 @@ def _consume_exception(fut: asyncio.Future[None]) -> None:
         fut.exception()
 
 
-class TcpListener(Listener):
-    """Accepts TCP connections; each peer that passes the handshake is handed out by ``accept``.
-
-    Caps (``TransportOptions``): at most ``max_connections`` open at once (a connection beyond it is closed as soon
-    as it is accepted, before any byte is read or any buffer allocated), at most ``max_handshakes`` unfinished (a new
-    connection beyond it evicts the oldest unfinished one if that waited 1 s, else is refused and retries), and each
-    handshake must finish within
-    ``handshake_timeout_s``. Every refusal is counted in ``rejected`` and logged at most once a second.
-    """
-
-    def __init__(self, options: TransportOptions) -> None:
-        self._options = options
-        self._server: asyncio.Server | None = None
-        self._uri = ""
-        self._address: tuple[str, int] = ("", 0)
-        self._ready: collections.deque[TcpTransport] = collections.deque()
-        self._accept_waiter: asyncio.Future[None] | None = None
-        self._handshaking: dict[TcpTransport, None] = {}  # insertion order: the oldest is evicted first
-        self._open = 0  # connections made and not yet lost, accepted ones included
-        self._rejected = 0
-        self._closed = False
-        self._log = LogThrottle(logger)
-
-    @property
-    def uri(self) -> str:
-        return self._uri
-
-    @property
-    def address(self) -> tuple[str, int]:
-        """The (host, port) actually bound."""
-        return self._address
-
-    @property
-    def rejected(self) -> int:
-        return self._rejected
-
-    @property
-    def open_connections(self) -> int:
-        """Connections open now (handshaking, waiting for ``accept``, and accepted)."""
-        return self._open
-
-    @property
-    def handshaking(self) -> int:
-        """Connections whose handshake is unfinished."""
-        return len(self._handshaking)
-
-    async def accept(self) -> TcpTransport:
-        """Wait for the next peer that completed the handshake. Cancelling loses no peer.
-
-        Raises:
-            TransportClosedError: the listener was closed.
-        """
-        while not self._ready:
-            if self._closed:
-                raise TransportClosedError(f"listener {self._uri} is closed")
-            if self._accept_waiter is not None:
-                raise RuntimeError(f"accept() on {self._uri} while another accept() is waiting")
-            fut = self._accept_waiter = asyncio.get_running_loop().create_future()
-            try:
-                await fut
-            finally:
-                self._accept_waiter = None
-        if self._closed:
-            raise TransportClosedError(f"listener {self._uri} is closed")
-        return self._ready.popleft()
-
-    async def aclose(self) -> None:
-        """Stop listening and free the port; idempotent. Accepted transports stay open; connections still in the
-        handshake or not yet accepted are closed."""
-        if self._closed:
-            return
-        self._closed = True
-        if self._server is not None:
-            self._server.close()  # closes the listening sockets now (wait_closed would wait for accepted ones)
-        pending = [*self._handshaking, *self._ready]
-        self._handshaking.clear()
-        self._ready.clear()
-        if self._accept_waiter is not None and not self._accept_waiter.done():
-            self._accept_waiter.set_result(None)
-        for t in pending:
-            await t.aclose()
-
-    def _protocol(self, make: Callable[[], TcpTransport]) -> asyncio.BaseProtocol:
-        """The protocol for a connection just accepted: a transport, or a refusal once ``max_connections`` are
-        open."""
-        if self._open >= self._options.max_connections:
-            return _Refusal(self)
-        self._open += 1
-        return make()
-
-    def _handshake_started(self, t: TcpTransport) -> bool:
-        """Admit ``t`` among the unfinished handshakes; False: refuse it (the caller drops it before its HELLO).
-
-        Beyond ``max_handshakes`` the oldest unfinished one is evicted if it has waited at least
-        ``_EVICT_AFTER_S`` (a stranger holding connections open), else the newcomer is refused (a burst of peers,
-        whose handshakes are about to finish: they retry)."""
-        handshaking = self._handshaking
-        limit = self._options.max_handshakes
-        if len(handshaking) >= limit:
-            oldest = next(iter(handshaking))
-            waited_s = asyncio.get_running_loop().time() - oldest._hs_started_s
-            if waited_s < min(_EVICT_AFTER_S, self._options.handshake_timeout_s / 2):
-                self._count_rejection(t.peer, f"over max_handshakes={limit}")
-                return False
-            oldest._handshake_failed(
-                TransportBrokenError(
-                    f"{oldest.peer} evicted after {waited_s:.1f} s: more than max_handshakes={limit} unfinished"
-                )
-            )
-        handshaking[t] = None
-        return True
-
-    def _handshake_succeeded(self, t: TcpTransport) -> None:
-        self._handshaking.pop(t, None)
-        if self._closed:
-            t._tr.close()  # type: ignore[union-attr]
-            return
-        self._ready.append(t)
-        if self._accept_waiter is not None and not self._accept_waiter.done():
-            self._accept_waiter.set_result(None)
-
-    def _handshake_rejected(self, t: TcpTransport, reason: str) -> None:
-        self._handshaking.pop(t, None)
-        if not self._closed:
-            self._count_rejection(t.peer, reason)
-
-    def _count_rejection(self, peer: str, reason: str) -> None:
-        self._rejected += 1
-        self._log.warning("tcp listener %s rejected %s: %s", self._uri, peer, reason)
-
-
-class _Refusal(asyncio.Protocol):
-    """Closes a connection over ``max_connections`` as soon as it is made: no buffer, no handshake, no timer."""
-
-    def __init__(self, listener: TcpListener) -> None:
-        self._listener = listener
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        peer = transport.get_extra_info("peername")
-        cast(asyncio.Transport, transport).abort()
-        limit = self._listener._options.max_connections
-        self._listener._count_rejection(str(peer), f"over max_connections={limit}")
-
-
-def _host_port(uri: str, default_host: str, scheme: str = "tcp") -> tuple[str, int]:
-    got, _ = split_uri(uri)
-    if got != scheme:
-        raise ConfigError(f"expected a {scheme}:// URI, got {uri!r}")
-    parts = urlsplit(uri)
-    if parts.path not in ("", "/") or parts.query or parts.fragment:
-        raise ConfigError(f"expected {scheme}://HOST:PORT, got {uri!r}")
-    try:
-        port = parts.port or 0
-    except ValueError as exc:
-        raise ConfigError(f"expected {scheme}://HOST:PORT with a port in 0..65535, got {uri!r}") from exc
-    return parts.hostname or default_host, port
-
-
-def _format_uri(host: str, port: int, scheme: str = "tcp") -> str:
-    return f"{scheme}://[{host}]:{port}" if ":" in host else f"{scheme}://{host}:{port}"
-
-
 async def listen(uri: str, options: TransportOptions) -> TcpListener:
     """Listen at ``tcp://HOST:PORT``; port 0 picks a free port and ``uri`` of the result reports it.
 
@@ -1122,37 +960,6 @@ async def listen(uri: str, options: TransportOptions) -> TcpListener:
         OSError: the address cannot be bound (in use, no such interface).
     """
     return await open_listener(uri, options, TcpTransport)
-
-
-async def open_listener(
-    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
-) -> TcpListener:
-    """``listen`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.listen`` uses it)."""
-    host, port = _host_port(uri, options.bind_host, cls.scheme)
-    if ssl_context is None:
-        check_exposure(
-            uri,
-            host,
-            authenticated=options.auth_key is not None,
-            insecure=options.insecure,
-            how="Set an auth_key (TransportOptions(auth_key=...); `uniros robot serve`: $UNIROS_AUTH_KEY or "
-            "--auth-key-env) or use tls:// with client certificates",
-        )
-    lst = TcpListener(options)
-    loop = asyncio.get_running_loop()
-    server = await loop.create_server(
-        lambda: lst._protocol(lambda: cls(options, listener=lst)),
-        host,
-        port,
-        reuse_address=True,
-        ssl=ssl_context,
-        ssl_handshake_timeout=options.handshake_timeout_s if ssl_context is not None else None,
-    )
-    lst._server = server
-    sockname = server.sockets[0].getsockname()
-    lst._address = (sockname[0], sockname[1])
-    lst._uri = _format_uri(sockname[0], sockname[1], cls.scheme)
-    return lst
 
 
 async def connect(uri: str, options: TransportOptions) -> TcpTransport:
@@ -1176,7 +983,7 @@ async def open_connection(
     uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
 ) -> TcpTransport:
     """``connect`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.connect`` uses it)."""
-    host, port = _host_port(uri, "", cls.scheme)
+    host, port = parse_host_port(uri, "", cls.scheme)
     if not host or not port:
         raise ConfigError(f"connect needs {cls.scheme}://HOST:PORT with a nonzero port, got {uri!r}")
     loop = asyncio.get_running_loop()
