@@ -63,7 +63,7 @@ import ssl
 import struct
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import cast
 
 from uniros_async._log_throttle import LogThrottle
