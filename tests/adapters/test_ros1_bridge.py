@@ -23,7 +23,7 @@ import pytest
 from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
 from uniros_async.bus import open_domain, open_node
-from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
+from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
 from uniros_async.testing.ros1 import rospy_process, wait_for_line
@@ -237,6 +237,54 @@ def test_bad_settings_are_refused_before_anything_starts() -> None:
         gym.make("uniros/Rx200Reach-v0", robot="ros1://127.0.0.1:11311", ros1={"topic": "/x"})
     with pytest.raises(ConfigError, match="only to robot='ros1"):
         gym.make("uniros/Rx200Reach-v0", robot="sim", ros1={"command": "/x"})
+
+
+def test_bad_max_command_age_is_refused() -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig
+
+    with pytest.raises(ConfigError, match="max_command_age_s must be > 0"):
+        Ros1BridgeConfig(robot="rx200", max_command_age_s=0.0)
+
+
+def test_a_state_that_waited_on_the_way_is_stamped_as_old_and_stale_states_stop_commands() -> None:
+    """The bridge's translation alone (no ROS peer: its two callbacks are called directly): a joint state that took
+    longer than the quickest to arrive is stamped that much before its arrival, whatever the offset between the
+    driver's clock and ours; while the newest state is older than ``max_command_age_s`` no command is sent."""
+    from uniros_async.adapters.ros1 import msgs
+    from uniros_async.adapters.ros1_bridge import Ros1Bridge, Ros1BridgeConfig
+
+    out: list[JointState] = []
+    sent: list[Any] = []
+    bridge = Ros1Bridge(Ros1BridgeConfig(robot="rx200", max_command_age_s=0.5), out.append, time.monotonic_ns)
+    bridge._send = sent.append  # in place of the command publisher that run_commands opens
+    spec = get_robot_spec("rx200")
+    offset = 12_345_678_901  # the driver's clock runs this far behind ours: it cancels out
+
+    def state(waited_s: float) -> None:
+        stamp = time.time_ns() - offset - round((0.002 + waited_s) * 1e9)  # 2 ms on the way, plus what it waited
+        names = list(spec.joint_state_names)
+        zeros = np.zeros(len(names))
+        header = msgs.RosHeader(seq=0, stamp_ns=stamp, frame_id="")
+        bridge.on_ros_state(msgs.JointState(header=header, name=names, position=zeros, velocity=zeros, effort=zeros))
+
+    for _ in range(5):
+        state(0.0)
+        assert abs(time.monotonic_ns() - out[-1].header.stamp_ns) < 0.05e9  # as fresh as it is
+    state(2.0)  # one that sat 2 s in a buffer
+    assert 1.95e9 < time.monotonic_ns() - out[-1].header.stamp_ns < 2.1e9
+    unstamped = msgs.JointState(header=msgs.RosHeader(), name=list(spec.joint_state_names),
+                                position=np.zeros(len(spec.joint_state_names)), velocity=[], effort=[])  # fmt: skip
+    bridge.on_ros_state(unstamped)  # a driver that does not stamp: counted from its arrival
+    assert abs(time.monotonic_ns() - out[-1].header.stamp_ns) < 0.05e9
+
+    q = np.zeros(len(spec.arm_joint_names))
+    bridge.on_command(JointCommand(header=Header(), position=q))
+    assert len(sent) == 1
+    bridge.last_state_ns = time.monotonic_ns() - round(0.6e9)  # the newest state 0.6 s old: stale
+    bridge.on_command(JointCommand(header=Header(), position=q))
+    assert len(sent) == 1 and bridge.stats.commands_stale == 1
+    assert not bridge.srv_hold(Empty()).success and "s old" in bridge.srv_hold(Empty()).message
+    assert len(sent) == 1
 
 
 @pytest.mark.slow

@@ -16,10 +16,12 @@ interrupted by Ctrl-C while the loop waits is finished (its replies consumed) be
 interrupted inside a request's own code marks that worker broken, since its next reply could no longer be matched
 to a request.
 
-Start-up: every process is started first (``launch.start_worker``: ``python -m uniros_async.runtime``, which
-imports nothing of the agent's ``__main__``), then each worker's listen URI (``shm://`` by default,
-``tcp://127.0.0.1:0`` with ``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the
-supervisor connects to all of them and asks each for its spaces, in parallel.
+Start-up: the local workers' interpreters are started first (``launch.start_interpreter``: ``python -m
+uniros_async.runtime``, which imports nothing of the agent's ``__main__``) and import what every worker needs while
+the env ids and keyword arguments are checked here; once every check passed, each is sent its spec (a failed check
+stops them before any has one); then each worker's listen URI (``shm://`` by default, ``tcp://127.0.0.1:0`` with
+``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the supervisor connects to all of
+them and asks each for its spaces, in parallel.
 If any worker fails to start, all are closed and the error names the worker and why.
 
 Workers placed by Ray: a spec whose ``worker`` is a Ray placement (``"ray"``, ``{"ray": {...}}``, a
@@ -40,6 +42,7 @@ import contextlib
 import dataclasses
 import functools
 import logging
+import multiprocessing.connection
 import os
 import secrets
 import select
@@ -54,7 +57,7 @@ import gymnasium as gym
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.priority import MAX_LOOP_RANK
 from uniros_async.runtime.envargs import check_env_args, registration, split_placement
-from uniros_async.runtime.launch import WorkerProcess, start_worker
+from uniros_async.runtime.launch import WorkerProcess, found_libraries, start_interpreter, start_worker
 from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
 from uniros_async.runtime.ray_backend import RayPlacement, RayWorkerProcess, check_placements
 from uniros_async.runtime.worker import WorkerSpec
@@ -278,12 +281,20 @@ class Supervisor:
     ) -> None:
         if not specs:
             raise ConfigError("expected at least one env spec, got none")
-        for env_id, kwargs in specs:
-            check_env_args(env_id, kwargs)
-        self.call_timeout_s = call_timeout_s
-        self.close_timeout_s = close_timeout_s
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
+        # The local workers' interpreters start now and import while the env arguments are checked here; none is
+        # given its spec before every check passed (see launch.py).
+        spares = _start_interpreters(specs)
+        try:
+            for env_id, kwargs in specs:
+                check_env_args(env_id, kwargs)
+        except BaseException:
+            _discard_all(spares)
+            raise
+        self._spares = spares
+        self.call_timeout_s = call_timeout_s
+        self.close_timeout_s = close_timeout_s
         self.listen_uri = _LISTEN_URIS[transport]
         # specs of different envs: every info says which env it came from (info["env_id"])
         self.tag_infos = len({env_id for env_id, _ in specs}) > 1
@@ -300,6 +311,7 @@ class Supervisor:
         try:
             self._start(specs, start_timeout_s)
         except BaseException:
+            _discard_all(self._spares)
             self.close()
             raise
 
@@ -355,10 +367,11 @@ class Supervisor:
             self.call(start_all(), remaining + 2.0)
         return [w.remote.worker_uri if w.remote is not None else self._wait_uri(w, deadline) for w in workers]
 
-    @staticmethod
     def _spawn(
-        index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
+        self, index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
     ) -> WorkerHandle:
+        # a fresh interpreter (nothing of this process's __main__ is imported): one started at __init__, if any
+        spare = self._spares.pop(0) if self._spares else None
         spec = WorkerSpec(
             index=index,
             env_id=env_id,
@@ -368,8 +381,18 @@ class Supervisor:
             listen_uri=listen_uri,
             rt_rank=rt_rank,
             registration=registration(env_id),
+            environ={**(spare[0].environ_changes() if spare is not None else {}), **found_libraries()},
         )
-        proc, conn = start_worker(spec)  # a fresh interpreter: nothing of this process's __main__ is imported
+        if spare is None:
+            proc, conn = start_worker(spec)
+        else:
+            proc, conn = spare
+            try:
+                proc.send_spec(spec)
+            except BaseException:
+                conn.close()
+                proc.discard()
+                raise
         return WorkerHandle(spec=spec, process=proc, conn=conn)
 
     def restart(self, index: int, timeout_s: float = 60.0) -> WorkerHandle:
@@ -876,6 +899,41 @@ def _hung_up(watched: list[tuple[int, int]]) -> tuple[int | None, set[int]]:
             return i, replied
         replied.add(fd)
     return None, replied
+
+
+def _start_interpreters(
+    specs: Sequence[tuple[str, dict[str, Any]]],
+) -> list[tuple[WorkerProcess, multiprocessing.connection.Connection]]:
+    """One interpreter for each spec whose worker runs here (``launch.start_interpreter``); none if any spec's
+    placement is malformed or its env id unknown (``check_env_args`` then reports it, before any process starts).
+    A ``"module:Id"`` counts as known: its module is imported by the check."""
+    from uniros_async.tasks.registry import register_envs
+
+    register_envs()
+    if not all(isinstance(env_id, str) and (":" in env_id or env_id in gym.registry) for env_id, _ in specs):
+        return []
+    try:
+        local = sum(split_placement(kwargs)[0] is None for _, kwargs in specs)
+    except ConfigError:
+        return []
+    spares: list[tuple[WorkerProcess, multiprocessing.connection.Connection]] = []
+    try:
+        for _ in range(local):
+            spares.append(start_interpreter())
+    except BaseException:
+        _discard_all(spares)
+        raise
+    return spares
+
+
+def _discard_all(spares: list[tuple[WorkerProcess, multiprocessing.connection.Connection]]) -> None:
+    """Stop the interpreters that were not given a spec (``WorkerProcess.discard``), all at once."""
+    for proc, conn in spares:
+        conn.close()
+        proc.withdraw()
+    for proc, _ in spares:
+        proc.discard()
+    spares.clear()
 
 
 def _raise_unexpected(results: list[Any], *, worker_errors: bool = False) -> list[Any]:

@@ -793,9 +793,10 @@ def make_vec(
         **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
 
     Raises:
-        ConfigError: a malformed spec, an unknown id or keyword argument, a ``worker`` that is neither None nor a
-            Ray placement (before any process starts), or spaces that cannot be padded or combined (naming the
-            envs; the workers are closed).
+        ConfigError: a malformed spec, an unknown id or a ``worker`` that is neither None nor a Ray placement
+            (before any process starts), an unknown or invalid keyword argument (before any worker is given its
+            env: the workers' interpreters, started meanwhile, are stopped), or spaces that cannot be padded or
+            combined (naming the envs; the workers are closed).
         WorkerError: a worker failed to start or to build its env, or Ray could not place or start it (its index
             and traceback; the others are closed).
     """
