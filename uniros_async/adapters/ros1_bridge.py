@@ -309,7 +309,7 @@ class Ros1Bridge:
         self.stats.states_in += 1
         self.last_q = fields[0][: self._n_arm].copy()
         self.last_state_ns = time.monotonic_ns()
-        queued = self.queued_ns(int(msg.header.stamp_ns), time.time_ns(), self.last_state_ns)
+        queued = self.queued_ns(self.driver_stamp_ns(msg), time.time_ns(), self.last_state_ns)
         self._publish(
             JointState(
                 header=Header(stamp_ns=self._now_ns() - queued, seq=self._seq, frame_id=msg.header.frame_id),
@@ -320,6 +320,10 @@ class Ros1Bridge:
             )
         )
         self.first_state.set()
+
+    def driver_stamp_ns(self, msg: Any) -> int:
+        """The driver's stamp of a joint state (ROS time, ns; 0 if unstamped)."""
+        return int(msg.header.stamp_ns)
 
     def queued_ns(self, driver_stamp_ns: int, wall_ns: int, now_ns: int) -> int:
         """How much longer than the quickest joint state of the last ``TRANSIT_WINDOW_S`` this one (stamped

@@ -99,6 +99,8 @@ class WorkerSpec:
             phase (``LOOP_PHASE_STEP_NS``).
         registration: ``gymnasium.register`` keyword arguments for ``env_id`` as the agent's process has it
             registered (``envargs.registration``), used when this fresh interpreter does not know the id.
+        agent_pid: the agent's pid when it is not ``parent_pid`` (a worker a Ray actor started): over tcp on
+            loopback the worker's poll looks where the agent runs (``TcpTransport.peer_pid``).
         environ: environment variables set in the worker before it builds its env: those the agent set after the
             worker's interpreter started (``WorkerProcess.environ_changes``), and what the agent's imports found
             already, so that the worker's imports need not search again (``launch.found_libraries``).
@@ -114,6 +116,7 @@ class WorkerSpec:
     auth_key: bytes | None = None
     rt_rank: int = 0
     registration: dict[str, Any] | None = None
+    agent_pid: int = 0
     environ: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
@@ -262,6 +265,8 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
             transport.spin_ns = 0 if server.realtime else turn_spin_ns(transport)
         if hasattr(transport, "on_shared_core") and not server.realtime:
             transport.on_shared_core = _move_off_core
+            if hasattr(transport, "peer_pid") and _on_loopback(transport):  # tcp: TcpTransport._peer_here
+                transport.peer_pid = spec.agent_pid or spec.parent_pid
         await server.serve(transport)
     except TransportError:
         logger.info("worker %d: the supervisor went away", spec.index)
@@ -283,18 +288,24 @@ Not for a tcp connection on loopback: see ``turn_spin_ns``."""
 def turn_spin_ns(transport: Any) -> int:
     """How long this worker polls for its next request: ``TURN_SPIN_NS``, but a tcp connection on loopback keeps
     the transport's own ``spin_ns`` (50 us). A socket wakes its reader with a sync wake-up (the kernel is told that
-    the waker is about to sleep), which places a woken worker on its agent's core, and tcp carries no hint of where
-    the peer runs for a poll to see (shm's ``ShmTransport._peer_here``). There a 200 us poll held the agent off its
-    own core for the whole window: two tcp vector envs stepped in turn took ~400 us a step, ~140 us with 50 us
-    polls, while one env's steps cost the same with either (docs/perf/history.md). A worker on another host never
-    shares its agent's core and keeps the longer poll."""
+    the waker is about to sleep), which places a woken worker on its agent's core. There a 200 us poll held the
+    agent off its own core for the whole window: two tcp vector envs stepped in turn took ~400 us a step, ~140 us
+    with 50 us polls, while one env's steps cost the same with either (docs/perf/history.md). A poll that finds
+    the agent on its core moves the worker off it (``TcpTransport._peer_here``, as shm's ``_peer_here``). A worker
+    on another host never shares its agent's core and keeps the longer poll."""
+    if _on_loopback(transport):
+        return int(transport.spin_ns)
+    return TURN_SPIN_NS
+
+
+def _on_loopback(transport: Any) -> bool:
+    """Whether ``transport`` is a tcp connection on loopback (its peer on this host)."""
     if getattr(transport, "scheme", None) == "tcp":
         try:
-            if ipaddress.ip_address(transport.sockname[0]).is_loopback:
-                return int(transport.spin_ns)
+            return bool(ipaddress.ip_address(transport.sockname[0]).is_loopback)
         except (AssertionError, ValueError):  # closed (no socket), or not an IP address
             pass
-    return TURN_SPIN_NS
+    return False
 
 
 SHARED_CORES_MODES = ("pin", "through", "off")

@@ -63,7 +63,7 @@ import ssl
 import struct
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import cast
 
 from uniros_async._log_throttle import LogThrottle
@@ -129,6 +129,7 @@ registry connection) otherwise never learns that its peer's socket is gone (a re
 peer host that restarted): the probe is answered with a reset, and the owner reconnects."""
 KEEPALIVE_INTERVAL_S = 1
 KEEPALIVE_PROBES = 3
+_HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 
 
 def set_keepalive(sock: socket.socket) -> None:
@@ -157,6 +158,9 @@ _yield = _base.spin_yield
 _SPIN_CREDIT = _base.SPIN_CREDIT
 _WAKEUP_NS = _base.SPIN_WAKEUP_NS  # a wait this much longer than the window would have been caught by it
 _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS  # at most this much longer after a large send: 1 ns per byte sent
+_SHARED_CORE_NS = 50_000  # a poll that lasts this long (or half its window) looks where the peer runs (_peer_here)
+_LOOK_EVERY_NS = 1_000_000  # ... at most this often: a look reads /proc (~20 us)
+_this_cpu = _base.this_cpu
 
 # Python 3.11's selector transport copies what it cannot send at once; uvloop and 3.12+ keep a reference instead
 # (and only they send a list of buffers with one sendmsg; 3.11's writelines joins them first).
@@ -206,6 +210,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     always sleeps (a real-time worker's connections do: a SCHED_RR process that polls keeps lower-ranked ones from
     their cores)."""
 
+    peer_pid: int | None = None
+    """The peer's process id when it runs on this host (a worker sets its agent's): a poll that lasts half its
+    window looks whether the peer runs on this core, and if so calls ``on_shared_core`` (``_peer_here``)."""
+    on_shared_core: Callable[[int], None] | None = None
+    """With ``peer_pid``: called with this core when the peer was found on it, to move this end elsewhere (a worker
+    moves itself, ``runtime.worker``), as ``ShmTransport.on_shared_core``."""
+
     def __init__(self, options: TransportOptions, *, listener: TcpListener | None = None, uri: str = "") -> None:
         Transport.__init__(self)
         self._options = options
@@ -236,6 +247,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._pool: list[bytearray] = []
         self._fd = -1  # the socket's descriptor, for receive's own reads while it spins (-1: none, or lost)
         self._spin_credit = _SPIN_CREDIT
+        self._next_look_ns = 0  # _peer_here: not before then
         self._sent_since_receive = 0  # bytes: only a receive that may be waiting for an answer polls, and longer
         # after a large send (the answer to 64 KiB took ~70 us here)
         # send side
@@ -454,13 +466,14 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._count_sent(n)
         return True
 
-    def receive_blocking(self, timeout_s: float) -> memoryview | None:
+    def receive_blocking(self, timeout_s: float, watch: Sequence[int] = ()) -> memoryview | None:
         """``receive`` in the calling thread while the event loop does not run (the agent's thread waiting for its
         workers' replies): a frame already queued, or one read from the socket here (``_spin``'s reads, then
         ``poll(2)`` on the socket for at most ``timeout_s``). Returns None when it cannot be had this way: nothing
         came in time, something is unsent (only the loop sends it), reading is paused, the peer hung up or broke
-        the protocol, or this end is closed. Nothing was consumed then: ``receive`` must be awaited (it delivers
-        the frame or raises what is wrong)."""
+        the protocol, this end is closed, or one of the sockets in ``watch`` (other connections' descriptors) was
+        hung up or reset meanwhile (``poll(2)``'s POLLRDHUP, POLLHUP or POLLERR). Nothing was consumed then:
+        ``receive`` must be awaited (it delivers the frame or raises what is wrong)."""
         tr = self._tr
         if tr is None or self._closed or not self._ok or tr.get_write_buffer_size():
             return None
@@ -480,8 +493,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 if poller is None:
                     poller = select.poll()
                     poller.register(fd, select.POLLIN)
-                if not poller.poll(-(-left_ns // 1_000_000)):
+                    for other in watch:
+                        poller.register(other, _HANG_UP)
+                ready = poller.poll(-(-left_ns // 1_000_000))
+                if not ready:
                     continue
+                if watch and any(got != fd for got, _ in ready):
+                    return None  # another connection hung up: the caller's business first
                 try:
                     n = os.readv(fd, (self.get_buffer(-1),))
                 except (BlockingIOError, InterruptedError):
@@ -697,20 +715,28 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     def _spin(self, window_ns: int) -> None:
         """Read the socket ourselves (the event loop's reader would do the same with the same buffers) until a
         whole frame is queued or ``window_ns`` passed, yielding the CPU between reads. Anything unusual (end of
-        stream, an error, paused reading) is left to the event loop, which meets it on its next read."""
+        stream, an error, paused reading) is left to the event loop, which meets it on its next read. With a
+        ``peer_pid``, a spin that lasted half its window (at most ``_SHARED_CORE_NS``) looks once where the peer runs
+        (``_peer_here``)."""
         fd = self._fd
         if fd < 0 or not self._ok:
             return
         frames = self._frames
-        deadline = _now_ns() + window_ns
+        now = _now_ns()
+        deadline = now + window_ns
+        look_at = now + min(_SHARED_CORE_NS, window_ns // 2) if self.peer_pid else deadline
         readv = os.readv
         while not self._reading_paused:
             try:
                 n = readv(fd, (self.get_buffer(-1),))
             except (BlockingIOError, InterruptedError):
-                if _now_ns() > deadline:
-                    self._spin_credit -= 1
-                    return
+                now = _now_ns()
+                if now > look_at:
+                    if now > deadline:
+                        self._spin_credit -= 1
+                        return
+                    look_at = deadline
+                    self._peer_here()
                 _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin
                 continue
             except OSError:
@@ -721,6 +747,31 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             if frames or not self._ok:
                 self._spin_credit = _SPIN_CREDIT
                 return
+
+    def _peer_here(self) -> None:
+        """If the peer process (``peer_pid``, on this host) last ran on the core this end polls on, have this end
+        moved elsewhere (``on_shared_core``). At most once per ``_LOOK_EVERY_NS``.
+
+        A poll only pays while the peer runs on another core. A socket wakes its reader with a sync wake-up, which
+        places a worker woken by its agent on the agent's core; the two then take turns on it (the worker's poll
+        holds the core the agent needs for its next request, the worker's wake-up preempts the agent) while the
+        other core does other work: a CartPole step over tcp on loopback took ~120-130 us so against ~30 us on two
+        cores, for the life of the pair (docs/performance.md). ``ShmTransport`` learns where its peer runs from
+        their shared page; tcp has none, so this end reads the peer's last core from /proc (~20 us).
+        """
+        now = _now_ns()
+        if now < self._next_look_ns or self.on_shared_core is None:
+            return
+        self._next_look_ns = now + _LOOK_EVERY_NS
+        cpu = _this_cpu()
+        try:
+            with open(f"/proc/{self.peer_pid}/stat", "rb") as f:
+                peer_cpu = int(f.read().rpartition(b")")[2].split()[36])
+        except (OSError, ValueError, IndexError):  # gone, or no /proc here: look no more
+            self.peer_pid = None
+            return
+        if cpu >= 0 and peer_cpu == cpu:
+            self.on_shared_core(cpu)
 
     def _retryable_drop(self) -> bool:
         """Whether a hang-up during the handshake may be a full listener (worth a retry). Under TLS a listener
