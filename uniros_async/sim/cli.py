@@ -299,12 +299,18 @@ def _serve_ros2(args: argparse.Namespace) -> int:
 
 
 def _print_ready(uri: str) -> None:
-    """Say on stdout how to reach what now serves: a shell line to paste (or ``eval``) elsewhere, then a hint.
+    """Once serving: put the serving loop's thread (the caller) in the real-time class, an arm's hardware loop or
+    its bridge on time beside learners and other loops (its start-up ran at normal priority: see
+    ``uniros_async.priority``); then say on stdout how to reach it: a shell line to paste (or ``eval``) elsewhere,
+    then a hint.
 
     The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, ``export ROS_MASTER_URI=http://...``
     when a ROS 1 master carries the arm, or ``export ROS_DOMAIN_ID=N`` for a ROS 2 driver (the hint line then gives
     the ``ros2://`` URI to drive it by); scripts read the value after the ``=``.
     """
+    from uniros_async.priority import raise_loop_priority
+
+    raise_loop_priority()
     if uri.startswith("ros2://"):
         domain_id = uri.removeprefix("ros2://").split("/", 1)[0]
         sys.stdout.write(
@@ -325,10 +331,6 @@ def _run_until_signal(serve: Any) -> int:
     async def main() -> None:
         cancel_on_signals(signal.SIGINT, signal.SIGTERM)
         await serve
-
-    from uniros_async.priority import raise_loop_priority
-
-    raise_loop_priority()  # an arm's hardware loop (or its bridge): on time beside learners and other loops
 
     try:
         asyncio.run(main())

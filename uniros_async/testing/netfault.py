@@ -310,9 +310,6 @@ def drive(
         stop = True
 
     signal.signal(signal.SIGTERM, on_term)
-    from uniros_async.priority import raise_loop_priority
-
-    raise_loop_priority()  # the env loop runs in this process, as in a worker (which asks the same)
     # ROS 1 cannot authenticate peers: a bridge beyond loopback must be allowed explicitly (here: inside the test's
     # own namespaces, which nothing else reaches)
     extra: dict[str, Any] = {"ros1": {"ros_host": ros_host, "insecure": True}} if ros_host else {}
@@ -325,6 +322,12 @@ def drive(
         **extra,
     )
     u: Any = env.unwrapped
+    from uniros_async.priority import raise_loop_priority
+
+    # the env loop runs in this process, as in a worker, which takes the real-time class once its env is built:
+    # for this thread (it steps) and the env's loop thread
+    raise_loop_priority()
+    raise_loop_priority(thread_id=u.loop_thread_id or 0)
     action = np.zeros(env.action_space.shape or (), np.float32)
     _emit("ready")
     need_reset = True
