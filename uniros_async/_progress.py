@@ -80,10 +80,11 @@ class LineProgress:
         self._file.write(self._line(now) + "\n")
         self._file.flush()
 
-    def write(self, s: str) -> None:
-        """Write a message line (tqdm.write's place in a bar's output)."""
-        self._file.write(s.rstrip("\n") + "\n")
-        self._file.flush()
+    def write(self, s: str, file: TextIO | None = None) -> None:
+        """Write a message line (tqdm.write's place in a bar's output), to ``file`` if given, as tqdm's does."""
+        out = self._file if file is None else file
+        out.write(s.rstrip("\n") + "\n")
+        out.flush()
 
     def close(self) -> None:
         """Write the final count once."""

@@ -118,3 +118,19 @@ def test_wall_budget_stops_a_run(tmp_path: Path) -> None:
 def test_concurrent_settings_are_checked(tmp_path: Path, over: dict[str, Any], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         _cfg(tmp_path / "bad", "async", **over)
+
+
+def test_progress_lines_to_a_file_carry_the_timing_windows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """With stderr not a terminal (nohup, a log file), the progress bar writes plain lines, and the per-window
+    line (steps, success, action cycle per env) goes through it as through tqdm's."""
+    from uniros_async.training import recipes
+
+    monkeypatch.setattr(recipes, "TIMING_WINDOW_STEPS", 2)
+    result = train(_cfg(tmp_path / "lines", "async", progress_bar=True))
+    assert result.steps == 2 * VECTOR_STEPS
+    err = capsys.readouterr().err
+    window_lines = [line for line in err.splitlines() if "rx200_sim" in line and "ned2_real" in line]
+    assert window_lines, err
+    assert "\r" not in err
