@@ -118,25 +118,29 @@ def test_threads_and_processes_a_real_time_thread_starts_begin_in_the_ordinary_c
         torch.set_num_threads(threads)
 
 
-def test_raise_loop_priority_of_an_env_loop_thread_leaves_the_caller_alone() -> None:
-    """An env on the synchronous API runs its loop on a thread of its own (``loop_thread_id``): a worker that holds
-    such an env puts that thread in the real-time class by its id."""
+def test_raise_loop_priority_of_the_threads_an_env_started_leaves_the_caller_alone() -> None:
+    """An env on the synchronous API runs its loop on a thread of its own, which its build started: a worker (or
+    the fault tests' env process) that holds such an env puts the threads its build started in the real-time class
+    by their ids (``thread_ids`` before and after)."""
     import gymnasium as gym
 
     import uniros_async  # noqa: F401  (registers the ids)
-    from uniros_async.priority import raise_loop_priority, thread_scheduling
+    from uniros_async.priority import raise_loop_priority, thread_ids, thread_scheduling
 
     if os.geteuid() != 0:
         pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
+    me = threading.get_native_id()
+    mine = thread_scheduling()[me]
+    before = thread_ids()
     env = gym.make("uniros/Rx200Reach-v0")
     try:
-        loop = env.unwrapped.loop_thread_id  # type: ignore[attr-defined]
-        assert loop is not None and loop != threading.get_native_id()
-        mine = thread_scheduling()[threading.get_native_id()]
-        assert raise_loop_priority(2, thread_id=loop) == "rt"
+        started = thread_ids() - before
+        (loop,) = [t.native_id for t in threading.enumerate() if t.name == "rx200 env loop"]
+        assert loop in started and me not in started
+        assert all(raise_loop_priority(2, thread_id=tid) == "rt" for tid in started)
         after = thread_scheduling()
-        assert after[loop] == (os.SCHED_RR | RESET_ON_FORK, LOOP_RT_PRIORITY + 2)
-        assert after[threading.get_native_id()] == mine
+        assert {after[tid] for tid in started} == {(os.SCHED_RR | RESET_ON_FORK, LOOP_RT_PRIORITY + 2)}
+        assert after[me] == mine
     finally:
         env.close()
 

@@ -20,7 +20,9 @@ The class belongs to the thread that runs the loop, from the moment the loop is 
   torch's intra-op pool, a servo sim process, a test's subprocess) begin in the ordinary class. Without the flag
   a thread pool that a real-time acting thread creates with its first parallel operation runs its workers at the
   acting thread's priority, above every env loop.
-- **Per thread**: ``sched_setscheduler`` on Linux applies to one thread (``thread_id``; 0: the caller).
+- **Per thread**: ``sched_setscheduler`` on Linux applies to one thread (``thread_id``; 0: the caller). Threads
+  that the start-up itself started to deliver to the loop (a ROS 2 arm's cyclonedds receive threads) are named
+  by id and get the loop's class too (``thread_ids`` before and after).
 
 The workers of one vector env get distinct priorities (``raise_loop_priority(rank)``: the first the highest, up to
 ``MAX_LOOP_RANK`` above the base), and an agent's acting thread (``real_time_thread``) one above them all. A step's
@@ -59,6 +61,7 @@ __all__ = [
     "loop_priority_mode",
     "raise_loop_priority",
     "real_time_thread",
+    "thread_ids",
     "thread_scheduling",
 ]
 
@@ -174,6 +177,15 @@ def real_time_thread() -> Iterator[bool]:
     finally:
         with contextlib.suppress(OSError):
             os.sched_setscheduler(0, policy, param)
+
+
+def thread_ids() -> set[int]:
+    """Native ids of this process's threads (empty where ``/proc`` is missing): a loop takes them before its
+    start-up to tell, after it, which threads the start-up started (``raise_loop_priority(thread_id=...)``)."""
+    try:
+        return {int(t) for t in os.listdir(f"/proc/{os.getpid()}/task")}
+    except OSError:
+        return set()
 
 
 def thread_scheduling(pid: int | None = None) -> dict[int, tuple[int, int]]:

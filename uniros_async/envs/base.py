@@ -52,12 +52,6 @@ class BaseEnv(gym.Env[Any, np.ndarray], abc.ABC):
         self._rt.start(timeout_s)
 
     @property
-    def loop_thread_id(self) -> int | None:
-        """The native thread id of the env's loop thread (the synchronous API); None for an attached env, which
-        runs on its owner's thread, or before start."""
-        return self._rt.native_id if self._rt is not None else None
-
-    @property
     def attached(self) -> bool:
         """True when the env runs on its owner's event loop (made inside ``deferred_start()``)."""
         return self._deferred is not None

@@ -122,11 +122,6 @@ class LoopThread:
     def alive(self) -> bool:
         return self._thread.is_alive() and not self._done.done()
 
-    @property
-    def native_id(self) -> int | None:
-        """The loop thread's native (kernel) thread id; None before it started."""
-        return self._thread.native_id
-
     def call(self, coro: Coroutine[Any, Any, T], timeout_s: float) -> T:
         """Run ``coro`` on the loop and wait for its result.
 

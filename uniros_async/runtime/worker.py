@@ -229,8 +229,11 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         async with asyncio.timeout(spec.accept_timeout_s):
             transport = await listener.accept()
         await listener.aclose()
+        from uniros_async.priority import thread_ids
+
+        before = thread_ids()
         await server.build()
-        server.raise_loop_priority()
+        server.raise_loop_priority(thread_ids() - before)
         if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
             # for the next request would save, and the poll would hold the loop (up to 50 us)
@@ -333,19 +336,19 @@ class _Server:
         except Exception as exc:  # noqa: BLE001 - sent back to the supervisor
             self.build_error = error_reply(exc, f"could not make {self.spec.env_id}")
 
-    def raise_loop_priority(self) -> None:
-        """Once a wall-clock env is built and its loop ticks: the real-time class for the threads that run it (this
-        one, which also serves its steps, and the env's loop thread where it has one), not for its start-up (see
-        ``uniros_async.priority``); threads and processes they start later begin in the ordinary class."""
+    def raise_loop_priority(self, started: set[int]) -> None:
+        """Once a wall-clock env is built and its loop ticks: the real-time class for the threads that run it, not
+        for its start-up (see ``uniros_async.priority``): this one, which also serves its steps, the env's loop
+        thread where it has one, and the threads its build started (``started``: they deliver to the loop, as a
+        ROS 2 arm's cyclonedds receive threads do). Threads and processes they start later begin ordinary."""
         env = self.env
         if env is None or getattr(getattr(env.unwrapped, "config", None), "clock", None) != "wall":
             return  # not built, accelerated (sim clock, computes flat out), or no uniros env: no loop to keep on time
         from uniros_async.priority import raise_loop_priority
 
         raise_loop_priority(self.spec.rt_rank)
-        loop_thread = getattr(env.unwrapped, "loop_thread_id", None)
-        if loop_thread is not None:  # the synchronous API over a loop thread (unknown wrappers)
-            raise_loop_priority(self.spec.rt_rank, thread_id=loop_thread)
+        for tid in started:  # among them the env's loop thread (the synchronous API over unknown wrappers)
+            raise_loop_priority(self.spec.rt_rank, thread_id=tid)
 
     async def serve(self, transport: Any) -> None:
         try_send = getattr(transport, "try_send", None)  # shm, tcp: a step's reply leaves without a coroutine
