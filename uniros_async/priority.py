@@ -6,7 +6,8 @@ at nice -10). As ros2_control does for its control loops, such a loop asks for a
 ``SCHED_RR`` at a low priority (10): it then preempts every ordinary thread when its timer fires. These loops
 sleep between ticks (a tick is well under a millisecond of work, physics included), and the kernel's real-time
 throttling (``sched_rt_runtime_us``) keeps 5 % of every core for ordinary threads even if one misbehaved.
-Accelerated (sim clock) workers, which compute flat out, never ask.
+Accelerated (sim clock) workers, which compute flat out, and workers of envs without an env loop (a gymnasium
+CartPole, stepped as fast as its agent asks) never ask.
 
 The class belongs to the thread that runs the loop, from the moment the loop is ready, and to nothing else:
 
