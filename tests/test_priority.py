@@ -153,7 +153,7 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -> None:
+def test_a_real_time_worker_runs_round_robin_and_an_accelerated_or_loopless_one_does_not() -> None:
     """The loop's thread alone is real-time, with SCHED_RESET_ON_FORK; every other thread of the worker, and of
     the processes it started, is ordinary, but the emulated arm's serving thread (rank 0)."""
     import uniros_async
@@ -164,9 +164,10 @@ def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -
     envs = [
         uniros_async.make("uniros/Rx200Reach-v0", robot="emulated-real"),
         uniros_async.make("uniros/Rx200Reach-v0", clock="sim"),
+        uniros_async.make("CartPole-v1"),  # no env loop: stepped as fast as its agent asks
     ]
     try:
-        real_time, accelerated = (e._sup.pids()[0] for e in envs)  # type: ignore[attr-defined]
+        real_time, accelerated, loopless = (e._sup.pids()[0] for e in envs)  # type: ignore[attr-defined]
         rr = (os.SCHED_RR | RESET_ON_FORK, LOOP_RT_PRIORITY)
         ordinary = (os.SCHED_OTHER, 0)
         worker = thread_scheduling(real_time)
@@ -178,6 +179,7 @@ def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -
         others = [c for pid, threads in arms.items() for tid, c in threads.items() if tid not in serving]
         assert others and set(others) == {ordinary}
         assert set(thread_scheduling(accelerated).values()) == {ordinary}
+        assert set(thread_scheduling(loopless).values()) == {ordinary}
         assert not _children(accelerated)
     finally:
         for e in envs:
