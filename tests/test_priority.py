@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from _processes import pid_alive, wait_gone
 
 from uniros_async.priority import (
     ACTOR_RT_PRIORITY,
@@ -212,13 +213,6 @@ def _stat(pid: int) -> list[str]:
         return f.read().split(") ")[1].split()
 
 
-def _alive(pid: int) -> bool:
-    try:
-        return _stat(pid)[0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 def test_cores_kept_awake_runs_one_idle_class_poller_per_core_and_stops_them() -> None:
     cpus = sorted(os.sched_getaffinity(0))
     with cores_kept_awake() as pids:
@@ -230,7 +224,7 @@ def test_cores_kept_awake_runs_one_idle_class_poller_per_core_and_stops_them() -
         while time.monotonic() < deadline and not all(int(_stat(p)[11]) > t for p, t in zip(pids, t0, strict=True)):
             time.sleep(0.1)
         assert all(int(_stat(p)[11]) > t for p, t in zip(pids, t0, strict=True)), "the pollers should burn idle CPU"
-    assert not any(_alive(p) for p in pids)
+    assert not any(pid_alive(p) for p in pids)
 
 
 def test_cores_kept_awake_pollers_die_with_a_sigkilled_parent() -> None:
@@ -243,13 +237,10 @@ def test_cores_kept_awake_pollers_die_with_a_sigkilled_parent() -> None:
     try:
         assert parent.stdout is not None
         pids = [int(x) for x in parent.stdout.readline().split()]
-        assert pids and all(_alive(p) for p in pids)
+        assert pids and all(pid_alive(p) for p in pids)
     finally:
         parent.kill()
         parent.wait(timeout=10)
         if parent.stdout is not None:
             parent.stdout.close()
-    deadline = time.monotonic() + 5.0
-    while any(_alive(p) for p in pids) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not any(_alive(p) for p in pids), "a poller outlived its SIGKILLed parent"
+    assert not wait_gone(pids, 5.0), "a poller outlived its SIGKILLed parent"

@@ -17,10 +17,10 @@ from uniros_async.errors import (
     UnirosError,
     WorkerError,
 )
-from uniros_async.placements import register_placement
-from uniros_async.robots import register_robot
 
 if TYPE_CHECKING:
+    from uniros_async.placements import register_placement
+    from uniros_async.robots import register_robot
     from uniros_async.runtime import make, make_vec
     from uniros_async.tasks.registry import register_env_id, register_task
 
@@ -58,12 +58,20 @@ _when_imported("gymnasium", _register_ids)
 
 
 def __getattr__(name: str) -> Any:
-    # make / make_vec load the runtime (worker processes) only when asked for: a transport-only process or a
-    # spawned worker does not import it.
+    # The registries and the runtime load only when asked for: a transport-only process or an env worker of a
+    # gymnasium env imports none of them (each registry fills with the built-in entries when first imported).
     if name in ("make", "make_vec"):
         from uniros_async import runtime
 
         return getattr(runtime, name)
+    if name == "register_placement":
+        from uniros_async import placements
+
+        return placements.register_placement
+    if name == "register_robot":
+        from uniros_async import robots
+
+        return robots.register_robot
     if name in ("register_task", "register_env_id"):  # gymnasium is imported for them (the task registry)
         from uniros_async.tasks import registry
 

@@ -110,6 +110,14 @@ def _build_parser() -> argparse.ArgumentParser:
         choices=["rt", "off"],
         help="with --load: scheduling classes to compare (UNIROS_LOOP_PRIORITY; default: rt off)",
     )
+    bl.add_argument(
+        "--backend",
+        choices=("local", "ray"),
+        default="local",
+        help="ray: every env's worker placed by Ray (a local cluster of a head and one node per arm type unless"
+        " --ray-address; on a shared host run it under unshare --net, see docs/scaling.md)",
+    )
+    bl.add_argument("--ray-address", default=None, metavar="HOST:PORT", help="the Ray cluster for --backend ray")
     bl.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     bth = bench.add_parser("throughput", help="make_vec vs gymnasium AsyncVectorEnv vs SB3 SubprocVecEnv")
@@ -410,6 +418,8 @@ def _run_bench(args: argparse.Namespace) -> int:
                 keep_cores_awake=not args.allow_idle,
                 loads=tuple(args.loads),
                 sched_classes=tuple(args.sched_classes),
+                backend=args.backend,
+                ray_address=args.ray_address,
             )
         )
     elif args.scenario == "envloop":

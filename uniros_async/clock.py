@@ -16,7 +16,6 @@ import abc
 import asyncio
 import contextlib
 import ctypes
-import ctypes.util
 import logging
 import os
 import sys
@@ -90,7 +89,9 @@ class _LibcTimerFd:
     _Itimerspec._fields_ = [("it_interval", _Timespec), ("it_value", _Timespec)]
 
     def __init__(self) -> None:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        # the symbols already loaded into this process, libc's among them: ctypes.util.find_library("c") would run
+        # ``ldconfig -p`` in a subprocess (~10 ms in every process that makes a clock)
+        libc = ctypes.CDLL(None, use_errno=True)
         self._create = libc.timerfd_create
         self._create.argtypes = [ctypes.c_int, ctypes.c_int]
         self._settime = libc.timerfd_settime

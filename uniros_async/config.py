@@ -32,16 +32,17 @@ import types
 import typing
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import numpy as np
 import pydantic
-import yaml
 from pydantic import BeforeValidator, ConfigDict, Strict, ValidationError
 from pydantic_core import PydanticCustomError
 
 from uniros_async.errors import ConfigError
-from uniros_async.yamlio import load_yaml
+
+if TYPE_CHECKING:
+    from uniros_async.yamlio import load_yaml
 
 __all__ = [
     "Bool",
@@ -200,6 +201,8 @@ def load_config(path: str | Path, cls: type[M]) -> M:
         ConfigError: the file cannot be read or parsed, or the data is not a valid ``cls`` (messages start with
             the path).
     """
+    from uniros_async.yamlio import load_yaml
+
     return cls.from_data(load_yaml(path), where=str(path))
 
 
@@ -410,6 +413,8 @@ def markdown_table(cls: type[pydantic.BaseModel], *, prefix: str = "") -> str:
         elif isinstance(default, pydantic.BaseModel):
             shown = "see below"
         else:
+            import yaml
+
             dumped = yaml.safe_dump(_plain(default), default_flow_style=True, width=1000)
             shown = f"`{dumped.removesuffix(chr(10)).removesuffix('...').strip()}`"
         desc = " ".join((field.description or docs.get(name, "")).split()).replace("|", "\\|")
@@ -487,3 +492,13 @@ def _hint_name(hint: Any) -> str:
     if isinstance(hint, type) and issubclass(hint, pydantic.BaseModel):
         return "mapping"
     return str(getattr(hint, "__name__", hint))
+
+
+def __getattr__(name: str) -> Any:
+    # PyYAML loads only where YAML is read or docs are generated: an env worker validates its keyword arguments
+    # with these models and reads no YAML.
+    if name == "load_yaml":
+        from uniros_async.yamlio import load_yaml
+
+        return load_yaml
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import math
-import signal
 import subprocess
 import sys
 import time
@@ -22,12 +20,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
-from uniros_async.testing.ros1 import kill_process, rospy_process, wait_for_line
+from uniros_async.testing.ros1 import rospy_process, wait_for_line
 
 FAKE_ARM = Path(__file__).with_name("ros1_fake_arm.py")
 
@@ -80,15 +79,6 @@ def fake_arm(ros_master: str, tmp_path: Path) -> Iterator[Callable[..., subproce
         yield start
 
 
-async def _command_line(proc: subprocess.Popen[str], timeout_s: float = 10.0) -> dict[str, Any]:
-    line = await asyncio.to_thread(wait_for_line, proc, "{", timeout_s=timeout_s)
-    return json.loads(line)
-
-
-def _cmd(q: list[float], duration_s: float = 0.0) -> JointCommand:
-    return JointCommand(header=Header(), position=np.asarray(q, dtype=np.float64), duration_s=duration_s)
-
-
 async def test_rx200_states_and_interbotix_commands(ros_master: str, fake_arm: Any) -> None:
     from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
 
@@ -108,8 +98,8 @@ async def test_rx200_states_and_interbotix_commands(ros_master: str, fake_arm: A
         np.testing.assert_allclose(first.position, 0.0)
 
         target = [0.3, -0.2, 0.25, 0.1, -0.15]
-        cmd.publish(_cmd(target))
-        got = await _command_line(arm)
+        cmd.publish(joint_command(target))
+        got = await command_line(arm)
         assert got["type"] == "interbotix_xs_msgs/JointGroupCommand"
         assert got["group"] == "arm"
         np.testing.assert_allclose(got["positions"], target, atol=1e-6)  # float32 on the wire
@@ -139,24 +129,26 @@ async def test_unsafe_and_malformed_commands_are_not_sent(ros_master: str, fake_
         stats = env.create_client(Empty, Data, "stats")
         hold = env.create_client(Empty, Trigger, "hold")
         await cmd.wait_for_subscribers(1, timeout_s=5.0)
-        cmd.publish(_cmd([0.0, 2.5, 0.0, 0.0, 0.0]))  # shoulder beyond +113 deg
+        cmd.publish(joint_command([0.0, 2.5, 0.0, 0.0, 0.0]))  # shoulder beyond +113 deg
         await asyncio.sleep(0.05)
-        cmd.publish(_cmd([0.1, 0.2]))  # two values for five joints
+        cmd.publish(joint_command([0.1, 0.2]))  # two values for five joints
         await asyncio.sleep(0.05)
-        cmd.publish(_cmd([0.0, 0.1, 0.0, 0.0, math.nan]))
+        cmd.publish(joint_command([0.0, 0.1, 0.0, 0.0, math.nan]))
         await asyncio.sleep(0.05)
-        cmd.publish(_cmd([0.05, 0.0, 0.0, 0.0, 0.0]))
-        got = await _command_line(arm)  # the first command the driver sees is the last, valid one
+        cmd.publish(joint_command([0.05, 0.0, 0.0, 0.0, 0.0]))
+        got = await command_line(arm)  # the first command the driver sees is the last, valid one
         np.testing.assert_allclose(got["positions"], [0.05, 0.0, 0.0, 0.0, 0.0], atol=1e-6)
         elbow_max = get_robot_spec("rx200").joint_upper_rad[2]
-        cmd.publish(_cmd([0.05, 0.0, elbow_max + 0.01, 0.0, 0.0]))  # a hair past: clamped to the limit, as servos do
-        got = await _command_line(arm)
+        cmd.publish(
+            joint_command([0.05, 0.0, elbow_max + 0.01, 0.0, 0.0])
+        )  # a hair past: clamped to the limit, as servos do
+        got = await command_line(arm)
         np.testing.assert_allclose(got["positions"], [0.05, 0.0, elbow_max, 0.0, 0.0], atol=1e-6)
         counts = (await stats.call(Empty(), timeout_s=5.0)).value
         assert counts["commands_rejected"] == 3 and counts["commands_out"] == 2 and counts["commands_clamped"] == 1
         reply = await hold.call(Empty(), timeout_s=5.0)
         assert reply.success, reply.message
-        held = await _command_line(arm)  # hold: the newest measured position, between home and that target
+        held = await command_line(arm)  # hold: the newest measured position, between home and that target
         assert len(held["positions"]) == 5 and abs(held["positions"][0]) < 0.06 and held["positions"][2] < 1.63
 
 
@@ -172,14 +164,14 @@ async def test_ned2_joint_trajectory_commands(ros_master: str, fake_arm: Any) ->
     ):
         cmd = await env.create_publisher(JointCommand, "command")
         await cmd.wait_for_subscribers(1, timeout_s=5.0)
-        cmd.publish(_cmd([0.1, 0.2, -0.3, 0.0, 0.1, 0.0]))
-        got = await _command_line(arm)
+        cmd.publish(joint_command([0.1, 0.2, -0.3, 0.0, 0.1, 0.0]))
+        got = await command_line(arm)
         assert got["type"] == "trajectory_msgs/JointTrajectory"
         assert got["joint_names"] == ["joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6"]
         np.testing.assert_allclose(got["positions"], [0.1, 0.2, -0.3, 0.0, 0.1, 0.0])
         assert got["time_from_start_s"] == pytest.approx(0.04)  # one 25 Hz period: as soon as the servos can
-        cmd.publish(_cmd([0.0] * 6, duration_s=1.5))
-        got = await _command_line(arm)
+        cmd.publish(joint_command([0.0] * 6, duration_s=1.5))
+        got = await command_line(arm)
         assert got["time_from_start_s"] == pytest.approx(1.5)
 
 
@@ -199,8 +191,8 @@ async def test_float64_multi_array_and_a_missing_finger(ros_master: str, fake_ar
         assert state.name[6] == "left_finger" and state.position[6] == 0.0  # absent: reads 0.0
         cmd = await env.create_publisher(JointCommand, "command")
         await cmd.wait_for_subscribers(1, timeout_s=5.0)
-        cmd.publish(_cmd([0.0, 0.1, 0.2, 0.3, 0.4]))
-        got = await _command_line(arm)
+        cmd.publish(joint_command([0.0, 0.1, 0.2, 0.3, 0.4]))
+        got = await command_line(arm)
         assert got["type"] == "std_msgs/Float64MultiArray"
         np.testing.assert_allclose(got["positions"], [0.0, 0.1, 0.2, 0.3, 0.4])
 
@@ -214,21 +206,14 @@ async def test_missing_arm_joint_or_silent_driver_is_a_clear_error(ros_master: s
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros1_bridge(cfg, domain=dom):
                 pass
-        text = _message(err.value)
+        text = robot_error(err.value)
         assert "/rx200/joint_states" in text and "within 1.5 s" in text
         # nothing is published on the other robot's topic: the same clear error, naming that topic
         cfg2 = Ros1BridgeConfig(robot="ned2", master_uri=ros_master, state_timeout_s=0.5)
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros1_bridge(cfg2, domain=dom):
                 pass
-        assert "/joint_states" in _message(err.value) and "driver running" in _message(err.value)
-
-
-def _message(exc: BaseException) -> str:
-    while isinstance(exc, BaseExceptionGroup):
-        exc = exc.exceptions[0]
-    assert isinstance(exc, RobotError), repr(exc)
-    return str(exc)
+        assert "/joint_states" in robot_error(err.value) and "driver running" in robot_error(err.value)
 
 
 def test_bad_settings_are_refused_before_anything_starts() -> None:
@@ -252,6 +237,54 @@ def test_bad_settings_are_refused_before_anything_starts() -> None:
         gym.make("uniros/Rx200Reach-v0", robot="ros1://127.0.0.1:11311", ros1={"topic": "/x"})
     with pytest.raises(ConfigError, match="only to robot='ros1"):
         gym.make("uniros/Rx200Reach-v0", robot="sim", ros1={"command": "/x"})
+
+
+def test_bad_max_command_age_is_refused() -> None:
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig
+
+    with pytest.raises(ConfigError, match="max_command_age_s must be > 0"):
+        Ros1BridgeConfig(robot="rx200", max_command_age_s=0.0)
+
+
+def test_a_state_that_waited_on_the_way_is_stamped_as_old_and_stale_states_stop_commands() -> None:
+    """The bridge's translation alone (no ROS peer: its two callbacks are called directly): a joint state that took
+    longer than the quickest to arrive is stamped that much before its arrival, whatever the offset between the
+    driver's clock and ours; while the newest state is older than ``max_command_age_s`` no command is sent."""
+    from uniros_async.adapters.ros1 import msgs
+    from uniros_async.adapters.ros1_bridge import Ros1Bridge, Ros1BridgeConfig
+
+    out: list[JointState] = []
+    sent: list[Any] = []
+    bridge = Ros1Bridge(Ros1BridgeConfig(robot="rx200", max_command_age_s=0.5), out.append, time.monotonic_ns)
+    bridge._send = sent.append  # in place of the command publisher that run_commands opens
+    spec = get_robot_spec("rx200")
+    offset = 12_345_678_901  # the driver's clock runs this far behind ours: it cancels out
+
+    def state(waited_s: float) -> None:
+        stamp = time.time_ns() - offset - round((0.002 + waited_s) * 1e9)  # 2 ms on the way, plus what it waited
+        names = list(spec.joint_state_names)
+        zeros = np.zeros(len(names))
+        header = msgs.RosHeader(seq=0, stamp_ns=stamp, frame_id="")
+        bridge.on_ros_state(msgs.JointState(header=header, name=names, position=zeros, velocity=zeros, effort=zeros))
+
+    for _ in range(5):
+        state(0.0)
+        assert abs(time.monotonic_ns() - out[-1].header.stamp_ns) < 0.05e9  # as fresh as it is
+    state(2.0)  # one that sat 2 s in a buffer
+    assert 1.95e9 < time.monotonic_ns() - out[-1].header.stamp_ns < 2.1e9
+    unstamped = msgs.JointState(header=msgs.RosHeader(), name=list(spec.joint_state_names),
+                                position=np.zeros(len(spec.joint_state_names)), velocity=[], effort=[])  # fmt: skip
+    bridge.on_ros_state(unstamped)  # a driver that does not stamp: counted from its arrival
+    assert abs(time.monotonic_ns() - out[-1].header.stamp_ns) < 0.05e9
+
+    q = np.zeros(len(spec.arm_joint_names))
+    bridge.on_command(JointCommand(header=Header(), position=q))
+    assert len(sent) == 1
+    bridge.last_state_ns = time.monotonic_ns() - round(0.6e9)  # the newest state 0.6 s old: stale
+    bridge.on_command(JointCommand(header=Header(), position=q))
+    assert len(sent) == 1 and bridge.stats.commands_stale == 1
+    assert not bridge.srv_hold(Empty()).success and "s old" in bridge.srv_hold(Empty()).message
+    assert len(sent) == 1
 
 
 @pytest.mark.slow
@@ -279,37 +312,14 @@ def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> Non
         assert "unsafe_reason" not in info, info
     finally:
         env.close()
-    lines = []
-    with contextlib.suppress(TimeoutError):
-        while True:
-            lines.append(json.loads(wait_for_line(arm, "{", timeout_s=0.5)))
-    moved = [ln for ln in lines if any(abs(v) > 1e-4 for v in ln["positions"])]
-    assert len(moved) >= 9, lines  # the action re-sent tick after tick: 10 Hz over the two steps (>= 0.9 s)
+    n, lines = moved_commands(arm, gap_s=0.5)
+    assert n >= 9, lines  # the action re-sent tick after tick: 10 Hz over the two steps (>= 0.9 s)
 
 
 @pytest.mark.slow
-def test_cli_bridge_serves_a_domain_until_sigint(ros_master: str, fake_arm: Any, tmp_path: Path) -> None:
+def test_cli_bridge_serves_a_domain_until_sigint(ros_master: str, fake_arm: Any) -> None:
     fake_arm("rx200")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "uniros_async.cli", "robot", "bridge", "rx200", "--ros-master", ros_master],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        uri = wait_for_line(proc, "export UNIROS_DOMAIN=tcp://", timeout_s=60.0).removeprefix("export UNIROS_DOMAIN=")
-
-        async def one_state() -> JointState:
-            async with open_node("probe", domain=uri, namespace="/rx200", transport="tcp") as node:
-                sub = await node.create_subscription(JointState, "joint_states")
-                return await asyncio.wait_for(sub.receive(), 10.0)
-
-        state = asyncio.run(one_state())
-        assert state.name[:5] == get_robot_spec("rx200").arm_joint_names
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=15.0) == 0
-    finally:
-        kill_process(proc)
+    check_cli_bridge("--ros-master", ros_master)
 
 
 def test_cli_bridge_reports_an_unreachable_master() -> None:
@@ -326,33 +336,11 @@ def test_cli_bridge_reports_an_unreachable_master() -> None:
 @pytest.mark.slow
 def test_make_vec_mixes_a_ros_arm_with_a_sim_arm(ros_master: str, fake_arm: Any) -> None:
     """One vector env, two worker processes: the rx200 behind ROS 1 (the bridge runs in its worker) and a sim rx200."""
-    from uniros_async.runtime import make_vec
-
     arm = fake_arm("rx200")
     port = ros_master.rstrip("/").rsplit(":", 1)[1]
-    venv = make_vec(
-        [("uniros/Rx200Reach-v0", {"robot": f"ros1://127.0.0.1:{port}"}), "uniros/Rx200Reach-v0"],
-        reward_type="dense",
-    )
-    try:
-        obs, _ = venv.reset(seed=0)
-        assert obs.shape[0] == 2 and np.all(np.isfinite(obs))
-        action = np.array([[0.2, 0.1, 0.1, 0.1, 0.0]] * 2, dtype=np.float32)
-        for _ in range(2):
-            obs, reward, terminated, truncated, infos = venv.step(action)
-        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
-        # both arms were driven toward the same target (the stand-in at 1 rad/s, the sim servos on their 2 s
-        # profile): the arm joints (entries 7-11, after EE, direction and distance) and EE (0-2) agree closely
-        assert np.abs(obs[0, 7:12] - obs[1, 7:12]).max() < 0.1, obs[:, 7:12]
-        assert np.abs(obs[0, :3] - obs[1, :3]).max() < 0.03, obs[:, :3]
-        assert np.abs(obs[0, 7:12]).max() > 0.1  # and the ROS arm did move
-    finally:
-        venv.close()
-    lines = []
-    with contextlib.suppress(TimeoutError):
-        while True:
-            lines.append(json.loads(wait_for_line(arm, "{", timeout_s=0.5)))
-    assert sum(any(abs(v) > 1e-4 for v in ln["positions"]) for ln in lines) >= 9, lines
+    check_mixed_vec(f"ros1://127.0.0.1:{port}")
+    n, lines = moved_commands(arm, gap_s=0.5)
+    assert n >= 9, lines
 
 
 def test_ros_host_follows_ros_ip_then_ros_hostname(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -87,6 +87,9 @@ def test_records_and_table_name_every_metric_even_without_samples() -> None:
         ({"loads": ("cpu", "disk")}, ["'disk'", "gil", "torch"]),
         ({"scenario": "sweep", "loads": ("cpu",)}, ["'sweep'", "learner scenario"]),
         ({"loads": ("gc",), "sched_classes": ("fifo",)}, ["'fifo'", "rt", "off"]),
+        ({"backend": "k8s"}, ["'k8s'", "local", "ray"]),
+        ({"scenario": "sweep", "backend": "ray"}, ["'sweep'", "--backend ray", "learner scenario"]),
+        ({"backend": "ray", "loads": ("cpu",)}, ["--backend ray", "with --load"]),
     ],
 )
 def test_bad_settings_name_the_value_and_the_choices(kwargs: dict[str, Any], words: list[str]) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import time
@@ -14,10 +15,13 @@ from uniros_async.testing.netfault import EventPeer, NetnsPair, fault_figures
 
 FAULT_S = 2.0
 RECOVER_S = 15.0
-SLACK_S = 0.5
-"""Scheduling slack on a shared 2-core machine: both ends run real-time when permitted, yet a hold or a notice came
-up to 0.4 s late in about one run of three while other jobs loaded the host (docs/reliability.md reports the figures
-themselves)."""
+"""A bound against a hang, not a goal: how long the agent may take to step again after the fault is cleared."""
+CODE_PATH_S = 0.05
+"""What the code between a check and its event line may take (no wait in it)."""
+STALL_S = 1.0
+"""How late a process's loop may run on the loaded 2-core host before it counts as stalled (the latest seen: 0.6 s
+for the arm's tick that held it, 0.4 s for the agent's), for the wall-clock hold: the watchdog itself is judged in
+the arm's own ticks, exactly."""
 
 
 @dataclass
@@ -89,7 +93,8 @@ def run_fault(
         clear()
         t_clear = time.monotonic_ns()
     recovered = agent.wait_for(t_clear, "step", RECOVER_S, "recovery after the fault was cleared")
-    time.sleep(0.5)  # what the arm applies right after recovery is judged too
+    # what the arm applies right after recovery is judged too: wait until it applied one half a second later
+    arm.wait_for(recovered["t_ns"] + 500_000_000, "cmd", RECOVER_S, "a command applied after recovery")
     row = fault_figures(
         name,
         arm,
@@ -107,12 +112,19 @@ def run_fault(
     if check_ages:
         assert row["stale_commands_applied"] == 0, row
         # no step returned on a state older than the timeout, by its own stamp (the arm shares this clock)
-        assert row["max_state_stamp_age_at_step_s"] <= robot_timeout_s + 0.05, row
+        assert row["max_state_stamp_age_at_step_s"] <= robot_timeout_s + CODE_PATH_S, row
     assert any(e["ev"] == "cmd" and e["applied"] and e["t_ns"] <= t_fault for e in arm.events), "no command before"
     if must_notice:
         assert row["robot_errors"], f"{name}: the agent saw no RobotError"
-        assert row["notice_after_fault_s"] <= robot_timeout_s + period_s + SLACK_S, row
+        # the robot timeout after the last state (which came within a period before the fault), plus how late the
+        # agent's own loop ran meanwhile (measured from its tick times: the host's scheduling, not the env's logic)
+        assert row["notice_after_fault_s"] <= (robot_timeout_s + period_s + row["agent_loop_late_s"] + CODE_PATH_S), row
         assert "s old" in row["agent_saw"] and "rx200" in row["agent_saw"], row["agent_saw"]
-    if row["hold_after_last_command_s"] is not None:
-        assert row["hold_after_last_command_s"] <= command_timeout_s + period_s + SLACK_S, row
+        age = float(row["agent_saw"].split(" s old")[0].rsplit(" ", 1)[1])
+        # it reports a state that is stale, never a fresh one (the message rounds to 10 ms)
+        assert age >= round(robot_timeout_s, 2), row["agent_saw"]
+    if row["hold_ticks_after_last_command"] is not None:
+        # the watchdog, in the arm's own ticks (one period of sim time each): the first tick past its timeout
+        assert row["hold_ticks_after_last_command"] <= math.ceil(command_timeout_s / period_s - 1e-9) + 1, row
+        assert row["hold_after_last_command_s"] <= command_timeout_s + period_s + STALL_S, row
     return row

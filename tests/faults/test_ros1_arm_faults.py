@@ -6,11 +6,13 @@ ROS 1 cannot authenticate peers, so the driver and the bridge are allowed beyond
 ``ros1={"insecure": True}``): only the two namespaces the test creates can reach them.
 
 A command's age at the arm is not checked here: the driver's ``interbotix_xs_msgs/JointGroupCommand`` carries no
-stamp, so the arm can only count from a command's arrival (``--max-command-age`` is refused for this driver).
+stamp, so the arm can only count from a command's arrival (``--max-command-age`` is refused for this driver). That no
+command older than the robot timeout reaches it after a partition is test_ros1_stale_commands.py.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,6 +37,8 @@ ROS1_FAULTS = ["partition", "loss 10 %", "tcp reset", "link down", "frozen arm (
 def ros1_link(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Link]:
     reason = ros1_missing()
     if reason is not None:
+        if os.environ.get("UNIROS_REQUIRE_ROS") == "1":  # .ci/run: ROS 1 must be there
+            pytest.fail(f"UNIROS_REQUIRE_ROS=1 but {reason}")
         pytest.skip(reason)
     py = sys.executable
     home = Path(tmp_path_factory.mktemp("ros_home"))

@@ -11,7 +11,7 @@ measures from both sides' event lines (one ``time.monotonic_ns()`` clock across 
 - uncaught: exceptions other than ``RobotError`` the agent saw (must be none).
 
 ``UNIROS_FAULT_REPORT=PATH`` appends each fault's figures as a JSON line to PATH (docs/reliability.md's tables).
-No delay or jitter fault here: this kernel has no netem, and a delaying relay is not part of this suite.
+Delay and jitter are in test_tcp_arm_delay.py (this kernel has no netem: the tests' own relay adds them).
 """
 
 from __future__ import annotations

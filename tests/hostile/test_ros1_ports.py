@@ -10,25 +10,19 @@ answered, RSS grows by less than 64 MiB while 1,000 connections are held, and th
 from __future__ import annotations
 
 import asyncio
-import os
-import select
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from urllib.parse import urlsplit
 
 import pytest
 
-from tests.hostile import _attacks
+from tests.hostile import _attacks, _served
 from uniros_async.adapters.ros1 import msgs, open_ros1_node
 from uniros_async.adapters.ros1._xmlrpc import call_ros
 from uniros_async.testing.ros1 import open_rosmaster, ros1_missing
 
 pytestmark = pytest.mark.slow
 
-RSS_LIMIT = 64 * 1024 * 1024
 TOPIC = "/rx200/joint_states"
 
 
@@ -41,39 +35,10 @@ def ros_master(tmp_path: Path) -> Iterator[str]:
         yield uri
 
 
-def _start_driver(master: str, log: Path) -> subprocess.Popen[str]:
-    env = {**os.environ, "PYTHONPATH": os.getcwd() + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    env.pop("ROS_IP", None)
-    env.pop("ROS_HOSTNAME", None)
-    with open(log, "w") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--ros1-master", master],
-            stdout=subprocess.PIPE,
-            stderr=err,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            env=env,
-        )
-    assert proc.stdout is not None
-    ready, _, _ = select.select([proc.stdout], [], [], 60)
-    if not ready or not proc.stdout.readline().strip():
-        proc.kill()
-        proc.wait()
-        proc.stdout.close()
-        raise AssertionError(f"the ROS 1 driver did not start; its log:\n{log.read_text()[-2000:]}")
-    return proc
-
-
-def _host_port(uri: str) -> tuple[str, int]:
-    parts = urlsplit(uri)
-    assert parts.hostname is not None and parts.port is not None
-    return parts.hostname, parts.port
-
-
 async def test_ros1_driver_ports_keep_serving_under_attack(ros_master: str, tmp_path: Path) -> None:
     _attacks.raise_fd_limit()
     log = tmp_path / "driver.log"
-    proc = _start_driver(ros_master, log)
+    proc, _ = _served.start_serve(["--ros1-master", ros_master], log, unset=("ROS_IP", "ROS_HOSTNAME"))
     try:
         async with asyncio.timeout(300), open_ros1_node("/hostile_legit", master_uri=ros_master) as ros:
             seqs: list[int] = []
@@ -106,7 +71,7 @@ async def test_ros1_driver_ports_keep_serving_under_attack(ros_master: str, tmp_
             reports = {}
             async with asyncio.TaskGroup() as tg:
                 asker = tg.create_task(ask_slave())
-                host, port = _host_port(slave_uri)
+                host, port = _served.host_port(slave_uri)
                 reports["xml-rpc"] = await _attacks.run_attacks(host, port, _attacks.xmlrpc(), server_pid=proc.pid)
                 reports["tcpros"] = await _attacks.run_attacks(
                     tcpros_host, tcpros_port, _attacks.tcpros(TOPIC), server_pid=proc.pid
@@ -118,23 +83,9 @@ async def test_ros1_driver_ports_keep_serving_under_attack(ros_master: str, tmp_
             elapsed = time.monotonic() - t0
 
             assert proc.poll() is None, f"the ROS 1 driver died; its log:\n{log.read_text()[-3000:]}"
-            assert len(seqs) > n_before, "joint states stopped flowing after the attacks"
-            gaps = [(a, b) for a, b in zip(seqs, seqs[1:], strict=False) if b != a + 1]
-            assert not gaps, f"legitimate joint states lost or reordered: {gaps[:5]} (of {len(seqs)})"
+            _served.check_stream_whole(seqs, n_before)
             assert answers >= 10, f"only {answers} getPid calls answered in {elapsed:.1f} s"
-            for what, r in reports.items():
-                assert r.peak_rss_growth < RSS_LIMIT, f"{what}: driver RSS grew {r.peak_rss_growth / 2**20:.1f} MiB"
+            _served.check_rss_bounded(reports, "driver")
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        if proc.stdout is not None:
-            proc.stdout.close()
-    lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
-    assert len(lines) <= 4 * elapsed + 20, f"{len(lines)} log lines in {elapsed:.0f} s:\n" + "\n".join(lines[:40])
-    sys.stdout.write(
-        "\n".join(f"{k}: {v}" for k, v in reports.items()) + f"\nlog lines: {len(lines)} in {elapsed:.1f} s\n"
-    )
+        _served.stop_serve(proc)
+    _served.check_log_rate_limited(log, elapsed, reports)

@@ -9,54 +9,28 @@ server's RSS grows by less than 64 MiB while 1,000 connections are held, and its
 from __future__ import annotations
 
 import asyncio
-import os
-import select
 import subprocess
-import sys
 import time
 from pathlib import Path
-from urllib.parse import urlsplit
 
 import pytest
 
-from tests.hostile import _attacks
+from tests.hostile import _attacks, _served
 from uniros_async.bus import open_node
 from uniros_async.bus.messages import JointState
 from uniros_async.bus.qos import reliable
 
 pytestmark = pytest.mark.slow
 
-RSS_LIMIT = 64 * 1024 * 1024
-
 
 def _start_serve(log: Path) -> tuple[subprocess.Popen[str], str]:
-    env = {**os.environ, "PYTHONPATH": os.getcwd() + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    env.pop("UNIROS_AUTH_KEY", None)
-    with open(log, "w") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200"],
-            stdout=subprocess.PIPE,
-            stderr=err,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            env=env,
-        )
-    assert proc.stdout is not None
-    ready, _, _ = select.select([proc.stdout], [], [], 60)
-    line = proc.stdout.readline().strip() if ready else ""
-    line = line.removeprefix("export UNIROS_DOMAIN=")  # the served arm prints the line a shell would run
-    if not line.startswith("tcp://"):
-        proc.kill()
-        proc.wait()
-        proc.stdout.close()
+    """The served arm, and its domain's URI (the line a shell would run: ``export UNIROS_DOMAIN=tcp://...``)."""
+    proc, line = _served.start_serve([], log, unset=("UNIROS_AUTH_KEY",))
+    uri = line.removeprefix("export UNIROS_DOMAIN=")
+    if not uri.startswith("tcp://"):
+        _served.stop_serve(proc)
         raise AssertionError(f"robot serve printed {line!r}; its log:\n{log.read_text()[-2000:]}")
-    return proc, line
-
-
-def _host_port(uri: str) -> tuple[str, int]:
-    parts = urlsplit(uri)
-    assert parts.hostname is not None and parts.port is not None
-    return parts.hostname, parts.port
+    return proc, uri
 
 
 async def test_domain_and_served_arm_keep_serving_under_attack(tmp_path: Path) -> None:
@@ -94,7 +68,7 @@ async def test_domain_and_served_arm_keep_serving_under_attack(tmp_path: Path) -
                 asker = tg.create_task(ask_domain())
                 reports = {}
                 for what, uri in (("domain", domain_uri), ("arm node", arm_uri)):
-                    host, port = _host_port(uri)
+                    host, port = _served.host_port(uri)
                     proto = _attacks.uniros_tcp()
                     reports[what] = await _attacks.run_attacks(host, port, proto, server_pid=proc.pid, hold=1000)
                     # and a thousand that complete the handshake, then say nothing
@@ -108,25 +82,11 @@ async def test_domain_and_served_arm_keep_serving_under_attack(tmp_path: Path) -
             elapsed = time.monotonic() - t0
 
             assert proc.poll() is None, f"robot serve died; its log:\n{log.read_text()[-3000:]}"
-            assert len(seqs) > n_before, "joint states stopped flowing after the attacks"
-            gaps = [(a, b) for a, b in zip(seqs, seqs[1:], strict=False) if b != a + 1]
-            assert not gaps, f"legitimate joint states lost or reordered: {gaps[:5]} (of {len(seqs)})"
+            _served.check_stream_whole(seqs, n_before)
             assert answers >= 10, f"only {answers} parameter requests answered in {elapsed:.1f} s"
+            _served.check_rss_bounded(reports, "server")
             for what, r in reports.items():
-                assert r.peak_rss_growth < RSS_LIMIT, f"{what}: server RSS grew {r.peak_rss_growth / 2**20:.1f} MiB"
                 assert r.held >= 1000 or r.refused, f"{what}: {r}"
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        if proc.stdout is not None:
-            proc.stdout.close()
-    lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
-    # one line a second per listener and per domain at most: far fewer than the thousands of refusals
-    assert len(lines) <= 4 * elapsed + 20, f"{len(lines)} log lines in {elapsed:.0f} s:\n" + "\n".join(lines[:40])
-    sys.stdout.write(
-        "\n".join(f"{k}: {v}" for k, v in reports.items()) + f"\nlog lines: {len(lines)} in {elapsed:.1f} s\n"
-    )
+        _served.stop_serve(proc)
+    _served.check_log_rate_limited(log, elapsed, reports)

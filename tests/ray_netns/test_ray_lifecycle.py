@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 from typing import Any
 
 import numpy as np
 import pytest
+from _processes import wait_gone
 
 from uniros_async.errors import WorkerError
 from uniros_async.runtime import make_vec
@@ -19,23 +21,6 @@ ARM = {"worker": {"ray": {"resources": {"rx200_arm": 1}}}}
 pytestmark = pytest.mark.usefixtures("nothing_left")
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
-
-
-def _wait_dead(pid: int, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while _alive(pid):
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
-
-
 def test_a_killed_worker_is_reported_with_its_index_and_node(cluster: dict[str, Any]) -> None:
     venv = make_vec([RX, (RX, ARM)], backend="ray", clock="sim")
     try:
@@ -43,7 +28,7 @@ def test_a_killed_worker_is_reported_with_its_index_and_node(cluster: dict[str, 
         pid = venv.pids[1]
         assert pid is not None
         os.kill(pid, signal.SIGKILL)
-        assert _wait_dead(pid, 5.0)
+        assert not wait_gone([pid], 5.0)
         with pytest.raises(WorkerError) as err:
             for _ in range(3):  # the kill may land just after a reply was sent
                 venv.step(np.zeros((2, 5), np.float32))
@@ -61,7 +46,7 @@ def test_restart_on_failure_restarts_through_ray_and_truncates_the_episode(clust
         old = venv.pids[1]
         assert old is not None
         os.kill(old, signal.SIGKILL)
-        assert _wait_dead(old, 5.0)
+        assert not wait_gone([old], 5.0)
         restarted = None
         for _ in range(3):
             obs, rewards, terminated, truncated, info = venv.step(np.zeros((2, 5), np.float32))
@@ -79,32 +64,50 @@ def test_restart_on_failure_restarts_through_ray_and_truncates_the_episode(clust
         venv.close()
 
 
-def test_a_removed_node_is_reported_by_the_next_step(cluster: dict[str, Any]) -> None:
+def test_a_lost_node_is_reported_within_one_action_cycle(cluster: dict[str, Any]) -> None:
+    """Two real-time envs (the wall clock, action cycle 0.8 s): one on the agent's node, one on a node that is lost
+    while a step is in flight, 0.3 s into its cycle; the step raises the lost worker's WorkerError (its index and
+    node) before the other env's reply is due, within the action cycle of the kill."""
     c = cluster["cluster"]
     spare = c.add_node(num_cpus=2, resources={"spare_pc": 1}, object_store_memory=80 * 1024 * 1024)
     c.wait_for_nodes()
+    cycle_s = 0.8
     venv = make_vec(
-        [RX, (RX, {"worker": {"ray": {"resources": {"spare_pc": 1}}}})],
+        [
+            (RX, {"worker": {"ray": {"node_id": cluster["head_id"]}}}),
+            (RX, {"worker": {"ray": {"resources": {"spare_pc": 1}}}}),
+        ],
         backend="ray",
-        clock="sim",
+        clock="wall",
+        action_cycle_s=cycle_s,
         call_timeout_s=30.0,
     )
+    killed: list[float] = []
+
+    def kill_node(at: float) -> None:
+        time.sleep(max(0.0, at - time.monotonic()))
+        killed.append(time.monotonic())
+        c.remove_node(spare, allow_graceful=False)  # the node's raylet and its processes are SIGKILLed
+
     try:
         venv.reset(seed=0)
         node = venv._sup.workers[1].process.node_id
         assert node == spare.node_id
-        pid = venv.pids[1]
-        assert pid is not None
-        c.remove_node(spare, allow_graceful=False)  # the node's raylet and its processes are SIGKILLed
-        assert _wait_dead(pid, 5.0), "the worker outlived its node"
-        t0 = time.monotonic()
-        with pytest.raises(WorkerError) as err:
-            for _ in range(3):  # the step in flight when the node went may still have been answered
-                venv.step(np.zeros((2, 5), np.float32))
-        took = time.monotonic() - t0
+        action = np.zeros((2, 5), np.float32)
+        venv.step(action)
+        killer = threading.Thread(target=kill_node, args=(time.monotonic() + 0.3,))
+        killer.start()
+        try:
+            with pytest.raises(WorkerError) as err:
+                for _ in range(3):
+                    venv.step(action)
+            raised = time.monotonic()
+        finally:
+            killer.join()
+        took = raised - killed[0]
         assert err.value.index == 1
         msg = str(err.value)
-        assert node[:12] in msg and "within" not in msg, msg  # the broken link, not the call timeout
-        assert took < 30.0
+        assert node[:12] in msg and "lost" in msg and "within" not in msg, msg  # the hang-up, not a timeout
+        assert took < cycle_s, f"reported {took:.3f} s after the kill; the action cycle is {cycle_s} s"
     finally:
         venv.close()

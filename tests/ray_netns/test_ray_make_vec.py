@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _processes import pid_alive
 
 from uniros_async.errors import ConfigError, WorkerError
 from uniros_async.runtime import make, make_vec
@@ -17,14 +18,6 @@ RX, NED = "uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"
 ARM = {"worker": {"ray": {"resources": {"rx200_arm": 1}}}}
 
 pytestmark = pytest.mark.usefixtures("nothing_left")
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
 
 
 def test_rx200_pinned_to_the_arm_node_and_ned2_placed_by_ray(cluster: dict[str, Any]) -> None:
@@ -44,10 +37,10 @@ def test_rx200_pinned_to_the_arm_node_and_ned2_placed_by_ray(cluster: dict[str, 
             obs, rewards, terminated, truncated, info = venv.step(np.zeros((2, 6), np.float32))
         assert obs.shape == (2, 28) and np.isfinite(obs).all() and np.isfinite(rewards).all()
         pids = [p for p in venv.pids if p is not None]
-        assert len(pids) == 2 and all(_alive(p) for p in pids)
+        assert len(pids) == 2 and all(pid_alive(p) for p in pids)
     finally:
         venv.close()
-    assert not any(_alive(p) for p in pids)
+    assert not any(pid_alive(p) for p in pids)
 
 
 def test_a_node_id_pins_a_worker_and_make_takes_the_backend(cluster: dict[str, Any]) -> None:

@@ -12,13 +12,10 @@ test here skips saying how to make it, or fails under ``UNIROS_REQUIRE_ROS=1``.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
-import json
 import subprocess
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -74,19 +71,3 @@ def fake_arm(tmp_path: Path) -> Iterator[Callable[..., subprocess.Popen[str]]]:
             return proc
 
         yield start
-
-
-async def command_line(proc: subprocess.Popen[str], timeout_s: float = 10.0) -> dict[str, Any]:
-    """The next command the stand-in arm printed."""
-    line = await asyncio.to_thread(wait_for_line, proc, "{", timeout_s=timeout_s)
-    return dict(json.loads(line))
-
-
-def robot_error_text(exc: BaseException) -> str:
-    """The RobotError inside a task group's wrapping."""
-    from uniros_async.errors import RobotError
-
-    while isinstance(exc, BaseExceptionGroup):
-        exc = exc.exceptions[0]
-    assert isinstance(exc, RobotError), repr(exc)
-    return str(exc)

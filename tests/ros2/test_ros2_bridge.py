@@ -11,11 +11,8 @@ Interbotix xs_sdk's JointGroupCommand is not on PyPI, so that driver is tested a
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import json
 import logging
 import math
-import signal
 import subprocess
 import sys
 import time
@@ -23,20 +20,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import command_line, robot_error_text
+from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
 from uniros_async.bus import open_domain, open_node
-from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
+from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
 from uniros_async.errors import RobotError
 from uniros_async.robots import get_robot_spec
-from uniros_async.testing.ros2 import kill_process, wait_for_line
+from uniros_async.testing.ros2 import kill_process
 
 FPC = "forward_position_controller"
 JTC = "joint_trajectory_controller"
-
-
-def _cmd(q: list[float], duration_s: float = 0.0) -> JointCommand:
-    return JointCommand(header=Header(), position=np.asarray(q, dtype=np.float64), duration_s=duration_s)
 
 
 async def test_states_in_our_order_and_forward_commands_checked(fake_arm: Any) -> None:
@@ -59,15 +52,15 @@ async def test_states_in_our_order_and_forward_commands_checked(fake_arm: Any) -
         assert first.name == spec.joint_state_names
         np.testing.assert_allclose(first.position, 0.0)
         for bad in ([0.0, 2.5, 0.0, 0.0, 0.0], [0.1, 0.2], [0.0, 0.1, 0.0, 0.0, math.nan]):
-            cmd.publish(_cmd(bad))  # shoulder beyond +113 deg; two values for five joints; NaN: all refused
+            cmd.publish(joint_command(bad))  # shoulder beyond +113 deg; two values for five joints; NaN: all refused
             await asyncio.sleep(0.05)  # the command topic keeps the latest only: let each be taken
         target = [0.3, -0.2, 0.25, 0.1, -0.15]
-        cmd.publish(_cmd(target))
+        cmd.publish(joint_command(target))
         got = await command_line(arm)  # the first command the driver sees is the valid one
         assert got["type"] == "std_msgs/msg/Float64MultiArray"
         np.testing.assert_allclose(got["positions"], target)
         elbow_max = spec.joint_upper_rad[2]
-        cmd.publish(_cmd([0.3, -0.2, elbow_max + 0.01, 0.1, -0.15]))  # a hair past: clamped, as the servos do
+        cmd.publish(joint_command([0.3, -0.2, elbow_max + 0.01, 0.1, -0.15]))  # a hair past: clamped, as the servos do
         got = await command_line(arm)
         np.testing.assert_allclose(got["positions"], [0.3, -0.2, elbow_max, 0.1, -0.15])
         counts = (await stats.call(Empty(), timeout_s=5.0)).value
@@ -96,13 +89,13 @@ async def test_ned2_joint_trajectory_commands(fake_arm: Any) -> None:
     ):
         cmd = await env.create_publisher(JointCommand, "command")
         await cmd.wait_for_subscribers(1, timeout_s=5.0)
-        cmd.publish(_cmd([0.1, 0.2, -0.3, 0.0, 0.1, 0.0]))
+        cmd.publish(joint_command([0.1, 0.2, -0.3, 0.0, 0.1, 0.0]))
         got = await command_line(arm)
         assert got["type"] == "trajectory_msgs/msg/JointTrajectory"
         assert got["joint_names"] == ["joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6"]
         np.testing.assert_allclose(got["positions"], [0.1, 0.2, -0.3, 0.0, 0.1, 0.0])
         assert got["time_from_start_s"] == pytest.approx(0.04)  # one 25 Hz period: as soon as the servos can
-        cmd.publish(_cmd([0.0] * 6, duration_s=1.5))
+        cmd.publish(joint_command([0.0] * 6, duration_s=1.5))
         assert (await command_line(arm))["time_from_start_s"] == pytest.approx(1.5)
 
 
@@ -115,7 +108,7 @@ async def test_silent_driver_or_a_driver_of_another_type_is_a_clear_error(fake_a
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros2_bridge(cfg, domain=dom):
                 pass
-        text = robot_error_text(err.value)
+        text = robot_error(err.value)
         assert "/rx200/joint_states" in text and "domain 4" in text and "within 1.0 s" in text
         assert time.monotonic() - t0 < 5.0
         # a trajectory controller where the bridge was told to expect a position forwarder: refused, naming both
@@ -124,7 +117,7 @@ async def test_silent_driver_or_a_driver_of_another_type_is_a_clear_error(fake_a
         with pytest.raises((RobotError, BaseExceptionGroup)) as err:
             async with open_ros2_bridge(cfg, domain=dom):
                 pass
-        text = robot_error_text(err.value)
+        text = robot_error(err.value)
         assert "/forward_position_controller/commands" in text
         assert "trajectory_msgs/msg/JointTrajectory" in text and "std_msgs/msg/Float64MultiArray" in text
         with pytest.raises(TimeoutError):  # and nothing was sent
@@ -153,12 +146,8 @@ def test_real_time_env_on_a_ros2_arm_and_the_driver_vanishing(fake_arm: Any, cap
         obs, reward, terminated, truncated, info = env.step(action)
         assert 0.7 < time.monotonic() - t0 < 0.9  # one 0.8 s action cycle, in real time
         assert np.all(np.isfinite(obs)) and math.isfinite(reward) and "unsafe_reason" not in info, info
-        lines = []
-        with contextlib.suppress(TimeoutError):  # the env loop goes on sending: read what came in the two steps
-            while len(lines) < 40:
-                lines.append(json.loads(wait_for_line(arm, "{", timeout_s=0.2)))
-        moved = [ln for ln in lines if any(abs(v) > 1e-4 for v in ln["positions"])]
-        assert len(moved) >= 9, lines  # the action re-sent tick after tick: 10 Hz over two steps (>= 0.9 s)
+        n, lines = moved_commands(arm, gap_s=0.2, most=40)  # the env loop goes on sending: what came in the two steps
+        assert n >= 9, lines  # the action re-sent tick after tick: 10 Hz over two steps (>= 0.9 s)
         kill_process(arm)  # the driver vanishes mid-episode
         with pytest.raises(RobotError) as err:
             for _ in range(10):
@@ -173,56 +162,16 @@ def test_real_time_env_on_a_ros2_arm_and_the_driver_vanishing(fake_arm: Any, cap
 @pytest.mark.slow
 def test_make_vec_mixes_a_ros2_arm_with_a_sim_arm(fake_arm: Any) -> None:
     """One vector env, two worker processes: the rx200 behind ROS 2 (the bridge in its worker) and a sim rx200."""
-    from uniros_async.runtime import make_vec
-
     arm = fake_arm("rx200", FPC)
-    venv = make_vec(
-        [("uniros/Rx200Reach-v0", {"robot": f"ros2://0?driver={FPC}"}), "uniros/Rx200Reach-v0"],
-        reward_type="dense",
-    )
-    try:
-        obs, _ = venv.reset(seed=0)
-        assert obs.shape[0] == 2 and np.all(np.isfinite(obs))
-        action = np.array([[0.2, 0.1, 0.1, 0.1, 0.0]] * 2, dtype=np.float32)
-        for _ in range(2):
-            obs, reward, terminated, truncated, infos = venv.step(action)
-        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
-        # both arms driven toward the same target: arm joints (entries 7-11) and EE (0-2) agree closely
-        assert np.abs(obs[0, 7:12] - obs[1, 7:12]).max() < 0.1, obs[:, 7:12]
-        assert np.abs(obs[0, :3] - obs[1, :3]).max() < 0.03, obs[:, :3]
-        assert np.abs(obs[0, 7:12]).max() > 0.1  # and the ROS 2 arm did move
-    finally:
-        venv.close()
-    lines = []
-    with contextlib.suppress(TimeoutError):
-        while len(lines) < 100:
-            lines.append(json.loads(wait_for_line(arm, "{", timeout_s=0.5)))
-    assert sum(any(abs(v) > 1e-4 for v in ln["positions"]) for ln in lines) >= 9, lines
+    check_mixed_vec(f"ros2://0?driver={FPC}")
+    n, lines = moved_commands(arm, gap_s=0.5, most=100)
+    assert n >= 9, lines
 
 
 @pytest.mark.slow
 def test_cli_bridge_serves_a_domain_until_sigint(fake_arm: Any) -> None:
     fake_arm("rx200", FPC)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "uniros_async.cli", "robot", "bridge", "rx200", "--ros2", f"ros2://0?driver={FPC}"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        uri = wait_for_line(proc, "export UNIROS_DOMAIN=tcp://", timeout_s=60.0).removeprefix("export UNIROS_DOMAIN=")
-
-        async def one_state() -> JointState:
-            async with open_node("probe", domain=uri, namespace="/rx200", transport="tcp") as node:
-                sub = await node.create_subscription(JointState, "joint_states")
-                return await asyncio.wait_for(sub.receive(), 10.0)
-
-        state = asyncio.run(one_state())
-        assert state.name[:5] == get_robot_spec("rx200").arm_joint_names
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=15.0) == 0
-    finally:
-        kill_process(proc)
+    check_cli_bridge("--ros2", f"ros2://0?driver={FPC}")
 
 
 def test_cli_bridge_reports_a_silent_driver() -> None:

@@ -13,26 +13,13 @@ import json
 import signal
 import subprocess
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from _ros_helpers import check_bridge_drives_the_mirror, policy_successes
 
-from uniros_async.bus import open_domain, open_node
-from uniros_async.bus.messages import Header, JointCommand, JointState
 from uniros_async.testing.ros2 import kill_process, wait_for_line
-
-CHECKPOINT = Path(__file__).resolve().parents[2] / "docs/results/checkpoints/rx200_reach_dense_td3_uniros"
-
-
-async def _settled_at(js: Any, target: np.ndarray, n: int, timeout_s: float) -> np.ndarray:
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout_s
-    state = await asyncio.wait_for(js.receive(), 5.0)
-    while loop.time() < end and not np.allclose(state.position[:n], target, atol=0.02):
-        state = await asyncio.wait_for(js.receive(), 5.0)
-    return np.asarray(state.position[:n])
 
 
 @pytest.mark.parametrize(
@@ -46,22 +33,7 @@ async def test_bridge_drives_the_sim_through_ros2(robot: str, uri: str) -> None:
     from uniros_async.adapters.ros2_driver import open_ros2_driver
 
     cfg = Ros2BridgeConfig.from_uri(robot, uri)
-    async with (
-        open_ros2_driver(cfg) as driver,
-        open_domain("memory://") as dom,
-        open_ros2_bridge(cfg, domain=dom) as bridge,
-        open_node("env", domain=dom, namespace=f"/{robot}") as env,
-    ):
-        js = await env.create_subscription(JointState, "joint_states")
-        cmd = await env.create_publisher(JointCommand, "command")
-        await cmd.wait_for_subscribers(1, timeout_s=5.0)
-        n = len(cfg.spec.arm_joint_names)
-        target = np.linspace(-0.3, 0.3, n)
-        cmd.publish(JointCommand(header=Header(), position=target, duration_s=1.0))
-        reached = await _settled_at(js, target, n, timeout_s=6.0)
-        np.testing.assert_allclose(reached, target, atol=0.02)
-        assert driver.commands_in == 1 and driver.dropped == 0 and driver.states_out >= 3
-        assert bridge.stats.commands_out == 1 and bridge.stats.states_dropped == 0
+    await check_bridge_drives_the_mirror(cfg, open_ros2_driver, open_ros2_bridge)
 
 
 async def test_rclpy_reads_the_mirror_and_bad_commands_are_dropped(rclpy_peer: Any) -> None:
@@ -124,33 +96,5 @@ def test_sim_trained_policy_on_the_emulated_arm_over_ros2() -> None:
     """Zero-shot, in real time: the dense reach policy of docs/results.md on the emulated real arm, which
     ``uniros robot serve --emulate-real --ros2`` serves as the rx200's ROS 2 driver, reached by ``robot="ros2://0"``
     (the bridge in the env's process). docs/results.md has the 200-episode run of the same."""
-    import gymnasium as gym
-    from stable_baselines3 import TD3
-
-    import uniros_async  # noqa: F401
-
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--emulate-real", "--ros2", "0"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert wait_for_line(proc, "export ROS_DOMAIN_ID=", timeout_s=60.0) == "export ROS_DOMAIN_ID=0"
-        model = TD3.load(CHECKPOINT / "model.zip", device="cpu")
-        env = gym.make("uniros/Rx200Reach-v0", robot="ros2://0", reward_type="dense", action_mode="delta")
-        successes = 0
-        try:
-            for episode in range(3):
-                obs, _ = env.reset(seed=episode)
-                for _ in range(30):
-                    action, _ = model.predict(obs, deterministic=True)
-                    obs, _, terminated, truncated, info = env.step(action)
-                    if terminated or truncated:
-                        break
-                successes += bool(info.get("is_success"))
-        finally:
-            env.close()
-        assert successes >= 2  # 99.5 % over 200 episodes; a wrong joint order or sign gives 0
-    finally:
-        kill_process(proc)
+    successes = policy_successes(["--ros2", "0"], "export ROS_DOMAIN_ID=0", "ros2://0")
+    assert successes >= 2  # 99.5 % over 200 episodes; a wrong joint order or sign gives 0

@@ -8,7 +8,6 @@ The names, URIs and settings checks below need no peer at all.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import subprocess
 from collections.abc import Iterator
@@ -17,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _ros_helpers import plain_fields
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -26,17 +26,6 @@ PEER = Path(__file__).with_name("rclpy_peer.py")
 msgs = pytest.importorskip("uniros_async.adapters.ros2.msgs")
 pytest.importorskip("cyclonedds", reason="pip install -e '.[ros2]'")
 pytest.importorskip("rosbags", reason="pip install -e '.[ros2]'")
-
-
-def _fields(msg: Any) -> Any:
-    """A rosbags message as plain values (what the peer prints for rclpy's)."""
-    if dataclasses.is_dataclass(msg):
-        return {f.name: _fields(getattr(msg, f.name)) for f in dataclasses.fields(msg) if f.name != "__msgtype__"}
-    if isinstance(msg, np.ndarray):
-        return msg.tolist()
-    if isinstance(msg, list | tuple):
-        return [_fields(v) for v in msg]
-    return msg
 
 
 @pytest.fixture(scope="module")
@@ -77,14 +66,14 @@ def _both_ways(codecs: dict[str, subprocess.Popen[str]], ros_type: str, msg: Any
     # ours -> rclpy: it reads the fields we sent; its bytes are ours but for what it leaves unset (Fast CDR writes
     # no alignment padding bytes, and adds a few at the end from its size estimate): read back, they are ours
     got = _ask(codecs[ros_type], ours.hex())
-    assert got["msg"] == _fields(msg)
+    assert got["msg"] == plain_fields(msg)
     theirs = bytes.fromhex(got["cdr"])
     assert len(theirs) >= len(ours)
     back = msgs.deserialize(theirs, ros_type)
-    assert _fields(back) == _fields(msg) and msgs.serialize(back, ros_type) == ours
+    assert plain_fields(back) == plain_fields(msg) and msgs.serialize(back, ros_type) == ours
     # rclpy -> ours: rclpy builds the message from its fields and serializes it; we read the same fields
-    built = _ask(codecs[ros_type], json.dumps({"msg": _fields(msg)}))
-    assert _fields(msgs.deserialize(bytes.fromhex(built["cdr"]), ros_type)) == _fields(msg)
+    built = _ask(codecs[ros_type], json.dumps({"msg": plain_fields(msg)}))
+    assert plain_fields(msgs.deserialize(bytes.fromhex(built["cdr"]), ros_type)) == plain_fields(msg)
 
 
 _text = st.text(st.characters(min_codepoint=1, max_codepoint=0x2FF, blacklist_categories=("Cs",)), max_size=12)

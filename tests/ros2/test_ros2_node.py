@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import json
 import subprocess
 import time
@@ -18,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _ros_helpers import plain_fields
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -25,16 +25,6 @@ from uniros_async.errors import RobotError
 from uniros_async.testing.ros2 import wait_for_line
 
 JS = "sensor_msgs/msg/JointState"
-
-
-def _fields(msg: Any) -> Any:
-    if dataclasses.is_dataclass(msg):
-        return {f.name: _fields(getattr(msg, f.name)) for f in dataclasses.fields(msg) if f.name != "__msgtype__"}
-    if isinstance(msg, np.ndarray):
-        return msg.tolist()
-    if isinstance(msg, list | tuple):
-        return [_fields(v) for v in msg]
-    return msg
 
 
 def _joint_state(stamp: tuple[int, int], frame: str, names: list[str], pos: list[float]) -> Any:
@@ -104,12 +94,12 @@ def test_joint_states_cross_with_rclpy_both_ways(
     msg = _joint_state(stamp, frame, names, pos)
     loop.pub.publish(msg)  # ours -> rclpy's subscription: it prints the fields it got
     got = json.loads(wait_for_line(peer, "{", timeout_s=10.0))
-    assert got["msg"] == _fields(msg)
+    assert got["msg"] == plain_fields(msg)
     assert peer.stdin is not None  # rclpy's publisher -> our subscription
-    peer.stdin.write(json.dumps({"msg": _fields(msg)}) + "\n")
+    peer.stdin.write(json.dumps({"msg": plain_fields(msg)}) + "\n")
     peer.stdin.flush()
     back = loop.run(asyncio.wait_for(loop.inbox.get(), 10.0))
-    assert _fields(back) == _fields(msg)
+    assert plain_fields(back) == plain_fields(msg)
 
 
 async def _matched_within(endpoint: Any, n: int, timeout_s: float) -> bool:

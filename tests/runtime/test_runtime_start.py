@@ -103,3 +103,75 @@ def test_an_env_class_defined_in_main_is_refused_with_what_to_do(tmp_path: Path)
     out = _run([sys.executable, "-"], cwd=tmp_path, stdin=code)
     assert out.returncode == 0, out.stderr
     assert "refused:" in out.stdout and "__main__" in out.stdout and "module" in out.stdout
+
+
+PROBE_MODULE = '''
+import sys
+import gymnasium as gym
+from gymnasium.envs.classic_control.cartpole import CartPoleEnv
+
+
+class ProbeCartPole(CartPoleEnv):
+    """CartPole that tells which of the given modules its worker has loaded."""
+
+    def loaded(self, *names):
+        return [n for n in names if n in sys.modules]
+
+
+gym.register("ProbeCartPole-v0", entry_point=ProbeCartPole, max_episode_steps=20)
+'''
+
+
+def test_a_gymnasium_env_worker_loads_neither_pydantic_nor_the_agent_side(tmp_path: Path) -> None:
+    """What a worker of a plain gymnasium env imports: the env, gymnasium and the protocol, not the config models
+    (pydantic), PyYAML, uniros's env classes or the supervisor and vector env (the agent side)."""
+    (tmp_path / "probe_envs.py").write_text(PROBE_MODULE)
+    heavy = [
+        "pydantic",
+        "yaml",
+        "uniros_async.envs.base",
+        "uniros_async.runtime.supervisor",
+        "uniros_async.runtime.vector",
+        "uniros_async.bus.node",
+    ]
+    code = textwrap.dedent(f"""
+        from uniros_async.runtime import make_vec
+        venv = make_vec(["probe_envs:ProbeCartPole-v0"])
+        print("worker", venv.call("loaded", *{heavy!r})[0])
+        print("probe", venv.call("loaded", "gymnasium", "uniros_async.runtime.worker")[0])
+        venv.close()
+    """)
+    out = _run([sys.executable, "-"], cwd=tmp_path, stdin=code)
+    assert out.returncode == 0, out.stderr
+    assert "worker []" in out.stdout  # none of them
+    assert "probe ['gymnasium', 'uniros_async.runtime.worker']" in out.stdout  # the probe itself works
+
+
+def test_bad_kwargs_fail_in_the_caller_and_stop_the_interpreters_started_meanwhile() -> None:
+    """The workers' interpreters start while the caller checks the env arguments; a bad one is reported from the
+    caller with the key's path, and no interpreter outlives the error (none was given an env)."""
+    from _children import children
+
+    from uniros_async.errors import ConfigError
+    from uniros_async.runtime import make_vec
+
+    with pytest.raises(ConfigError, match="reward_type") as e:
+        make_vec(["uniros/Rx200Reach-v0"] * 2, clock="sim", reward_type="spars")
+    assert "did you mean 'sparse'?" in str(e.value)
+    assert children() == []
+
+
+def test_an_interpreter_started_early_is_told_the_environment_set_since(monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the agent's checks set in the environment while an interpreter was already starting (an imported module
+    may set ``MUJOCO_GL``) goes into the spec's ``environ``; stopped before it had a spec, the interpreter exits."""
+    from uniros_async.runtime.launch import start_interpreter
+
+    proc, conn = start_interpreter()
+    try:
+        assert proc.environ_changes() == {}
+        monkeypatch.setenv("UNIROS_TEST_SET_DURING_CHECKS", "egl")
+        assert proc.environ_changes() == {"UNIROS_TEST_SET_DURING_CHECKS": "egl"}
+    finally:
+        conn.close()
+        proc.discard()
+    assert proc.exitcode is not None

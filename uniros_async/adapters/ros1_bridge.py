@@ -6,9 +6,10 @@
 
 The bridge is to a real arm what the servo sim node is to a simulated one, its hardware interface on the bus: in
 namespace ``/<robot>`` it publishes ``joint_states`` (our ``JointState``, in the robot's ``joint_state_names``
-order, stamped on arrival) for every ``sensor_msgs/JointState`` the driver publishes, and turns every ``command``
-(our ``JointCommand``) into one message on the driver's command topic. The env reaches the arm only through those
-two topics (``envs/robot.py``), so the same TaskEnv code runs on the sim, the emulated real arm and a ROS 1 arm.
+order, stamped on arrival less the time it waited on the way, ``Ros1Bridge.queued_ns``) for every
+``sensor_msgs/JointState`` the driver publishes, and turns every ``command`` (our ``JointCommand``) into one
+message on the driver's command topic. The env reaches the arm only through those two topics (``envs/robot.py``),
+so the same TaskEnv code runs on the sim, the emulated real arm and a ROS 1 arm.
 
 Command types (``command_type``), each what a common ROS 1 arm driver listens to:
 
@@ -25,15 +26,37 @@ The env already refuses unsafe targets; the bridge checks joint limits once more
 counted, never sent. It serves ``hold`` (command the newest measured position) and ``stats`` (counters), like the
 servo sim. Joint states that lack an arm joint are dropped and counted (the first such message logs which names
 were missing and which came); a missing non-arm joint (a gripper finger) reads 0.0, logged once.
+
+No command older than ``max_command_age_s`` reaches the driver. The drivers' command messages carry no stamp (an
+Interbotix ``JointGroupCommand`` has no header), so the driver cannot drop an old one: in a partition the commands
+wait in the kernel's send queue of the TCPROS connection, and TCP delivers them when the link heals. So the bridge
+guards them itself, every ``check_s``:
+
+- a connection to the driver still holding a command published more than ``max_command_age_s - check_s`` ago that
+  the driver's kernel has not acknowledged (``SIOCOUTQ``) is reset (``SO_LINGER`` 0: the kernel discards what it
+  holds); so is any connection holding an unacknowledged command while the joint states are stale;
+- while the newest joint state is older than ``max_command_age_s`` (the link or the driver is gone), commands and
+  ``hold`` are refused (counted in ``commands_stale``): they would only queue;
+- once joint states arrive again, a bridge that reset a connection publishes its commands from a new ROS node (the
+  old one unregisters): the master tells the driver of the new publisher, and it connects at once. The reset never
+  reached the driver while the link was cut, so its end of the old connection stays open, with nothing more on it,
+  until its keepalive notices (rospy: after 60 s idle) or, in roscpp, at once, as the old publisher left the list.
+
+The commands' publisher therefore lives in a ROS node of its own (``<name>_cmd<N>``), beside the one that
+subscribes to the joint states.
+
+The env's placement sets ``max_command_age_s`` to its ``robot_timeout_s``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import dataclasses
 import itertools
 import logging
+import math
 import os
 import time
 from collections.abc import AsyncIterator, Callable
@@ -42,6 +65,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from uniros_async.adapters.drivers import ros_driver_defaults
+from uniros_async.backoff import Backoff
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.bus.qos import latest
@@ -51,6 +75,7 @@ from uniros_async.robots.spec import RobotSpec
 from uniros_async.transports.base import TransportOptions
 
 if TYPE_CHECKING:
+    from uniros_async.adapters.ros1 import Ros1Publisher
     from uniros_async.envs.config import EnvConfig
     from uniros_async.placements import ArmLink, PlacementRequest
 
@@ -79,6 +104,8 @@ LIMIT_CLAMP_RAD = 0.05
 ``commands_clamped``), as the servo sim and the servos themselves clip it: holding where the arm measures itself
 (the env's hold) can ask for a hair past a limit the arm sits at, through sensor noise or overshoot. Further out,
 a command is refused."""
+TRANSIT_WINDOW_S = 60.0
+"""How far back ``Ros1Bridge.queued_ns`` looks for the quickest joint state."""
 _instances = itertools.count(1)
 ROS1_SETTINGS = (
     "driver",
@@ -88,6 +115,7 @@ ROS1_SETTINGS = (
     "group",
     "ros_host",
     "state_timeout_s",
+    "max_command_age_s",
     "insecure",
 )
 """The bridge settings an env takes in its ``ros1`` dict (``EnvConfig.ros1``)."""
@@ -123,6 +151,9 @@ class Ros1BridgeConfig:
         ros_host: the address ROS peers reach this process at (its XML-RPC and TCPROS servers); None:
             ``$ROS_IP``, else ``$ROS_HOSTNAME`` (as rospy reads them), else ``127.0.0.1``.
         state_timeout_s: how long to wait for the driver's first joint state before giving up.
+        max_command_age_s: no command published longer ago than this reaches the driver, and none is sent while
+            the newest joint state is older (see the module docstring); None: unguarded. An env's ``ros1://``
+            placement sets it to the env's ``robot_timeout_s``.
         node_name: the bridge's name, on the ROS graph and on the bus.
         insecure: allow a ``ros_host`` beyond loopback. ROS 1 cannot authenticate its peers, so its XML-RPC and
             TCPROS listeners on a network address accept anyone who reaches them; without this they refuse to start.
@@ -137,6 +168,7 @@ class Ros1BridgeConfig:
     group: str | None = None
     ros_host: str | None = None
     state_timeout_s: float = 10.0
+    max_command_age_s: float | None = 2.0
     node_name: str = "ros1_bridge"
     insecure: bool = False
 
@@ -167,6 +199,11 @@ class Ros1BridgeConfig:
             object.__setattr__(self, "ros_host", host)
         if not self.state_timeout_s > 0:
             raise ConfigError(f"Ros1BridgeConfig.state_timeout_s must be > 0, got {self.state_timeout_s}")
+        if self.max_command_age_s is not None and not self.max_command_age_s > 0:
+            raise ConfigError(
+                f"Ros1BridgeConfig.max_command_age_s must be > 0 seconds (or None: unguarded), got "
+                f"{self.max_command_age_s}"
+            )
 
     @property
     def spec(self) -> RobotSpec:
@@ -182,24 +219,24 @@ class BridgeStats:
     commands_out: int = 0
     commands_clamped: int = 0
     commands_rejected: int = 0
+    commands_stale: int = 0
+    connections_reset: int = 0
+    command_node_restarts: int = 0
 
 
 class Ros1Bridge:
     """The translation both ways, for one arm (built by ``open_ros1_bridge``)."""
 
     def __init__(
-        self,
-        config: Ros1BridgeConfig,
-        send: Callable[[Any], None],
-        publish: Callable[[JointState], None],
-        now_ns: Callable[[], int],
+        self, config: Ros1BridgeConfig, publish: Callable[[JointState], None], now_ns: Callable[[], int]
     ) -> None:
         from uniros_async.adapters.ros1 import msgs
 
         self.config = config
         self.spec = spec = config.spec
         self.stats = BridgeStats()
-        self._send = send
+        self._send: Callable[[Any], None] | None = None  # the command publisher's, while ``run_commands`` has one
+        self.ros_pub: Ros1Publisher[Any] | None = None
         self._publish = publish
         self._now_ns = now_ns
         self._msgs = msgs
@@ -211,7 +248,12 @@ class Ros1Bridge:
         self._seq = 0
         self.first_state = asyncio.Event()
         self.last_q: np.ndarray | None = None  # newest measured arm positions
+        self.last_state_ns: int | None = None  # time.monotonic_ns() when it arrived
+        self._transit: collections.deque[tuple[int, int]] = collections.deque()  # (arrival, transit): increasing
         self.period_s = 1.0 / spec.hardware_rate_hz
+        self.max_age_ns = None if config.max_command_age_s is None else round(config.max_command_age_s * 1e9)
+        self.check_s = min(self.period_s, (config.max_command_age_s or self.period_s) / 4)
+        """How often ``run_commands`` looks at the connections to the driver."""
 
     # ------------------------------------------------------------------------------------------- ROS -> bus
 
@@ -266,9 +308,11 @@ class Ros1Bridge:
         self._seq += 1
         self.stats.states_in += 1
         self.last_q = fields[0][: self._n_arm].copy()
+        self.last_state_ns = time.monotonic_ns()
+        queued = self.queued_ns(self.driver_stamp_ns(msg), time.time_ns(), self.last_state_ns)
         self._publish(
             JointState(
-                header=Header(stamp_ns=self._now_ns(), seq=self._seq, frame_id=msg.header.frame_id),
+                header=Header(stamp_ns=self._now_ns() - queued, seq=self._seq, frame_id=msg.header.frame_id),
                 name=self.spec.joint_state_names,
                 position=fields[0],
                 velocity=fields[1],
@@ -277,10 +321,56 @@ class Ros1Bridge:
         )
         self.first_state.set()
 
+    def driver_stamp_ns(self, msg: Any) -> int:
+        """The driver's stamp of a joint state (ROS time, ns; 0 if unstamped)."""
+        return int(msg.header.stamp_ns)
+
+    def queued_ns(self, driver_stamp_ns: int, wall_ns: int, now_ns: int) -> int:
+        """How much longer than the quickest joint state of the last ``TRANSIT_WINDOW_S`` this one (stamped
+        ``driver_stamp_ns`` by the driver, ROS time) took to arrive (``wall_ns``, our wall clock): the time it
+        waited on the way, in a socket buffer or a cut link. Its stamp on the bus is that much before its arrival,
+        so an env counts it as old as it is (states a healed link delivers in a burst look fresh otherwise). An
+        offset between the driver's clock and ours cancels out, as does a delay every state has; 0 for a state
+        the driver did not stamp."""
+        if driver_stamp_ns <= 0:
+            return 0
+        transit = wall_ns - driver_stamp_ns
+        q = self._transit
+        while q and q[-1][1] >= transit:
+            q.pop()
+        q.append((now_ns, transit))
+        horizon = now_ns - round(TRANSIT_WINDOW_S * 1e9)
+        while len(q) > 1 and q[0][0] < horizon:
+            q.popleft()
+        return max(0, transit - q[0][1])
+
     # ------------------------------------------------------------------------------------------- bus -> ROS
+
+    def state_age_s(self) -> float | None:
+        """Seconds since the newest joint state arrived (None before the first)."""
+        return None if self.last_state_ns is None else (time.monotonic_ns() - self.last_state_ns) / 1e9
+
+    def states_stale(self) -> bool:
+        """Whether the newest joint state is older than ``max_command_age_s`` (never when unguarded)."""
+        if self.max_age_ns is None:
+            return False
+        return self.last_state_ns is None or time.monotonic_ns() - self.last_state_ns > self.max_age_ns
 
     def on_command(self, cmd: JointCommand) -> None:
         """One of our ``JointCommand``: checked, then sent as one message of the driver's command type."""
+        if self.states_stale():
+            self.stats.commands_stale += 1
+            if self.stats.commands_stale == 1 or self.stats.commands_stale % 100 == 0:
+                logger.warning(
+                    "%s: command not sent to %s: the newest joint state is %.2f s old (max_command_age_s=%s); "
+                    "%d refused so far",
+                    self.spec.name,
+                    self.config.command,
+                    self.state_age_s() or float("inf"),
+                    self.config.max_command_age_s,
+                    self.stats.commands_stale,
+                )
+            return
         q = np.asarray(cmd.position, dtype=np.float64)
         if q.shape != (self._n_arm,) or not np.all(np.isfinite(q)):
             self._reject(f"expected {self._n_arm} finite positions {self.spec.arm_joint_names}, got {q.tolist()}")
@@ -297,8 +387,7 @@ class Ros1Bridge:
         clamped = np.clip(q, self._lower, self._upper)
         if not np.array_equal(clamped, q):
             self.stats.commands_clamped += 1
-        self._send(self.ros_command(clamped, cmd.duration_s))
-        self.stats.commands_out += 1
+        self._send_ros(self.ros_command(clamped, cmd.duration_s))
 
     def ros_command(self, q: np.ndarray, duration_s: float = 0.0) -> Any:
         """The driver's command message for arm positions ``q``."""
@@ -315,6 +404,15 @@ class Ros1Bridge:
         header = m.RosHeader(seq=0, stamp_ns=0, frame_id="")  # stamp 0: start at once (ros_control's convention)
         return m.JointTrajectory(header=header, joint_names=list(self.spec.arm_joint_names), points=[point])
 
+    def _send_ros(self, msg: Any) -> bool:
+        """Send ``msg`` to the driver; False (counted as stale) while the command publisher is being replaced."""
+        if self._send is None:
+            self.stats.commands_stale += 1
+            return False
+        self._send(msg)
+        self.stats.commands_out += 1
+        return True
+
     def _reject(self, why: str) -> None:
         self.stats.commands_rejected += 1
         logger.warning("%s: command not sent to %s: %s", self.spec.name, self.config.command, why)
@@ -324,12 +422,90 @@ class Ros1Bridge:
     def srv_hold(self, req: Empty) -> Trigger:
         if self.last_q is None:
             return Trigger(success=False, message="no joint state from the driver yet")
-        self._send(self.ros_command(self.last_q))
-        self.stats.commands_out += 1
+        if self.states_stale():
+            self.stats.commands_stale += 1
+            return Trigger(
+                success=False,
+                message=f"the newest joint state is {self.state_age_s():.2f} s old "
+                f"(max_command_age_s={self.config.max_command_age_s}): not commanding a position that old",
+            )
+        if not self._send_ros(self.ros_command(self.last_q)):
+            return Trigger(success=False, message="the command publisher is being replaced; try again")
         return Trigger(success=True, message=f"holding at {np.round(self.last_q, 4).tolist()}")
 
     def srv_stats(self, req: Empty) -> Data:
         return Data(value=dataclasses.asdict(self.stats))
+
+    # ------------------------------------------------------------------------------------------- the guard
+
+    async def run_commands(
+        self,
+        open_publisher: Callable[[int], contextlib.AbstractAsyncContextManager[Ros1Publisher[Any]]],
+        ready: asyncio.Future[None],
+    ) -> None:
+        """Own the command publisher until cancelled: ``open_publisher(n)`` opens the ``n``-th (a ROS node of its
+        own); ``ready`` is resolved once the first is up (or fails with the ``RobotError`` that kept it from
+        starting). Guarded (``max_command_age_s``), every ``check_s`` it resets connections whose commands grew
+        too old undelivered, and after a reset, once joint states are fresh again, replaces the publisher (the
+        module docstring)."""
+        generation = 0
+        # replacements in quick succession (a link that carries states but not commands) back off, up to 5 s
+        backoff = Backoff(first_s=0.5, max_s=5.0)
+        replaced = -math.inf  # when the previous replacement was
+        while True:
+            try:
+                async with open_publisher(generation) as pub:
+                    self.ros_pub = pub
+                    self._send = pub.publish
+                    if not ready.done():
+                        ready.set_result(None)
+                    await self._watch(pub)
+            except RobotError as exc:
+                if not ready.done():
+                    ready.set_exception(exc)
+                    return
+                logger.warning("%s: cannot publish %s anew (%s); retrying", self.spec.name, self.config.command, exc)
+            except Exception as exc:
+                if not ready.done():  # open_ros1_bridge raises it
+                    ready.set_exception(exc)
+                    return
+                raise
+            finally:
+                self._send = None
+            generation += 1
+            self.stats.command_node_restarts += 1
+            if time.monotonic() - replaced > 30.0:
+                backoff.reset()
+            else:
+                await backoff.sleep()
+            replaced = time.monotonic()
+
+    async def _watch(self, pub: Ros1Publisher[Any]) -> None:
+        """Return when a connection of ``pub`` was reset and the joint states are fresh again; never when
+        unguarded."""
+        if self.max_age_ns is None:
+            await asyncio.Event().wait()
+            return
+        max_age_s = self.max_age_ns / 1e9
+        limit_s = max(max_age_s - self.check_s, max_age_s / 2)
+        reset_any = False
+        while True:
+            await asyncio.sleep(self.check_s)
+            stale = self.states_stale()
+            reset = pub.abort_undelivered(None if stale else limit_s)
+            if reset:
+                self.stats.connections_reset += reset
+                reset_any = True
+                logger.warning(
+                    "%s: reset %d connection(s) to %s holding commands the driver had not received (newest joint "
+                    "state %.2f s old); they are discarded, never delivered late",
+                    self.spec.name,
+                    reset,
+                    self.config.command,
+                    self.state_age_s() or float("inf"),
+                )
+            if reset_any and not stale:
+                return
 
 
 @contextlib.asynccontextmanager
@@ -347,6 +523,7 @@ async def open_ros1_bridge(
     from uniros_async.adapters.ros1 import msgs, open_ros1_node
 
     spec = config.spec
+    base_name = f"/uniros_{config.node_name}_{spec.name}_{os.getpid()}_{next(_instances)}"
     assert config.command_type is not None  # filled in by Ros1BridgeConfig
     cmd_cls = msgs.MESSAGE_TYPES[config.command_type]
     ns = namespace or f"/{spec.name}"
@@ -355,7 +532,7 @@ async def open_ros1_bridge(
             # a name of its own (as rospy's anonymous=True): a second node of the same name would make the master
             # shut this one down, e.g. a training and an evaluation env on one arm
             open_ros1_node(
-                f"/uniros_{config.node_name}_{spec.name}_{os.getpid()}_{next(_instances)}",
+                base_name,
                 master_uri=config.master_uri,
                 host=str(config.ros_host),
                 insecure=config.insecure,
@@ -365,8 +542,25 @@ async def open_ros1_bridge(
             open_node(config.node_name, domain=domain, namespace=ns, transport=transport)
         )
         pub = await node.create_publisher(JointState, "joint_states", qos=latest())
-        ros_pub = await ros.advertise(config.command, cmd_cls)
-        bridge = Ros1Bridge(config, ros_pub.publish, pub.publish, node.now_ns)
+        bridge = Ros1Bridge(config, pub.publish, node.now_ns)
+
+        @contextlib.asynccontextmanager
+        async def open_publisher(generation: int) -> AsyncIterator[Ros1Publisher[Any]]:
+            async with open_ros1_node(
+                f"{base_name}_cmd{generation}",
+                master_uri=ros.master_uri,
+                host=str(config.ros_host),
+                insecure=config.insecure,
+            ) as cmd_node:
+                yield await cmd_node.advertise(config.command, cmd_cls)
+
+        tasks = await stack.enter_async_context(asyncio.TaskGroup())
+        ready: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        commands = tasks.create_task(bridge.run_commands(open_publisher, ready), name=f"ros1 {config.command}")
+        stack.callback(commands.cancel)  # runs before the TaskGroup's exit waits for it
+        await ready  # RobotError: the master refused or did not answer
+        ros_pub = bridge.ros_pub
+        assert ros_pub is not None
         await node.create_subscription(JointCommand, "command", bridge.on_command, qos=latest())
         await node.create_service(Empty, Trigger, "hold", bridge.srv_hold)
         await node.create_service(Empty, Data, "stats", bridge.srv_stats)
@@ -448,6 +642,7 @@ async def open_ros1_placement(request: PlacementRequest) -> AsyncIterator[ArmLin
     from uniros_async.placements import ArmLink
 
     cfg = request.config
-    bridge_cfg = Ros1BridgeConfig(robot=request.robot.name, master_uri=parse_ros1_uri(cfg.robot), **(cfg.ros1 or {}))
+    settings = {"max_command_age_s": cfg.robot_timeout_s, **(cfg.ros1 or {})}
+    bridge_cfg = Ros1BridgeConfig(robot=request.robot.name, master_uri=parse_ros1_uri(cfg.robot), **settings)
     async with open_domain("memory://") as domain, open_ros1_bridge(bridge_cfg, domain=domain):
         yield ArmLink(domain=domain)

@@ -162,6 +162,8 @@ class Ros2BridgeConfig:
         group: the joint group of a ``JointGroupCommand``; None: the driver's, else ``arm`` (Interbotix).
         localhost_only: discover peers on this host only (default) or on the subnet.
         state_timeout_s: how long to wait for the driver's first joint state and its command subscription.
+        max_command_age_s: refuse commands and ``hold`` while the newest joint state is older than this (the link or
+            the driver is gone: they would only queue); None (default): never refuse.
         node_name: the bridge's name on the bus.
         insecure: allow discovery beyond this host (``localhost_only=False``). DDS without SROS2 cannot
             authenticate its peers: anyone on the subnet can read the arm's state and command it; without this the
@@ -176,6 +178,7 @@ class Ros2BridgeConfig:
     command: str | None = None
     command_type: str | None = None
     group: str | None = None
+    max_command_age_s: float | None = None
     localhost_only: bool = True
     state_timeout_s: float = 10.0
     node_name: str = "ros2_bridge"
@@ -269,11 +272,16 @@ class Ros2Bridge(Ros1Bridge):
         publish: Callable[[JointState], None],
         now_ns: Callable[[], int],
     ) -> None:
-        super().__init__(cast(Any, config), send, publish, now_ns)
+        super().__init__(cast(Any, config), publish, now_ns)
+        self._send = send  # the rclpy publisher's, for the bridge's life (the ROS 1 bridge swaps its own on resets)
         from uniros_async.adapters.ros2 import msgs
 
         self._cls = msgs.message_class
         self.last_state_s = time.monotonic()  # when the driver's newest joint state came
+
+    def driver_stamp_ns(self, msg: Any) -> int:
+        """The driver's stamp of a ``sensor_msgs/msg/JointState`` (``builtin_interfaces/Time``: sec, nanosec)."""
+        return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
     def on_ros_state(self, msg: Any) -> None:
         """A ``sensor_msgs/msg/JointState`` from the driver: republished as ours (``Ros1Bridge.on_ros_state``)."""

@@ -19,17 +19,48 @@ host, run the whole bench in a network namespace with only ``lo`` up, where Ray 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
 
 from uniros_async.errors import ConfigError
 
-__all__ = ["RAY_IMPLS", "RayRows"]
+__all__ = ["RAY_IMPLS", "RayRows", "local_cluster"]
 
 RAY_IMPLS = ("uniros-ray", "uniros-ray-local", "uniros-tcp", "ray-actor")
 _OBJECT_STORE_BYTES = 80 * 1024 * 1024
+
+
+@contextlib.contextmanager
+def local_cluster(nodes: Sequence[dict[str, Any]], head_cpus: int = 2) -> Iterator[str]:
+    """A local Ray cluster for the duration of the block: a head (where the agent runs) and one node per entry of
+    ``nodes`` (``ray.cluster_utils.Cluster.add_node`` keywords, e.g. ``{"num_cpus": 2, "resources": {"rx200_pc":
+    2}}``), no dashboard, small object stores; ``ray`` connected. Yields the head's address; stops every Ray process
+    it started.
+
+    Raises:
+        ConfigError: Ray is not installed.
+    """
+    try:
+        import ray
+        from ray.cluster_utils import Cluster
+    except ImportError as exc:
+        raise ConfigError(f"--backend ray needs Ray: pip install 'uniros_async[ray]' ({exc})") from exc
+    head = {"num_cpus": head_cpus, "include_dashboard": False, "object_store_memory": _OBJECT_STORE_BYTES}
+    cluster = Cluster(initialize_head=True, head_node_args=head)
+    try:
+        for node in nodes:
+            cluster.add_node(object_store_memory=_OBJECT_STORE_BYTES, **node)
+        cluster.wait_for_nodes()
+        from uniros_async.runtime.ray_backend import connect
+
+        connect(cluster.address)
+        yield str(cluster.address)
+    finally:
+        ray.shutdown()
+        cluster.shutdown()  # type: ignore[no-untyped-call]
 
 
 class _EnvActor:

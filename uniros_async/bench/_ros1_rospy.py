@@ -2,19 +2,24 @@
 
     python3 _ros1_rospy.py echo     # /uniros_ping -> /uniros_pong and /rospy_ping -> /rospy_pong
     python3 _ros1_rospy.py client   # reads "go N" lines on stdin; for each, N round trips over /rospy_ping,
-                                    # printing one JSON line: the round trips in ns
+                                    # printing one JSON line: the round trips in ns (_peer_loop.py)
 
 rospy at its fastest: publishers without a queue (``publish`` writes in the caller's thread), subscribers with
 ``tcp_nodelay``. Prints ``ready`` once its topics are set up.
 """
 
-import json
 import sys
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import rospy
 from sensor_msgs.msg import JointState
+
+if TYPE_CHECKING:
+    from uniros_async.bench._peer_loop import answer_go_lines
+else:  # run as a script by an interpreter without our package: the module beside this file
+    from _peer_loop import answer_go_lines
 
 NAMES = ["waist", "shoulder", "elbow", "wrist_angle", "wrist_rotate", "gripper", "left_finger", "right_finger"]
 
@@ -43,27 +48,17 @@ def client() -> None:
     pub = rospy.Publisher("/rospy_ping", JointState, queue_size=None)
     rospy.Subscriber("/rospy_pong", JointState, on_pong, tcp_nodelay=True)
     msg = JointState(name=NAMES, position=[0.1] * 8, velocity=[0.0] * 8, effort=[0.0] * 8)
-    seq = 0
+
+    def arm(token: str) -> None:
+        want[0] = msg.header.frame_id = token
+        got.clear()
+
+    def round_trip() -> bool:
+        pub.publish(msg)
+        return got.wait(2.0)
+
     print("ready", flush=True)
-    for line in sys.stdin:
-        if not line.startswith("go "):
-            continue
-        n = int(line.split()[1])
-        times: list[int] = []
-        lost = 0
-        while len(times) < n:
-            seq += 1
-            want[0] = msg.header.frame_id = str(seq)
-            got.clear()
-            t0 = time.perf_counter_ns()
-            pub.publish(msg)
-            if got.wait(2.0):
-                times.append(time.perf_counter_ns() - t0)
-            else:
-                lost += 1
-                if lost > 10:
-                    break
-        print(json.dumps({"ns": times, "lost": lost}), flush=True)
+    answer_go_lines(arm, round_trip)
 
 
 if __name__ == "__main__":

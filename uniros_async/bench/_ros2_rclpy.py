@@ -2,21 +2,26 @@
 
     python _ros2_rclpy.py echo     # /uniros_ping -> /uniros_pong and /rclpy_ping -> /rclpy_pong
     python _ros2_rclpy.py client   # reads "go N" lines on stdin; for each, N round trips over /rclpy_ping,
-                                   # printing one JSON line: the round trips in ns
+                                   # printing one JSON line: the round trips in ns (_peer_loop.py)
 
 rclpy at its fastest for one message at a time: the client publishes, then spins its own single-threaded
 executor once per wake-up until the echo is back (no executor thread to hand over to). Both topics use ROS's
 default profile (reliable, keep last 10). Prints ``ready`` once its endpoints are up.
 """
 
-import json
 import sys
 import time
+from typing import TYPE_CHECKING
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
+
+if TYPE_CHECKING:
+    from uniros_async.bench._peer_loop import answer_go_lines
+else:  # run as a script by the rclpy venv's Python, without our package: the module beside this file
+    from _peer_loop import answer_go_lines
 
 NAMES = ["waist", "shoulder", "elbow", "wrist_angle", "wrist_rotate", "gripper", "left_finger", "right_finger"]
 QOS = QoSProfile(depth=10)
@@ -50,30 +55,20 @@ def client() -> None:
     pub = node.create_publisher(JointState, "/rclpy_ping", QOS)
     node.create_subscription(JointState, "/rclpy_pong", on_pong, QOS)
     msg = JointState(name=NAMES, position=[0.1] * 8, velocity=[0.0] * 8, effort=[0.0] * 8)
-    seq = 0
+
+    def arm(token: str) -> None:
+        want[0] = msg.header.frame_id = token
+        got[0] = False
+
+    def round_trip() -> bool:
+        pub.publish(msg)
+        deadline = time.monotonic() + 2.0
+        while not got[0] and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=2.0)
+        return got[0]
+
     print("ready", flush=True)
-    for line in sys.stdin:
-        if not line.startswith("go "):
-            continue
-        n = int(line.split()[1])
-        times: list[int] = []
-        lost = 0
-        while len(times) < n:
-            seq += 1
-            want[0] = msg.header.frame_id = str(seq)
-            got[0] = False
-            t0 = time.perf_counter_ns()
-            pub.publish(msg)
-            deadline = time.monotonic() + 2.0
-            while not got[0] and time.monotonic() < deadline:
-                executor.spin_once(timeout_sec=2.0)
-            if got[0]:
-                times.append(time.perf_counter_ns() - t0)
-            else:
-                lost += 1
-                if lost > 10:
-                    break
-        print(json.dumps({"ns": times, "lost": lost}), flush=True)
+    answer_go_lines(arm, round_trip)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,11 @@ Scenarios:
 - ``sweep``: env-loop rates 1 to 100 Hz (action cycle 0.8 s), and action cycles 100 to 1400 ms (10 Hz), with a
   scripted agent: timing only.
 
+``--backend ray`` (``single`` and ``concurrent``): every env's worker placed by Ray instead of started here, the steps
+over our tcp between the nodes; without ``--ray-address``, on a local cluster started for the run: a head (the agent
+and the learner) and one node per arm type, each advertising a resource the arm's envs ask for (``RAY_ARM_NODES``).
+On a shared host run it in a network namespace, where Ray cannot bind the host's interfaces (docs/scaling.md).
+
 ``--duration`` is the wall time of each phase (each learner, mode or sweep point); learners get
 ``learning_starts`` small so that they train during a short run. TD3 follows the paper's hyperparameters.
 
@@ -96,6 +101,11 @@ SWEEP_RATES_HZ = (1.0, 5.0, 10.0, 20.0, 50.0, 100.0)
 SWEEP_CYCLES_S = (0.1, 0.2, 0.4, 0.8, 1.4)
 RX200 = "uniros/Rx200Reach-v0"
 NED2 = "uniros/Ned2Reach-v0"
+BACKENDS = ("local", "ray")
+RAY_ARM_NODES = {RX200: "rx200_pc", NED2: "ned2_pc"}
+"""``--backend ray`` without ``--ray-address``: the local cluster's nodes besides the head (where the agent and the
+learner run), one per arm type, each advertising this resource (2 of it, and 2 CPUs); each env's worker asks for 1
+of its arm's, as a lab's arm PCs would (docs/howto/cluster.md)."""
 CONCURRENT_ENVS: tuple[tuple[str, str], ...] = (
     (RX200, "sim"),
     (RX200, "emulated-real"),
@@ -125,6 +135,10 @@ class LatencyBenchConfig:
             scenario, as cyclictest keeps cores out of idle states; False lets idle cores halt (``--allow-idle``).
         loads: run the scenario under each of these ``LOADS`` (``single`` and ``concurrent`` only); () for none.
         sched_classes: with ``loads``: the ``SCHED_CLASSES`` to run each load under.
+        backend: ``local`` (every env's worker on this machine) or ``ray`` (``single`` and ``concurrent``: every
+            worker placed by Ray, ``RAY_ARM_NODES``; the agent and the learner stay here).
+        ray_address: with ``ray``: the cluster (``HOST:PORT``; its scheduler places the workers); None: a local
+            cluster started for the run, a head (the agent) and one node per arm type (``RAY_ARM_NODES``).
     """
 
     scenario: str = "concurrent"
@@ -140,8 +154,17 @@ class LatencyBenchConfig:
     keep_cores_awake: bool = True
     loads: tuple[str, ...] = ()
     sched_classes: tuple[str, ...] = SCHED_CLASSES
+    backend: str = "local"
+    ray_address: str | None = None
 
     def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"backend must be one of {list(BACKENDS)}, got {self.backend!r}")
+        if self.backend == "ray" and (self.scenario not in DEFAULT_LEARNERS or self.loads):
+            raise ConfigError(
+                f"--backend ray runs a learner scenario ({sorted(DEFAULT_LEARNERS)}) without --load, got scenario "
+                f"{self.scenario!r}{' with --load' if self.loads else ''}"
+            )
         if self.scenario not in SCENARIOS:
             raise ConfigError(f"unknown scenario {self.scenario!r}; choose from {list(SCENARIOS)}")
         bad_loads = [x for x in self.loads if x not in LOADS]
@@ -432,19 +455,41 @@ def _run_learner_scenario(
     labels = [(_env_label(e, r), _env_label(e, r)) for e, r in specs]
     if cfg.loads:
         return _run_under_loads(specs, labels, cfg, progress)
-    vec = make_vec(  # absolute targets, as the recorded figures were measured (the task default is deltas)
-        [(e, {"robot": r}) for e, r in specs],
-        action_cycle_s=cfg.action_cycle_s,
-        action_mode="absolute",
-        call_timeout_s=60.0,
-    )
-    try:
-        out: list[Series] = []
-        for name in cfg.run_learners:
-            out += _run_learner(name, vec, labels, cfg, progress)
-        return out
-    finally:
-        vec.close()
+    with _ray_cluster(cfg) as placement:
+        vec = make_vec(  # absolute targets, as the recorded figures were measured (the task default is deltas)
+            [(e, {"robot": r, **placement(e)}) for e, r in specs],
+            action_cycle_s=cfg.action_cycle_s,
+            action_mode="absolute",
+            call_timeout_s=60.0,
+        )
+        try:
+            out: list[Series] = []
+            for name in cfg.run_learners:
+                out += _run_learner(name, vec, labels, cfg, progress)
+            return out
+        finally:
+            vec.close()
+
+
+@contextlib.contextmanager
+def _ray_cluster(cfg: LatencyBenchConfig) -> Iterator[Callable[[str], dict[str, Any]]]:
+    """With ``backend="ray"``: connected to the cluster (a local one of ``RAY_ARM_NODES`` unless ``ray_address``)
+    for the block; yields each env id's ``worker`` keyword ({} with the local backend)."""
+    if cfg.backend != "ray":
+        yield lambda env_id: {}
+        return
+    if cfg.ray_address is not None:
+        from uniros_async.runtime.ray_backend import connect
+
+        connect(cfg.ray_address)
+        yield lambda env_id: {"worker": {"ray": {"address": cfg.ray_address}}}
+        return
+    from uniros_async.bench._ray_rows import local_cluster
+
+    nodes = [{"num_cpus": 2, "resources": {name: 2}} for name in RAY_ARM_NODES.values()]
+    with local_cluster(nodes) as address:
+        logger.info("local Ray cluster at %s: the agent on the head, the workers on %s", address, nodes)
+        yield lambda env_id: {"worker": {"ray": {"resources": {RAY_ARM_NODES[env_id]: 1}}}}
 
 
 # ------------------------------------------------------------------------------------------ loads
@@ -727,6 +772,8 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
         elsewhere = real_time_elsewhere(rt0, real_time_threads(exclude_tree_of=os.getpid()))
     records = to_records(config.scenario, series)
     title = f"uniros bench latency --scenario {config.scenario} --duration {config.phase_s:g}"
+    if config.backend == "ray":
+        title += " --backend ray" + (f" --ray-address {config.ray_address}" if config.ray_address else "")
     machine = (
         ""
         if steal is None

@@ -55,7 +55,6 @@ from uniros_async.errors import (
     TransportError,
 )
 from uniros_async.transports.base import Listener, Transport, TransportOptions, connect, listen, options_from_environ
-from uniros_async.yamlio import load_yaml
 
 __all__ = ["Node", "Publisher", "Service", "ServiceClient", "Subscription", "Timer", "open_node"]
 
@@ -311,7 +310,12 @@ class Node:
         Raises:
             ConfigError: the file is missing, not YAML, or not a mapping at the top.
         """
-        data = load_yaml(source) if isinstance(source, str | Path) else source
+        if isinstance(source, str | Path):
+            from uniros_async.yamlio import load_yaml  # PyYAML only where a file is read (not in every env worker)
+
+            data = load_yaml(source)
+        else:
+            data = source
         if not isinstance(data, dict):
             raise ConfigError(f"parameters must be a mapping at the top level, got {type(data).__name__}")
         base = self.resolve(namespace) if namespace else (self.namespace or "/")

@@ -88,8 +88,9 @@ class EnvConfig(ConfigModel):
     -5 applies); projected actions also set ``info["action_projected"]``."""
     ros1: dict[str, Any] | None = None
     """With ``robot="ros1://..."``: settings of the bridge (``Ros1BridgeConfig`` fields ``driver``,
-    ``joint_states``, ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``, ``insecure``);
-    unset: the defaults of the robot's ROS 1 driver (``adapters.drivers``)."""
+    ``joint_states``, ``command``, ``command_type``, ``group``, ``ros_host``, ``state_timeout_s``,
+    ``max_command_age_s``, ``insecure``); unset: the defaults of the robot's ROS 1 driver (``adapters.drivers``), and
+    ``max_command_age_s`` is ``robot_timeout_s``."""
 
     @pydantic.model_validator(mode="before")
     @classmethod

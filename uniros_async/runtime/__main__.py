@@ -1,6 +1,7 @@
 """A worker process's entry point: ``python -m uniros_async.runtime --uri-fd FD`` (started by ``launch.start_worker``).
 
-Reads its ``WorkerSpec`` from stdin, sends its listen URI on the pipe end ``FD`` and serves its supervisor until
+Imports what every worker needs, then reads its ``WorkerSpec`` from stdin (and exits quietly if stdin closes
+first), sends its listen URI on the pipe end ``FD`` and serves its supervisor until
 told to close (``worker.worker_entry``). Not meant to be run by hand.
 """
 
@@ -20,6 +21,8 @@ def main(argv: list[str] | None = None) -> None:
     from uniros_async.runtime.worker import worker_entry
 
     spec = read_spec(sys.stdin.buffer)
+    if spec is None:  # discarded before it had a spec: the agent's checks of the env arguments failed
+        return
     worker_entry(spec, multiprocessing.connection.Connection(args.uri_fd, readable=False))
 
 

@@ -25,9 +25,11 @@ exit code when it ends and fails when the actor or its node dies), ``poll_exit``
 
 Lifetime: a worker ends when its agent connection goes away (EOF, as for every worker), when its actor dies (the
 parent-pid watchdog, within 0.1 s), and on ``stop``: terminate, then kill, through the actor; then the actor is
-killed (``ray.kill``). A node whose processes die (its raylet stopped or killed) takes its actors and so its workers
-with it, and the agent's next step finds the broken connection; a host that vanishes without closing its sockets is
-found by the call timeout, or by Ray's health checks when ``wait_exit`` fails.
+killed (``ray.kill``). A node whose raylet ends (stopped, killed, the node going down) is lost: the actor watches
+its raylet (``_WorkerHost._watch_node``, a pidfd) and ends the worker at once, so its connection closes, and the
+step in flight raises the worker's WorkerError within milliseconds, naming the node
+(``Supervisor._take_replies`` watches the Ray-placed workers' tcp connections while it waits; docs/reliability.md).
+A host that vanishes without closing its sockets is found by TCP keepalive (~5 s) or the call timeout.
 
 Ray is imported only here, and only when a Ray placement is used (``pip install 'uniros_async[ray]'``).
 """
@@ -40,7 +42,9 @@ import contextlib
 import dataclasses
 import importlib.util
 import os
+import select
 import socket
+import threading
 import time
 from typing import Any
 
@@ -67,6 +71,8 @@ _DEATH_REPORT_WAIT_S = 0.2
 """How long a broken connection waits for the actor's report of the worker's exit code before it is reported
 without it (``poll_exit`` outside ``stop``): a living actor reports within milliseconds; a dead one (its node lost)
 is reported by Ray only after ~0.5 s, which would hold the error past a 10 Hz env's next action cycle."""
+_NODE_LOST_GRACE_S = 0.5
+"""How long a worker whose node's raylet ended may take to close its env after SIGTERM before it is killed."""
 _PLACEMENT_KEYS = {"resources", "node_id", "num_cpus", "address"}
 BACKENDS = ("local", "ray")
 """``make_vec`` / ``make``'s ``backend``: workers started here (``local``), or placed by Ray (``ray``)."""
@@ -252,11 +258,54 @@ def check_placements(placements: list[RayPlacement]) -> None:
 # ---------------------------------------------------------------- the actor (runs on the worker's node)
 
 
+def _raylet_pid() -> int | None:
+    """The pid of this Ray worker process's raylet (its parent, which started it), or None if the parent is not one."""
+    ppid = os.getppid()
+    try:
+        with open(f"/proc/{ppid}/cmdline", "rb") as f:
+            argv0 = f.read().split(b"\0", 1)[0]
+    except OSError:
+        return None
+    return ppid if os.path.basename(argv0).startswith(b"raylet") else None
+
+
 class _WorkerHost:
     """Starts one env worker on its node and watches it (a Ray actor; see the module docstring)."""
 
     def __init__(self) -> None:
         self._proc: Any = None
+        self._node_lost: str | None = None  # set by the node watch when the raylet ended
+
+    def _watch_node(self, proc: Any) -> None:
+        """Until the worker exits: if this node's raylet ends (the node is being lost), end the worker at once.
+
+        Ray's own worker processes notice a dead raylet only at their next check (about once a second) and the
+        worker's parent-pid watchdog then takes another 0.1 s; ended here, the worker's connections close at once and
+        the agent's pending step learns of it within milliseconds (``Supervisor._take_replies`` watches them).
+        SIGTERM first (the env closes, as on any stop), SIGKILL after ``_NODE_LOST_GRACE_S``.
+        """
+        raylet = _raylet_pid()
+        if raylet is None or not hasattr(os, "pidfd_open"):
+            return
+        try:
+            raylet_fd = os.pidfd_open(raylet)
+            worker_fd = os.pidfd_open(proc.pid)
+        except OSError:
+            return
+        try:
+            poller = select.poll()
+            poller.register(raylet_fd, select.POLLIN)
+            poller.register(worker_fd, select.POLLIN)
+            events = dict(poller.poll())
+            if raylet_fd not in events or worker_fd in events:
+                return
+            self._node_lost = f"its Ray node's raylet (pid {raylet}) ended: the node is lost"
+            proc.terminate()
+            if not select.select([worker_fd], [], [], _NODE_LOST_GRACE_S)[0]:
+                proc.kill()
+        finally:
+            os.close(raylet_fd)
+            os.close(worker_fd)
 
     def start(self, spec: WorkerSpec, agent_node_id: str, timeout_s: float) -> dict[str, Any]:
         """Start the worker; ``{"ok": True, "uri", "pid", "node_id", "node_ip"}`` or ``{"ok": False, "type",
@@ -304,14 +353,17 @@ class _WorkerHost:
             return {"ok": False, "type": "WorkerError", "error": error}
         finally:
             conn.close()
+        threading.Thread(target=self._watch_node, args=(proc,), name="uniros-node-watch", daemon=True).start()
         return {"ok": True, "uri": uri, "pid": proc.pid, "node_id": node_id, "node_ip": node_ip}
 
-    def wait_exit(self) -> int | None:
-        """Block until the worker exits; its exit code."""
+    def wait_exit(self) -> dict[str, Any]:
+        """Block until the worker exits: ``{"code": its exit code, "node_lost": why the node watch ended it, or
+        None}``."""
         if self._proc is None:
-            return None
+            return {"code": None, "node_lost": None}
         self._proc.join(None)
-        return int(self._proc.exitcode) if self._proc.exitcode is not None else None
+        code = int(self._proc.exitcode) if self._proc.exitcode is not None else None
+        return {"code": code, "node_lost": self._node_lost}
 
     def terminate(self) -> None:
         if self._proc is not None:
@@ -346,7 +398,7 @@ class RayWorkerProcess:
         self.worker_uri = ""
         self.node_id = ""
         self.node_ip = ""
-        self.lost: str | None = None  # why the actor ended without reporting the worker's exit
+        self.lost: str | None = None  # the node was lost (its raylet ended), or the actor ended without a report
         self._actor: Any = None
         self._exit: concurrent.futures.Future[Any] | None = None
         self._news = False
@@ -384,6 +436,7 @@ class RayWorkerProcess:
             accept_timeout_s=timeout_s,
             auth_key=p.auth_key,
             registration=reg,
+            agent_pid=os.getpid(),
         )
         agent_node = ray.get_runtime_context().get_node_id()
         ref = self._actor.start.remote(spec, agent_node, timeout_s)
@@ -434,8 +487,11 @@ class RayWorkerProcess:
         if fut.done():
             exc = fut.exception()
             if exc is None:
-                code = fut.result()
+                report = fut.result()
+                code = report.get("code")
                 self.exitcode = int(code) if code is not None else -1
+                if report.get("node_lost"):
+                    self.lost = f"{report['node_lost']} (node {self.node_id[:12]}, {self.node_ip})"
             else:
                 node = f"{self.node_id[:12]} ({self.node_ip})"
                 self.lost = f"its Ray actor on node {node} is gone: {_first_line(exc)}"

@@ -16,10 +16,12 @@ interrupted by Ctrl-C while the loop waits is finished (its replies consumed) be
 interrupted inside a request's own code marks that worker broken, since its next reply could no longer be matched
 to a request.
 
-Start-up: every process is started first (``launch.start_worker``: ``python -m uniros_async.runtime``, which
-imports nothing of the agent's ``__main__``), then each worker's listen URI (``shm://`` by default,
-``tcp://127.0.0.1:0`` with ``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the
-supervisor connects to all of them and asks each for its spaces, in parallel.
+Start-up: the local workers' interpreters are started first (``launch.start_interpreter``: ``python -m
+uniros_async.runtime``, which imports nothing of the agent's ``__main__``) and import what every worker needs while
+the env ids and keyword arguments are checked here; once every check passed, each is sent its spec (a failed check
+stops them before any has one); then each worker's listen URI (``shm://`` by default, ``tcp://127.0.0.1:0`` with
+``transport="tcp"``) is read from its start-up pipe (the only use of a pipe), the supervisor connects to all of
+them and asks each for its spaces, in parallel.
 If any worker fails to start, all are closed and the error names the worker and why.
 
 Workers placed by Ray: a spec whose ``worker`` is a Ray placement (``"ray"``, ``{"ray": {...}}``, a
@@ -40,19 +42,22 @@ import contextlib
 import dataclasses
 import functools
 import logging
+import multiprocessing.connection
 import os
 import secrets
+import select
+import socket
 import threading
 import time
 from collections.abc import Callable, Coroutine, Sequence
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, NoReturn, TypeVar
 
 import gymnasium as gym
 
 from uniros_async.errors import ConfigError, TransportError, WorkerError
 from uniros_async.priority import MAX_LOOP_RANK
 from uniros_async.runtime.envargs import check_env_args, registration, split_placement
-from uniros_async.runtime.launch import WorkerProcess, start_worker
+from uniros_async.runtime.launch import WorkerProcess, found_libraries, start_interpreter, start_worker
 from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
 from uniros_async.runtime.ray_backend import RayPlacement, RayWorkerProcess, check_placements
 from uniros_async.runtime.worker import WorkerSpec
@@ -62,6 +67,10 @@ __all__ = ["Supervisor", "WorkerHandle"]
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
+_HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
+_HANG_UP_REPORT_S = 0.5
+"""How long the report of a hung-up worker may take (its connection's end, then its actor's report of the exit,
+``RayWorkerProcess.poll_exit``); a few milliseconds when its actor still answers."""
 REPLY_SPIN_NS = 200_000
 """How long the supervisor polls for a reply before it sleeps (``ShmTransport.spin_ns``): a worker takes ~60 us to
 unpack a request, step a trivial env and pack the reply, longer than the transport's default window, so the agent
@@ -94,6 +103,7 @@ class WorkerHandle:
     in_flight: bool = False  # a request was sent and its reply not yet taken
     try_send: Any = None  # the transport's try_send and receive_blocking where it has them (shm, tcp), else None
     receive_blocking: Any = None
+    hangup_fd: int = -1  # a Ray-placed worker's tcp socket, watched for a hang-up while another reply is awaited
 
     def check_idle(self) -> None:
         """Raise AlreadyPendingCallError if a reply is still outstanding (one request at a time per connection:
@@ -192,13 +202,16 @@ class WorkerHandle:
             raise
         return self._result(reply)
 
-    def receive_reply_blocking(self, op: Any, timeout_s: float, decode: StepDecoder | None = None) -> Any:
+    def receive_reply_blocking(
+        self, op: Any, timeout_s: float, decode: StepDecoder | None = None, watch: Sequence[int] = ()
+    ) -> Any:
         """``receive_reply`` in this thread without the event loop (the transport's ``receive_blocking``), for a
         worker whose request is in flight: returns its result, or ``LATER`` when the reply cannot be had that way
         (not there within ``timeout_s``, the worker hung up, a transport without it, ...: nothing was consumed, and
         ``receive_reply`` must follow, which also reports what went wrong). ``decode``: what a step's reply frame
         becomes instead of its result, ``decode(index, frame)``, called while the frame is still in the ring (an
-        error reply is not a step frame: it raises as usual).
+        error reply is not a step frame: it raises as usual). ``watch``: other workers' ``hangup_fd``; one of them
+        hung up also returns ``LATER`` (the transport's ``receive_blocking``).
 
         Raises:
             WorkerError: the worker raised (its traceback attached; the worker stays usable).
@@ -207,7 +220,7 @@ class WorkerHandle:
         if self.broken is not None or not self.in_flight or receive_blocking is None:
             return LATER
         try:
-            frame = receive_blocking(timeout_s)
+            frame = receive_blocking(timeout_s, watch) if watch else receive_blocking(timeout_s)
             if frame is None:
                 return LATER
             self.in_flight = False
@@ -230,10 +243,10 @@ class WorkerHandle:
         remote = self.remote
         if remote is not None:
             code = await remote.poll_exit(0.5)  # the actor reports the exit a moment after the connection broke
-            if code is not None:
-                return f"the remote worker process ({self.spec.env_id}, {remote.where()}) died with exit code {code}"
             if remote.lost:
                 return f"the remote worker ({self.spec.env_id}, {remote.where()}) is lost: {remote.lost}"
+            if code is not None:
+                return f"the remote worker process ({self.spec.env_id}, {remote.where()}) died with exit code {code}"
             return f"the connection to the remote worker ({self.spec.env_id}, {remote.where()}) broke"
         for _ in range(20):  # the connection usually breaks a moment before the process is reaped
             if self.process.exitcode is not None:
@@ -268,12 +281,20 @@ class Supervisor:
     ) -> None:
         if not specs:
             raise ConfigError("expected at least one env spec, got none")
-        for env_id, kwargs in specs:
-            check_env_args(env_id, kwargs)
-        self.call_timeout_s = call_timeout_s
-        self.close_timeout_s = close_timeout_s
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
+        # The local workers' interpreters start now and import while the env arguments are checked here; none is
+        # given its spec before every check passed (see launch.py).
+        spares = _start_interpreters(specs)
+        try:
+            for env_id, kwargs in specs:
+                check_env_args(env_id, kwargs)
+        except BaseException:
+            _discard_all(spares)
+            raise
+        self._spares = spares
+        self.call_timeout_s = call_timeout_s
+        self.close_timeout_s = close_timeout_s
         self.listen_uri = _LISTEN_URIS[transport]
         # specs of different envs: every info says which env it came from (info["env_id"])
         self.tag_infos = len({env_id for env_id, _ in specs}) > 1
@@ -283,9 +304,14 @@ class Supervisor:
         self._lock = threading.Lock()
         self._orphans: list[asyncio.Task[Any]] = []  # calls interrupted inside the loop (see _drive)
         self._ray_key = secrets.token_bytes(32)  # the key of this vector env's Ray-placed workers
+        self.fail_fast = False
+        """A step raises a Ray-placed worker's hang-up at once, without the replies the others still owe (the vector
+        env sets it unless it restarts failed workers, which needs every reply): ``_take_replies``."""
+        self._hangup_fds: list[tuple[int, int]] = []  # (index, hangup_fd) of the workers that have one
         try:
             self._start(specs, start_timeout_s)
         except BaseException:
+            _discard_all(self._spares)
             self.close()
             raise
 
@@ -302,6 +328,10 @@ class Supervisor:
         uris = self._launch(self.workers, deadline)
         remaining = max(0.1, deadline - time.monotonic())
         self.call(self._connect_all(self.workers, uris, remaining), remaining + 1.0)
+        self._note_hangup_fds()
+
+    def _note_hangup_fds(self) -> None:
+        self._hangup_fds = [(w.index, w.hangup_fd) for w in self.workers if w.hangup_fd >= 0]
 
     def _new_handle(
         self,
@@ -337,10 +367,11 @@ class Supervisor:
             self.call(start_all(), remaining + 2.0)
         return [w.remote.worker_uri if w.remote is not None else self._wait_uri(w, deadline) for w in workers]
 
-    @staticmethod
     def _spawn(
-        index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
+        self, index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
     ) -> WorkerHandle:
+        # a fresh interpreter (nothing of this process's __main__ is imported): one started at __init__, if any
+        spare = self._spares.pop(0) if self._spares else None
         spec = WorkerSpec(
             index=index,
             env_id=env_id,
@@ -350,8 +381,18 @@ class Supervisor:
             listen_uri=listen_uri,
             rt_rank=rt_rank,
             registration=registration(env_id),
+            environ={**(spare[0].environ_changes() if spare is not None else {}), **found_libraries()},
         )
-        proc, conn = start_worker(spec)  # a fresh interpreter: nothing of this process's __main__ is imported
+        if spare is None:
+            proc, conn = start_worker(spec)
+        else:
+            proc, conn = spare
+            try:
+                proc.send_spec(spec)
+            except BaseException:
+                conn.close()
+                proc.discard()
+                raise
         return WorkerHandle(spec=spec, process=proc, conn=conn)
 
     def restart(self, index: int, timeout_s: float = 60.0) -> WorkerHandle:
@@ -375,6 +416,7 @@ class Supervisor:
             uris = self._launch([new], deadline)
             remaining = max(0.1, deadline - time.monotonic())
             self.call(self._connect_all([new], uris, remaining), remaining + 1.0)
+            self._note_hangup_fds()
         except BaseException as exc:
             new.broken = "restart failed"
             self._discard(new)
@@ -434,6 +476,8 @@ class Supervisor:
                 w.transport.spin_ns = REPLY_SPIN_NS
             w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a Ray-placed worker too)
             w.receive_blocking = getattr(w.transport, "receive_blocking", None)
+            if w.remote is not None and hasattr(w.transport, "fileno"):  # over tcp: another node, which may be lost
+                w.hangup_fd = w.transport.fileno()
 
         results = await asyncio.gather(*(one(w, u) for w, u in zip(workers, uris, strict=True)), return_exceptions=True)
         for r in results:
@@ -507,12 +551,14 @@ class Supervisor:
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).
         """
+        if self._orphans:  # replies still owed by a call cut short: request_all collects them first (_drive)
+            return 0
         workers = self.workers
         for w in workers:
             if w.in_flight:
                 w.check_idle()  # raises unless it is broken (that one is reported by the request it is sent)
         lock = self._lock
-        if self._orphans or not lock.acquire(blocking=False):
+        if not lock.acquire(blocking=False):
             return 0
         try:
             if self._loop.is_closed():
@@ -539,7 +585,9 @@ class Supervisor:
         n = len(messages)
         results: list[Any] = [None] * n
         deadline = time.monotonic() + self.call_timeout_s
-        got, unexpected = self._take_replies(sent, deadline, results, decode)
+        got, unexpected, hung = self._take_replies(sent, deadline, results, decode)
+        if hung is not None:
+            self._report_hang_up(hung, got, sent, deadline)
         if got == n:
             if unexpected is not None:
                 raise unexpected
@@ -550,31 +598,44 @@ class Supervisor:
 
     def _take_replies(
         self, sent: int, deadline: float, results: list[Any], decode: StepDecoder | None
-    ) -> tuple[int, Exception | None]:
+    ) -> tuple[int, Exception | None, int | None]:
         """Take the step replies of the first ``sent`` workers in this thread, in index order, into ``results``,
         until one cannot be had that way (``WorkerHandle.receive_reply_blocking``, with ``decode``; nothing is
-        consumed then). Returns how many were taken, and the first error other than a WorkerError that taking one
-        raised (it is in that one's slot as well; ``request_all`` raises such an error once every reply is in)."""
+        consumed then). Returns how many were taken, the first error other than a WorkerError that taking one
+        raised (it is in that one's slot as well; ``request_all`` raises such an error once every reply is in),
+        and, with ``fail_fast``, the index of a later Ray-placed worker whose tcp connection ended without its
+        reply while an earlier reply was awaited (its node or process is gone: ``_report_hang_up``), else None."""
         if not sent or not self._lock.acquire(blocking=False):
-            return 0, None
+            return 0, None, None
         workers = self.workers
         got = 0
         unexpected: Exception | None = None
+        watched = self._hangup_fds if self.fail_fast and sent > 1 else ()
         try:
             if self._orphans or self._loop.is_closed():
-                return 0, None
+                return 0, None, None
             while got < sent:
+                watch = [fd for i, fd in watched if i > got] if watched else ()
                 try:
-                    r = workers[got].receive_reply_blocking("step", max(deadline - time.monotonic(), 0.0), decode)
+                    r = workers[got].receive_reply_blocking(
+                        "step", max(deadline - time.monotonic(), 0.0), decode, watch
+                    )
                 except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
                     r = exc
                     if unexpected is None and not isinstance(exc, WorkerError):
                         unexpected = exc
                 if r is LATER:
+                    if watched:  # a hang-up, of one of them or of this one (then no need to wait for the others)?
+                        hung, replied = _hung_up([(i, fd) for i, fd in watched if i >= got])
+                        if hung is not None:
+                            return got, unexpected, hung
+                        if replied and deadline > time.monotonic():  # its reply came before it hung up: taken in
+                            watched = [(i, fd) for i, fd in watched if fd not in replied]  # its turn
+                            continue
                     break
                 results[got] = r
                 got += 1
-            return got, unexpected
+            return got, unexpected, None
         except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
             for w in workers[got:sent]:
                 if w.in_flight and w.broken is None:
@@ -582,6 +643,32 @@ class Supervisor:
             raise
         finally:
             self._lock.release()
+
+    def _report_hang_up(self, hung: int, got: int, sent: int, deadline: float) -> NoReturn:
+        """Raise the WorkerError of worker ``hung``, whose connection ended without the reply to its step request
+        (``_take_replies``), now: what ``WorkerHandle.receive_reply`` makes of it (its Ray actor's report: exit code,
+        or its node lost). The replies the workers ``got`` to ``sent`` still owe are not waited for: a task on the loop
+        collects them under ``deadline``; the next call lets it finish first and ``close`` cancels it (``_drive``)."""
+        w = self.workers[hung]
+        owed = [self.workers[i] for i in range(got, sent) if i != hung]
+
+        async def collect() -> None:
+            for other in owed:
+                with contextlib.suppress(Exception):
+                    await other.receive_reply("step", max(deadline - time.monotonic(), 0.0))
+
+        async def report() -> tuple[WorkerError, asyncio.Task[None]]:
+            task = asyncio.get_running_loop().create_task(collect())
+            try:
+                await w.receive_reply("step", _HANG_UP_REPORT_S)
+            except WorkerError as exc:
+                return exc, task
+            return WorkerError(hung, f"the connection to the worker ({w.spec.env_id}) ended after its reply"), task
+
+        error, task = self._drive(report(), _HANG_UP_REPORT_S + 2.0)
+        if not task.done():
+            self._orphans.append(task)
+        raise error
 
     def submit(self, coro: Coroutine[Any, Any, T]) -> _Pending[T]:
         """Start ``coro`` on the supervisor's loop, run it until it waits, and return; ``.result()`` finishes it."""
@@ -787,6 +874,68 @@ class Supervisor:
             self.close()
 
 
+def _hung_up(watched: list[tuple[int, int]]) -> tuple[int | None, set[int]]:
+    """Which of ``watched`` ((index, socket descriptor), in index order) hung up or were reset: the index of the first
+    one whose peer is gone with nothing left to read (its reply will never come), or None; and the descriptors of
+    those hung up with data still to read (a reply sent before the hang-up)."""
+    poller = select.poll()
+    for _, fd in watched:
+        poller.register(fd, _HANG_UP)
+    fired = {fd for fd, _ in poller.poll(0)}
+    replied: set[int] = set()
+    for i, fd in watched:
+        if fd not in fired:
+            continue
+        sock = socket.socket(fileno=fd)
+        try:
+            ended = sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except BlockingIOError:
+            ended = False
+        except OSError:  # reset
+            ended = True
+        finally:
+            sock.detach()
+        if ended:
+            return i, replied
+        replied.add(fd)
+    return None, replied
+
+
+def _start_interpreters(
+    specs: Sequence[tuple[str, dict[str, Any]]],
+) -> list[tuple[WorkerProcess, multiprocessing.connection.Connection]]:
+    """One interpreter for each spec whose worker runs here (``launch.start_interpreter``); none if any spec's
+    placement is malformed or its env id unknown (``check_env_args`` then reports it, before any process starts).
+    A ``"module:Id"`` counts as known: its module is imported by the check."""
+    from uniros_async.tasks.registry import register_envs
+
+    register_envs()
+    if not all(isinstance(env_id, str) and (":" in env_id or env_id in gym.registry) for env_id, _ in specs):
+        return []
+    try:
+        local = sum(split_placement(kwargs)[0] is None for _, kwargs in specs)
+    except ConfigError:
+        return []
+    spares: list[tuple[WorkerProcess, multiprocessing.connection.Connection]] = []
+    try:
+        for _ in range(local):
+            spares.append(start_interpreter())
+    except BaseException:
+        _discard_all(spares)
+        raise
+    return spares
+
+
+def _discard_all(spares: list[tuple[WorkerProcess, multiprocessing.connection.Connection]]) -> None:
+    """Stop the interpreters that were not given a spec (``WorkerProcess.discard``), all at once."""
+    for proc, conn in spares:
+        conn.close()
+        proc.withdraw()
+    for proc, _ in spares:
+        proc.discard()
+    spares.clear()
+
+
 def _raise_unexpected(results: list[Any], *, worker_errors: bool = False) -> list[Any]:
     """``results``, unless one of them is an exception other than a WorkerError (or is any, with
     ``worker_errors``): the first of those is raised, as ``request_all`` does once every reply is in."""
@@ -889,7 +1038,10 @@ class _SentPending(_Pending[list[Any]]):
         if self._rest is None:
             deadline = now + sup.call_timeout_s
             until = deadline if end is None else min(deadline, end)
-            got, _ = sup._take_replies(self._sent, until, self._results, decode)  # raised below, with the rest
+            got, _, hung = sup._take_replies(self._sent, until, self._results, decode)  # raised below, with the rest
+            if hung is not None:
+                self._rest = set()
+                sup._report_hang_up(hung, got, self._sent, deadline)
             self._rest = set(range(got, len(self._messages)))
             self.to_loop(deadline)
         if self._task is not None:

@@ -116,7 +116,7 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         self._sup = supervisor
         self.autoreset_mode = _autoreset_mode(autoreset_mode)
         self._autoreset = _AUTORESET_WIRE[self.autoreset_mode]
-        self.restart_on_failure = restart_on_failure
+        self.restart_on_failure = restart_on_failure  # (sets the supervisor's fail_fast: see the property)
         self.restarts = [0] * len(supervisor.workers)
         self._start_timeout_s = start_timeout_s
         self._pad_msg: dict[str, Any] | None = None
@@ -163,6 +163,16 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         self.render_mode = first.get("render_mode")
         self.spec = None
         self.closed = False
+
+    @property
+    def restart_on_failure(self) -> bool:
+        """Whether a worker that dies is restarted (``make_vec``). Without it a step raises a Ray-placed worker's
+        hang-up at once, not after the other workers' replies (``Supervisor.fail_fast``)."""
+        return not self._sup.fail_fast
+
+    @restart_on_failure.setter
+    def restart_on_failure(self, value: bool) -> None:
+        self._sup.fail_fast = not value
 
     def _pad(self, names: list[str], obs_spaces: list[gym.Space[Any]], act_spaces: list[gym.Space[Any]]) -> None:
         """Have every worker pad its env to the largest observation and action sizes (``PadSpaces``).
@@ -783,9 +793,10 @@ def make_vec(
         **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
 
     Raises:
-        ConfigError: a malformed spec, an unknown id or keyword argument, a ``worker`` that is neither None nor a
-            Ray placement (before any process starts), or spaces that cannot be padded or combined (naming the
-            envs; the workers are closed).
+        ConfigError: a malformed spec, an unknown id or a ``worker`` that is neither None nor a Ray placement
+            (before any process starts), an unknown or invalid keyword argument (before any worker is given its
+            env: the workers' interpreters, started meanwhile, are stopped), or spaces that cannot be padded or
+            combined (naming the envs; the workers are closed).
         WorkerError: a worker failed to start or to build its env, or Ray could not place or start it (its index
             and traceback; the others are closed).
     """

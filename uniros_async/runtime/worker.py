@@ -12,7 +12,8 @@ request handler, and a step is ``await env.astep(action)`` in the handler's own 
 between threads, and the reply leaves as soon as the step's coroutine returns (before the rest of what the same
 sim event woke runs). The wrappers gymnasium and ``make_vec`` put around it (OrderEnforcing, TimeLimit, PadSpaces)
 are applied by ``astep_through`` / ``areset_through`` with the same semantics; an env with any other wrapper, or
-one that is not a uniros BaseEnv, runs on a loop thread and is stepped through its synchronous API as before.
+one that is not a uniros BaseEnv, runs on a loop thread and is stepped through its synchronous API, as it would be
+in the agent's own process.
 
 The requests and replies are those of runtime/protocol.py. An exception while serving a request is sent back (the
 supervisor raises it as WorkerError) and the worker keeps serving; an exception while building the env is sent as
@@ -35,6 +36,7 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+import sys
 import threading
 import time
 from typing import Any
@@ -97,6 +99,11 @@ class WorkerSpec:
             phase (``LOOP_PHASE_STEP_NS``).
         registration: ``gymnasium.register`` keyword arguments for ``env_id`` as the agent's process has it
             registered (``envargs.registration``), used when this fresh interpreter does not know the id.
+        agent_pid: the agent's pid when it is not ``parent_pid`` (a worker a Ray actor started): over tcp on
+            loopback the worker's poll looks where the agent runs (``TcpTransport.peer_pid``).
+        environ: environment variables set in the worker before it builds its env: those the agent set after the
+            worker's interpreter started (``WorkerProcess.environ_changes``), and what the agent's imports found
+            already, so that the worker's imports need not search again (``launch.found_libraries``).
     """
 
     index: int
@@ -109,6 +116,8 @@ class WorkerSpec:
     auth_key: bytes | None = None
     rt_rank: int = 0
     registration: dict[str, Any] | None = None
+    agent_pid: int = 0
+    environ: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
 # ---------------------------------------------------------------- the worker
@@ -156,10 +165,18 @@ def _async_wrappers() -> tuple[type, ...]:
     return (gym.wrappers.OrderEnforcing, gym.wrappers.TimeLimit, uw.TimeLimit, uw.PadSpaces)
 
 
+def _base_env_class() -> Any:
+    """uniros's ``BaseEnv`` if this process has loaded it, else None: then no env here is one. A worker of another
+    gymnasium env (CartPole) thus never imports it, nor the pydantic configs it brings."""
+    module = sys.modules.get("uniros_async.envs.base")
+    return getattr(module, "BaseEnv", None)
+
+
 def supports_async(env: gym.Env[Any, Any]) -> bool:
     """Whether ``env`` is an attached uniros BaseEnv under wrappers that ``astep_through`` knows (exact types)."""
-    from uniros_async.envs.base import BaseEnv
-
+    BaseEnv = _base_env_class()  # noqa: N806
+    if BaseEnv is None:
+        return False
     known = _async_wrappers()
     e: Any = env
     while isinstance(e, gym.Wrapper):
@@ -240,6 +257,8 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
             transport.spin_ns = 0 if server.realtime else turn_spin_ns(transport)
         if hasattr(transport, "on_shared_core") and not server.realtime:
             transport.on_shared_core = _move_off_core
+            if hasattr(transport, "peer_pid") and _on_loopback(transport):  # tcp: TcpTransport._peer_here
+                transport.peer_pid = spec.agent_pid or spec.parent_pid
         await server.serve(transport)
     except TransportError:
         logger.info("worker %d: the supervisor went away", spec.index)
@@ -261,18 +280,24 @@ Not for a tcp connection on loopback: see ``turn_spin_ns``."""
 def turn_spin_ns(transport: Any) -> int:
     """How long this worker polls for its next request: ``TURN_SPIN_NS``, but a tcp connection on loopback keeps
     the transport's own ``spin_ns`` (50 us). A socket wakes its reader with a sync wake-up (the kernel is told that
-    the waker is about to sleep), which places a woken worker on its agent's core, and tcp carries no hint of where
-    the peer runs for a poll to see (shm's ``ShmTransport._peer_here``). There a 200 us poll held the agent off its
-    own core for the whole window: two tcp vector envs stepped in turn took ~400 us a step, ~140 us with 50 us
-    polls, while one env's steps cost the same with either (docs/perf/history.md). A worker on another host never
-    shares its agent's core and keeps the longer poll."""
+    the waker is about to sleep), which places a woken worker on its agent's core. There a 200 us poll held the
+    agent off its own core for the whole window: two tcp vector envs stepped in turn took ~400 us a step, ~140 us
+    with 50 us polls, while one env's steps cost the same with either (docs/perf/history.md). A poll that finds
+    the agent on its core moves the worker off it (``TcpTransport._peer_here``, as shm's ``_peer_here``). A worker
+    on another host never shares its agent's core and keeps the longer poll."""
+    if _on_loopback(transport):
+        return int(transport.spin_ns)
+    return TURN_SPIN_NS
+
+
+def _on_loopback(transport: Any) -> bool:
+    """Whether ``transport`` is a tcp connection on loopback (its peer on this host)."""
     if getattr(transport, "scheme", None) == "tcp":
         try:
-            if ipaddress.ip_address(transport.sockname[0]).is_loopback:
-                return int(transport.spin_ns)
+            return bool(ipaddress.ip_address(transport.sockname[0]).is_loopback)
         except (AssertionError, ValueError):  # closed (no socket), or not an IP address
             pass
-    return TURN_SPIN_NS
+    return False
 
 
 def _move_off_core(cpu: int) -> None:
@@ -305,9 +330,9 @@ class _Server:
 
     async def build(self) -> None:
         import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
-        from uniros_async.envs.base import BaseEnv
         from uniros_async.envs.runtime import deferred_start
 
+        os.environ.update(self.spec.environ)
         try:
             reg = self.spec.registration
             if reg is not None and reg["id"] not in gym.registry:
@@ -319,7 +344,8 @@ class _Server:
             realtime = getattr(getattr(base, "config", None), "clock", "sim") != "sim"
             if realtime and hasattr(base, "loop_phase_ns"):
                 base.loop_phase_ns = self.spec.rt_rank * LOOP_PHASE_STEP_NS  # before its loop starts
-            if isinstance(base, BaseEnv) and base.attached:
+            base_env = _base_env_class()
+            if base_env is not None and isinstance(base, base_env) and base.attached:
                 if supports_async(env):
                     await base.astart()
                     self.attached = True

@@ -144,6 +144,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     bridge.add_argument(
         "--state-timeout", type=float, default=10.0, help="seconds to wait for the driver's first joint state"
     )
+    bridge.add_argument(
+        "--max-command-age",
+        type=float,
+        default=2.0,
+        help="ROS 1: no command published longer ago than this reaches the driver, none is sent while the newest "
+        "joint state is older; 0: unguarded (default %(default)s s, an env's default robot_timeout_s)",
+    )
 
     render = actions.add_parser("render", help="render the arm to a PNG offscreen")
     render.add_argument("robot", help=ROBOT_HELP)
@@ -237,6 +244,7 @@ def _bridge(args: argparse.Namespace) -> int:
         group=args.group,
         ros_host=args.ros_host,
         state_timeout_s=args.state_timeout,
+        max_command_age_s=args.max_command_age or None,
         insecure=args.insecure,
     )
     from uniros_async.transports.base import TransportOptions

@@ -14,8 +14,9 @@ Commands carry the sender's stamp (``header.stamp_ns``, the domain's clock). Wit
 drops a command older than that when it arrives at a tick (``stale_commands``), so a command that sat in a buffer
 of a broken or frozen link never moves the arm when the link comes back; the sender must share the node's clock (a
 process on the same machine: CLOCK_MONOTONIC is one across network namespaces, or a SimClock follower). ``on_event``
-gets a dict for every command taken at a tick (``{"ev": "cmd", "t_ns", "age_ns", "applied"}``) and every watchdog
-hold (``{"ev": "hold", "t_ns"}``): the fault tests measure with it.
+gets a dict for every command taken at a tick (``{"ev": "cmd", "t_ns", "tick", "age_ns", "applied"}``) and every
+watchdog hold (``{"ev": "hold", "t_ns", "tick"}``), ``tick`` counting the sim's ticks (``stats.ticks``, one hardware
+period of sim time each): the fault tests measure with it.
 
 Placements (docs/architecture.md): ``open_servo_sim`` runs it in the caller's process; ``open_servo_sim_process``
 (sim/serve.py) in its own process joining the same domain; ``serve_servo_sim`` (sim/serve.py, and
@@ -196,7 +197,8 @@ class ServoSimNode:
                     self.stale_commands,
                 )
         if self.on_event is not None:
-            self.on_event({"ev": "cmd", "t_ns": now, "age_ns": age_ns, "applied": applied})
+            tick = self.sim.stats.ticks + 1  # the tick that takes it
+            self.on_event({"ev": "cmd", "t_ns": now, "tick": tick, "age_ns": age_ns, "applied": applied})
         return cmd if applied else None
 
     def _on_tick(self) -> None:
@@ -204,7 +206,7 @@ class ServoSimNode:
         holds = self.sim.stats.watchdog_holds
         state = self.sim.tick(cmd, stamp_ns=self.node.now_ns())  # SimulationError ends the node: not hidden
         if self.on_event is not None and self.sim.stats.watchdog_holds != holds:
-            self.on_event({"ev": "hold", "t_ns": self.node.now_ns()})
+            self.on_event({"ev": "hold", "t_ns": self.node.now_ns(), "tick": self.sim.stats.ticks})
         if self.emulation is not None and (self.emulation.position_noise_std or self.emulation.velocity_noise_std):
             state = add_sensor_noise(state, self.emulation, self._rng)
         self.last_state = state

@@ -13,13 +13,20 @@ namespaces (and so the link) when the block ends, also on failure. Processes run
 - ``clear()``: removes the nftables table and the qdiscs.
 
 A frozen peer is ``os.kill(pid, SIGSTOP)`` / ``SIGCONT`` of the arm's process. This kernel has no ``netem``
-(CONFIG_NET_SCH_NETEM is off), so delay and jitter would need a delaying relay in the test itself.
+(CONFIG_NET_SCH_NETEM is off), so delay and jitter come from the tests' own delaying relay
+(``testing.delayrelay``): ``delay_through(port, mark)`` redirects every tcp connection across the link to it.
 
 ``python -m uniros_async.testing.netfault drive --robot tcp://HOST:PORT ...`` is the agent side: it makes a reach
 env on that arm and steps it forever, resetting after every episode end and every RobotError, and prints each
 event as a JSON line with its ``time.monotonic_ns()`` (one clock for every namespace of the machine): ``reset``,
-``step`` (with the observation's age), ``robot_error`` (the message) and ``error`` (anything else: an uncaught
-exception, with its traceback).
+``step`` (with the observation's age, and at an episode's end why, from ``info``), ``robot_error`` (the message)
+and ``error`` (anything else: an uncaught exception, with its traceback).
+
+``python -m uniros_async.testing.netfault commands --master URI --ros-host IP`` is a bare commander on a ROS 1 arm:
+the ROS 1 bridge (``adapters.ros1_bridge``) and, on its bus, a publisher of ``JointCommand`` at the hardware rate
+that never stops (no env and its own staleness check in front of the bridge). Command ``seq`` moves the waist to
+``command_position(seq)``, so whoever receives the driver's messages can tell which command each was; it prints
+``sent`` (``seq``) for every command and the bridge's counters (``stats``) every second.
 """
 
 from __future__ import annotations
@@ -37,15 +44,26 @@ import threading
 import time
 import traceback
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
-__all__ = ["ARM_IP", "ENV_IP", "EventPeer", "NetnsPair", "fault_figures", "netfault_missing", "open_netns_pair"]
+__all__ = [
+    "ARM_IP",
+    "ENV_IP",
+    "WAIST_STEP_RAD",
+    "EventPeer",
+    "NetnsPair",
+    "command_position",
+    "fault_figures",
+    "netfault_missing",
+    "open_netns_pair",
+]
 
 ARM_IP = "10.200.0.1"
 ENV_IP = "10.200.0.2"
 PREFIX_LEN = 30
 TABLE = "uniros_fault"
+DELAY_TABLE = "uniros_delay"
 _counter = itertools.count()
 
 
@@ -130,8 +148,29 @@ class NetnsPair:
     def link_up(self) -> None:
         _run("ip", "-n", self.arm_ns, "link", "set", self.arm_dev, "up")
 
+    def delay_through(self, relay_port: int, mark: int) -> None:
+        """Redirect every tcp connection across the link, whichever side opens it, to the delaying relay listening
+        on ``relay_port`` in the arm's namespace (``testing.delayrelay``; this kernel has no netem), which connects
+        on to each connection's original destination with ``SO_MARK`` ``mark``, left alone here. Only
+        connections opened after this are redirected (nftables' nat acts on a connection's first packet)."""
+        script = [
+            f"table ip {DELAY_TABLE} {{",
+            "  chain prerouting {",
+            "    type nat hook prerouting priority dstnat; policy accept;",
+            f'    iifname "{self.arm_dev}" meta l4proto tcp redirect to :{relay_port}',
+            "  }",
+            "  chain output {",
+            "    type nat hook output priority -100; policy accept;",
+            f'    oifname "{self.arm_dev}" meta mark != {mark} meta l4proto tcp redirect to :{relay_port}',
+            "  }",
+            "}",
+            "",
+        ]
+        _run("ip", "netns", "exec", self.arm_ns, "nft", "-f", "-", stdin="\n".join(script))
+
     def clear_nft(self) -> None:
         _run("ip", "netns", "exec", self.arm_ns, "nft", "delete", "table", "inet", TABLE, check=False)
+        _run("ip", "netns", "exec", self.arm_ns, "nft", "delete", "table", "ip", DELAY_TABLE, check=False)
 
     def clear(self) -> None:
         """Remove every fault: the nftables table, the qdiscs, and a link left down."""
@@ -246,10 +285,12 @@ def fault_figures(
     """One fault's figures from the arm's and the agent's event lines (times in s from the fault or its clearing):
 
     ``hold_after_fault_s`` (the arm's first watchdog hold after the fault), ``hold_after_last_command_s`` (that hold
-    after the last command the arm applied before it), ``notice_after_fault_s`` (the agent's first RobotError),
-    ``agent_saw`` (its message), ``robot_errors``, ``recovery_after_clear_s`` (the agent's first step after the
-    fault was cleared), ``stale_commands_applied`` (commands applied older than ``robot_timeout_s``, over the whole
-    run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s``, ``max_state_stamp_age_at_step_s``
+    after the last command the arm applied before it), ``hold_ticks_after_last_command`` (the same in the arm's own
+    ticks, one hardware period of sim time each, whatever the host's scheduling), ``notice_after_fault_s`` (the
+    agent's first RobotError), ``agent_saw`` (its message), ``agent_loop_late_s`` (how late the agent's env loop ran
+    before it: the host's scheduling), ``robot_errors``, ``recovery_after_clear_s`` (the agent's first step after
+    the fault was cleared), ``stale_commands_applied`` (commands applied older than ``robot_timeout_s``, over the
+    whole run), ``stale_commands_dropped`` (since the fault), ``max_age_applied_s``, ``max_state_stamp_age_at_step_s``
     (the oldest joint state, by its stamp, that a step returned on since the fault) and ``uncaught_exceptions``.
     """
     s = 1e-9
@@ -265,8 +306,12 @@ def fault_figures(
         "hold_after_last_command_s": (
             round((hold["t_ns"] - before_hold[-1]["t_ns"]) * s, 3) if hold and before_hold else None
         ),
+        "hold_ticks_after_last_command": (
+            hold["tick"] - before_hold[-1]["tick"] if hold and before_hold and "tick" in hold else None
+        ),
         "notice_after_fault_s": round((errors[0]["t_ns"] - t_fault) * s, 3) if errors else None,
         "agent_saw": errors[0]["msg"] if errors else "no error",
+        "agent_loop_late_s": errors[0].get("loop_late_s") if errors else None,
         "robot_errors": len(errors),
         "recovery_after_clear_s": round((recovered_ns - t_clear) * s, 3),
         "stale_commands_applied": sum(1 for e in cmds if e["applied"] and e["age_ns"] > robot_timeout_s / s),
@@ -285,6 +330,27 @@ def fault_figures(
 def _emit(event: str, **fields: Any) -> None:
     sys.stdout.write(json.dumps({"ev": event, "t_ns": time.monotonic_ns(), **fields}) + "\n")
     sys.stdout.flush()
+
+
+_END_KEYS = ("is_success", "unsafe_reason", "not_executable", "action_projected", "TimeLimit.truncated")
+"""What a step event carries of ``info`` when the episode ended: why it ended."""
+
+
+def _plain(value: Any) -> Any:
+    """``value`` as JSON can write it (numpy scalars as Python's, anything else unknown as text)."""
+    value = value.item() if hasattr(value, "item") else value
+    return value if isinstance(value, bool | int | float | str) or value is None else str(value)
+
+
+def _loop_late_s(u: Any, window_s: float) -> float:
+    """How late the env loop's ticks ran over the last ``window_s`` plus two periods (the largest gap between ticks,
+    or since the last one, beyond one hardware period): the host's scheduling, which a notice's time includes."""
+    period_ns = round(1e9 / float(u.robot_spec.hardware_rate_hz))
+    now = time.monotonic_ns()
+    since = now - round(window_s * 1e9) - 2 * period_ns
+    ticks: list[int] = [int(t) for t in list(u.timing.tick_ns) if t >= since] + [now]
+    gaps = [b - a for a, b in zip(ticks, ticks[1:], strict=False)]
+    return round(max(max(gaps, default=0) - period_ns, 0) / 1e9, 3)
 
 
 def drive(
@@ -342,14 +408,23 @@ def drive(
                     _emit("reset")
                     continue
                 _, _, terminated, truncated, info = env.step(action)
-                age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
                 js = u._js.latest()
                 # by the state's own stamp: meaningful when the arm shares this machine's monotonic clock
                 stamp_age = (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0
-                _emit("step", obs_age_ns=age, state_age_s=u._state_age_s(), state_stamp_age_s=stamp_age)
+                age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
+                why = {k: _plain(info[k]) for k in _END_KEYS if k in info} if terminated or truncated else {}
+                _emit(
+                    "step",
+                    obs_age_ns=age,
+                    state_age_s=u._state_age_s(),
+                    state_stamp_age_s=stamp_age,
+                    terminated=bool(terminated),
+                    truncated=bool(truncated),
+                    info=why,
+                )
                 need_reset = terminated or truncated
             except RobotError as exc:
-                _emit("robot_error", msg=str(exc))
+                _emit("robot_error", msg=str(exc), loop_late_s=_loop_late_s(u, robot_timeout_s))
                 need_reset = True
             except Exception as exc:  # noqa: BLE001 - counted as uncaught by the tests, never hidden
                 _emit("error", kind=type(exc).__name__, msg=str(exc), tb=traceback.format_exc())
@@ -358,6 +433,61 @@ def drive(
     finally:
         env.close()
         _emit("closed")
+
+
+WAIST_STEP_RAD = 0.001
+"""``command_position(seq)`` moves the waist by this per ``seq``, modulo 1000 (at most 1 rad from home)."""
+
+
+def command_position(seq: int, n_joints: int) -> list[float]:
+    """The arm position that command ``seq`` asks for (``commands``): the waist at ``(seq % 1000) * WAIST_STEP_RAD``,
+    the other joints at 0; ``round(position[0] / WAIST_STEP_RAD)`` gives ``seq % 1000`` back."""
+    return [(seq % 1000) * WAIST_STEP_RAD] + [0.0] * (n_joints - 1)
+
+
+def commands(robot: str, *, master_uri: str, ros_host: str, max_command_age_s: float | None) -> None:
+    """Run the ROS 1 bridge and command it at the hardware rate until SIGTERM (see the module docstring)."""
+    import asyncio
+
+    import numpy as np
+
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, open_ros1_bridge
+    from uniros_async.bus import open_domain, open_node
+    from uniros_async.bus.messages import Header, JointCommand
+    from uniros_async.bus.qos import latest
+    from uniros_async.robots import get_robot_spec
+
+    spec = get_robot_spec(robot)
+    config = Ros1BridgeConfig(
+        robot=robot, master_uri=master_uri, ros_host=ros_host, insecure=True, max_command_age_s=max_command_age_s
+    )
+
+    async def run() -> None:
+        stop = asyncio.Event()
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+        async with (
+            open_domain("memory://") as domain,
+            open_ros1_bridge(config, domain=domain) as bridge,
+            open_node("commander", domain=domain, namespace=f"/{spec.name}") as node,
+        ):
+            pub = await node.create_publisher(JointCommand, "command", qos=latest())
+            _emit("ready")
+            period_ns = round(1e9 / spec.hardware_rate_hz)
+            next_ns = time.monotonic_ns()
+            seq = 0
+            while not stop.is_set():
+                seq += 1
+                q = command_position(seq, len(spec.arm_joint_names))
+                _emit("sent", seq=seq)
+                pub.publish(JointCommand(header=Header(stamp_ns=time.monotonic_ns(), seq=seq), position=np.asarray(q)))
+                if seq % round(spec.hardware_rate_hz) == 0:
+                    _emit("stats", **asdict(bridge.stats))
+                next_ns += period_ns
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), max(next_ns - time.monotonic_ns(), 0) / 1e9)
+            _emit("stats", **asdict(bridge.stats))
+
+    asyncio.run(run())
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -371,7 +501,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     d.add_argument("--action-cycle", type=float, default=0.2)
     d.add_argument("--reset-timeout", type=float, default=10.0)
     d.add_argument("--ros-host", default=None, help="with ros1://: the address ROS peers reach the bridge at")
+    c = sub.add_parser("commands", help="the ROS 1 bridge, commanded at the hardware rate; prints sent commands")
+    c.add_argument("--robot", default="rx200")
+    c.add_argument("--master", required=True, help="the ROS master, http://HOST:PORT/")
+    c.add_argument("--ros-host", required=True, help="the address ROS peers reach the bridge at")
+    c.add_argument("--max-command-age", type=float, default=0.5, help="the bridge's max_command_age_s; 0: unguarded")
     args = parser.parse_args(argv)
+    if args.cmd == "commands":
+        commands(
+            args.robot, master_uri=args.master, ros_host=args.ros_host, max_command_age_s=args.max_command_age or None
+        )
+        return 0
     drive(
         args.robot,
         env_id=args.env_id,

@@ -94,6 +94,7 @@ _NEVER_NS = (1 << 63) - 1  # a look_at_ns for RingEnd.poll that never comes
 _SPIN_CREDIT = _base.SPIN_CREDIT
 _WAKEUP_NS = _base.SPIN_WAKEUP_NS
 _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS
+_HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 
 
 class ShmTransport(Transport):
@@ -363,7 +364,7 @@ class ShmTransport(Transport):
         if self._closed:
             raise TransportClosedError(f"transport to {self.peer} was closed")
 
-    def receive_blocking(self, timeout_s: float) -> memoryview | None:
+    def receive_blocking(self, timeout_s: float, watch: Sequence[int] = ()) -> memoryview | None:
         """``receive`` in the calling thread, outside the event loop, for a caller that has nothing else to do
         meanwhile (the agent's thread waiting for its workers' replies): polls as ``receive`` does, then blocks in
         ``poll(2)`` on the doorbell for at most ``timeout_s``. Costs no event-loop round: the counterpart of
@@ -372,7 +373,8 @@ class ShmTransport(Transport):
         Returns the frame as ``receive`` would, or None when it cannot be had here: nothing came within
         ``timeout_s``, the control socket has news (the peer hung up), the next frame needs the slow path (wrapped
         around the ring's end or streamed), or this end is closed or broken. Nothing was consumed then, and
-        ``receive`` must be awaited (it delivers the frame or raises what is wrong).
+        ``receive`` must be awaited (it delivers the frame or raises what is wrong). ``watch``: other connections'
+        socket descriptors; one hung up or reset while this waits (POLLRDHUP, POLLHUP, POLLERR) returns None too.
         """
         ring = self._ring
         if not ring.rx_fast:
@@ -394,6 +396,8 @@ class ShmTransport(Transport):
             poller = self._poller = select.poll()
             poller.register(self._doorbell, select.POLLIN)
             poller.register(self._sock.fileno(), select.POLLIN)
+        for other in watch:
+            poller.register(other, _HANG_UP)
         ticket = self._rx_ticket + 1
         ctl[R_TICKET] = ticket  # odd: "I am about to sleep; ring my doorbell"
         _fence_acquire()
@@ -416,6 +420,8 @@ class ShmTransport(Transport):
             self._rx_ticket = ticket + 1
             if not self._closed:
                 ctl[R_TICKET] = ticket + 1
+            for other in watch:
+                poller.unregister(other)
         return ring.take_ready()
 
     # -------------------------------------------------------------------------------------------------- sending

@@ -31,24 +31,23 @@ Why the poll: each wake-up of a halted core costs 10-25 us on the project's 2-co
 small round trip; reading the socket itself (not turning the event loop, which also takes the CPU a peer on the
 same core needs) keeps the receiving core awake just long enough. Figures: docs/performance.md.
 
-Limits, for peers that are not trusted (docs/security.md): a listener holds at most ``max_connections``
-connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest once that waited 1 s, else
-it is reset and ``connect`` retries), each of which must finish within ``handshake_timeout_s``. The stream buffer
-is anonymous memory, resident only where data has landed, so an idle connection costs a few KiB; refusals are
-counted in ``rejected`` and logged at most once a second.
+Limits, for peers that are not trusted (docs/security.md), kept by the listener (``_tcp_listener``): it holds at
+most ``max_connections`` connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest once
+that waited 1 s, else it is reset and ``connect`` retries), each of which must finish within
+``handshake_timeout_s``. The stream buffer is anonymous memory, resident only where data has landed, so an idle
+connection costs a few KiB; refusals are counted in ``rejected`` and logged at most once a second.
 
 Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, and ``receive_blocking``
 reads the socket in the caller's thread (the poll's reads, then ``poll(2)``), for a caller in the loop's thread while
 the loop is not running (the supervisor between calls). Whatever they cannot do they leave to ``send`` and
 ``receive``, having taken nothing.
 
-Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it
-(the bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``,
-5 ms doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost,
-as on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe
-and re-send. Every
-connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within seconds that
-its peer's socket is gone.
+Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it (the
+bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``, 5 ms
+doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost, as
+on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe and
+re-send. Every connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within
+seconds that its peer's socket is gone.
 """
 
 from __future__ import annotations
@@ -66,7 +65,6 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import cast
-from urllib.parse import urlsplit
 
 from uniros_async._log_throttle import LogThrottle
 from uniros_async.backoff import Backoff
@@ -86,8 +84,9 @@ from uniros_async.transports._tcp_handshake import (
     PROTOCOL_VERSION,
     TcpHandshake,
 )
-from uniros_async.transports.base import Buffer, Delivery, Listener, Transport, TransportOptions, split_uri
-from uniros_async.transports.exposure import check_exposure, is_loopback
+from uniros_async.transports._tcp_listener import TcpListener, format_uri, open_listener, parse_host_port
+from uniros_async.transports.base import Buffer, Delivery, Transport, TransportOptions
+from uniros_async.transports.exposure import is_loopback
 
 __all__ = [
     "FLAG_AUTH",
@@ -100,6 +99,8 @@ __all__ = [
     "connect",
     "is_loopback",
     "listen",
+    "open_connection",
+    "open_listener",
 ]
 
 logger = logging.getLogger(__name__)
@@ -128,6 +129,7 @@ registry connection) otherwise never learns that its peer's socket is gone (a re
 peer host that restarted): the probe is answered with a reset, and the owner reconnects."""
 KEEPALIVE_INTERVAL_S = 1
 KEEPALIVE_PROBES = 3
+_HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 
 
 def set_keepalive(sock: socket.socket) -> None:
@@ -144,7 +146,6 @@ def set_keepalive(sock: socket.socket) -> None:
 
 
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
-_EVICT_AFTER_S = 1.0  # beyond max_handshakes, an unfinished handshake this old gives way to a newcomer
 
 # Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
 # reads (ShmTransport's rule): in a request/reply exchange the answer usually comes sooner than a sleeping process
@@ -157,6 +158,9 @@ _yield = _base.spin_yield
 _SPIN_CREDIT = _base.SPIN_CREDIT
 _WAKEUP_NS = _base.SPIN_WAKEUP_NS  # a wait this much longer than the window would have been caught by it
 _SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS  # at most this much longer after a large send: 1 ns per byte sent
+_SHARED_CORE_NS = 50_000  # a poll that lasts this long (or half its window) looks where the peer runs (_peer_here)
+_LOOK_EVERY_NS = 1_000_000  # ... at most this often: a look reads /proc (~20 us)
+_this_cpu = _base.this_cpu
 
 # Python 3.11's selector transport copies what it cannot send at once; uvloop and 3.12+ keep a reference instead
 # (and only they send a list of buffers with one sendmsg; 3.11's writelines joins them first).
@@ -206,6 +210,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     always sleeps (a real-time worker's connections do: a SCHED_RR process that polls keeps lower-ranked ones from
     their cores)."""
 
+    peer_pid: int | None = None
+    """The peer's process id when it runs on this host (a worker sets its agent's): a poll that lasts half its
+    window looks whether the peer runs on this core, and if so calls ``on_shared_core`` (``_peer_here``)."""
+    on_shared_core: Callable[[int], None] | None = None
+    """With ``peer_pid``: called with this core when the peer was found on it, to move this end elsewhere (a worker
+    moves itself, ``runtime.worker``), as ``ShmTransport.on_shared_core``."""
+
     def __init__(self, options: TransportOptions, *, listener: TcpListener | None = None, uri: str = "") -> None:
         Transport.__init__(self)
         self._options = options
@@ -236,6 +247,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._pool: list[bytearray] = []
         self._fd = -1  # the socket's descriptor, for receive's own reads while it spins (-1: none, or lost)
         self._spin_credit = _SPIN_CREDIT
+        self._next_look_ns = 0  # _peer_here: not before then
         self._sent_since_receive = 0  # bytes: only a receive that may be waiting for an answer polls, and longer
         # after a large send (the answer to 64 KiB took ~70 us here)
         # send side
@@ -454,13 +466,14 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._count_sent(n)
         return True
 
-    def receive_blocking(self, timeout_s: float) -> memoryview | None:
+    def receive_blocking(self, timeout_s: float, watch: Sequence[int] = ()) -> memoryview | None:
         """``receive`` in the calling thread while the event loop does not run (the agent's thread waiting for its
         workers' replies): a frame already queued, or one read from the socket here (``_spin``'s reads, then
         ``poll(2)`` on the socket for at most ``timeout_s``). Returns None when it cannot be had this way: nothing
         came in time, something is unsent (only the loop sends it), reading is paused, the peer hung up or broke
-        the protocol, or this end is closed. Nothing was consumed then: ``receive`` must be awaited (it delivers
-        the frame or raises what is wrong)."""
+        the protocol, this end is closed, or one of the sockets in ``watch`` (other connections' descriptors) was
+        hung up or reset meanwhile (``poll(2)``'s POLLRDHUP, POLLHUP or POLLERR). Nothing was consumed then:
+        ``receive`` must be awaited (it delivers the frame or raises what is wrong)."""
         tr = self._tr
         if tr is None or self._closed or not self._ok or tr.get_write_buffer_size():
             return None
@@ -480,8 +493,13 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
                 if poller is None:
                     poller = select.poll()
                     poller.register(fd, select.POLLIN)
-                if not poller.poll(-(-left_ns // 1_000_000)):
+                    for other in watch:
+                        poller.register(other, _HANG_UP)
+                ready = poller.poll(-(-left_ns // 1_000_000))
+                if not ready:
                     continue
+                if watch and any(got != fd for got, _ in ready):
+                    return None  # another connection hung up: the caller's business first
                 try:
                     n = os.readv(fd, (self.get_buffer(-1),))
                 except (BlockingIOError, InterruptedError):
@@ -549,7 +567,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             self._fd = sock.fileno()  # under TLS the socket carries ciphertext: only the event loop reads it
         peer = tr.get_extra_info("peername")
         if peer:
-            self._peer = _format_uri(peer[0], peer[1], self.scheme)
+            self._peer = format_uri(peer[0], peer[1], self.scheme)
         tr.set_write_buffer_limits(high=_TX_HIGH_BYTES, low=_TX_LOW_BYTES)
         self._stdlib = type(tr).__module__ == "asyncio.selector_events"
         self._copies_on_write = self._stdlib and _SELECTOR_COPIES
@@ -697,20 +715,28 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     def _spin(self, window_ns: int) -> None:
         """Read the socket ourselves (the event loop's reader would do the same with the same buffers) until a
         whole frame is queued or ``window_ns`` passed, yielding the CPU between reads. Anything unusual (end of
-        stream, an error, paused reading) is left to the event loop, which meets it on its next read."""
+        stream, an error, paused reading) is left to the event loop, which meets it on its next read. With a
+        ``peer_pid``, a spin that lasted half its window (at most ``_SHARED_CORE_NS``) looks once where the peer runs
+        (``_peer_here``)."""
         fd = self._fd
         if fd < 0 or not self._ok:
             return
         frames = self._frames
-        deadline = _now_ns() + window_ns
+        now = _now_ns()
+        deadline = now + window_ns
+        look_at = now + min(_SHARED_CORE_NS, window_ns // 2) if self.peer_pid else deadline
         readv = os.readv
         while not self._reading_paused:
             try:
                 n = readv(fd, (self.get_buffer(-1),))
             except (BlockingIOError, InterruptedError):
-                if _now_ns() > deadline:
-                    self._spin_credit -= 1
-                    return
+                now = _now_ns()
+                if now > look_at:
+                    if now > deadline:
+                        self._spin_credit -= 1
+                        return
+                    look_at = deadline
+                    self._peer_here()
                 _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin
                 continue
             except OSError:
@@ -721,6 +747,31 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             if frames or not self._ok:
                 self._spin_credit = _SPIN_CREDIT
                 return
+
+    def _peer_here(self) -> None:
+        """If the peer process (``peer_pid``, on this host) last ran on the core this end polls on, have this end
+        moved elsewhere (``on_shared_core``). At most once per ``_LOOK_EVERY_NS``.
+
+        A poll only pays while the peer runs on another core. A socket wakes its reader with a sync wake-up, which
+        places a worker woken by its agent on the agent's core; the two then take turns on it (the worker's poll
+        holds the core the agent needs for its next request, the worker's wake-up preempts the agent) while the
+        other core does other work: a CartPole step over tcp on loopback took ~120-130 us so against ~30 us on two
+        cores, for the life of the pair (docs/performance.md). ``ShmTransport`` learns where its peer runs from
+        their shared page; tcp has none, so this end reads the peer's last core from /proc (~20 us).
+        """
+        now = _now_ns()
+        if now < self._next_look_ns or self.on_shared_core is None:
+            return
+        self._next_look_ns = now + _LOOK_EVERY_NS
+        cpu = _this_cpu()
+        try:
+            with open(f"/proc/{self.peer_pid}/stat", "rb") as f:
+                peer_cpu = int(f.read().rpartition(b")")[2].split()[36])
+        except (OSError, ValueError, IndexError):  # gone, or no /proc here: look no more
+            self.peer_pid = None
+            return
+        if cpu >= 0 and peer_cpu == cpu:
+            self.on_shared_core(cpu)
 
     def _retryable_drop(self) -> bool:
         """Whether a hang-up during the handshake may be a full listener (worth a retry). Under TLS a listener
@@ -897,168 +948,6 @@ def _consume_exception(fut: asyncio.Future[None]) -> None:
         fut.exception()
 
 
-class TcpListener(Listener):
-    """Accepts TCP connections; each peer that passes the handshake is handed out by ``accept``.
-
-    Caps (``TransportOptions``): at most ``max_connections`` open at once (a connection beyond it is closed as soon
-    as it is accepted, before any byte is read or any buffer allocated), at most ``max_handshakes`` unfinished (a new
-    connection beyond it evicts the oldest unfinished one if that waited 1 s, else is refused and retries), and each
-    handshake must finish within
-    ``handshake_timeout_s``. Every refusal is counted in ``rejected`` and logged at most once a second.
-    """
-
-    def __init__(self, options: TransportOptions) -> None:
-        self._options = options
-        self._server: asyncio.Server | None = None
-        self._uri = ""
-        self._address: tuple[str, int] = ("", 0)
-        self._ready: collections.deque[TcpTransport] = collections.deque()
-        self._accept_waiter: asyncio.Future[None] | None = None
-        self._handshaking: dict[TcpTransport, None] = {}  # insertion order: the oldest is evicted first
-        self._open = 0  # connections made and not yet lost, accepted ones included
-        self._rejected = 0
-        self._closed = False
-        self._log = LogThrottle(logger)
-
-    @property
-    def uri(self) -> str:
-        return self._uri
-
-    @property
-    def address(self) -> tuple[str, int]:
-        """The (host, port) actually bound."""
-        return self._address
-
-    @property
-    def rejected(self) -> int:
-        return self._rejected
-
-    @property
-    def open_connections(self) -> int:
-        """Connections open now (handshaking, waiting for ``accept``, and accepted)."""
-        return self._open
-
-    @property
-    def handshaking(self) -> int:
-        """Connections whose handshake is unfinished."""
-        return len(self._handshaking)
-
-    async def accept(self) -> TcpTransport:
-        """Wait for the next peer that completed the handshake. Cancelling loses no peer.
-
-        Raises:
-            TransportClosedError: the listener was closed.
-        """
-        while not self._ready:
-            if self._closed:
-                raise TransportClosedError(f"listener {self._uri} is closed")
-            if self._accept_waiter is not None:
-                raise RuntimeError(f"accept() on {self._uri} while another accept() is waiting")
-            fut = self._accept_waiter = asyncio.get_running_loop().create_future()
-            try:
-                await fut
-            finally:
-                self._accept_waiter = None
-        if self._closed:
-            raise TransportClosedError(f"listener {self._uri} is closed")
-        return self._ready.popleft()
-
-    async def aclose(self) -> None:
-        """Stop listening and free the port; idempotent. Accepted transports stay open; connections still in the
-        handshake or not yet accepted are closed."""
-        if self._closed:
-            return
-        self._closed = True
-        if self._server is not None:
-            self._server.close()  # closes the listening sockets now (wait_closed would wait for accepted ones)
-        pending = [*self._handshaking, *self._ready]
-        self._handshaking.clear()
-        self._ready.clear()
-        if self._accept_waiter is not None and not self._accept_waiter.done():
-            self._accept_waiter.set_result(None)
-        for t in pending:
-            await t.aclose()
-
-    def _protocol(self, make: Callable[[], TcpTransport]) -> asyncio.BaseProtocol:
-        """The protocol for a connection just accepted: a transport, or a refusal once ``max_connections`` are
-        open."""
-        if self._open >= self._options.max_connections:
-            return _Refusal(self)
-        self._open += 1
-        return make()
-
-    def _handshake_started(self, t: TcpTransport) -> bool:
-        """Admit ``t`` among the unfinished handshakes; False: refuse it (the caller drops it before its HELLO).
-
-        Beyond ``max_handshakes`` the oldest unfinished one is evicted if it has waited at least
-        ``_EVICT_AFTER_S`` (a stranger holding connections open), else the newcomer is refused (a burst of peers,
-        whose handshakes are about to finish: they retry)."""
-        handshaking = self._handshaking
-        limit = self._options.max_handshakes
-        if len(handshaking) >= limit:
-            oldest = next(iter(handshaking))
-            waited_s = asyncio.get_running_loop().time() - oldest._hs_started_s
-            if waited_s < min(_EVICT_AFTER_S, self._options.handshake_timeout_s / 2):
-                self._count_rejection(t.peer, f"over max_handshakes={limit}")
-                return False
-            oldest._handshake_failed(
-                TransportBrokenError(
-                    f"{oldest.peer} evicted after {waited_s:.1f} s: more than max_handshakes={limit} unfinished"
-                )
-            )
-        handshaking[t] = None
-        return True
-
-    def _handshake_succeeded(self, t: TcpTransport) -> None:
-        self._handshaking.pop(t, None)
-        if self._closed:
-            t._tr.close()  # type: ignore[union-attr]
-            return
-        self._ready.append(t)
-        if self._accept_waiter is not None and not self._accept_waiter.done():
-            self._accept_waiter.set_result(None)
-
-    def _handshake_rejected(self, t: TcpTransport, reason: str) -> None:
-        self._handshaking.pop(t, None)
-        if not self._closed:
-            self._count_rejection(t.peer, reason)
-
-    def _count_rejection(self, peer: str, reason: str) -> None:
-        self._rejected += 1
-        self._log.warning("tcp listener %s rejected %s: %s", self._uri, peer, reason)
-
-
-class _Refusal(asyncio.Protocol):
-    """Closes a connection over ``max_connections`` as soon as it is made: no buffer, no handshake, no timer."""
-
-    def __init__(self, listener: TcpListener) -> None:
-        self._listener = listener
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        peer = transport.get_extra_info("peername")
-        cast(asyncio.Transport, transport).abort()
-        limit = self._listener._options.max_connections
-        self._listener._count_rejection(str(peer), f"over max_connections={limit}")
-
-
-def _host_port(uri: str, default_host: str, scheme: str = "tcp") -> tuple[str, int]:
-    got, _ = split_uri(uri)
-    if got != scheme:
-        raise ConfigError(f"expected a {scheme}:// URI, got {uri!r}")
-    parts = urlsplit(uri)
-    if parts.path not in ("", "/") or parts.query or parts.fragment:
-        raise ConfigError(f"expected {scheme}://HOST:PORT, got {uri!r}")
-    try:
-        port = parts.port or 0
-    except ValueError as exc:
-        raise ConfigError(f"expected {scheme}://HOST:PORT with a port in 0..65535, got {uri!r}") from exc
-    return parts.hostname or default_host, port
-
-
-def _format_uri(host: str, port: int, scheme: str = "tcp") -> str:
-    return f"{scheme}://[{host}]:{port}" if ":" in host else f"{scheme}://{host}:{port}"
-
-
 async def listen(uri: str, options: TransportOptions) -> TcpListener:
     """Listen at ``tcp://HOST:PORT``; port 0 picks a free port and ``uri`` of the result reports it.
 
@@ -1071,37 +960,6 @@ async def listen(uri: str, options: TransportOptions) -> TcpListener:
         OSError: the address cannot be bound (in use, no such interface).
     """
     return await open_listener(uri, options, TcpTransport)
-
-
-async def open_listener(
-    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
-) -> TcpListener:
-    """``listen`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.listen`` uses it)."""
-    host, port = _host_port(uri, options.bind_host, cls.scheme)
-    if ssl_context is None:
-        check_exposure(
-            uri,
-            host,
-            authenticated=options.auth_key is not None,
-            insecure=options.insecure,
-            how="Set an auth_key (TransportOptions(auth_key=...); `uniros robot serve`: $UNIROS_AUTH_KEY or "
-            "--auth-key-env) or use tls:// with client certificates",
-        )
-    lst = TcpListener(options)
-    loop = asyncio.get_running_loop()
-    server = await loop.create_server(
-        lambda: lst._protocol(lambda: cls(options, listener=lst)),
-        host,
-        port,
-        reuse_address=True,
-        ssl=ssl_context,
-        ssl_handshake_timeout=options.handshake_timeout_s if ssl_context is not None else None,
-    )
-    lst._server = server
-    sockname = server.sockets[0].getsockname()
-    lst._address = (sockname[0], sockname[1])
-    lst._uri = _format_uri(sockname[0], sockname[1], cls.scheme)
-    return lst
 
 
 async def connect(uri: str, options: TransportOptions) -> TcpTransport:
@@ -1125,7 +983,7 @@ async def open_connection(
     uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
 ) -> TcpTransport:
     """``connect`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.connect`` uses it)."""
-    host, port = _host_port(uri, "", cls.scheme)
+    host, port = parse_host_port(uri, "", cls.scheme)
     if not host or not port:
         raise ConfigError(f"connect needs {cls.scheme}://HOST:PORT with a nonzero port, got {uri!r}")
     loop = asyncio.get_running_loop()

@@ -7,8 +7,10 @@ the headers each message travels as a uint32 LE length and the serialized body.
 from __future__ import annotations
 
 import asyncio
+import fcntl
 import socket
 import struct
+import termios
 from collections.abc import Callable
 
 from uniros_async.errors import CodecError
@@ -18,11 +20,13 @@ __all__ = [
     "FrameReader",
     "MAX_FRAME_BYTES",
     "MAX_HEADER_BYTES",
+    "abort",
     "decode_header",
     "encode_header",
     "frame",
     "read_header",
     "tune_socket",
+    "unacked_bytes",
 ]
 
 _U32 = struct.Struct("<I")
@@ -94,6 +98,33 @@ def tune_socket(writer: asyncio.StreamWriter | asyncio.BaseTransport) -> None:
     if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         set_keepalive(sock)
+
+
+_SIOCOUTQ = termios.TIOCOUTQ  # Linux: the same request number on a socket (socket(7))
+_LINGER_RESET = struct.pack("ii", 1, 0)
+
+
+def unacked_bytes(transport: asyncio.BaseTransport) -> int:
+    """Bytes of a tcp connection's kernel send queue its peer has not acknowledged yet (``SIOCOUTQ``: sent and
+    unacknowledged, plus not sent yet); 0 when the transport has no tcp socket."""
+    sock = transport.get_extra_info("socket")
+    if sock is None or sock.family not in (socket.AF_INET, socket.AF_INET6) or sock.fileno() < 0:
+        return 0
+    buf = fcntl.ioctl(sock.fileno(), _SIOCOUTQ, b"\0\0\0\0")
+    return int(struct.unpack("i", buf)[0])
+
+
+def abort(transport: asyncio.BaseTransport) -> None:
+    """Close a connection with a reset, discarding whatever it has not delivered: ``SO_LINGER`` 0 makes the kernel
+    drop its send queue and send RST (a plain close keeps retransmitting the queue after the close), and
+    ``transport.abort()`` drops the event loop's own buffer."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6) and sock.fileno() >= 0:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_RESET)
+    if isinstance(transport, asyncio.WriteTransport):
+        transport.abort()
+    else:
+        transport.close()
 
 
 class FrameReader(asyncio.Protocol):

@@ -32,6 +32,9 @@ logger = logging.getLogger(__name__)
 M = TypeVar("M", bound=Ros1Message)
 
 _conn_ids = itertools.count(1)
+_MAX_UNACKED_FRAMES = 4096
+"""Publication times a subscriber link remembers for frames its peer has not acknowledged; beyond it, neighbouring
+frames share an entry (the older time), which can only make a frame look older than it is."""
 
 
 class _RateLimit:
@@ -317,25 +320,34 @@ class Ros1Subscriber(Generic[M]):
 
 
 class _SubscriberLink:
-    """One subscriber's connection: a bounded queue of frames and the task that writes them."""
+    """One subscriber's connection: a bounded queue of frames and the task that writes them.
+
+    It remembers when each frame it wrote was published until the subscriber's kernel has acknowledged it
+    (``SIOCOUTQ``), so ``oldest_undelivered_ns`` tells how long the oldest message still on its way has waited: in
+    a partition the frames wait in the kernel's send queue, and TCP would deliver them, however old, when the link
+    heals; ``abort`` discards them with a reset.
+    """
 
     def __init__(self, pub: _Publication, callerid: str, writer: asyncio.StreamWriter) -> None:
         self.id = next(_conn_ids)
         self.pub = pub
         self.callerid = callerid
         self.writer = writer
-        self.queue: collections.deque[bytes] = collections.deque()
+        self.queue: collections.deque[tuple[int, bytes]] = collections.deque()  # (published ns, frame)
+        self.unacked: collections.deque[tuple[int, int]] = collections.deque()  # (published ns, end in self.bytes)
         self.ready = asyncio.Event()
         self.bytes = 0
         self.count = 0
         self.dropped = 0
+        self.aborted = False
 
     def put(self, frame: bytes) -> None:
         transport = self.writer.transport
+        now = time.monotonic_ns()
         if not self.queue and not transport.is_closing() and transport.get_write_buffer_size() == 0:
             # nothing waits and the socket takes it: written now, in the publisher's frame (rospy's queue_size=None),
             # not one event-loop round later by the write task
-            self._write(frame)
+            self._write(now, frame)
             return
         if len(self.queue) >= self.pub.queue_size:
             # A slow subscriber loses its oldest frames, so it neither blocks the others nor grows memory.
@@ -346,13 +358,41 @@ class _SubscriberLink:
                 logger.warning(
                     "%s: subscriber %s is slow; dropped %d frames so far", self.pub.topic, self.callerid, self.dropped
                 )
-        self.queue.append(frame)
+        self.queue.append((now, frame))
         self.ready.set()
 
-    def _write(self, frame: bytes) -> None:
+    def _write(self, published_ns: int, frame: bytes) -> None:
         self.writer.write(frame)
         self.bytes += len(frame)
         self.count += 1
+        if len(self.unacked) >= _MAX_UNACKED_FRAMES:
+            self.unacked.pop()  # the newest entry's end moves on to this frame's: the oldest time is kept
+        self.unacked.append((published_ns, self.bytes))
+
+    def oldest_undelivered_ns(self) -> int | None:
+        """When the oldest message not yet acknowledged by the subscriber's kernel was published (monotonic ns), or
+        None when everything written has been acknowledged and nothing waits."""
+        transport = self.writer.transport
+        if transport.is_closing():
+            return None
+        try:
+            in_kernel = _tcpros.unacked_bytes(transport)
+        except OSError:
+            return None
+        acked = self.bytes - transport.get_write_buffer_size() - in_kernel
+        unacked = self.unacked
+        while unacked and unacked[0][1] <= acked:
+            unacked.popleft()
+        if unacked:
+            return unacked[0][0]
+        return self.queue[0][0] if self.queue else None
+
+    def abort(self) -> None:
+        """Reset the connection, discarding every frame not yet delivered; the subscriber reconnects."""
+        self.aborted = True
+        self.queue.clear()
+        self.unacked.clear()
+        _tcpros.abort(self.writer.transport)
 
     async def write_loop(self) -> None:
         try:
@@ -360,7 +400,7 @@ class _SubscriberLink:
                 await self.ready.wait()
                 self.ready.clear()
                 while self.queue:
-                    self._write(self.queue.popleft())
+                    self._write(*self.queue.popleft())
                     await self.writer.drain()
         except OSError as exc:
             logger.debug("%s: subscriber %s went away (%r)", self.pub.topic, self.callerid, exc)
@@ -380,6 +420,7 @@ class _Publication:
         self.last_frame: bytes | None = None
         self.handles = 0
         self.dropped = 0
+        self.aborted = 0
         self.count = 0
         self.changed = _Changed()
         self.closed = False
@@ -396,6 +437,27 @@ class _Publication:
         for link in self.links:
             link.put(frame)
 
+    def abort_undelivered(self, published_before_ns: int | None) -> int:
+        """Reset every subscriber connection still holding a message published before ``published_before_ns``
+        (None: any message) that its subscriber has not acknowledged; how many were reset."""
+        aborted = 0
+        for link in list(self.links):
+            oldest = link.oldest_undelivered_ns()
+            if oldest is not None and (published_before_ns is None or oldest < published_before_ns):
+                logger.warning(
+                    "%s: reset the connection to subscriber %s: a message published %.2f s ago is still undelivered",
+                    self.topic,
+                    link.callerid,
+                    (time.monotonic_ns() - oldest) / 1e9,
+                )
+                link.abort()
+                self.links.discard(link)
+                aborted += 1
+        if aborted:
+            self.aborted += aborted
+            self.changed.notify()
+        return aborted
+
     def header(self) -> dict[str, str]:
         return {
             "callerid": self.node.name,
@@ -410,7 +472,7 @@ class _Publication:
         """Run one subscriber's connection after its header was accepted, until either side closes it."""
         link = _SubscriberLink(self, callerid, writer)
         if self.latch and self.last_frame is not None:
-            link.put(self.last_frame)
+            link.put(self.last_frame)  # counted from now: the latched message is sent again, as published now
         self.links.add(link)
         self.changed.notify()
         writer_task = self.node._spawn(link.write_loop(), name=f"ros1 pub {self.topic} -> {callerid}")
@@ -463,6 +525,30 @@ class Ros1Publisher(Generic[M]):
     def dropped_frames(self) -> int:
         """Frames dropped so far for slow subscribers (over all of them)."""
         return self._pub.dropped
+
+    @property
+    def aborted_connections(self) -> int:
+        """Subscriber connections reset so far by ``abort_undelivered``."""
+        return self._pub.aborted
+
+    def oldest_undelivered_age_s(self) -> float | None:
+        """How long ago the oldest message that some subscriber's kernel has not acknowledged yet was published, or
+        None when every subscriber has acknowledged everything."""
+        oldest = [t for link in self._pub.links if (t := link.oldest_undelivered_ns()) is not None]
+        return (time.monotonic_ns() - min(oldest)) / 1e9 if oldest else None
+
+    def abort_undelivered(self, max_age_s: float | None = None) -> int:
+        """Reset (TCP RST, ``SO_LINGER`` 0) every subscriber connection that still holds a message published more
+        than ``max_age_s`` ago (None: any message) and not yet acknowledged by the subscriber's kernel, discarding
+        what it holds; returns how many were reset.
+
+        TCP delivers whatever waits in a connection's send queue when a broken link heals, however old: a command
+        without a stamp would then move an arm on a stale plan. The subscriber learns of the reset only when its
+        next segment (a keepalive probe: rospy's after 60 s idle) is answered with another; ``Ros1Bridge`` offers
+        its commands from a new node instead, which subscribers connect to at once.
+        """
+        before = None if max_age_s is None else time.monotonic_ns() - round(max_age_s * 1e9)
+        return self._pub.abort_undelivered(before)
 
     async def wait_for_subscribers(self, n: int = 1, timeout_s: float = 10.0) -> None:
         """Wait until at least ``n`` subscribers are connected.
