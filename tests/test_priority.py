@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+import threading
 import time
+from pathlib import Path
 
 import pytest
 from _processes import pid_alive, wait_gone
@@ -15,6 +18,7 @@ from uniros_async.priority import (
     DEFAULT_LOOP_NICE,
     LOOP_RT_PRIORITY,
     MAX_LOOP_RANK,
+    RESET_ON_FORK,
     cores_kept_awake,
     loop_nice,
     loop_priority_mode,
@@ -40,38 +44,144 @@ def test_settings_parsing(monkeypatch: pytest.MonkeyPatch) -> None:
 
 @pytest.mark.parametrize("mode", ["rt", "nice", "off"])
 def test_raise_loop_priority_in_a_child(mode: str) -> None:
-    """In a fresh process: the policy asked for when permitted (root here), nothing when 'off' or not permitted."""
+    """In a fresh process: the policy asked for when permitted (root here), nothing when 'off' or not permitted;
+    a thread and a process started after it begin in the ordinary class at nice 0 (SCHED_RESET_ON_FORK)."""
     code = (
-        "import os; from uniros_async.priority import raise_loop_priority as r; got = r(); "
-        "print(got, os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(0, 0)); "
-        "r(3); a = os.sched_getparam(0).sched_priority; r(99); b = os.sched_getparam(0).sched_priority; "
-        "print(a, b)"
+        "import os, subprocess, sys, threading; from uniros_async.priority import raise_loop_priority as r\n"
+        "got = r()\n"
+        "print(got, os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(0, 0))\n"
+        "seen = []\n"
+        "t = threading.Thread(target=lambda: seen.append((os.sched_getscheduler(0), os.getpriority(0, 0))))\n"
+        "t.start(); t.join()\n"
+        "child = subprocess.run([sys.executable, '-c', 'import os; print(os.sched_getscheduler(0), "
+        "os.getpriority(0, 0))'], capture_output=True, text=True, check=True).stdout.split()\n"
+        "print(*seen[0], *child)\n"
+        "r(3); a = os.sched_getparam(0).sched_priority; r(99); b = os.sched_getparam(0).sched_priority\n"
+        "print(a, b)\n"
     )
     env = {**os.environ, "UNIROS_LOOP_PRIORITY": mode, "UNIROS_LOOP_NICE": "-3"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60, check=True)
-    got, policy, prio, nice, ranked3, ranked99 = out.stdout.split()
+    got, policy, prio, nice, t_policy, t_nice, p_policy, p_nice, ranked3, ranked99 = out.stdout.split()
     base = os.getpriority(os.PRIO_PROCESS, 0)
+    started = (int(t_policy), int(t_nice), int(p_policy), int(p_nice))
     if mode == "off":
         assert (got, int(policy), int(nice)) == ("None", os.SCHED_OTHER, base)
     elif os.geteuid() != 0:  # not permitted: keeps its priority, no error
-        assert (int(policy), int(nice)) == (os.SCHED_OTHER, base)
+        assert (int(policy) & ~RESET_ON_FORK, int(nice)) == (os.SCHED_OTHER, base)
     elif mode == "rt":
-        assert (got, int(policy), int(prio)) == ("rt", os.SCHED_RR, LOOP_RT_PRIORITY)
+        assert (got, int(policy), int(prio)) == ("rt", os.SCHED_RR | RESET_ON_FORK, LOOP_RT_PRIORITY)
         assert (int(ranked3), int(ranked99)) == (LOOP_RT_PRIORITY + 3, LOOP_RT_PRIORITY + MAX_LOOP_RANK)
+        assert started == (os.SCHED_OTHER, 0, os.SCHED_OTHER, 0)  # the kernel resets them to nice 0
     else:
-        assert (got, int(policy), int(nice)) == ("nice" if base > -3 else "None", os.SCHED_OTHER, min(base, -3))
+        raised = base > -3
+        assert (got, int(nice)) == ("nice" if raised else "None", min(base, -3))
+        assert int(policy) == os.SCHED_OTHER | (RESET_ON_FORK if raised else 0)
+        if raised:  # a negative nice value is not handed on either
+            assert started == (os.SCHED_OTHER, 0, os.SCHED_OTHER, 0)
 
 
-def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -> None:
-    import uniros_async
+def test_threads_and_processes_a_real_time_thread_starts_begin_in_the_ordinary_class() -> None:
+    """An acting thread in the real-time class: torch's intra-op pool, which its first parallel operation creates,
+    a thread and a process it starts all compute at normal priority, below every env loop."""
+    import torch
+
+    from uniros_async.priority import real_time_thread, thread_scheduling
 
     if os.geteuid() != 0:
         pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
-    envs = [uniros_async.make("uniros/Rx200Reach-v0"), uniros_async.make("uniros/Rx200Reach-v0", clock="sim")]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
     try:
-        policies = [os.sched_getscheduler(e._sup.pids()[0]) for e in envs]  # type: ignore[attr-defined]
-        assert policies == [os.SCHED_RR, os.SCHED_OTHER]
-        assert os.sched_getparam(envs[0]._sup.pids()[0]).sched_priority == LOOP_RT_PRIORITY  # type: ignore[attr-defined]
+        me = threading.get_native_id()
+        a = torch.randn(512, 512)
+        started: list[int] = []
+        with real_time_thread() as rt:
+            assert rt
+            before = set(thread_scheduling())
+            (a @ a).relu_().sum()  # parallel: the pool's workers start now, from this thread
+            pool = set(thread_scheduling()) - before
+            t = threading.Thread(target=lambda: started.append(os.sched_getscheduler(0)))
+            t.start()
+            t.join()
+            child = subprocess.run(
+                [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=True,
+            )
+            classes = thread_scheduling()
+        assert classes[me] == (os.SCHED_RR | RESET_ON_FORK, ACTOR_RT_PRIORITY)
+        assert pool, "torch started no pool thread (the test's parallel operation should need one)"
+        assert {classes[tid] for tid in pool} == {(os.SCHED_OTHER, 0)}
+        assert started == [os.SCHED_OTHER] and int(child.stdout) == os.SCHED_OTHER
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_raise_loop_priority_of_the_threads_an_env_started_leaves_the_caller_alone() -> None:
+    """An env on the synchronous API runs its loop on a thread of its own, which its build started: a worker (or
+    the fault tests' env process) that holds such an env puts the threads its build started in the real-time class
+    by their ids (``thread_ids`` before and after)."""
+    import gymnasium as gym
+
+    import uniros_async  # noqa: F401  (registers the ids)
+    from uniros_async.priority import raise_loop_priority, thread_ids, thread_scheduling
+
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
+    me = threading.get_native_id()
+    mine = thread_scheduling()[me]
+    before = thread_ids()
+    env = gym.make("uniros/Rx200Reach-v0")
+    try:
+        started = thread_ids() - before
+        (loop,) = [t.native_id for t in threading.enumerate() if t.name == "rx200 env loop"]
+        assert loop in started and me not in started
+        assert all(raise_loop_priority(2, thread_id=tid) == "rt" for tid in started)
+        after = thread_scheduling()
+        assert {after[tid] for tid in started} == {(os.SCHED_RR | RESET_ON_FORK, LOOP_RT_PRIORITY + 2)}
+        assert after[me] == mine
+    finally:
+        env.close()
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(FileNotFoundError):
+            out += [int(c) for c in Path(f"/proc/{pid}/task/{tid}/children").read_text().split()]
+    return out
+
+
+def test_a_real_time_worker_runs_round_robin_and_an_accelerated_or_loopless_one_does_not() -> None:
+    """The loop's thread alone is real-time, with SCHED_RESET_ON_FORK; every other thread of the worker, and of
+    the processes it started, is ordinary, but the emulated arm's serving thread (rank 0)."""
+    import uniros_async
+    from uniros_async.priority import thread_scheduling
+
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
+    envs = [
+        uniros_async.make("uniros/Rx200Reach-v0", robot="emulated-real"),
+        uniros_async.make("uniros/Rx200Reach-v0", clock="sim"),
+        uniros_async.make("CartPole-v1"),  # no env loop: stepped as fast as its agent asks
+    ]
+    try:
+        real_time, accelerated, loopless = (e._sup.pids()[0] for e in envs)  # type: ignore[attr-defined]
+        rr = (os.SCHED_RR | RESET_ON_FORK, LOOP_RT_PRIORITY)
+        ordinary = (os.SCHED_OTHER, 0)
+        worker = thread_scheduling(real_time)
+        assert worker.pop(real_time) == rr  # the main thread: the event loop that ticks and serves steps
+        assert worker and set(worker.values()) == {ordinary}
+        arms = {pid: thread_scheduling(pid) for pid in _children(real_time)}
+        serving = [pid for pid, threads in arms.items() if threads[pid] == rr]
+        assert len(serving) == 1, f"one emulated arm process should serve in the real-time class: {arms}"
+        others = [c for pid, threads in arms.items() for tid, c in threads.items() if tid not in serving]
+        assert others and set(others) == {ordinary}
+        assert set(thread_scheduling(accelerated).values()) == {ordinary}
+        assert set(thread_scheduling(loopless).values()) == {ordinary}
+        assert not _children(accelerated)
     finally:
         for e in envs:
             e.close()
@@ -80,8 +190,6 @@ def test_a_real_time_worker_runs_round_robin_and_an_accelerated_one_does_not() -
 def test_the_workers_of_a_vector_env_run_in_the_order_their_actions_are_sent() -> None:
     """Ranked real-time priorities, the first worker highest (one step's actions wake them in index order, and with
     fewer cores than workers they then run in that order every time); the acting thread above them all."""
-    import threading
-
     from uniros_async import make_vec
     from uniros_async.priority import real_time_thread
 
@@ -96,6 +204,7 @@ def test_the_workers_of_a_vector_env_run_in_the_order_their_actions_are_sent() -
     tid = threading.get_native_id()
     with real_time_thread() as rt:
         assert rt and os.sched_getparam(tid).sched_priority == ACTOR_RT_PRIORITY > LOOP_RT_PRIORITY + MAX_LOOP_RANK
+        assert os.sched_getscheduler(tid) == os.SCHED_RR | RESET_ON_FORK
     assert os.sched_getscheduler(tid) == os.SCHED_OTHER
 
 

@@ -1,13 +1,30 @@
-"""Scheduling priority of real-time loop processes (env workers on the wall clock, servo sim processes).
+"""Scheduling priority of real-time loops (env loops on the wall clock, servo sims, an agent's acting thread).
 
-On a shared 2-core machine the env loop's timer fires on time only if its process gets a core when it wakes; a
+On a shared 2-core machine the env loop's timer fires on time only if its thread gets a core when it wakes; a
 learner, a test suite or another env loop beside it delays that by a scheduler slice (1-3 ms measured here, even
-at nice -10). As ros2_control does for its control loops, such a process asks for a real-time scheduling class,
-``SCHED_RR`` at a low priority (10): it then preempts every ordinary process when its timer fires. These loops
+at nice -10). As ros2_control does for its control loops, such a loop asks for a real-time scheduling class,
+``SCHED_RR`` at a low priority (10): it then preempts every ordinary thread when its timer fires. These loops
 sleep between ticks (a tick is well under a millisecond of work, physics included), and the kernel's real-time
-throttling (``sched_rt_runtime_us``) keeps 5 % of every core for ordinary processes even if one misbehaved.
-Accelerated (sim clock) workers, which compute flat out, never ask; when they outnumber the cores they ask for the
+throttling (``sched_rt_runtime_us``) keeps 5 % of every core for ordinary threads even if one misbehaved.
+Accelerated (sim clock) workers, which compute flat out, and workers of envs without an env loop (a gymnasium
+CartPole, stepped as fast as its agent asks) never ask; accelerated workers that outnumber the cores ask for the
 opposite, ``SCHED_BATCH`` and a long slice (``run_steps_through``), so each runs its step in one go.
+
+The class belongs to the thread that runs the loop, from the moment the loop is ready, and to nothing else:
+
+- **Taken once start-up is done** (``raise_loop_priority`` is called by the worker after its env is built, by a
+  servo sim once it serves): start-up is seconds of flat-out CPU (imports, the MuJoCo model, the arm's own
+  process). In the real-time class it would run above every ordinary thread and, at the priority of an equal-rank
+  loop, take turns with that loop in ``SCHED_RR``'s 100 ms slices: with the class taken at process start, four
+  workers starting on this host kept the lowest-ranked env loop of a running vector env off its core for up to
+  88 ms (kernel scheduler trace; docs/reliability.md).
+- **Not inherited** (``SCHED_RESET_ON_FORK``): threads and processes a real-time thread starts (a learner thread,
+  torch's intra-op pool, a servo sim process, a test's subprocess) begin in the ordinary class. Without the flag
+  a thread pool that a real-time acting thread creates with its first parallel operation runs its workers at the
+  acting thread's priority, above every env loop.
+- **Per thread**: ``sched_setscheduler`` on Linux applies to one thread (``thread_id``; 0: the caller). Threads
+  that the start-up itself started to deliver to the loop (a ROS 2 arm's cyclonedds receive threads) are named
+  by id and get the loop's class too (``thread_ids`` before and after).
 
 The workers of one vector env get distinct priorities (``raise_loop_priority(rank)``: the first the highest, up to
 ``MAX_LOOP_RANK`` above the base), and an agent's acting thread (``real_time_thread``) one above them all. A step's
@@ -18,9 +35,9 @@ envs of ``uniros bench latency`` on 2 cores, the IQR of when the action reached 
 ms to 0.23-0.68 ms (docs/perf/history.md). The acting thread above them hands out all actions before the first
 woken worker can take its core.
 
-Both need root or CAP_SYS_NICE: without it the process falls back to a lower nice value, and without that keeps
+Both need root or CAP_SYS_NICE: without it the thread falls back to a lower nice value, and without that keeps
 its priority (a debug log says so). ``UNIROS_LOOP_PRIORITY`` chooses: ``rt`` (default: SCHED_RR, else nice),
-``nice`` (nice -10 only), ``off``.
+``nice`` (nice -10 only), ``off``. ``thread_scheduling`` reads back what every thread of a process has.
 """
 
 from __future__ import annotations
@@ -42,6 +59,7 @@ __all__ = [
     "DEFAULT_LOOP_NICE",
     "LOOP_RT_PRIORITY",
     "MAX_LOOP_RANK",
+    "RESET_ON_FORK",
     "gil_switch_interval",
     "loop_nice",
     "loop_priority_mode",
@@ -49,6 +67,8 @@ __all__ = [
     "real_time_thread",
     "run_steps_through",
     "STEP_SLICE_NS",
+    "thread_ids",
+    "thread_scheduling",
 ]
 
 logger = logging.getLogger(__name__)
@@ -68,6 +88,9 @@ STEP_SLICE_NS = 20_000_000
 physics here), so a worker runs its step in one go."""
 _SCHED_SETATTR = {"x86_64": 314, "aarch64": 274}
 """``sched_setattr``'s syscall number (no Python wrapper); elsewhere only the policy is changed."""
+RESET_ON_FORK: int = getattr(os, "SCHED_RESET_ON_FORK", 0)
+"""``os.SCHED_RESET_ON_FORK`` (Linux), or'd into the policy: threads and processes the thread starts do not
+inherit its real-time class or negative nice value."""
 
 
 def loop_priority_mode() -> str:
@@ -102,9 +125,15 @@ def loop_nice() -> int | None:
     return value
 
 
-def raise_loop_priority(rank: int = 0) -> str | None:
-    """Raise this process's scheduling priority for a real-time loop (see the module docstring): SCHED_RR at
-    ``LOOP_RT_PRIORITY + rank`` (``rank`` clipped to [0, ``MAX_LOOP_RANK``]; a nice value ignores it).
+def raise_loop_priority(rank: int = 0, *, thread_id: int = 0) -> str | None:
+    """Put one thread of a real-time loop in the real-time class (see the module docstring): SCHED_RR at
+    ``LOOP_RT_PRIORITY + rank`` (``rank`` clipped to [0, ``MAX_LOOP_RANK``]; a nice value ignores it), with
+    ``SCHED_RESET_ON_FORK``. Call it from the loop once its start-up is done.
+
+    Args:
+        rank: the loop's rank among the loops of one vector env (0: the lowest priority).
+        thread_id: the native id of the thread (``threading.get_native_id()``, ``Thread.native_id``); 0: the
+            calling thread.
 
     Returns:
         ``"rt"`` (SCHED_RR), ``"nice"`` (a lower nice value) or None (unchanged: disabled or not permitted).
@@ -113,8 +142,9 @@ def raise_loop_priority(rank: int = 0) -> str | None:
     if mode == "off":
         return None
     if mode == "rt" and hasattr(os, "sched_setscheduler"):
+        prio = LOOP_RT_PRIORITY + min(max(rank, 0), MAX_LOOP_RANK)
         try:
-            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(LOOP_RT_PRIORITY + min(max(rank, 0), MAX_LOOP_RANK)))
+            os.sched_setscheduler(thread_id, os.SCHED_RR | RESET_ON_FORK, os.sched_param(prio))
             return "rt"
         except PermissionError:
             logger.debug("not permitted to use SCHED_RR (needs root or CAP_SYS_NICE); trying nice")
@@ -122,9 +152,12 @@ def raise_loop_priority(rank: int = 0) -> str | None:
     if want is None or not hasattr(os, "setpriority"):
         return None
     try:
-        if os.getpriority(os.PRIO_PROCESS, 0) <= want:
+        if os.getpriority(os.PRIO_PROCESS, thread_id) <= want:  # on Linux: that thread's nice value
             return None
-        os.setpriority(os.PRIO_PROCESS, 0, want)
+        if hasattr(os, "sched_setscheduler") and os.sched_getscheduler(thread_id) == os.SCHED_OTHER:
+            # what it starts begins at nice 0 (setting the flag needs no privilege)
+            os.sched_setscheduler(thread_id, os.SCHED_OTHER | RESET_ON_FORK, os.sched_param(0))
+        os.setpriority(os.PRIO_PROCESS, thread_id, want)
     except PermissionError:
         logger.debug("not permitted to set nice %d (needs root or CAP_SYS_NICE); the loop keeps its priority", want)
         return None
@@ -187,15 +220,16 @@ def real_time_thread() -> Iterator[bool]:
     process) for the block, when permitted and ``UNIROS_LOOP_PRIORITY`` is ``rt``; restores its scheduling after.
     Yields whether it is real-time.
 
-    Threads started inside the block inherit the class: a thread that computes flat out (a learner) must put
-    itself back (``AsyncTD3``'s learner does).
+    Threads and processes started inside the block begin in the ordinary class (``SCHED_RESET_ON_FORK``): a
+    learner thread, and torch's intra-op pool that the thread's first parallel operation creates, compute at
+    normal priority.
     """
     if loop_priority_mode() != "rt" or not hasattr(os, "sched_setscheduler"):
         yield False
         return
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(ACTOR_RT_PRIORITY))
+        os.sched_setscheduler(0, os.SCHED_RR | RESET_ON_FORK, os.sched_param(ACTOR_RT_PRIORITY))
     except PermissionError:
         yield False
         return
@@ -204,6 +238,37 @@ def real_time_thread() -> Iterator[bool]:
     finally:
         with contextlib.suppress(OSError):
             os.sched_setscheduler(0, policy, param)
+
+
+def thread_ids() -> set[int]:
+    """Native ids of this process's threads (empty where ``/proc`` is missing): a loop takes them before its
+    start-up to tell, after it, which threads the start-up started (``raise_loop_priority(thread_id=...)``)."""
+    try:
+        return {int(t) for t in os.listdir(f"/proc/{os.getpid()}/task")}
+    except OSError:
+        return set()
+
+
+def thread_scheduling(pid: int | None = None) -> dict[int, tuple[int, int]]:
+    """Every thread of process ``pid`` (default: this one): native thread id -> (policy, real-time priority), the
+    policy as ``os.SCHED_*`` with ``RESET_ON_FORK`` or'd in where set, the priority 0 outside the real-time
+    classes. Threads that end while being read are left out.
+
+    Raises:
+        ProcessLookupError: no such process.
+    """
+    pid = os.getpid() if pid is None else pid
+    try:
+        tids = sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+    except FileNotFoundError:
+        raise ProcessLookupError(f"no process {pid}") from None
+    out: dict[int, tuple[int, int]] = {}
+    for tid in tids:
+        try:
+            out[tid] = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
+        except ProcessLookupError:  # the thread ended meanwhile
+            continue
+    return out
 
 
 @contextlib.contextmanager

@@ -148,6 +148,29 @@ def test_gil_and_gc_loads_hold_the_gil_in_stretches_and_stop(kind: str) -> None:
     assert (stats.collections >= 2) == (kind == "gc")
 
 
+@pytest.mark.parametrize("kind", ["cpu", "gil", "gc"])
+def test_a_load_opened_by_the_real_time_acting_thread_runs_in_the_ordinary_class(kind: str) -> None:
+    """The loads compete with the loops at normal priority, as a stranger's job or a learner would: never in the
+    real-time class of the thread that starts them (SCHED_RESET_ON_FORK), even where that is the acting thread."""
+    import threading
+
+    from uniros_async.priority import RESET_ON_FORK, real_time_thread, thread_scheduling
+
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
+    me = threading.get_native_id()
+    with real_time_thread() as rt, latency.open_load(kind) as stats:
+        assert rt and thread_scheduling()[me][0] == os.SCHED_RR | RESET_ON_FORK
+        if kind == "cpu":
+            for pid in stats.spinners:
+                assert set(thread_scheduling(pid).values()) == {(os.SCHED_OTHER, 0)}
+                assert os.getpriority(os.PRIO_PROCESS, pid) == 0
+        else:
+            (load,) = [t for t in threading.enumerate() if t.name == f"{kind} load"]
+            assert load.native_id is not None
+            assert thread_scheduling()[load.native_id] == (os.SCHED_OTHER, 0)
+
+
 @pytest.mark.slow
 def test_load_run_prints_the_load_table(tmp_path: Path) -> None:
     out = tmp_path / "load.json"

@@ -43,7 +43,9 @@ the period).
 Idle cores are kept awake during a run (``priority.cores_kept_awake``: one SCHED_IDLE busy-poll process per core,
 which any other thread preempts), as cyclictest keeps cores out of idle states: on a virtual machine a halted core
 goes back to the host, and waking it for a tick costs the host's scheduling delay (hypervisor steal; the table's
-footer prints its share). ``--allow-idle`` measures the machine as it idles by default.
+footer prints its share). ``--allow-idle`` measures the machine as it idles by default. The footer also counts
+the real-time threads of other processes on the host and the CPU time they used during the run: at their
+priorities they delay this run's loops whatever its own class.
 """
 
 from __future__ import annotations
@@ -74,7 +76,7 @@ from uniros_async.bench.looptiming import (
     since,
     to_records,
 )
-from uniros_async.bench.stats import cpu_times, report, steal_percent
+from uniros_async.bench.stats import cpu_times, real_time_elsewhere, real_time_threads, report, steal_percent
 from uniros_async.errors import ConfigError
 from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread
 
@@ -764,9 +766,10 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
         cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([])
     )
     with awake as pollers:
-        cpu0 = cpu_times()
+        cpu0, rt0 = cpu_times(), real_time_threads(exclude_tree_of=os.getpid())
         series = run(config)
         steal = steal_percent(cpu0, cpu_times())
+        elsewhere = real_time_elsewhere(rt0, real_time_threads(exclude_tree_of=os.getpid()))
     records = to_records(config.scenario, series)
     title = f"uniros bench latency --scenario {config.scenario} --duration {config.phase_s:g}"
     if config.backend == "ray":
@@ -779,6 +782,7 @@ def main(config: LatencyBenchConfig, *, log: Callable[[str], None] = print) -> l
             "above ~1 % expect late ticks no scheduling class can prevent)"
         )
     )
+    machine += "\n" + elsewhere
     if pollers:
         machine += f"\nidle cores: kept awake by {len(pollers)} SCHED_IDLE poller(s) (--allow-idle lets them halt)"
     else:

@@ -123,14 +123,6 @@ class WorkerSpec:
 # ---------------------------------------------------------------- the worker
 
 
-def _real_time(kwargs: dict[str, Any]) -> bool:
-    """Whether an env made with ``kwargs`` runs an env loop on the wall clock (the default)."""
-    clock = kwargs.get("clock")
-    if clock is None:
-        clock = "sim" if kwargs.get("turn_based") else "wall"
-    return clock == "wall"
-
-
 def worker_entry(spec: WorkerSpec, conn: multiprocessing.connection.Connection) -> None:
     """Process target: run ``worker_main`` and exit."""
     # The agent's Ctrl-C reaches every process of the group; the supervisor decides how workers stop.
@@ -139,10 +131,6 @@ def worker_entry(spec: WorkerSpec, conn: multiprocessing.connection.Connection) 
     # starts its own servo process (itself daemonic, and it exits with us). Clearing the flag in this process only
     # changes what this process believes about itself; the supervisor still treats us as daemonic.
     multiprocessing.current_process()._config["daemon"] = False  # type: ignore[attr-defined]
-    if _real_time(spec.kwargs):  # its env loop must wake on time beside learners and other loops
-        from uniros_async.priority import raise_loop_priority
-
-        raise_loop_priority(spec.rt_rank)
     try:
         asyncio.run(worker_main(spec, conn))
     except (KeyboardInterrupt, asyncio.CancelledError):
@@ -258,7 +246,11 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         async with asyncio.timeout(spec.accept_timeout_s):
             transport = await listener.accept()
         await listener.aclose()
+        from uniros_async.priority import thread_ids
+
+        before = thread_ids()
         await server.build()
+        server.raise_loop_priority(thread_ids() - before)
         if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
             # for the next request would save, and the poll would hold the loop (up to 50 us)
@@ -406,6 +398,20 @@ class _Server:
             self.build_error = error_reply(exc, f"could not make {self.spec.env_id} ({where})")
         except Exception as exc:  # noqa: BLE001 - sent back to the supervisor
             self.build_error = error_reply(exc, f"could not make {self.spec.env_id}")
+
+    def raise_loop_priority(self, started: set[int]) -> None:
+        """Once a wall-clock env is built and its loop ticks: the real-time class for the threads that run it, not
+        for its start-up (see ``uniros_async.priority``): this one, which also serves its steps, the env's loop
+        thread where it has one, and the threads its build started (``started``: they deliver to the loop, as a
+        ROS 2 arm's cyclonedds receive threads do). Threads and processes they start later begin ordinary."""
+        env = self.env
+        if env is None or getattr(getattr(env.unwrapped, "config", None), "clock", None) != "wall":
+            return  # not built, accelerated (sim clock, computes flat out), or no uniros env: no loop to keep on time
+        from uniros_async.priority import raise_loop_priority
+
+        raise_loop_priority(self.spec.rt_rank)
+        for tid in started:  # among them the env's loop thread (the synchronous API over unknown wrappers)
+            raise_loop_priority(self.spec.rt_rank, thread_id=tid)
 
     async def serve(self, transport: Any) -> None:
         self.transport = transport

@@ -306,13 +306,24 @@ def _serve_ros2(args: argparse.Namespace) -> int:
     return _run_until_signal(serve_ros2_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
 
 
+_THREADS_BEFORE_SERVING: set[int] = set()
+
+
 def _print_ready(uri: str) -> None:
-    """Say on stdout how to reach what now serves: a shell line to paste (or ``eval``) elsewhere, then a hint.
+    """Once serving: put the serving loop's thread (the caller), and the threads its start-up started, in the
+    real-time class, an arm's hardware loop or its bridge on time beside learners and other loops (its start-up
+    ran at normal priority: see ``uniros_async.priority``); then say on stdout how to reach it: a shell line to
+    paste (or ``eval``) elsewhere, then a hint.
 
     The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, ``export ROS_MASTER_URI=http://...``
     when a ROS 1 master carries the arm, or ``export ROS_DOMAIN_ID=N`` for a ROS 2 driver (the hint line then gives
     the ``ros2://`` URI to drive it by); scripts read the value after the ``=``.
     """
+    from uniros_async.priority import raise_loop_priority, thread_ids
+
+    raise_loop_priority()
+    for tid in thread_ids() - _THREADS_BEFORE_SERVING:  # a ROS 2 driver's cyclonedds receive threads
+        raise_loop_priority(thread_id=tid)
     if uri.startswith("ros2://"):
         domain_id = uri.removeprefix("ros2://").split("/", 1)[0]
         sys.stdout.write(
@@ -334,9 +345,9 @@ def _run_until_signal(serve: Any) -> int:
         cancel_on_signals(signal.SIGINT, signal.SIGTERM)
         await serve
 
-    from uniros_async.priority import raise_loop_priority
+    from uniros_async.priority import thread_ids
 
-    raise_loop_priority()  # an arm's hardware loop (or its bridge): on time beside learners and other loops
+    _THREADS_BEFORE_SERVING.update(thread_ids())  # what serving starts gets the loop's class (_print_ready)
 
     try:
         asyncio.run(main())

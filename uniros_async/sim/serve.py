@@ -166,9 +166,6 @@ def _child_main(config: ServeConfig, conn: multiprocessing.connection.Connection
     """Entry of the spawned process: run until the parent says stop, closes the pipe, or sends SIGTERM."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the parent, which stops us in order
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s servo_sim[%(process)d] %(name)s: %(message)s")
-    from uniros_async.priority import raise_loop_priority
-
-    raise_loop_priority()  # the hardware loop of a (emulated) real arm: on time beside learners and other loops
     try:
         asyncio.run(_child_async(config, conn))
     except asyncio.CancelledError:  # the stop we were asked for
@@ -190,6 +187,11 @@ async def _child_async(config: ServeConfig, conn: multiprocessing.connection.Con
         main.cancel()
 
     def ready(uri: str) -> None:
+        from uniros_async.priority import raise_loop_priority
+
+        # the hardware loop of a (emulated) real arm: on time beside learners and other loops, once it serves (its
+        # start-up, the MuJoCo model and the domain, at normal priority: see uniros_async.priority)
+        raise_loop_priority()
         conn.send(("ready", {"pid": os.getpid(), "domain": uri}))
         loop.add_reader(conn.fileno(), on_pipe)
 

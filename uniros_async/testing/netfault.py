@@ -376,12 +376,12 @@ def drive(
         stop = True
 
     signal.signal(signal.SIGTERM, on_term)
-    from uniros_async.priority import raise_loop_priority
-
-    raise_loop_priority()  # the env loop runs in this process, as in a worker (which asks the same)
     # ROS 1 cannot authenticate peers: a bridge beyond loopback must be allowed explicitly (here: inside the test's
     # own namespaces, which nothing else reaches)
     extra: dict[str, Any] = {"ros1": {"ros_host": ros_host, "insecure": True}} if ros_host else {}
+    from uniros_async.priority import raise_loop_priority, thread_ids
+
+    before = thread_ids()
     env = gym.make(
         env_id,
         robot=robot,
@@ -391,6 +391,11 @@ def drive(
         **extra,
     )
     u: Any = env.unwrapped
+    # the env loop runs in this process, as in a worker, which takes the real-time class once its env is built:
+    # for this thread (it steps) and the threads the build started (the env's loop thread among them)
+    raise_loop_priority()
+    for tid in thread_ids() - before:
+        raise_loop_priority(thread_id=tid)
     action = np.zeros(env.action_space.shape or (), np.float32)
     _emit("ready")
     need_reset = True
