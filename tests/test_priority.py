@@ -80,43 +80,46 @@ def test_raise_loop_priority_in_a_child(mode: str) -> None:
             assert started == (os.SCHED_OTHER, 0, os.SCHED_OTHER, 0)
 
 
+_FRESH_TORCH_CHECK = """
+import json, os, subprocess, sys, threading
+import torch
+from uniros_async.priority import real_time_thread, thread_scheduling
+torch.set_num_threads(2)
+me = threading.get_native_id()
+a = torch.randn(512, 512)
+started = []
+with real_time_thread() as rt:
+    before = set(thread_scheduling())
+    (a @ a).relu_().sum()  # parallel: the pool's workers start now, from this thread
+    pool = set(thread_scheduling()) - before
+    t = threading.Thread(target=lambda: started.append(os.sched_getscheduler(0)))
+    t.start()
+    t.join()
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+                           capture_output=True, text=True, timeout=60, check=True)
+    classes = thread_scheduling()
+print(json.dumps({"rt": rt, "me": list(classes[me]), "pool": [list(classes[tid]) for tid in pool],
+                  "thread": started, "child": int(child.stdout)}))
+"""
+
+
 def test_threads_and_processes_a_real_time_thread_starts_begin_in_the_ordinary_class() -> None:
     """An acting thread in the real-time class: torch's intra-op pool, which its first parallel operation creates,
-    a thread and a process it starts all compute at normal priority, below every env loop."""
-    import torch
-
-    from uniros_async.priority import real_time_thread, thread_scheduling
+    a thread and a process it starts all compute at normal priority, below every env loop. In an interpreter of
+    its own: torch makes its pool once per process, and in a test session an earlier test may have made it."""
+    import json
 
     if os.geteuid() != 0:
         pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        me = threading.get_native_id()
-        a = torch.randn(512, 512)
-        started: list[int] = []
-        with real_time_thread() as rt:
-            assert rt
-            before = set(thread_scheduling())
-            (a @ a).relu_().sum()  # parallel: the pool's workers start now, from this thread
-            pool = set(thread_scheduling()) - before
-            t = threading.Thread(target=lambda: started.append(os.sched_getscheduler(0)))
-            t.start()
-            t.join()
-            child = subprocess.run(
-                [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
-                capture_output=True,
-                text=True,
-                timeout=60,
-                check=True,
-            )
-            classes = thread_scheduling()
-        assert classes[me] == (os.SCHED_RR | RESET_ON_FORK, ACTOR_RT_PRIORITY)
-        assert pool, "torch started no pool thread (the test's parallel operation should need one)"
-        assert {classes[tid] for tid in pool} == {(os.SCHED_OTHER, 0)}
-        assert started == [os.SCHED_OTHER] and int(child.stdout) == os.SCHED_OTHER
-    finally:
-        torch.set_num_threads(threads)
+    out = subprocess.run(
+        [sys.executable, "-c", _FRESH_TORCH_CHECK], capture_output=True, text=True, timeout=120, check=True
+    )
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["rt"]
+    assert tuple(got["me"]) == (os.SCHED_RR | RESET_ON_FORK, ACTOR_RT_PRIORITY)
+    assert got["pool"], "torch started no pool thread (the test's parallel operation should need one)"
+    assert {tuple(c) for c in got["pool"]} == {(os.SCHED_OTHER, 0)}
+    assert got["thread"] == [os.SCHED_OTHER] and got["child"] == os.SCHED_OTHER
 
 
 def test_raise_loop_priority_of_the_threads_an_env_started_leaves_the_caller_alone() -> None:

@@ -136,6 +136,22 @@ def _build_parser() -> argparse.ArgumentParser:
         " two-node cluster unless --ray-address; on a shared host run it under unshare --net, see docs/performance.md)",
     )
     bth.add_argument("--ray-address", default=None, metavar="HOST:PORT", help="the Ray cluster for --backend ray")
+    bth.add_argument(
+        "--repeat",
+        type=int,
+        default=0,
+        metavar="R",
+        help="only the make_vec rows at N >= 4 (and the Ray-placed ones with --backend ray), R runs each with new"
+        " workers, each run's %% of the physics bound printed",
+    )
+    bth.add_argument(
+        "--shared-cores",
+        dest="shared_cores",
+        nargs="+",
+        choices=("pin", "through", "off"),
+        default=None,
+        help="with --repeat: a row per UNIROS_SHARED_CORES mode, runs interleaved (default: the environment's)",
+    )
     bth.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     br = bench.add_parser("ros1", help="ROS 1 round trips: our asyncio client against rospy (needs ROS 1 installed)")
@@ -367,6 +383,8 @@ def _run_bench(args: argparse.Namespace) -> int:
                 progress=not args.no_progress,
                 backend=args.backend,
                 ray_address=args.ray_address,
+                repeat=args.repeat,
+                shared_cores=tuple(args.shared_cores or ()),
             )
         )
     elif args.scenario == "ros1":

@@ -88,3 +88,49 @@ def test_the_rx200_hint_shows_only_when_the_n1_interval_is_wide() -> None:
     assert throughput._rx200_hint(rows([10.0, 60.0])) == []
     assert "--steps 1500" in "".join(throughput._rx200_hint(rows([-300.0, 400.0])))
     assert "--steps 1500" in "".join(throughput._rx200_hint(rows(None)))  # too few steps for any interval
+
+
+def test_repeat_runs_the_crowded_rows_run_by_run_with_their_intervals(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", 30)  # the interval's goal would take hundreds of steps
+    lines: list[str] = []
+    config = throughput.ThroughputBenchConfig(
+        n_envs=(1, 4), steps=5, repeat=2, shared_cores=("pin", "off"), progress=False
+    )
+    records = throughput.main(config, log=lines.append)
+    # N = 1 is no crowded row: 2 runs x N = 4 x 2 modes, in that order
+    assert [(r["run"], r["n_envs"], r["shared_cores"]) for r in records] == [
+        (1, 4, "pin"),
+        (1, 4, "off"),
+        (2, 4, "pin"),
+        (2, 4, "off"),
+    ]
+    for r in records:
+        assert r["impl"] == "uniros" and r["env"] == throughput.ENV_ID
+        assert 6 <= r["tight_steps"] <= 30  # at least the row's steps, at most the cap
+        assert r["bound_steps_per_s"] > 0 and r["bound_pct"] == pytest.approx(
+            100 * r["steps_per_s"] / r["bound_steps_per_s"], rel=0.01
+        )
+        if r["steps_per_s_ci"] is not None:
+            lo, hi = r["steps_per_s_ci"]
+            assert lo <= r["steps_per_s"] <= hi
+            assert r["bound_pct_ci"][0] <= r["bound_pct"] <= r["bound_pct_ci"][1]
+        assert r["worker_cpu_ms"] > 0 and r["agent_cpu_ms"] >= 0  # the workers' own CPU time, read from /proc
+        assert r["cores_ours_pct"] > 0 and 0 <= r["cores_idle_pct"] <= 100  # and what the cores did meanwhile
+    text = "\n".join(lines)
+    assert "% of the physics bound, run by run" in text and "host: 1-min load average" in text
+    assert "  4 uniros       pin  " in text and "  4 uniros       off  " in text
+    assert "run 2 N=4 uniros       off" in text and "CPU per env step: workers" in text
+    assert "; the cores: ours " in text and " other processes " in text
+
+
+@pytest.mark.parametrize(
+    ("kw", "what"),
+    [
+        ({"repeat": -1}, "repeat must be >= 0"),
+        ({"repeat": 2, "n_envs": (1, 2)}, "repeat measures rows of >= 4 sub-envs"),
+        ({"shared_cores": ("sometimes",)}, "shared_cores modes must be among"),
+    ],
+)
+def test_bad_repeat_configs_are_refused(kw: dict[str, object], what: str) -> None:
+    with pytest.raises(ConfigError, match=what):
+        throughput.ThroughputBenchConfig(**kw)  # type: ignore[arg-type]

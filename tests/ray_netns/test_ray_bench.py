@@ -1,5 +1,6 @@
 """``uniros bench throughput --backend ray`` and ``uniros bench latency --backend ray`` on a real two-node Ray
-cluster: the Ray rows beside the others, in one run, and the goal line; the latency scenario's envs placed by Ray.
+cluster: the Ray rows beside the others, in one run, and the goal line; the latency scenario's envs placed by Ray;
+``--repeat`` with Ray-placed rows, and Ray-placed workers that outnumber their node's cores pinned round robin.
 Checks what the records say, never a figure's size (docs/performance.md)."""
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import pytest
 
 from uniros_async.bench import latency, throughput
 from uniros_async.bench._ray_rows import RAY_IMPLS
+from uniros_async.runtime.supervisor import REPLY_SPIN_NS
 
 pytestmark = pytest.mark.usefixtures("nothing_left")
 
@@ -49,3 +51,41 @@ def test_the_latency_scenario_runs_its_env_placed_by_ray(cluster: dict[str, Any]
     assert "--backend ray --ray-address" in "\n".join(lines)
     cycles = [r for r in records if r["env"] == "rx200 sim" and r["metric"] == "actuator_cycle"]
     assert len(cycles) == 1 and cycles[0]["count"] > 0, records
+
+
+def test_repeat_runs_the_ray_placed_rows_beside_the_local_ones(
+    cluster: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", 20)  # the interval's goal would take hundreds of steps
+    lines: list[str] = []
+    config = throughput.ThroughputBenchConfig(
+        n_envs=(4,), steps=5, repeat=1, backend="ray", ray_address=cluster["address"], progress=False
+    )
+    records = throughput.main(config, log=lines.append)
+    assert [(r["impl"], r["n_envs"], r["run"]) for r in records] == [("uniros", 4, 1), ("uniros-ray", 4, 1)]
+    for r in records:
+        assert r["bound_steps_per_s"] > 0 and r["bound_pct"] > 0 and 6 <= r["tight_steps"] <= 20
+    assert "worker_cpu_ms" in records[0]  # local workers' CPU time is read here; a Ray node's is not
+    assert "worker_cpu_ms" not in records[1]
+    text = "\n".join(lines)
+    assert "  4 uniros-ray   pin  " in text and "uniros-ray: workers placed by Ray there, over tcp" in text
+
+
+def test_ray_placed_workers_that_outnumber_their_nodes_cores_are_pinned_round_robin(cluster: dict[str, Any]) -> None:
+    """The slot each worker pins itself by is its rank among the vector env's workers on its own node."""
+    import os
+
+    from uniros_async.runtime import make_vec
+
+    cpus = sorted(os.sched_getaffinity(0))  # every node of this cluster is this machine
+    n = len(cpus) + 1
+    arm = {"worker": {"ray": {"node_id": cluster["arm_id"], "num_cpus": 0}}}
+    venv = make_vec([("CartPole-v1", arm)] * n, pad=False, backend="ray")
+    try:
+        venv.reset(seed=0)
+        venv.step([0] * n)
+        pinned = [w.info["pinned_cpu"] for w in venv._sup.workers]
+        assert pinned == [cpus[i % len(cpus)] for i in range(n)]
+        assert all(w.info["cores_shared"] and w.transport.spin_ns == REPLY_SPIN_NS for w in venv._sup.workers)
+    finally:
+        venv.close()

@@ -132,8 +132,13 @@ def test_ctrl_c_stops_actor_and_learner(env: gym.Env[Any, Any]) -> None:
             return True
 
     model = AsyncTD3("MlpPolicy", env, **SMALL)
-    with pytest.raises(KeyboardInterrupt):
-        model.learn(1_000, callback=CtrlC())
+    # Python's own Ctrl-C handler, whatever an earlier test of the session left installed
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            model.learn(1_000, callback=CtrlC())
+    finally:
+        signal.signal(signal.SIGINT, old)
     assert model.num_timesteps == 70 and model.learner_stats["updates"] > 0
     assert not model._rt.active  # (and the autouse fixture checks the thread is gone)
     model.learn(60)  # usable again

@@ -39,6 +39,13 @@ bound on aggregate steps/s is printed beside: min(N, cores) / bare step time.
 node over shm), local workers over tcp and a plain Ray actor call per step to the trivial env's table, and the
 Ray-placed workers to the rx200 rows (``bench/_ray_rows.py``).
 
+Rows of ``CROWDED_N`` (4) or more sub-envs step back to back until the 95 % interval of their steps/s is within
+``CI_GOAL`` (+-5 %) and print it, with their % of the physics bound and the CPU time per env step of the local
+workers and of the agent's process (read from /proc: a figure that does not depend on how busy the host is).
+``--repeat R`` (``main_repeat``) measures only those rows of ``make_vec`` (and of Ray-placed workers with
+``--backend ray``), R runs each with new workers, and prints each run's % of the bound; ``--shared-cores`` adds a
+row per ``UNIROS_SHARED_CORES`` mode (``worker.shared_cores_mode``) in the same runs.
+
 A fourth and a fifth table measure the same way, N = 1, envs whose observations are what other pipelines carry
 (``bench/envs.py``; their steps cost next to nothing): a goal env's Dict observation (three float64 arrays), and an
 Atari-style 84x84x3 uint8 frame, which ``make_vec`` carries in its shm ring and gymnasium's AsyncVectorEnv in its
@@ -49,11 +56,12 @@ overhead as a fraction of gymnasium's.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import functools
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -62,6 +70,7 @@ from uniros_async.bench._ray_rows import RAY_IMPLS, RayRows, overhead_lines
 from uniros_async.bench.envs import DICT_ID, IMAGE_ID
 from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
 from uniros_async.errors import ConfigError
+from uniros_async.runtime.worker import SHARED_CORES_MODES
 from uniros_async.transports._shm_ring import describe_ring_end
 
 __all__ = ["IMPLS", "ThroughputBenchConfig", "main"]
@@ -82,6 +91,17 @@ TRIVIAL_STEPS = 1000
 seconds in all, in a slow hour too."""
 _RAY: RayRows | None = None
 """The Ray rows' cluster while ``main`` runs with ``backend="ray"`` (``_vector`` builds their vector envs)."""
+CROWDED_N = 4
+"""From this many sub-envs on, a row's back-to-back phase runs until the 95 % interval of its steps/s is within
+``CI_GOAL`` (at least ``steps`` steps, at most ``MAX_TIGHT_STEPS``): there the workers share the cores, and a row's
+steps/s says how well they share them."""
+CI_GOAL = 0.05
+"""The half-width, relative to the figure, that a row at ``CROWDED_N`` or more sub-envs steps until its steps/s
+interval is within."""
+MAX_TIGHT_STEPS = 2000
+"""The most steps the back-to-back phase of such a row takes (~40 s at N = 8 on 2 cores)."""
+TIGHT_CHUNK = 50
+"""Steps between two looks at the interval."""
 TRAIL_S = 0.005
 """Untimed pause after each vector block of the alternating phase: a worker replies before the servo tick that its
 step's last sim event also woke (~1 ms of physics), which would otherwise run during the bare step timed next."""
@@ -96,14 +116,29 @@ class ThroughputBenchConfig:
     transport: str = "shm"
     """How ``make_vec`` reaches its workers (``shm`` or ``tcp`` on loopback); the peers use their pipes either way."""
     progress: bool = True
+    """A progress bar over the rows (tqdm, on stderr)."""
     backend: str = "local"
     """``ray``: add the Ray rows (``bench/_ray_rows.py``) on the cluster at ``ray_address`` (None: a local one)."""
     ray_address: str | None = None
-    """A progress bar over the rows (tqdm, on stderr)."""
+    """The Ray cluster's address for ``backend="ray"`` (None: a local two-node cluster started for the run)."""
+    shared_cores: tuple[str, ...] = ()
+    """With ``repeat``: one row per ``UNIROS_SHARED_CORES`` mode (``worker.shared_cores_mode``) for each N and
+    backend, their runs interleaved (empty: as this process has it)."""
+    repeat: int = 0
+    """> 0: measure only the make_vec rows at ``CROWDED_N`` or more sub-envs (and the Ray-placed ones with
+    ``backend="ray"``), ``repeat`` runs of each, every run with new workers, and print each run's % of the physics
+    bound (``main_repeat``)."""
 
     def __post_init__(self) -> None:
         if not self.n_envs or min(self.n_envs) < 1 or self.steps < 5:
             raise ConfigError(f"n_envs must be >= 1 and steps >= 5, got {self.n_envs}, {self.steps}")
+        if self.repeat < 0:
+            raise ConfigError(f"repeat must be >= 0 (0: the full bench once), got {self.repeat}")
+        bad = [m for m in self.shared_cores if m not in SHARED_CORES_MODES]
+        if bad:
+            raise ConfigError(f"shared_cores modes must be among {SHARED_CORES_MODES}, got {bad}")
+        if self.repeat and max(self.n_envs) < CROWDED_N:
+            raise ConfigError(f"repeat measures rows of >= {CROWDED_N} sub-envs; n_envs {self.n_envs} has none")
         if self.transport not in ("shm", "tcp"):
             raise ConfigError(f"transport must be 'shm' or 'tcp', got {self.transport!r}")
         if self.backend not in ("local", "ray"):
@@ -229,11 +264,16 @@ def _run(
     floor: _Floor | None = None,
     block: int = 8,
     transport: str = "shm",
+    shared_cores: str | None = None,
 ) -> dict[str, Any]:
+    """One row (see the module docstring); ``shared_cores``: the ``UNIROS_SHARED_CORES`` its vector env is made
+    with (None: as this process has it)."""
     block = min(block, steps)
-    actions = _actions(bare.action_space, 2 * steps + 2)
+    crowded = n >= CROWDED_N
+    actions = _actions(bare.action_space, steps + 1 + (max(MAX_TIGHT_STEPS, steps + 1) if crowded else steps + 1))
     batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
-    venv, reset, step = _vector(impl, n, env_id, kwargs, transport)
+    with _shared_cores(shared_cores):
+        venv, reset, step = _vector(impl, n, env_id, kwargs, transport)
     vec_t: list[float] = []
     bare_t: list[float] = []
     floor_t: list[float] = []
@@ -254,10 +294,28 @@ def _run(
             time.sleep(TRAIL_S)  # the workers' trailing work (the next servo tick) must not overlap the bare step
             bare_t += b[1:]
             vec_t += v[1:]
-        tight_t = _timed_block(step, batch, range(steps + 1, 2 * steps + 2))  # throughput: back to back
+        pids = list(getattr(venv, "pids", ())) if impl == "uniros" else []  # local workers: their CPU time here
+        cpu0 = [_cpu_s(p) for p in pids], time.process_time()
+        host0, t0 = cpu_times(), time.perf_counter()
+        tight_t = _tight(step, batch, steps + 1, steps + 1, n, crowded)  # throughput: back to back
+        host1, wall_s = cpu_times(), time.perf_counter() - t0
+        cpu1 = [_cpu_s(p) for p in pids], time.process_time()
     finally:
         venv.close()
     record = _record(env_id, impl, n, tight_t, vec_t, bare_t)
+    workers_s = [b - a for a, b in zip(cpu0[0], cpu1[0], strict=True) if a is not None and b is not None]
+    if pids and len(workers_s) == len(pids):  # CPU time per env step, whatever else the host runs meanwhile
+        record["worker_cpu_ms"] = round(sum(workers_s) / (n * len(tight_t)) * 1e3, 3)
+        record["agent_cpu_ms"] = round((cpu1[1] - cpu0[1]) / (n * len(tight_t)) * 1e3, 3)
+        if host0 is not None and host1 is not None:  # what the cores did meanwhile: our processes, idle, others
+            cores = os.cpu_count() or 1
+            ticks = [b - a for a, b in zip(host0, host1, strict=True)]
+            record["cores_ours_pct"] = round(100 * (sum(workers_s) + cpu1[1] - cpu0[1]) / (wall_s * cores), 1)
+            record["cores_idle_pct"] = round(100 * (ticks[3] + ticks[4]) / max(sum(ticks), 1), 1)
+    if crowded:
+        lo, hi = _sps_ci(tight_t, n)
+        record["steps_per_s_ci"] = None if np.isnan(lo) else [round(lo, 1), round(hi, 1)]
+        record["tight_steps"] = len(tight_t)
     if floor_t:
         record["floor_ms"] = round(float(np.median(floor_t)) * 1e3, 3)
         record["overhead_over_floor_us"] = round(float(np.median(np.subtract(vec_t, floor_t))) * 1e6, 1)
@@ -331,6 +389,67 @@ def _run_trivial(
         else {**_record(env_id, row.impl, 1, row.vec_t, row.vec_t, row.bare_t), "envs_in_turn": 2}
         for row in rows
     ]
+
+
+@contextlib.contextmanager
+def _shared_cores(mode: str | None) -> Iterator[None]:
+    """``UNIROS_SHARED_CORES`` set to ``mode`` meanwhile (the supervisor reads it when it connects its workers)."""
+    if mode is None:
+        yield
+        return
+    before = os.environ.get("UNIROS_SHARED_CORES")
+    os.environ["UNIROS_SHARED_CORES"] = mode
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["UNIROS_SHARED_CORES"]
+        else:
+            os.environ["UNIROS_SHARED_CORES"] = before
+
+
+def _cpu_s(pid: int | None) -> float | None:
+    """CPU time of process ``pid`` so far, all its threads (the scheduler's nanosecond count in
+    ``/proc/<pid>/task/*/schedstat``); None where that cannot be read."""
+    if pid is None:
+        return None
+    total = 0
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
+                total += int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return total / 1e9
+
+
+def _sps_ci(per_step: list[float], n: int) -> tuple[float, float]:
+    """The 95 % interval of a row's steps/s (``n`` / the median time per vector step): ``median_ci`` of the step
+    times, inverted."""
+    lo, hi = median_ci(per_step)
+    return n / hi, n / lo
+
+
+def _sps_halfwidth(per_step: list[float], n: int) -> float:
+    """The larger side of ``_sps_ci`` relative to the steps/s figure (inf while too few steps for an interval)."""
+    lo, hi = _sps_ci(per_step, n)
+    if np.isnan(lo):
+        return float("inf")
+    sps = n / float(np.median(per_step))
+    return max(hi - sps, sps - lo) / sps
+
+
+def _tight(step: Callable[[Any], Any], batch: list[Any], k0: int, steps: int, n: int, until_ci: bool) -> list[float]:
+    """The back-to-back phase of a row from step ``k0``: ``steps`` steps, and with ``until_ci`` more in chunks of
+    ``TIGHT_CHUNK`` until the steps/s interval is within ``CI_GOAL`` (at most ``MAX_TIGHT_STEPS`` in all, or as many
+    as ``batch`` holds from ``k0``)."""
+    times = _timed_block(step, batch, range(k0, k0 + steps))
+    last = min(len(batch), k0 + max(MAX_TIGHT_STEPS, steps))
+    k = k0 + steps
+    while until_ci and k < last and _sps_halfwidth(times, n) > CI_GOAL:
+        times += _timed_block(step, batch, range(k, min(k + TIGHT_CHUNK, last)))
+        k += TIGHT_CHUNK
+    return times
 
 
 def _timed_block(step: Callable[[Any], Any], batch: list[Any], ks: range) -> list[float]:
@@ -432,7 +551,114 @@ def _measure(
             env.close()
 
 
+def _bound_pct(record: dict[str, Any], cores: int) -> None:
+    """Add a row's physics bound (min(N, cores) / its own bare step) and its steps/s as a % of it (and of the
+    interval's ends) to ``record``."""
+    bound = min(record["n_envs"], cores) / (record["bare_ms"] / 1e3)
+    record["bound_steps_per_s"] = round(bound, 1)
+    record["bound_pct"] = round(100 * record["steps_per_s"] / bound, 1)
+    ci = record.get("steps_per_s_ci")
+    record["bound_pct_ci"] = None if ci is None else [round(100 * c / bound, 1) for c in ci]
+
+
+def _pct_interval(record: dict[str, Any]) -> str:
+    ci = record.get("bound_pct_ci")
+    return "too few steps" if ci is None else f"{ci[0]:.0f}-{ci[1]:.0f} %"
+
+
+def _cpu_line(record: dict[str, Any]) -> str:
+    if "worker_cpu_ms" not in record:
+        return ""
+    line = f"; CPU per env step: workers {record['worker_cpu_ms']:.2f} ms, agent {record['agent_cpu_ms']:.3f} ms"
+    if "cores_ours_pct" in record:
+        ours, idle = record["cores_ours_pct"], record["cores_idle_pct"]
+        line += f"; the cores: ours {ours:.0f} %, idle {idle:.0f} %, other processes {max(100 - ours - idle, 0):.0f} %"
+    return line
+
+
+def _host_state(load0: tuple[float, ...], cpu0: Any) -> str:
+    steal = steal_percent(cpu0, cpu_times())
+    load1 = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),)
+    return (
+        f"host: 1-min load average {load0[0]:.2f} at the start, {load1[0]:.2f} at the end;"
+        f" hypervisor steal {'unknown' if steal is None else f'{steal:.1f} %'} of CPU time meanwhile"
+    )
+
+
+def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """``--repeat R``: the make_vec rows with ``CROWDED_N`` or more sub-envs (workers over ``config.transport``,
+    and with ``backend="ray"`` workers placed by Ray on the other node, over tcp), ``R`` runs of each; per run the
+    rows in turn, each with new workers (where the scheduler puts them is decided anew), each against the bare step
+    timed between its own blocks (``_run``). Prints each run's steps/s as a % of the physics bound, with its 95 %
+    interval, and the CPU time per env step of the local workers and the agent."""
+    cores = os.cpu_count() or 1
+    ns = tuple(n for n in config.n_envs if n >= CROWDED_N)
+    impls = ("uniros",) + (("uniros-ray",) if config.backend == "ray" else ())
+    modes: tuple[str | None, ...] = config.shared_cores or (None,)
+    records: list[dict[str, Any]] = []
+    load0 = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),)
+    cpu0 = cpu_times()
+    global _RAY
+    if config.backend == "ray":
+        _RAY = RayRows(config.ray_address)
+    try:
+        if _RAY is not None:
+            _RAY.start()
+        n_rows = config.repeat * len(ns) * len(impls) * len(modes)
+        bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
+        bare = _make_env(ENV_ID, ENV_KW)
+        try:
+            for run in range(1, config.repeat + 1):
+                for n in ns:
+                    for impl in impls:
+                        for mode in modes:
+                            steps, how = config.steps, config.transport
+                            r = _run(impl, n, bare, ENV_ID, ENV_KW, steps, transport=how, shared_cores=mode)
+                            r["run"] = run
+                            r["shared_cores"] = mode or os.environ.get("UNIROS_SHARED_CORES", "pin")
+                            _bound_pct(r, cores)
+                            records.append(r)
+                            bar(1)
+        finally:
+            bare.close()
+            bar(0, done=True)
+        where = _RAY.describe() if _RAY is not None else ""
+    finally:
+        if _RAY is not None:
+            _RAY.close()
+        _RAY = None
+    lines = [
+        f"{ENV_ID} (turn-based, accelerated) on {cores} cores, {config.repeat} runs of each row (new workers every"
+        f" run): steps/s as a % of the physics bound min(N, cores) / bare step, each row against the bare step timed"
+        f" between its own blocks; make_vec's local workers over {config.transport}",
+        _host_state(load0, cpu0),
+    ]
+    if where:
+        lines.append(where + " (uniros-ray: workers placed by Ray there, over tcp)")
+    head = f"{'N':>3} {'impl':<12} {'cores':<8} {'% of the physics bound, run by run':<44} {'min':>6}"
+    lines += ["", "(cores: UNIROS_SHARED_CORES, what the workers do when they outnumber the cores)", head]
+    lines.append("-" * len(head))
+    for n in ns:
+        for impl in impls:
+            for mode in dict.fromkeys(r["shared_cores"] for r in records):
+                rows = [r for r in records if r["n_envs"] == n and r["impl"] == impl and r["shared_cores"] == mode]
+                pcts = [r["bound_pct"] for r in rows]
+                runs = " ".join(f"{p:5.1f}" for p in pcts)
+                lines.append(f"{n:>3} {impl:<12} {mode:<8} {runs:<44} {min(pcts):>6.1f}")
+    lines += ["", "each run: steps/s, its 95 % interval (as % of the bound), steps back to back, bare step"]
+    for r in records:
+        lines.append(
+            f"  run {r['run']} N={r['n_envs']} {r['impl']:<12} {r['shared_cores']:<8} {r['steps_per_s']:7.1f}"
+            f" steps/s of {r['bound_steps_per_s']:.0f}: {r['bound_pct']:5.1f} % ({_pct_interval(r)},"
+            f" {r['tight_steps']} steps; bare {r['bare_ms']:.2f} ms){_cpu_line(r)}"
+        )
+    report("\n".join(lines), records, config.json_path, log)
+    return records
+
+
 def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    if config.repeat:
+        return main_repeat(config, log=log)
     ns = tuple(n for n in config.n_envs if n <= 4) if config.quick else config.n_envs
     if not ns:
         raise ConfigError(f"--quick runs N <= 4 only, and n_envs {config.n_envs} has none")
@@ -512,6 +738,14 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
             f"N={n}: uniros / gymnasium-async steps/s = {ratio:.2f}x; physics bound min(N, {cores} cores) / bare step"
             f" = {bound:.0f} steps/s"
         )
+        for impl in ("uniros", "uniros-ray"):
+            row = rows.get(impl)
+            if row is not None and "steps_per_s_ci" in row:
+                _bound_pct(row, cores)
+                lines.append(
+                    f"  {impl}: {row['bound_pct']:.1f} % of its bound ({_pct_interval(row)}, {row['tight_steps']}"
+                    f" steps back to back){_cpu_line(row)}"
+                )
     image = {r["impl"]: r for r in records if r["env"] == IMAGE_ID}
     if image["gymnasium-async"]["overhead_us"] > 0:
         frac = image["uniros"]["overhead_us"] / image["gymnasium-async"]["overhead_us"]

@@ -60,7 +60,7 @@ from uniros_async.runtime.envargs import check_env_args, registration, split_pla
 from uniros_async.runtime.launch import WorkerProcess, found_libraries, start_interpreter, start_worker
 from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
 from uniros_async.runtime.ray_backend import RayPlacement, RayWorkerProcess, check_placements
-from uniros_async.runtime.worker import WorkerSpec
+from uniros_async.runtime.worker import WorkerSpec, cores_shared, shared_cores_mode
 
 __all__ = ["Supervisor", "WorkerHandle"]
 
@@ -77,7 +77,9 @@ unpack a request, step a trivial env and pack the reply, longer than the transpo
 would sleep and pay a wake-up (~30 us) on every step. The agent's thread has nothing else to do meanwhile, and the
 spin credit stops the polling when replies take longer (a 10 Hz env's step). Not for workers with a real-time env
 loop: there the acting thread may run SCHED_RR above the workers, and its poll would keep a lower-ranked worker
-from the very reply it waits for; their connections keep the transport's default."""
+from the very reply it waits for; their connections keep the transport's default. Nor when the workers outnumber
+the cores (``worker.cores_shared``): the replies then come one core's share of the physics apart, a poll seldom
+catches one, and while it polls a worker waiting for that core's turn does not run."""
 Request = dict[str, Any] | PackedRequest
 """A request to a worker: a message, or a step request already packed (``worker.pack_step_request``)."""
 StepDecoder = Callable[[int, memoryview], Any]
@@ -462,6 +464,23 @@ class Supervisor:
         w.conn.close()
         return str(uri)
 
+    @staticmethod
+    def _machine(w: WorkerHandle) -> str:
+        """Which machine ``w`` runs on: "" for the agent's (a local worker, or a Ray-placed one over shm), else its
+        Ray node."""
+        remote = w.remote
+        if remote is None or remote.worker_uri.startswith("shm://"):
+            return ""
+        return remote.node_id or f"worker {w.index}"
+
+    def _core_share(self, w: WorkerHandle) -> list[Any]:
+        """``[slot, count, mode]`` for worker ``w``'s ``spaces`` request: its rank among the workers of this vector
+        env on its machine, how many they are, and ``worker.shared_cores_mode`` (the worker pins itself to core
+        ``slot`` modulo its cores when they outnumber them: ``_Server._share_cores``)."""
+        machine = self._machine(w)
+        mates = [v.index for v in self.workers if self._machine(v) == machine]
+        return [mates.index(w.index), len(mates), shared_cores_mode()]
+
     async def _connect_all(self, workers: list[WorkerHandle], uris: list[str], timeout_s: float) -> None:
         from uniros_async.transports.base import TransportOptions, connect
 
@@ -471,9 +490,13 @@ class Supervisor:
                 w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s, auth_key=key))
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
-            w.info = await w.request({"op": "spaces", "tag_infos": self.tag_infos}, timeout_s)
+            share = self._core_share(w)
+            spaces = {"op": "spaces", "tag_infos": self.tag_infos, "share": share}
+            w.info = await w.request(spaces, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
-                w.transport.spin_ns = REPLY_SPIN_NS
+                here = self._machine(w) == ""
+                polls = share[2] == "off" or not here or not cores_shared(share[1])
+                w.transport.spin_ns = REPLY_SPIN_NS if polls else 0
             w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a Ray-placed worker too)
             w.receive_blocking = getattr(w.transport, "receive_blocking", None)
             if w.remote is not None and hasattr(w.transport, "fileno"):  # over tcp: another node, which may be lost

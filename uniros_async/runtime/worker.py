@@ -45,7 +45,7 @@ import gymnasium as gym
 import numpy as np
 
 from uniros_async._signals import cancel_on_signals
-from uniros_async.errors import TransportError
+from uniros_async.errors import ConfigError, TransportError
 from uniros_async.runtime.protocol import (
     AUTORESET_MODES,
     conform,
@@ -300,6 +300,40 @@ def _on_loopback(transport: Any) -> bool:
     return False
 
 
+SHARED_CORES_MODES = ("pin", "through", "off")
+
+
+def shared_cores_mode() -> str:
+    """``UNIROS_SHARED_CORES`` (default ``pin``): what the workers of a vector env do when they outnumber a
+    machine's cores (``cores_shared``). ``pin``: each runs its steps through (``priority.run_steps_through``) on a
+    core of its own slot (``_Server._share_cores``), and neither they nor the agent poll for the other's message;
+    ``through``: the same without the pinning; ``off``: neither (they poll and the scheduler places them).
+
+    Raises:
+        ConfigError: not one of ``pin``, ``through``, ``off``.
+    """
+    raw = os.environ.get("UNIROS_SHARED_CORES", "pin").strip().lower() or "pin"
+    if raw not in SHARED_CORES_MODES:
+        raise ConfigError(f"UNIROS_SHARED_CORES must be one of {SHARED_CORES_MODES}, got {raw!r}")
+    return raw
+
+
+def usable_cpus() -> list[int]:
+    """The CPUs this process may run on, in order."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return list(range(os.cpu_count() or 1))
+
+
+def cores_shared(n_workers: int) -> bool:
+    """Whether ``n_workers`` workers of a vector env on one machine outnumber the cores this process may run on:
+    then a step's replies come one core's share of the physics apart, so neither a worker's poll for its next
+    request nor the agent's for a reply catches anything, and either poll takes the core from a worker still
+    stepping (see ``shared_cores_mode`` for what the workers do instead)."""
+    return n_workers > len(usable_cpus())
+
+
 def _move_off_core(cpu: int) -> None:
     """Move this worker off ``cpu``, its agent's core (``ShmTransport.on_shared_core``): the scheduler often wakes a
     worker on the core of the agent that woke it (in a VM, whose halted vCPU looks busy, nearly always), and the two
@@ -327,6 +361,9 @@ class _Server:
         self.realtime = False  # ... and its env loop follows the wall clock
         self._conform_action: Any = None  # protocol.conform for the action space, where an action needs it
         self.tag_infos = False
+        self.transport: Any = None
+        self.cores_shared = False  # more workers of this vector env than cores here (``_share_cores``)
+        self.pinned_cpu: int | None = None
 
     async def build(self) -> None:
         import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
@@ -377,6 +414,7 @@ class _Server:
             raise_loop_priority(self.spec.rt_rank, thread_id=tid)
 
     async def serve(self, transport: Any) -> None:
+        self.transport = transport
         try_send = getattr(transport, "try_send", None)  # shm, tcp: a step's reply leaves without a coroutine
         while True:
             frame = await transport.receive()
@@ -420,6 +458,7 @@ class _Server:
             # tag_infos: add info["env_id"] to every info (in a vector env of different envs, which one spoke);
             # otherwise the infos are the env's own
             self.tag_infos = bool(request.get("tag_infos"))
+            self._share_cores(request.get("share"))
             return self._spaces()
         if op == "pad":
             from uniros_async.envs.wrappers import PadSpaces
@@ -468,6 +507,47 @@ class _Server:
         assert env is not None
         return env.get_wrapper_attr(name)
 
+    def _share_cores(self, share: list[Any] | None) -> None:
+        """``share``: ``[slot, count, mode]`` from the supervisor, this worker's rank among the ``count`` workers of
+        its vector env on this machine and the agent's ``shared_cores_mode``. When they outnumber the cores here
+        (``cores_shared``; never for a real-time env loop, which has its own priority), stop polling for the next
+        request, run each step through (``priority.run_steps_through``) and, with ``pin``, stay on core ``slot``
+        modulo the cores (round robin: as many workers on each core as can be).
+
+        Left to the scheduler, where a step's wake-ups put the workers decides how long the step takes (4 on 2
+        cores placed 3 and 1: the core with 3 takes 3 step times while the other idles after 1, ~67 % of the
+        physics bound), and a woken worker tends to land where it ran before, so a placement lasts. Pinned, each
+        core gets its share in every run (docs/performance.md, "More envs than cores"). Once set up, the policy
+        stays.
+        """
+        if self.cores_shared or self.realtime or not share:
+            return
+        slot, count, mode = int(share[0]), int(share[1]), str(share[2])
+        if mode == "off" or not cores_shared(count):
+            return
+        self.cores_shared = True
+        from uniros_async.priority import run_steps_through
+
+        if hasattr(self.transport, "spin_ns"):
+            self.transport.spin_ns = 0
+        how = run_steps_through()
+        cpus = usable_cpus()
+        if mode == "pin":
+            cpu = cpus[slot % len(cpus)]
+            try:
+                os.sched_setaffinity(0, {cpu})
+                self.pinned_cpu = cpu
+            except (AttributeError, OSError) as exc:  # not permitted here: the scheduler places it
+                logger.debug("worker %d: could not pin to cpu %d: %s", self.spec.index, cpu, exc)
+        logger.debug(
+            "worker %d: %d workers share %d cores here; steps run through (%s), pinned to %s",
+            self.spec.index,
+            count,
+            len(cpus),
+            how,
+            self.pinned_cpu,
+        )
+
     def _spaces(self) -> dict[str, Any]:
         env = self.env
         assert env is not None
@@ -481,6 +561,8 @@ class _Server:
             "max_episode_steps": env.spec.max_episode_steps if env.spec is not None else None,
             "pid": os.getpid(),
             "realtime": self.realtime,  # a real-time env loop shares this worker's event loop
+            "cores_shared": self.cores_shared,
+            "pinned_cpu": self.pinned_cpu,
         }
 
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:
