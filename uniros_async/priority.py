@@ -50,7 +50,7 @@ import platform
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 __all__ = [
     "ACTOR_GIL_SWITCH_S",
@@ -65,6 +65,7 @@ __all__ = [
     "loop_priority_mode",
     "raise_loop_priority",
     "real_time_thread",
+    "reap",
     "run_steps_through",
     "STEP_SLICE_NS",
     "thread_ids",
@@ -336,14 +337,20 @@ def cores_kept_awake(cpus: set[int] | None = None) -> Iterator[list[int]]:
                 raise RuntimeError(f"a core poller (pid {p.pid}) did not start: exit code {p.poll()}")
         yield [p.pid for p in procs]
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-        for p in procs:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                p.wait(timeout=5.0)
-            if p.stdout is not None:
-                p.stdout.close()
+        reap(procs)
+
+
+def reap(procs: Sequence[subprocess.Popen[bytes]], timeout_s: float = 5.0) -> None:
+    """End helper processes of ours that hold no state (core pollers, load spinners): kill those still running,
+    wait up to ``timeout_s`` for each to exit, and close their stdout pipes."""
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+    for p in procs:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            p.wait(timeout=timeout_s)
+        if p.stdout is not None:
+            p.stdout.close()
 
 
 def _readline_until(p: subprocess.Popen[bytes], deadline: float) -> bytes:

@@ -78,7 +78,7 @@ from uniros_async.bench.looptiming import (
 )
 from uniros_async.bench.stats import cpu_times, real_time_elsewhere, real_time_threads, report, steal_percent
 from uniros_async.errors import ConfigError
-from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread
+from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread, reap
 
 __all__ = ["LEARNERS", "LOADS", "SCENARIOS", "SCHED_CLASSES", "LatencyBenchConfig", "main", "open_load"]
 
@@ -568,14 +568,7 @@ def open_load(kind: str) -> Iterator[LoadStats]:
             stats.spinners = [p.pid for p in procs]
             yield stats
         finally:
-            for p in procs:
-                if p.poll() is None:
-                    p.kill()
-            for p in procs:
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    p.wait(timeout=5.0)
-                if p.stdout is not None:
-                    p.stdout.close()
+            reap(procs)
         return
     if kind not in ("gil", "gc"):
         raise ConfigError(f"unknown load {kind!r}; choose from {list(LOADS)}")
