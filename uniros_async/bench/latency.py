@@ -67,6 +67,7 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.bench._environ import environ_set
 from uniros_async.bench.looptiming import (
     ARM_OF_ENV_ID,
     ScriptedReachAgent,
@@ -495,20 +496,6 @@ def _ray_cluster(cfg: LatencyBenchConfig) -> Iterator[Callable[[str], dict[str, 
 # ------------------------------------------------------------------------------------------ loads
 
 
-@contextlib.contextmanager
-def loop_priority(mode: str) -> Iterator[None]:
-    """``UNIROS_LOOP_PRIORITY=mode`` for the block: workers started in it, and the acting thread, take that class."""
-    old = os.environ.get("UNIROS_LOOP_PRIORITY")
-    os.environ["UNIROS_LOOP_PRIORITY"] = mode
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("UNIROS_LOOP_PRIORITY", None)
-        else:
-            os.environ["UNIROS_LOOP_PRIORITY"] = old
-
-
 _SPINNER = """
 import ctypes, os, signal, sys
 parent = int(sys.argv[1])
@@ -607,7 +594,8 @@ def _run_under_loads(
     n_cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     out: list[Series] = []
     for cls in cfg.sched_classes:
-        with loop_priority(cls):  # the workers take their class when they start
+        # the workers started in the block, and the acting thread, take that class
+        with environ_set("UNIROS_LOOP_PRIORITY", cls):
             vec = make_vec(  # absolute targets, as in _run_learner_scenario
                 [(e, {"robot": r}) for e, r in specs],
                 action_cycle_s=cfg.action_cycle_s,

@@ -56,16 +56,16 @@ overhead as a fraction of gymnasium's.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import functools
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from uniros_async.bench._environ import environ_set
 from uniros_async.bench._ray_rows import RAY_IMPLS, RayRows, overhead_lines
 from uniros_async.bench.envs import DICT_ID, IMAGE_ID
 from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
@@ -272,7 +272,7 @@ def _run(
     crowded = n >= CROWDED_N
     actions = _actions(bare.action_space, steps + 1 + (max(MAX_TIGHT_STEPS, steps + 1) if crowded else steps + 1))
     batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
-    with _shared_cores(shared_cores):
+    with environ_set("UNIROS_SHARED_CORES", shared_cores):  # the supervisor reads it when it connects its workers
         venv, reset, step = _vector(impl, n, env_id, kwargs, transport)
     vec_t: list[float] = []
     bare_t: list[float] = []
@@ -389,23 +389,6 @@ def _run_trivial(
         else {**_record(env_id, row.impl, 1, row.vec_t, row.vec_t, row.bare_t), "envs_in_turn": 2}
         for row in rows
     ]
-
-
-@contextlib.contextmanager
-def _shared_cores(mode: str | None) -> Iterator[None]:
-    """``UNIROS_SHARED_CORES`` set to ``mode`` meanwhile (the supervisor reads it when it connects its workers)."""
-    if mode is None:
-        yield
-        return
-    before = os.environ.get("UNIROS_SHARED_CORES")
-    os.environ["UNIROS_SHARED_CORES"] = mode
-    try:
-        yield
-    finally:
-        if before is None:
-            del os.environ["UNIROS_SHARED_CORES"]
-        else:
-            os.environ["UNIROS_SHARED_CORES"] = before
 
 
 def _cpu_s(pid: int | None) -> float | None:
