@@ -1,4 +1,4 @@
-"""What the ROS 1 and ROS 2 bridges share: the translation both ways and the checks.
+"""What the ROS 1 and ROS 2 bridges share: the translation both ways, the checks and the serving.
 
 A bridge (``ros1_bridge``, ``ros2_bridge``) puts an arm whose driver is a ROS node on the uniros bus: it republishes
 the driver's joint states as our ``JointState``, in the robot's joint order and stamped by how long they waited on
@@ -17,18 +17,21 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable
+from contextlib import AbstractAsyncContextManager
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 import numpy as np
 
 from uniros_async.adapters._driver_mirror import MirrorConfig
+from uniros_async.bus import open_domain
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.bus.qos import latest
 
 if TYPE_CHECKING:
     from uniros_async.bus.node import Node
+    from uniros_async.transports.base import TransportOptions
 
-__all__ = ["LIMIT_CLAMP_RAD", "TRANSIT_WINDOW_S", "Bridge", "BridgeConfig", "BridgeStats"]
+__all__ = ["LIMIT_CLAMP_RAD", "TRANSIT_WINDOW_S", "Bridge", "BridgeConfig", "BridgeStats", "serve_bridge"]
 
 LIMIT_CLAMP_RAD = 0.05
 """How far beyond a joint limit a command may reach and still be sent, clamped to the limit (counted in
@@ -285,3 +288,34 @@ class Bridge(abc.ABC, Generic[C]):
             where,
             time.monotonic() - t0,
         )
+
+
+async def serve_bridge(
+    open_bridge: Callable[..., AbstractAsyncContextManager[object]],
+    config: Any,
+    *,
+    host: str,
+    port: int,
+    namespace: str | None,
+    on_ready: Callable[[str], Any] | None,
+    options: TransportOptions | None,
+) -> None:
+    """Run ``open_bridge(config, ...)`` (``open_ros1_bridge``, ``open_ros2_bridge``) in an own tcp domain on
+    ``host:port`` until cancelled; cancelling leaves the bridge and the domain closed.
+
+    Args:
+        open_bridge: opens the bridge on a domain (``domain``, ``namespace`` and ``transport`` keywords).
+        config: its config.
+        host: the domain's address.
+        port: the domain's port (0: any free one).
+        namespace: the bridge's bus namespace; None: ``/<robot>``.
+        on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
+        options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
+    """
+    async with (
+        open_domain(f"tcp://{host}:{port}", options=options) as dom,
+        open_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
+    ):
+        if on_ready is not None:
+            on_ready(dom.uri)
+        await asyncio.Event().wait()  # until cancelled

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from uniros_async.adapters._bridge import Bridge
+from uniros_async.adapters._bridge import Bridge, serve_bridge
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import JointState
 from uniros_async.bus.qos import latest
@@ -417,13 +417,9 @@ async def serve_ros2_bridge(
         on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
         options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
     """
-    async with (
-        open_domain(f"tcp://{host}:{port}", options=options) as dom,
-        open_ros2_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
-    ):
-        if on_ready is not None:
-            on_ready(dom.uri)
-        await asyncio.Event().wait()  # until cancelled
+    await serve_bridge(
+        open_ros2_bridge, config, host=host, port=port, namespace=namespace, on_ready=on_ready, options=options
+    )
 
 
 # ------------------------------------------------------------------------------------------------ the placement
