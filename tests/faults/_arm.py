@@ -50,6 +50,28 @@ def auth_env() -> dict[str, str]:
     return {**os.environ, "UNIROS_AUTH_KEY": secrets.token_hex(16)}
 
 
+def _start_served(pair: NetnsPair, peers: list[EventPeer], argv: list[str], ready: str, **popen: Any) -> EventPeer:
+    """Start ``argv`` in the arm's namespace, check that its first line is ``ready``, and read its events."""
+    proc = pair.popen("arm", argv, **popen)
+    peer = EventPeer(proc)
+    peers.append(peer)
+    assert proc.stdout is not None
+    line = proc.stdout.readline().strip()
+    assert line == ready, line
+    peer.start_reader()
+    return peer
+
+
+def skip_or_fail(reason: str | None, require_var: str) -> None:
+    """Skip the test saying ``reason`` (what is missing), or fail instead when ``$require_var`` is 1 (``.ci/run``
+    sets it: there the thing must be present); nothing when ``reason`` is None."""
+    if reason is None:
+        return
+    if os.environ.get(require_var) == "1":
+        pytest.fail(f"{require_var}=1 but {reason}")
+    pytest.skip(reason)
+
+
 def start_tcp_arm(
     pair: NetnsPair,
     peers: list[EventPeer],
@@ -60,20 +82,11 @@ def start_tcp_arm(
 ) -> tuple[EventPeer, str]:
     """``uniros robot serve rx200`` over tcp in the arm's namespace (watchdog ``COMMAND_TIMEOUT_S``, commands older
     than ``max_command_age_s`` dropped, every command and hold traced); returns it and its domain's URI."""
-    proc = pair.popen(
-        "arm",
-        [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--host", pair.arm_ip, "--port",
-         str(port), "--command-timeout", str(COMMAND_TIMEOUT_S), "--max-command-age", str(max_command_age_s),
-         "--trace"],
-        env=env,
-    )  # fmt: skip
-    arm = EventPeer(proc)
-    peers.append(arm)
-    assert proc.stdout is not None
-    uri = proc.stdout.readline().strip().split("=", 1)[-1]  # export UNIROS_DOMAIN=tcp://...
-    assert uri == f"tcp://{pair.arm_ip}:{port}", uri
-    arm.start_reader()
-    return arm, uri
+    uri = f"tcp://{pair.arm_ip}:{port}"
+    argv = [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--host", pair.arm_ip, "--port",
+            str(port), "--command-timeout", str(COMMAND_TIMEOUT_S), "--max-command-age", str(max_command_age_s),
+            "--trace"]  # fmt: skip
+    return _start_served(pair, peers, argv, f"export UNIROS_DOMAIN={uri}", env=env), uri
 
 
 def start_agent(
@@ -98,13 +111,8 @@ def start_agent(
 
 def require_ros1() -> None:
     """Skip the test when ROS 1 is not installed, saying what is missing; fail instead under
-    ``UNIROS_REQUIRE_ROS=1`` (``.ci/run``: ROS 1 must be there)."""
-    reason = ros1_missing()
-    if reason is None:
-        return
-    if os.environ.get("UNIROS_REQUIRE_ROS") == "1":
-        pytest.fail(f"UNIROS_REQUIRE_ROS=1 but {reason}")
-    pytest.skip(reason)
+    ``UNIROS_REQUIRE_ROS=1``."""
+    skip_or_fail(ros1_missing(), "UNIROS_REQUIRE_ROS")
 
 
 def start_rosmaster(pair: NetnsPair, peers: list[EventPeer], home: Path) -> tuple[str, dict[str, str]]:
@@ -119,18 +127,9 @@ def start_rosmaster(pair: NetnsPair, peers: list[EventPeer], home: Path) -> tupl
 def start_ros1_driver(pair: NetnsPair, peers: list[EventPeer], master_uri: str, extra: Sequence[str] = ()) -> EventPeer:
     """Our sim as the rx200's ROS 1 driver (``uniros robot serve --ros1-master``) in the arm's namespace, allowed
     beyond loopback (ROS 1 cannot authenticate: only the test's two namespaces reach it), with ``extra`` arguments."""
-    proc = pair.popen(
-        "arm",
-        [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--ros1-master", master_uri,
-         "--ros-host", pair.arm_ip, "--insecure", *extra],
-    )  # fmt: skip
-    driver = EventPeer(proc)
-    peers.append(driver)
-    assert proc.stdout is not None
-    ready = proc.stdout.readline().strip()
-    assert ready == f"export ROS_MASTER_URI={master_uri}", ready
-    driver.start_reader()
-    return driver
+    argv = [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--ros1-master", master_uri,
+            "--ros-host", pair.arm_ip, "--insecure", *extra]  # fmt: skip
+    return _start_served(pair, peers, argv, f"export ROS_MASTER_URI={master_uri}")
 
 
 def uncaught(agent: EventPeer) -> list[dict[str, Any]]:
