@@ -106,6 +106,7 @@ def _figures(d: Delayed, t0: int, t1: int) -> dict[str, Any]:
     saw = [e for e in errors if "round trip to the arm measured" in e["msg"]] or errors
     # since the agent started, not only in the window: its first reset too
     returned = agent.after(0, "step") + agent.after(0, "reset")
+    all_cmds = [e for e in arm.after(0, "cmd") if e["t_ns"] <= t1]
     return {
         "fault": f"delay {d.delay_s * 1000:.0f} ms +- {d.jitter_s * 1000:.0f} ms each way (relay)",
         "link": "tcp",
@@ -124,13 +125,16 @@ def _figures(d: Delayed, t0: int, t1: int) -> dict[str, Any]:
         "action_cycle_max_s": round(max(cycles), 3) if cycles else None,
         "robot_errors": len(errors),
         "agent_saw": saw[0]["msg"] if saw else "no error",
-        "first_report": errors[0]["msg"] if errors else None,
+        "first_report_since_start": next((e["msg"] for e in agent.after(0, "robot_error")), None),
         "episode_ends": len(ends),
         "end_info": ends[0]["info"] if ends else None,
         "truncated": sum(1 for e in ends if e["truncated"]),
         "commands_applied": len(applied),
         "commands_dropped_stale": len(cmds) - len(applied),
         "max_age_applied_s": round(max((e["age_ns"] for e in applied), default=0) * s, 3),
+        "commands_since_start": len(all_cmds),
+        "commands_applied_since_start": sum(1 for e in all_cmds if e["applied"]),
+        "first_command_age_s": round(all_cmds[0]["age_ns"] * s, 3) if all_cmds else None,
         "holds": len(between(arm, "hold")),
         "uncaught_exceptions": len(uncaught(agent)),
     }
@@ -193,6 +197,7 @@ def test_delay(delayed: Delayed) -> None:
     assert low - MEASURE_SLACK_S <= named <= high + CODE_PATH_S, saw
     age = float(saw.split(" s old")[0].rsplit(" ", 1)[1])
     assert age > ROBOT_TIMEOUT_S, saw
-    assert row["commands_applied"] == 0 and row["commands_dropped_stale"] > 0, row  # the arm never moved
+    # the arm never moved: what the env sent before it knew (its first reset's commands) came too old
+    assert row["commands_applied_since_start"] == 0 and row["commands_since_start"] > 0, row
     # the delay taken down: the same env steps again by itself, on a fresh state, and the arm takes commands
     assert row["recovered_step_state_stamp_age_s"] <= ROBOT_TIMEOUT_S + CODE_PATH_S, row
