@@ -7,9 +7,9 @@ before the chunk read ahead of it (the byte stream keeps its order, as TCP's doe
 TCP's own window instead of the relay's memory growing. Connection setup is not delayed (the relay accepts and
 connects at once), only the bytes; a reset or an end on one side is passed on.
 
-Transparent use in a network namespace (``NetnsPair.delay_through``): nftables redirects every tcp connection that enters
-the arm's namespace over the veth link, and every one its processes open across it, to the relay's port; the relay
-reads each connection's original destination (``SO_ORIGINAL_DST``) and connects there itself, its own outgoing
+Transparent use in a network namespace (``NetnsPair.delay_through``): nftables redirects every tcp connection that
+enters the arm's namespace over the veth link, and every one its processes open across it, to the relay's port; the
+relay reads each connection's original destination (``SO_ORIGINAL_DST``) and connects there itself, its own outgoing
 connections marked (``SO_MARK``) so that they are not redirected again. So each byte that crosses the link passes
 the relay once, whichever side opened the connection::
 
