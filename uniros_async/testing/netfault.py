@@ -356,15 +356,22 @@ def _plain(value: Any) -> Any:
 def _state_fields(u: Any) -> dict[str, Any]:
     """The newest joint state's age by its stamp (meaningful when the arm shares this machine's monotonic clock) and
     as the env estimates it, and the link's round trip the env measured (the newest, and the one its clock offset
-    comes from; None: none)."""
-    js = u._js.latest()
-    rtt, used = u._transit.round_trip_ns, u._transit.offset_round_trip_ns
-    return {
-        "state_stamp_age_s": (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0,
-        "state_age_s": u._state_age_s(),
-        "round_trip_s": None if rtt is None else rtt / 1e9,
-        "offset_round_trip_s": None if used is None else used / 1e9,
-    }
+    comes from; None: none). Read on the env's own loop, whose bookkeeping reading the age updates."""
+
+    async def read() -> dict[str, Any]:
+        js = u._js.latest()
+        rtt, used = u._transit.round_trip_ns, u._transit.offset_round_trip_ns
+        return {
+            "state_stamp_age_s": (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0,
+            "state_age_s": u._state_age_s(),
+            "round_trip_s": None if rtt is None else rtt / 1e9,
+            "offset_round_trip_s": None if used is None else used / 1e9,
+        }
+
+    try:
+        return dict(u._call(read(), 5.0))
+    except Exception as exc:  # noqa: BLE001 - the env's world is gone: said here, raised by the next step or reset
+        return {"state_fields_error": f"{type(exc).__name__}: {exc}"}
 
 
 def _loop_late_s(u: Any, window_s: float) -> float:
