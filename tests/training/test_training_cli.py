@@ -22,7 +22,7 @@ def uniros(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess[st
     )
 
 
-def test_train_sigterm_resume_eval_plot(tmp_path: Path) -> None:
+def test_train_sigterm_resume_eval_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     run = tmp_path / "smoke"
     proc = subprocess.Popen(
         [
@@ -84,6 +84,11 @@ def test_train_sigterm_resume_eval_plot(tmp_path: Path) -> None:
     png = tmp_path / "curves.png"
     assert main(["plot", str(run), "--out", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    task = (run / "episodes.csv").read_text().splitlines()[1].split(",")[1]
+    one = tmp_path / "one.png"
+    assert main(["plot", str(run), "--out", str(one), "--tasks", task]) == 0 and one.exists()
+    assert main(["plot", str(run), "--out", str(one), "--tasks", "ned2_nowhere"]) == 2
+    assert f"--tasks: no run has ['ned2_nowhere']; the runs' tasks are ['{task}']" in capsys.readouterr().err
 
 
 def test_bad_input_exits_2_before_anything_starts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

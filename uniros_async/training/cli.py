@@ -88,6 +88,7 @@ def add_parsers(subparsers: Any) -> None:
     p.add_argument("--labels", nargs="+", default=None, help="one legend label per run")
     p.add_argument("--window", type=int, default=20, help="episodes per moving average (default 20)")
     p.add_argument("--title", default=None, help="figure title")
+    p.add_argument("--tasks", nargs="+", default=None, help="draw only these envs of each run (e.g. ned2_sim)")
     p.add_argument(
         "--x",
         choices=("steps", "minutes"),
@@ -230,7 +231,15 @@ def _run_eval(args: argparse.Namespace) -> int:
 def _run_plot(args: argparse.Namespace) -> int:
     from uniros_async.training.plot import plot_runs
 
-    out = plot_runs(args.run_dirs, out=args.out, labels=args.labels, window=args.window, title=args.title, x=args.x)
+    out = plot_runs(
+        args.run_dirs,
+        out=args.out,
+        labels=args.labels,
+        window=args.window,
+        title=args.title,
+        x=args.x,
+        tasks=args.tasks,
+    )
     print(f"wrote {out}")
     return 0
 

@@ -76,6 +76,7 @@ def plot_runs(
     window: int = 20,
     title: str | None = None,
     x: str = "steps",
+    tasks: Sequence[str] | None = None,
 ) -> Path:
     """Draw the three panels for every run (and task) into one PNG; returns its path.
 
@@ -85,10 +86,12 @@ def plot_runs(
         window: training episodes per moving average.
         x: ``"steps"`` (env steps, summed over the envs of a run) or ``"minutes"`` (wall-clock minutes since
             training started, from the logs' ``wall_s``).
+        tasks: draw only these envs of each run (the names in its logs' ``task`` column, e.g. ``ned2_sim``);
+            None: every env.
 
     Raises:
-        ConfigError: a directory without logs, a label count that does not match the runs, or ``x="minutes"`` for
-            a run whose logs have no wall-clock times.
+        ConfigError: a directory without logs, a label count that does not match the runs, ``x="minutes"`` for
+            a run whose logs have no wall-clock times, or a task that none of the runs has.
     """
     import matplotlib
 
@@ -108,6 +111,15 @@ def plot_runs(
         for run, (eps, evs) in zip(run_dirs, curves, strict=True):
             if any(np.isnan(g["wall_s"]).any() for g in [*eps.values(), *evs.values()]):
                 raise ConfigError(f"{str(run)!r}: its logs have no wall_s column (a run older than it); use x='steps'")
+    if tasks is not None:
+        known = list(dict.fromkeys(t for eps, evs in curves for t in [*eps, *evs]))
+        missing = [t for t in tasks if t not in known]
+        if missing:
+            raise ConfigError(f"--tasks: no run has {missing}; the runs' tasks are {known}")
+        curves = [
+            ({t: g for t, g in eps.items() if t in tasks}, {t: g for t, g in evs.items() if t in tasks})
+            for eps, evs in curves
+        ]
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
     colors: Any = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     k = 0
