@@ -29,11 +29,11 @@ The class belongs to the thread that runs the loop, from the moment the loop is 
 The workers of one vector env get distinct priorities (``raise_loop_priority(rank)``: the first the highest, up to
 ``MAX_LOOP_RANK`` above the base), and an agent's acting thread (``real_time_thread``) one above them all. A step's
 actions wake every worker at once; with fewer cores than workers they then run one after the other, and at equal
-priority in whatever order the scheduler picks, so each env got its action at a different point of each action
-cycle. Ranked, they run in a fixed order and each env's action arrives at the same point every cycle: for the four
-envs of ``uniros bench latency`` on 2 cores, the IQR of when the action reached each env loop went from 0.62-1.17
-ms to 0.23-0.68 ms (docs/perf/history.md). The acting thread above them hands out all actions before the first
-woken worker can take its core.
+priority in whatever order the scheduler picks, so each env gets its action at a different point of each action
+cycle. Ranked, they run in a fixed order and each env's action arrives at the same point every cycle (for the four
+envs of ``uniros bench latency`` on 2 cores, docs/perf/history.md has the spread of when the action reached each
+env loop, with and without ranks). The acting thread above them hands out all actions before the first woken
+worker can take its core.
 
 Both need root or CAP_SYS_NICE: without it the thread falls back to a lower nice value, and without that keeps
 its priority (a debug log says so). ``UNIROS_LOOP_PRIORITY`` chooses: ``rt`` (default: SCHED_RR, else nice),
@@ -50,7 +50,7 @@ import platform
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 __all__ = [
     "ACTOR_GIL_SWITCH_S",
@@ -65,6 +65,7 @@ __all__ = [
     "loop_priority_mode",
     "raise_loop_priority",
     "real_time_thread",
+    "reap",
     "run_steps_through",
     "STEP_SLICE_NS",
     "thread_ids",
@@ -307,11 +308,11 @@ def cores_kept_awake(cpus: set[int] | None = None) -> Iterator[list[int]]:
 
     What ``idle=poll`` (or cyclictest's hold on ``/dev/cpu_dma_latency``) does for real-time Linux, without a reboot
     or privileges. On a virtual machine a halted core is handed back to the host, and waking it again for a timer
-    or a message costs the hypervisor's scheduling delay: on this project's machines that showed up as 1-4 % CPU
-    steal and ticks 5-35 ms late during the latency benchmark, and as 0.1-0.7 % steal with pollers (docs/perf/
-    history.md). Any ordinary or real-time thread preempts a poller at once; the cost is power (the cores stay
-    at 100 %) and, on SMT siblings, some of the sibling's throughput. The pollers die with this process (parent-
-    death signal, and they check their parent), so none outlives even a SIGKILL.
+    or a message costs the hypervisor's scheduling delay, seen as CPU steal and late ticks in the latency benchmark
+    (docs/perf/history.md has both, with and without pollers). Any ordinary or real-time thread preempts a poller
+    at once; the cost is power (the cores stay at 100 %) and, on SMT siblings, some of the sibling's throughput.
+    The pollers die with this process (parent-death signal, and they check their parent), so none outlives even a
+    SIGKILL.
     """
     if not hasattr(os, "SCHED_IDLE") or not hasattr(os, "sched_getaffinity"):
         yield []
@@ -336,14 +337,20 @@ def cores_kept_awake(cpus: set[int] | None = None) -> Iterator[list[int]]:
                 raise RuntimeError(f"a core poller (pid {p.pid}) did not start: exit code {p.poll()}")
         yield [p.pid for p in procs]
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-        for p in procs:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                p.wait(timeout=5.0)
-            if p.stdout is not None:
-                p.stdout.close()
+        reap(procs)
+
+
+def reap(procs: Sequence[subprocess.Popen[bytes]], timeout_s: float = 5.0) -> None:
+    """End helper processes of ours that hold no state (core pollers, load spinners): kill those still running,
+    wait up to ``timeout_s`` for each to exit, and close their stdout pipes."""
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+    for p in procs:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            p.wait(timeout=timeout_s)
+        if p.stdout is not None:
+            p.stdout.close()
 
 
 def _readline_until(p: subprocess.Popen[bytes], deadline: float) -> bytes:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import signal
@@ -12,6 +11,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from uniros_async.testing.netfault import EventPeer, NetnsPair, fault_figures
+
+from ._arm import report, uncaught
 
 FAULT_S = 2.0
 RECOVER_S = 15.0
@@ -62,13 +63,6 @@ FAULTS: dict[str, tuple[Callable[[Link], Callable[[], None]], bool]] = {
 }
 
 
-def _report(row: dict[str, Any]) -> None:
-    path = os.environ.get("UNIROS_FAULT_REPORT")
-    if path:
-        with open(path, "a") as f:
-            f.write(json.dumps(row) + "\n")
-
-
 def run_fault(
     link: Link,
     name: str,
@@ -105,10 +99,9 @@ def run_fault(
         robot_timeout_s=robot_timeout_s,
     )
     row["link"] = robot
-    _report(row)
-    print(json.dumps(row))
-    uncaught = [e for e in agent.events if e["ev"] == "error"]
-    assert not uncaught, uncaught[0]["tb"]
+    report(row)
+    errors = uncaught(agent)
+    assert not errors, errors[0]["tb"]
     if check_ages:
         assert row["stale_commands_applied"] == 0, row
         # no step returned on a state older than the timeout, by its own stamp (the arm shares this clock)

@@ -3,18 +3,13 @@
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
 from uniros_async.testing.netfault import netfault_missing
 
+from ._arm import skip_or_fail
+
 
 @pytest.fixture(scope="session")
 def netfault_ready() -> None:
-    reason = netfault_missing()
-    if reason is None:
-        return
-    if os.environ.get("UNIROS_REQUIRE_NETFAULT") == "1":
-        pytest.fail(f"UNIROS_REQUIRE_NETFAULT=1 but {reason}")
-    pytest.skip(reason)
+    skip_or_fail(netfault_missing(), "UNIROS_REQUIRE_NETFAULT")

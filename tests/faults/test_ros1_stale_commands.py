@@ -2,7 +2,7 @@
 
 The arm's driver commands carry no stamp (``interbotix_xs_msgs/JointGroupCommand``), so only the bridge can keep
 old ones from the arm: while the link is cut, what it publishes waits in the kernel's send queue of its TCPROS
-connection, and TCP delivers it when the link heals. The bridge resets such a connection (``Ros1Bridge.guard``).
+connection, and TCP delivers it when the link heals. The bridge resets such a connection (``Ros1Bridge.run_commands``, its guard).
 
 In the arm's namespace: a real ``rosmaster``, our sim as the rx200's ROS 1 driver (``uniros robot serve
 --ros1-master``, which publishes the joint states the bridge needs) and a real rospy subscriber to the driver's
@@ -19,8 +19,6 @@ what the guard is for (and shows the test can see them).
 
 from __future__ import annotations
 
-import json
-import os
 import signal
 import sys
 import time
@@ -32,18 +30,18 @@ from typing import Any
 import pytest
 
 from uniros_async.testing.netfault import EventPeer, NetnsPair, open_netns_pair
-from uniros_async.testing.ros1 import ros1_missing, ros1_python, ros_env, rosmaster_bin
+from uniros_async.testing.ros1 import ros1_python
+
+from ._arm import ROBOT_TIMEOUT_S, START_S, report, require_ros1, start_ros1_driver, start_rosmaster, stopping
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("netfault_ready")]
 
-ROBOT_TIMEOUT_S = 0.5
 FAULT_S = 2.0
 SETTLE_S = 1.0
 RECOVER_S = 20.0
 """A bound against a hang, not a figure: after the heal the joint states come back when TCP's retransmission timer
 (backed off during the fault) fires again, then the bridge registers its publication anew and the subscribers
 reconnect; the time it took is printed and recorded (docs/reliability.md)."""
-MASTER_PORT = 11311
 TOPIC = "/rx200/commands/joint_group"
 RECORDER = Path(__file__).with_name("ros1_command_recorder.py")
 
@@ -57,35 +55,17 @@ class Arm:
 
 @pytest.fixture(scope="module")
 def arm(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Arm]:
-    reason = ros1_missing()
-    if reason is not None:
-        if os.environ.get("UNIROS_REQUIRE_ROS") == "1":  # .ci/run: ROS 1 must be there
-            pytest.fail(f"UNIROS_REQUIRE_ROS=1 but {reason}")
-        pytest.skip(reason)
+    require_ros1()
     home = Path(tmp_path_factory.mktemp("ros_home"))
-    with open_netns_pair() as pair:
-        master_uri = f"http://{pair.arm_ip}:{MASTER_PORT}/"
-        env = {**ros_env(master_uri, home=home), "ROS_HOSTNAME": pair.arm_ip}
-        peers = [EventPeer(pair.popen("arm", [rosmaster_bin(), "--core", "-p", str(MASTER_PORT)], env=env))]
-        try:
-            driver_proc = pair.popen(
-                "arm",
-                [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--ros1-master", master_uri,
-                 "--ros-host", pair.arm_ip, "--insecure"],
-            )  # fmt: skip
-            peers.append(EventPeer(driver_proc))
-            assert driver_proc.stdout is not None
-            ready = driver_proc.stdout.readline().strip()
-            assert ready == f"export ROS_MASTER_URI={master_uri}", ready
-            peers[-1].start_reader()
-            recorder = EventPeer(pair.popen("arm", [ros1_python(), str(RECORDER), TOPIC], env=env))
-            peers.append(recorder)
-            recorder.start_reader()
-            _wait_line(recorder, "ready", 60)
-            yield Arm(pair, master_uri, recorder)
-        finally:
-            for peer in reversed(peers):
-                peer.stop(signal.SIGINT)  # rospy and rosmaster shut down cleanly on SIGINT
+    # rospy and rosmaster shut down cleanly on SIGINT
+    with open_netns_pair() as pair, stopping(signal.SIGINT) as peers:
+        master_uri, env = start_rosmaster(pair, peers, home)
+        start_ros1_driver(pair, peers, master_uri)
+        recorder = EventPeer(pair.popen("arm", [ros1_python(), str(RECORDER), TOPIC], env=env))
+        peers.append(recorder)
+        recorder.start_reader()
+        _wait_line(recorder, "ready", START_S)
+        yield Arm(pair, master_uri, recorder)
 
 
 def _wait_line(peer: EventPeer, text: str, timeout_s: float) -> None:
@@ -150,7 +130,7 @@ def test_partition_delivers_no_stale_command(arm: Arm, guarded: bool) -> None:
     )
     commander.start_reader()
     try:
-        ready = commander.wait_for(0, "ready", 60, "the bridge up")["t_ns"]
+        ready = commander.wait_for(0, "ready", START_S, "the bridge up")["t_ns"]
         _wait_arrival_sent_after(arm, commander, ready, 10, "the bridge came up")
         pair.partition()
         t_fault = time.monotonic_ns()
@@ -184,11 +164,7 @@ def test_partition_delivers_no_stale_command(arm: Arm, guarded: bool) -> None:
         "first_fresh_after_heal_s": round((recovered - t_heal) / 1e9, 3),
         "bridge": {k: v for k, v in stats.items() if k not in ("ev", "t_ns")},
     }
-    print(json.dumps(row))
-    path = os.environ.get("UNIROS_FAULT_REPORT")
-    if path:
-        with open(path, "a") as f:
-            f.write(json.dumps(row) + "\n")
+    report(row)
     assert _arrivals(arm, sent, t_fault - round(ROBOT_TIMEOUT_S * 1e9)), "no command arrived around the fault"
     if guarded:
         assert not stale, f"{len(stale)} commands published before heal - {ROBOT_TIMEOUT_S} s arrived after it: {row}"

@@ -16,58 +16,26 @@ Delay and jitter are in test_tcp_arm_delay.py (this kernel has no netem: the tes
 
 from __future__ import annotations
 
-import os
-import secrets
-import sys
 from collections.abc import Iterator
 
 import pytest
 
-from uniros_async.testing.netfault import EventPeer, open_netns_pair
+from uniros_async.testing.netfault import open_netns_pair
 
+from ._arm import COMMAND_TIMEOUT_S, PERIOD_S, ROBOT_TIMEOUT_S, START_S, auth_env, start_agent, start_tcp_arm, stopping
 from ._faults import FAULTS, Link, run_fault
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("netfault_ready")]
 
-ROBOT_TIMEOUT_S = 0.5
-COMMAND_TIMEOUT_S = 0.5
-PERIOD_S = 0.1  # rx200: 10 Hz
-PORT = 7000
-
 
 @pytest.fixture(scope="module")
 def link(netfault_ready: None) -> Iterator[Link]:
-    py = sys.executable
-    # a listener beyond loopback needs the domain's key: the arm's domain and the env's node both read it
-    env = {**os.environ, "UNIROS_AUTH_KEY": secrets.token_hex(16)}
-    with open_netns_pair() as pair:
-        arm_proc = pair.popen(
-            "arm",
-            [py, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--host", pair.arm_ip, "--port", str(PORT),
-             "--command-timeout", str(COMMAND_TIMEOUT_S), "--max-command-age", str(ROBOT_TIMEOUT_S), "--trace"],
-            env=env,
-        )  # fmt: skip
-        arm = EventPeer(arm_proc)
-        agent: EventPeer | None = None
-        try:
-            assert arm_proc.stdout is not None
-            uri = arm_proc.stdout.readline().strip().split("=", 1)[-1]  # export UNIROS_DOMAIN=tcp://...
-            assert uri == f"tcp://{pair.arm_ip}:{PORT}", uri
-            arm.start_reader()
-            agent_proc = pair.popen(
-                "env",
-                [py, "-m", "uniros_async.testing.netfault", "drive", "--robot", uri,
-                 "--robot-timeout", str(ROBOT_TIMEOUT_S), "--action-cycle", "0.2"],
-                env=env,
-            )  # fmt: skip
-            agent = EventPeer(agent_proc)
-            agent.start_reader()
-            agent.wait_for(0, "step", 60, "the agent's first step")
-            yield Link(pair, arm, agent)
-        finally:
-            if agent is not None:
-                agent.stop()
-            arm.stop()
+    env = auth_env()
+    with open_netns_pair() as pair, stopping() as peers:
+        arm, uri = start_tcp_arm(pair, peers, env)
+        agent = start_agent(pair, peers, uri, env=env)
+        agent.wait_for(0, "step", START_S, "the agent's first step")
+        yield Link(pair, arm, agent)
 
 
 @pytest.mark.parametrize("name", list(FAULTS))

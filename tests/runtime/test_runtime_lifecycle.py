@@ -243,3 +243,61 @@ def test_tcp_transport_works_and_reports_a_killed_worker() -> None:
     finally:
         venv.close()
     assert _wait_gone([p for p in venv.pids if p is not None], 1.0) == []
+
+
+POLL_SYSCALLS = {7, 271}  # x86_64 poll, ppoll
+
+
+def _syscall(pid: int, tid: int) -> int:
+    with open(f"/proc/{pid}/task/{tid}/syscall") as f:
+        first = f.read().split()[0]
+    return int(first) if first.lstrip("-").isdigit() else -1
+
+
+def _switches(pid: int, tid: int) -> int:
+    with open(f"/proc/{pid}/task/{tid}/status") as f:
+        fields = dict(line.split(":", 1) for line in f if "ctxt_switches" in line)
+    return sum(int(v) for v in fields.values())
+
+
+def test_the_parent_watchdog_sleeps_until_the_parent_exits() -> None:
+    """The worker's watchdog thread takes no GIL while its parent lives (no wake-ups a real-time loop could wait
+    behind), and still notices the parent's exit: here a middle process that starts a waiter and is killed."""
+    venv = make_vec([RX], clock="sim")
+    try:
+        venv.reset(seed=0)
+        pid = venv.pids[0]
+        assert pid is not None
+        polling = [t for t in map(int, os.listdir(f"/proc/{pid}/task")) if _syscall(pid, t) in POLL_SYSCALLS]
+        assert polling, "no thread of the worker waits in poll(2): the watchdog is not on its pidfd"
+        before = {t: _switches(pid, t) for t in polling}
+        time.sleep(0.6)  # a 0.1 s poll of getppid() would have woken six times
+        assert any(_switches(pid, t) == n for t, n in before.items()), before
+    finally:
+        venv.close()
+    middle = textwrap.dedent(
+        """
+        import subprocess, sys, time
+        waiter = subprocess.Popen([sys.executable, "-c",
+            "import os, time; from uniros_async.runtime.worker import _wait_for_exit; "
+            "print(os.getpid(), flush=True); t0 = time.monotonic(); _wait_for_exit(os.getppid()); "
+            "print(round(time.monotonic() - t0, 3), flush=True)"])
+        time.sleep(120)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", middle], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        waiter = int(proc.stdout.readline())
+        time.sleep(0.3)
+        assert _alive(waiter)  # still waiting: its parent lives
+        proc.kill()
+        proc.wait(5)
+        assert _wait_gone([waiter], 5.0) == []  # it returned and exited once the parent was gone
+        assert float(proc.stdout.readline()) >= 0.3
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+        if proc.stdout is not None:
+            proc.stdout.close()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import statistics
+import time
 
 import numpy as np
 import pytest
@@ -213,3 +214,36 @@ async def test_emulated_arm_is_perturbed_noisy_and_delayed() -> None:
             assert sim_node.sim.stats.commands == 1
             await clock.sleep(1.5)
             assert abs(states.latest().position[0] - 0.4) < 0.03
+
+
+@pytest.mark.parametrize("emulated", [False, True], ids=["sim", "emulated"])
+async def test_joint_states_echo_the_newest_command_received(emulated: bool) -> None:
+    """Wall clock: every state echoes the stamp of the newest command the arm received and how long before its own
+    stamp that command came (the env's round trip of the link, envs/transit.py); -1 before any. An emulated arm's
+    command latency (0.15 s here) counts as the link's: it is in the round trip."""
+    latency_s = 0.15 if emulated else 0.0
+    emu = EmulationConfig(
+        seed=1,
+        command_latency=LatencyModel(base_s=latency_s, jitter_s=0.0, distribution="constant"),
+        state_latency=LatencyModel(base_s=0.0, jitter_s=0.0, distribution="constant"),
+    )
+    async with open_domain("memory://") as domain:
+        async with (
+            open_servo_sim("rx200", domain=domain, emulation=emu if emulated else None),
+            open_node("env", domain=domain) as env,
+        ):
+            states = await env.create_subscription(JointState, "/rx200/joint_states")
+            pub = await env.create_publisher(JointCommand, "/rx200/command")
+            async with asyncio.timeout(5):
+                first = await states.receive()
+            assert first.command_stamp_ns is None and first.command_age_ns == -1
+            sent_ns = time.monotonic_ns()
+            pub.publish(JointCommand(header=Header(stamp_ns=sent_ns, seq=7), position=np.zeros(5)))
+            async with asyncio.timeout(5):
+                while (echo := await states.receive()).command_stamp_ns != sent_ns:
+                    pass
+            arrival_ns = states.latest_recv_ns
+    age = echo.command_age_ns
+    assert age is not None and 0 <= age <= arrival_ns - sent_ns
+    round_trip_s = (arrival_ns - sent_ns - age) / 1e9
+    assert latency_s <= round_trip_s < latency_s + 1.0, round_trip_s  # the latency each command is held, at least

@@ -22,10 +22,10 @@ Command types (``command_type``), each what a common ROS 1 arm driver listens to
 - ``std_msgs/Float64MultiArray`` on a ros_control JointGroupPositionController's ``command`` topic: the positions.
 
 The env already refuses unsafe targets; the bridge checks joint limits once more. A command a hair past a limit
-(``LIMIT_CLAMP_RAD``) is clamped to it, as the servos would; one further out, or of the wrong length, is dropped and
-counted, never sent. It serves ``hold`` (command the newest measured position) and ``stats`` (counters), like the
-servo sim. Joint states that lack an arm joint are dropped and counted (the first such message logs which names
-were missing and which came); a missing non-arm joint (a gripper finger) reads 0.0, logged once.
+(``_bridge.LIMIT_CLAMP_RAD``) is clamped to it, as the servos would; one further out, or of the wrong length, is
+dropped and counted, never sent. It serves ``hold`` (command the newest measured position) and ``stats``
+(counters), like the servo sim. Joint states that lack an arm joint are dropped and counted (the first such message
+logs which names were missing and which came); a missing non-arm joint (a gripper finger) reads 0.0, logged once.
 
 No command older than ``max_command_age_s`` reaches the driver. The drivers' command messages carry no stamp (an
 Interbotix ``JointGroupCommand`` has no header), so the driver cannot drop an old one: in a partition the commands
@@ -46,12 +46,15 @@ The commands' publisher therefore lives in a ROS node of its own (``<name>_cmd<N
 subscribes to the joint states.
 
 The env's placement sets ``max_command_age_s`` to its ``robot_timeout_s``.
+
+The translation, the checks and the ``hold`` and ``stats`` services are the ROS 2 bridge's too (``_bridge.Bridge``,
+which ``Ros1Bridge`` and ``Ros2Bridge`` derive from); this module holds the ROS 1 messages, the command guard and
+the ROS 1 node that carries them.
 """
 
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import dataclasses
 import itertools
@@ -64,10 +67,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from uniros_async.adapters._bridge import Bridge, serve_bridge
 from uniros_async.adapters.drivers import ros_driver_defaults
 from uniros_async.backoff import Backoff
 from uniros_async.bus import open_domain, open_node
-from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
+from uniros_async.bus.messages import JointState
 from uniros_async.bus.qos import latest
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
@@ -99,13 +103,6 @@ COMMAND_TYPES = (
     "std_msgs/Float64MultiArray",
 )
 
-LIMIT_CLAMP_RAD = 0.05
-"""How far beyond a joint limit a command may reach and still be sent, clamped to the limit (counted in
-``commands_clamped``), as the servo sim and the servos themselves clip it: holding where the arm measures itself
-(the env's hold) can ask for a hair past a limit the arm sits at, through sensor noise or overshoot. Further out,
-a command is refused."""
-TRANSIT_WINDOW_S = 60.0
-"""How far back ``Ros1Bridge.queued_ns`` looks for the quickest joint state."""
 _instances = itertools.count(1)
 ROS1_SETTINGS = (
     "driver",
@@ -210,184 +207,24 @@ class Ros1BridgeConfig:
         return get_robot_spec(self.robot)
 
 
-@dataclasses.dataclass
-class BridgeStats:
-    """Counters of one bridge (the ``stats`` service returns them)."""
-
-    states_in: int = 0
-    states_dropped: int = 0
-    commands_out: int = 0
-    commands_clamped: int = 0
-    commands_rejected: int = 0
-    commands_stale: int = 0
-    connections_reset: int = 0
-    command_node_restarts: int = 0
-
-
-class Ros1Bridge:
-    """The translation both ways, for one arm (built by ``open_ros1_bridge``)."""
+class Ros1Bridge(Bridge[Ros1BridgeConfig]):
+    """The translation both ways, for one arm, with ROS 1 messages and the command guard (built by
+    ``open_ros1_bridge``)."""
 
     def __init__(
         self, config: Ros1BridgeConfig, publish: Callable[[JointState], None], now_ns: Callable[[], int]
     ) -> None:
         from uniros_async.adapters.ros1 import msgs
 
-        self.config = config
-        self.spec = spec = config.spec
-        self.stats = BridgeStats()
-        self._send: Callable[[Any], None] | None = None  # the command publisher's, while ``run_commands`` has one
-        self.ros_pub: Ros1Publisher[Any] | None = None
-        self._publish = publish
-        self._now_ns = now_ns
+        super().__init__(config, publish, now_ns)
+        self.ros_pub: Ros1Publisher[Any] | None = None  # ``run_commands``'s, while it has one (and ``_send``)
         self._msgs = msgs
-        self._n_arm = len(spec.arm_joint_names)
-        self._lower = np.asarray(spec.joint_lower_rad, dtype=np.float64)
-        self._upper = np.asarray(spec.joint_upper_rad, dtype=np.float64)
-        self._index_cache: dict[tuple[str, ...], np.ndarray | None] = {}
-        self._warned_missing: set[str] = set()
-        self._seq = 0
-        self.first_state = asyncio.Event()
-        self.last_q: np.ndarray | None = None  # newest measured arm positions
-        self.last_state_ns: int | None = None  # time.monotonic_ns() when it arrived
-        self._transit: collections.deque[tuple[int, int]] = collections.deque()  # (arrival, transit): increasing
-        self.period_s = 1.0 / spec.hardware_rate_hz
-        self.max_age_ns = None if config.max_command_age_s is None else round(config.max_command_age_s * 1e9)
         self.check_s = min(self.period_s, (config.max_command_age_s or self.period_s) / 4)
         """How often ``run_commands`` looks at the connections to the driver."""
-
-    # ------------------------------------------------------------------------------------------- ROS -> bus
-
-    def _index(self, names: tuple[str, ...]) -> np.ndarray | None:
-        """Where each of our ``joint_state_names`` sits in a ROS message with ``names`` (-1: absent), or None when
-        an arm joint is absent."""
-        try:
-            return self._index_cache[names]
-        except KeyError:
-            pass
-        where = {n: i for i, n in enumerate(names)}
-        idx = np.array([where.get(n, -1) for n in self.spec.joint_state_names], dtype=np.intp)
-        missing_arm = [n for n, i in zip(self.spec.arm_joint_names, idx, strict=False) if i < 0]
-        if missing_arm:
-            logger.error(
-                "%s: joint states on %s lack the arm joint(s) %s (they name %s); dropping such messages",
-                self.spec.name,
-                self.config.joint_states,
-                missing_arm,
-                list(names),
-            )
-            self._index_cache[names] = None
-            return None
-        for n, i in zip(self.spec.joint_state_names, idx, strict=True):
-            if i < 0 and n not in self._warned_missing:
-                self._warned_missing.add(n)
-                logger.warning(
-                    "%s: joint states on %s have no %r; it reads 0.0", self.spec.name, self.config.joint_states, n
-                )
-        self._index_cache[names] = idx
-        return idx
-
-    def on_ros_state(self, msg: Any) -> None:
-        """A ``sensor_msgs/JointState`` from the driver: republish it as ours, in our joint order."""
-        idx = self._index(tuple(msg.name))
-        if idx is None:
-            self.stats.states_dropped += 1
-            return
-        n = len(self.spec.joint_state_names)
-        fields = []
-        for arr in (msg.position, msg.velocity, msg.effort):
-            a = np.asarray(arr, dtype=np.float64)
-            out = np.zeros(n)
-            if a.shape == (len(msg.name),):  # ROS allows empty velocity / effort arrays
-                present = idx >= 0
-                out[present] = a[idx[present]]
-            fields.append(out)
-        if not np.all(np.isfinite(fields[0])):
-            self.stats.states_dropped += 1
-            logger.warning("%s: dropped a joint state with non-finite positions %s", self.spec.name, fields[0])
-            return
-        self._seq += 1
-        self.stats.states_in += 1
-        self.last_q = fields[0][: self._n_arm].copy()
-        self.last_state_ns = time.monotonic_ns()
-        queued = self.queued_ns(self.driver_stamp_ns(msg), time.time_ns(), self.last_state_ns)
-        self._publish(
-            JointState(
-                header=Header(stamp_ns=self._now_ns() - queued, seq=self._seq, frame_id=msg.header.frame_id),
-                name=self.spec.joint_state_names,
-                position=fields[0],
-                velocity=fields[1],
-                effort=fields[2],
-            )
-        )
-        self.first_state.set()
 
     def driver_stamp_ns(self, msg: Any) -> int:
         """The driver's stamp of a joint state (ROS time, ns; 0 if unstamped)."""
         return int(msg.header.stamp_ns)
-
-    def queued_ns(self, driver_stamp_ns: int, wall_ns: int, now_ns: int) -> int:
-        """How much longer than the quickest joint state of the last ``TRANSIT_WINDOW_S`` this one (stamped
-        ``driver_stamp_ns`` by the driver, ROS time) took to arrive (``wall_ns``, our wall clock): the time it
-        waited on the way, in a socket buffer or a cut link. Its stamp on the bus is that much before its arrival,
-        so an env counts it as old as it is (states a healed link delivers in a burst look fresh otherwise). An
-        offset between the driver's clock and ours cancels out, as does a delay every state has; 0 for a state
-        the driver did not stamp."""
-        if driver_stamp_ns <= 0:
-            return 0
-        transit = wall_ns - driver_stamp_ns
-        q = self._transit
-        while q and q[-1][1] >= transit:
-            q.pop()
-        q.append((now_ns, transit))
-        horizon = now_ns - round(TRANSIT_WINDOW_S * 1e9)
-        while len(q) > 1 and q[0][0] < horizon:
-            q.popleft()
-        return max(0, transit - q[0][1])
-
-    # ------------------------------------------------------------------------------------------- bus -> ROS
-
-    def state_age_s(self) -> float | None:
-        """Seconds since the newest joint state arrived (None before the first)."""
-        return None if self.last_state_ns is None else (time.monotonic_ns() - self.last_state_ns) / 1e9
-
-    def states_stale(self) -> bool:
-        """Whether the newest joint state is older than ``max_command_age_s`` (never when unguarded)."""
-        if self.max_age_ns is None:
-            return False
-        return self.last_state_ns is None or time.monotonic_ns() - self.last_state_ns > self.max_age_ns
-
-    def on_command(self, cmd: JointCommand) -> None:
-        """One of our ``JointCommand``: checked, then sent as one message of the driver's command type."""
-        if self.states_stale():
-            self.stats.commands_stale += 1
-            if self.stats.commands_stale == 1 or self.stats.commands_stale % 100 == 0:
-                logger.warning(
-                    "%s: command not sent to %s: the newest joint state is %.2f s old (max_command_age_s=%s); "
-                    "%d refused so far",
-                    self.spec.name,
-                    self.config.command,
-                    self.state_age_s() or float("inf"),
-                    self.config.max_command_age_s,
-                    self.stats.commands_stale,
-                )
-            return
-        q = np.asarray(cmd.position, dtype=np.float64)
-        if q.shape != (self._n_arm,) or not np.all(np.isfinite(q)):
-            self._reject(f"expected {self._n_arm} finite positions {self.spec.arm_joint_names}, got {q.tolist()}")
-            return
-        outside = (q < self._lower - LIMIT_CLAMP_RAD) | (q > self._upper + LIMIT_CLAMP_RAD)
-        if outside.any():
-            bad = {
-                j: f"{v:.4f} not in [{lo:.4f}, {hi:.4f}]"
-                for j, v, lo, hi, o in zip(self.spec.arm_joint_names, q, self._lower, self._upper, outside, strict=True)
-                if o
-            }
-            self._reject(f"beyond the joint limits (by more than {LIMIT_CLAMP_RAD} rad): {bad}")
-            return
-        clamped = np.clip(q, self._lower, self._upper)
-        if not np.array_equal(clamped, q):
-            self.stats.commands_clamped += 1
-        self._send_ros(self.ros_command(clamped, cmd.duration_s))
 
     def ros_command(self, q: np.ndarray, duration_s: float = 0.0) -> Any:
         """The driver's command message for arm positions ``q``."""
@@ -403,38 +240,6 @@ class Ros1Bridge:
         )
         header = m.RosHeader(seq=0, stamp_ns=0, frame_id="")  # stamp 0: start at once (ros_control's convention)
         return m.JointTrajectory(header=header, joint_names=list(self.spec.arm_joint_names), points=[point])
-
-    def _send_ros(self, msg: Any) -> bool:
-        """Send ``msg`` to the driver; False (counted as stale) while the command publisher is being replaced."""
-        if self._send is None:
-            self.stats.commands_stale += 1
-            return False
-        self._send(msg)
-        self.stats.commands_out += 1
-        return True
-
-    def _reject(self, why: str) -> None:
-        self.stats.commands_rejected += 1
-        logger.warning("%s: command not sent to %s: %s", self.spec.name, self.config.command, why)
-
-    # ------------------------------------------------------------------------------------------- services
-
-    def srv_hold(self, req: Empty) -> Trigger:
-        if self.last_q is None:
-            return Trigger(success=False, message="no joint state from the driver yet")
-        if self.states_stale():
-            self.stats.commands_stale += 1
-            return Trigger(
-                success=False,
-                message=f"the newest joint state is {self.state_age_s():.2f} s old "
-                f"(max_command_age_s={self.config.max_command_age_s}): not commanding a position that old",
-            )
-        if not self._send_ros(self.ros_command(self.last_q)):
-            return Trigger(success=False, message="the command publisher is being replaced; try again")
-        return Trigger(success=True, message=f"holding at {np.round(self.last_q, 4).tolist()}")
-
-    def srv_stats(self, req: Empty) -> Data:
-        return Data(value=dataclasses.asdict(self.stats))
 
     # ------------------------------------------------------------------------------------------- the guard
 
@@ -561,9 +366,7 @@ async def open_ros1_bridge(
         await ready  # RobotError: the master refused or did not answer
         ros_pub = bridge.ros_pub
         assert ros_pub is not None
-        await node.create_subscription(JointCommand, "command", bridge.on_command, qos=latest())
-        await node.create_service(Empty, Trigger, "hold", bridge.srv_hold)
-        await node.create_service(Empty, Data, "stats", bridge.srv_stats)
+        await bridge.serve_on(node)
         await ros.subscribe(config.joint_states, msgs.JointState, bridge.on_ros_state)
         t0 = time.monotonic()
         try:
@@ -583,16 +386,7 @@ async def open_ros1_bridge(
                 f"`rostopic info {config.command}` shows its subscribers; Ros1BridgeConfig.command / --command "
                 f"picks another)"
             ) from None
-        logger.info(
-            "%s: bridged %s -> %s/joint_states and %s/command -> %s (%s) in %.2f s",
-            spec.name,
-            config.joint_states,
-            ns,
-            ns,
-            config.command,
-            config.command_type,
-            time.monotonic() - t0,
-        )
+        bridge.log_bridged(ns, t0)
         yield bridge
 
 
@@ -611,13 +405,9 @@ async def serve_ros1_bridge(
         on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
         options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
     """
-    async with (
-        open_domain(f"tcp://{host}:{port}", options=options) as dom,
-        open_ros1_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
-    ):
-        if on_ready is not None:
-            on_ready(dom.uri)
-        await asyncio.Event().wait()  # until cancelled
+    await serve_bridge(
+        open_ros1_bridge, config, host=host, port=port, namespace=namespace, on_ready=on_ready, options=options
+    )
 
 
 # ------------------------------------------------------------------------------------------------ the placement

@@ -6,8 +6,9 @@
 
 It is the ROS 1 bridge's twin (``ros1_bridge.py``): the same translation, joint order, limit checks (a command a
 hair past a joint limit is clamped, one further out refused and counted, never sent), ``hold`` and ``stats``
-services; ``Ros2Bridge`` inherits them and only builds ROS 2 messages. The ROS side is a DDS participant
-(``adapters/ros2``): joint states are read best effort (matching any driver's publisher), commands sent reliable.
+services; ``Ros2Bridge`` shares them with ``Ros1Bridge`` (both derive from ``_bridge.Bridge``) and only builds
+ROS 2 messages. The ROS side is a DDS participant (``adapters/ros2``): joint states are read best effort (matching
+any driver's publisher), commands sent reliable.
 
 Where the driver is: ``ros2://[DOMAIN_ID][/NAMESPACE][?driver=NAME&discovery=localhost|subnet&SETTING=VALUE]``.
 
@@ -41,13 +42,13 @@ import logging
 import time
 import urllib.parse
 from collections.abc import AsyncIterator, Callable
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from uniros_async.adapters.ros1_bridge import Ros1Bridge
+from uniros_async.adapters._bridge import Bridge, serve_bridge
 from uniros_async.bus import open_domain, open_node
-from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
+from uniros_async.bus.messages import JointState
 from uniros_async.bus.qos import latest
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
@@ -258,11 +259,10 @@ class Ros2BridgeConfig:
         return get_robot_spec(self.robot)
 
 
-class Ros2Bridge(Ros1Bridge):
-    """The ROS 1 bridge's translation and checks, with ROS 2 command messages (built by ``open_ros2_bridge``).
+class Ros2Bridge(Bridge[Ros2BridgeConfig]):
+    """The translation both ways, for one arm, with ROS 2 messages (built by ``open_ros2_bridge``).
 
-    ``Ros1Bridge`` reads only ``spec``, ``joint_states``, ``command``, ``command_type`` and ``group`` of its config,
-    which ``Ros2BridgeConfig`` has too; ``on_ros_state`` takes a rosbags ``sensor_msgs/msg/JointState`` as it is.
+    ``on_ros_state`` takes a rosbags ``sensor_msgs/msg/JointState`` as it is.
     """
 
     def __init__(
@@ -272,8 +272,8 @@ class Ros2Bridge(Ros1Bridge):
         publish: Callable[[JointState], None],
         now_ns: Callable[[], int],
     ) -> None:
-        super().__init__(cast(Any, config), publish, now_ns)
-        self._send = send  # the rclpy publisher's, for the bridge's life (the ROS 1 bridge swaps its own on resets)
+        super().__init__(config, publish, now_ns)
+        self._send = send  # our DDS publisher's, for the bridge's life (the ROS 1 bridge swaps its own on resets)
         from uniros_async.adapters.ros2 import msgs
 
         self._cls = msgs.message_class
@@ -284,7 +284,7 @@ class Ros2Bridge(Ros1Bridge):
         return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
     def on_ros_state(self, msg: Any) -> None:
-        """A ``sensor_msgs/msg/JointState`` from the driver: republished as ours (``Ros1Bridge.on_ros_state``)."""
+        """A ``sensor_msgs/msg/JointState`` from the driver: republished as ours (``Bridge.on_ros_state``)."""
         self.last_state_s = time.monotonic()
         super().on_ros_state(msg)
 
@@ -366,9 +366,7 @@ async def open_ros2_bridge(
         pub = await node.create_publisher(JointState, "joint_states", qos=latest())
         ros_pub = ros.create_publisher(config.command, config.command_type, qos=COMMANDS)
         bridge = Ros2Bridge(config, ros_pub.publish, pub.publish, node.now_ns)
-        await node.create_subscription(JointCommand, "command", bridge.on_command, qos=latest())
-        await node.create_service(Empty, Trigger, "hold", bridge.srv_hold)
-        await node.create_service(Empty, Data, "stats", bridge.srv_stats)
+        await bridge.serve_on(node)
         ros_sub = ros.create_subscription(
             config.joint_states, "sensor_msgs/msg/JointState", bridge.on_ros_state, qos=SENSOR_DATA
         )
@@ -400,17 +398,7 @@ async def open_ros2_bridge(
         tasks = await stack.enter_async_context(asyncio.TaskGroup())
         watch = tasks.create_task(bridge.watch_driver(ros.domain_id, max(1.0, 5 * bridge.period_s)))
         stack.callback(watch.cancel)  # runs before the task group's exit, which then reaps it
-        logger.info(
-            "%s: bridged %s -> %s/joint_states and %s/command -> %s (%s) in ROS 2 domain %d in %.2f s",
-            spec.name,
-            config.joint_states,
-            ns,
-            ns,
-            config.command,
-            config.command_type,
-            ros.domain_id,
-            time.monotonic() - t0,
-        )
+        bridge.log_bridged(ns, t0, f" in ROS 2 domain {ros.domain_id}")
         yield bridge
 
 
@@ -429,13 +417,9 @@ async def serve_ros2_bridge(
         on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
         options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
     """
-    async with (
-        open_domain(f"tcp://{host}:{port}", options=options) as dom,
-        open_ros2_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
-    ):
-        if on_ready is not None:
-            on_ready(dom.uri)
-        await asyncio.Event().wait()  # until cancelled
+    await serve_bridge(
+        open_ros2_bridge, config, host=host, port=port, namespace=namespace, on_ready=on_ready, options=options
+    )
 
 
 # ------------------------------------------------------------------------------------------------ the placement

@@ -67,6 +67,7 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.bench._environ import environ_set
 from uniros_async.bench.looptiming import (
     ARM_OF_ENV_ID,
     ScriptedReachAgent,
@@ -78,7 +79,7 @@ from uniros_async.bench.looptiming import (
 )
 from uniros_async.bench.stats import cpu_times, real_time_elsewhere, real_time_threads, report, steal_percent
 from uniros_async.errors import ConfigError
-from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread
+from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread, reap
 
 __all__ = ["LEARNERS", "LOADS", "SCENARIOS", "SCHED_CLASSES", "LatencyBenchConfig", "main", "open_load"]
 
@@ -495,20 +496,6 @@ def _ray_cluster(cfg: LatencyBenchConfig) -> Iterator[Callable[[str], dict[str, 
 # ------------------------------------------------------------------------------------------ loads
 
 
-@contextlib.contextmanager
-def loop_priority(mode: str) -> Iterator[None]:
-    """``UNIROS_LOOP_PRIORITY=mode`` for the block: workers started in it, and the acting thread, take that class."""
-    old = os.environ.get("UNIROS_LOOP_PRIORITY")
-    os.environ["UNIROS_LOOP_PRIORITY"] = mode
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("UNIROS_LOOP_PRIORITY", None)
-        else:
-            os.environ["UNIROS_LOOP_PRIORITY"] = old
-
-
 _SPINNER = """
 import ctypes, os, signal, sys
 parent = int(sys.argv[1])
@@ -568,14 +555,7 @@ def open_load(kind: str) -> Iterator[LoadStats]:
             stats.spinners = [p.pid for p in procs]
             yield stats
         finally:
-            for p in procs:
-                if p.poll() is None:
-                    p.kill()
-            for p in procs:
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    p.wait(timeout=5.0)
-                if p.stdout is not None:
-                    p.stdout.close()
+            reap(procs)
         return
     if kind not in ("gil", "gc"):
         raise ConfigError(f"unknown load {kind!r}; choose from {list(LOADS)}")
@@ -614,7 +594,8 @@ def _run_under_loads(
     n_cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     out: list[Series] = []
     for cls in cfg.sched_classes:
-        with loop_priority(cls):  # the workers take their class when they start
+        # the workers started in the block, and the acting thread, take that class
+        with environ_set("UNIROS_LOOP_PRIORITY", cls):
             vec = make_vec(  # absolute targets, as in _run_learner_scenario
                 [(e, {"robot": r}) for e, r in specs],
                 action_cycle_s=cfg.action_cycle_s,

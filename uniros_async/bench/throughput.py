@@ -66,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.bench._environ import environ_set
 from uniros_async.bench._ray_rows import RAY_IMPLS, RayRows, overhead_lines
 from uniros_async.bench.envs import DICT_ID, IMAGE_ID
 from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
@@ -272,7 +273,7 @@ def _run(
     crowded = n >= CROWDED_N
     actions = _actions(bare.action_space, steps + 1 + (max(MAX_TIGHT_STEPS, steps + 1) if crowded else steps + 1))
     batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
-    with _shared_cores(shared_cores):
+    with environ_set("UNIROS_SHARED_CORES", shared_cores):  # the supervisor reads it when it connects its workers
         venv, reset, step = _vector(impl, n, env_id, kwargs, transport)
     vec_t: list[float] = []
     bare_t: list[float] = []
@@ -389,23 +390,6 @@ def _run_trivial(
         else {**_record(env_id, row.impl, 1, row.vec_t, row.vec_t, row.bare_t), "envs_in_turn": 2}
         for row in rows
     ]
-
-
-@contextlib.contextmanager
-def _shared_cores(mode: str | None) -> Iterator[None]:
-    """``UNIROS_SHARED_CORES`` set to ``mode`` meanwhile (the supervisor reads it when it connects its workers)."""
-    if mode is None:
-        yield
-        return
-    before = os.environ.get("UNIROS_SHARED_CORES")
-    os.environ["UNIROS_SHARED_CORES"] = mode
-    try:
-        yield
-    finally:
-        if before is None:
-            del os.environ["UNIROS_SHARED_CORES"]
-        else:
-            os.environ["UNIROS_SHARED_CORES"] = before
 
 
 def _cpu_s(pid: int | None) -> float | None:
@@ -585,6 +569,24 @@ def _host_state(load0: tuple[float, ...], cpu0: Any) -> str:
     )
 
 
+@contextlib.contextmanager
+def _open_ray_rows(config: ThroughputBenchConfig) -> Iterator[RayRows | None]:
+    """With ``backend="ray"``: the Ray rows' cluster, started, in ``_RAY`` for the block (``_vector`` builds their
+    vector envs from it) and closed after it; otherwise None."""
+    global _RAY
+    if config.backend != "ray":
+        yield None
+        return
+    rows = RayRows(config.ray_address)
+    _RAY = rows
+    try:
+        rows.start()
+        yield rows
+    finally:
+        rows.close()
+        _RAY = None
+
+
 def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """``--repeat R``: the make_vec rows with ``CROWDED_N`` or more sub-envs (workers over ``config.transport``,
     and with ``backend="ray"`` workers placed by Ray on the other node, over tcp), ``R`` runs of each; per run the
@@ -598,12 +600,7 @@ def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = p
     records: list[dict[str, Any]] = []
     load0 = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),)
     cpu0 = cpu_times()
-    global _RAY
-    if config.backend == "ray":
-        _RAY = RayRows(config.ray_address)
-    try:
-        if _RAY is not None:
-            _RAY.start()
+    with _open_ray_rows(config) as cluster:
         n_rows = config.repeat * len(ns) * len(impls) * len(modes)
         bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
         bare = _make_env(ENV_ID, ENV_KW)
@@ -622,11 +619,7 @@ def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = p
         finally:
             bare.close()
             bar(0, done=True)
-        where = _RAY.describe() if _RAY is not None else ""
-    finally:
-        if _RAY is not None:
-            _RAY.close()
-        _RAY = None
+        where = cluster.describe() if cluster is not None else ""
     lines = [
         f"{ENV_ID} (turn-based, accelerated) on {cores} cores, {config.repeat} runs of each row (new workers every"
         f" run): steps/s as a % of the physics bound min(N, cores) / bare step, each row against the bare step timed"
@@ -669,22 +662,13 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     ray = config.backend == "ray"
     n_rows = len(ns) * (len(IMPLS) + ray) + len(IMPLS) + len(RAY_IMPLS) * ray + len(in_turns)
     n_rows += len(SPACE_IDS) * len(IMPLS)
-    global _RAY
-    if ray:
-        _RAY = RayRows(config.ray_address)
-    try:
-        if _RAY is not None:
-            _RAY.start()
+    with _open_ray_rows(config) as cluster:
         bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
         try:
             _measure(config, ns, steps, in_turns, records, bar)
         finally:
             bar(0, done=True)
-        where = _RAY.describe() if _RAY is not None else ""
-    finally:
-        if _RAY is not None:
-            _RAY.close()
-        _RAY = None
+        where = cluster.describe() if cluster is not None else ""
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
     head = (
         f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'its 95 % CI':>18} {'step ms':>8}"

@@ -9,7 +9,8 @@ is an ExtType(1) whose data is the index into that table; the blob bytes travel 
 900 KiB image costs no msgpack copy and the receiver views it in place (``np.frombuffer`` on the frame).
 ``encode`` returns the frame as a list of buffers (header bytes, then each array's own memory, no join), which
 transports send back to back. ``decode`` checks the type name, field count, dtypes and ndims, and raises
-CodecError naming the field.
+CodecError naming the field; a frame that lacks trailing fields with a default (from a publisher older than a field
+added to its message) decodes with those defaults.
 
 Two more encodings live here, so that this stays the only module that imports msgpack:
 
@@ -215,8 +216,12 @@ def _array(spec: FieldSpec, cls: type, ref: _ArrayRef, table: list[Any], blob: m
 def _build(cls: type, values: Any, table: list[Any], blob: memoryview) -> Any:
     schema: Sequence[FieldSpec] = cls.__uniros_schema__  # type: ignore[attr-defined]
     if type(values) is not list or len(values) != len(schema):
-        n = len(values) if isinstance(values, list) else type(values).__name__
-        raise CodecError(f"{cls.__name__}: expected {len(schema)} fields, got {n}")
+        required: int = cls.__uniros_required__  # type: ignore[attr-defined]
+        if type(values) is not list or not required <= len(values) < len(schema):
+            n = len(values) if isinstance(values, list) else type(values).__name__
+            expected = len(schema) if required == len(schema) else f"{required} to {len(schema)}"
+            raise CodecError(f"{cls.__name__}: expected {expected} fields, got {n}")
+        schema = schema[: len(values)]  # an older publisher's frame: the fields it lacks take their defaults
     kwargs: dict[str, Any] = {}
     for spec, value in zip(schema, values, strict=True):
         kind = spec.kind

@@ -3,7 +3,8 @@
 Every message class is declared with ``@message``, which registers it by name for the codec and compiles a schema
 from its fields: numpy array fields carry ``array_field(dtype, ndim)`` metadata, nested messages are fields whose
 type is another message class, and everything else is plain msgpack data (int, float, str, bool, bytes, None,
-tuples/lists and dicts of those). Stamps are integer nanoseconds of the publishing domain's clock.
+tuples/lists and dicts of those). Stamps are integer nanoseconds of the publishing domain's clock. A field added to
+a message goes last, with a default: frames of publishers that do not know it yet decode with that default.
 """
 
 from __future__ import annotations
@@ -115,6 +116,13 @@ def message(cls: type[M]) -> type[M]:
         else:
             schema.append(FieldSpec(f.name, "data"))
     new_cls.__uniros_schema__ = tuple(schema)  # type: ignore[attr-defined]
+    # fields after the last one without a default may be missing on the wire (a frame of an older publisher)
+    required = [
+        i
+        for i, f in enumerate(dataclasses.fields(new_cls))  # type: ignore[arg-type]
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
+    new_cls.__uniros_required__ = required[-1] + 1 if required else 0  # type: ignore[attr-defined]
     new_cls.__uniros_arrays__ = tuple(s for s in schema if s.kind == "array")  # type: ignore[attr-defined]
     name = new_cls.__name__
     if name in _REGISTRY:
@@ -161,13 +169,25 @@ class Header:
 
 @message
 class JointState:
-    """Positions (rad or m), velocities and efforts of named joints, as sensor_msgs/JointState."""
+    """Positions (rad or m), velocities and efforts of named joints, as sensor_msgs/JointState.
+
+    The last two fields are the arm's echo of the link's round trip (``uniros_async.envs.transit``): the env can
+    then tell a delay on the link from an offset between the arm's clock and its own. A publisher that does not echo
+    leaves both None (and frames of an older publisher, without them, decode with None: trailing fields with a
+    default may be missing on the wire).
+    """
 
     header: Header
     name: tuple[str, ...]
     position: np.ndarray = array_field(np.float64, 1)
     velocity: np.ndarray = array_field(np.float64, 1)
     effort: np.ndarray = array_field(np.float64, 1)
+    command_stamp_ns: int | None = None
+    """The ``header.stamp_ns`` of the newest command the arm had received when it stamped this state, verbatim (the
+    commanding node's clock); None when it has received none, or does not echo."""
+    command_age_ns: int | None = None
+    """How long before this state's stamp that command arrived, on the arm's monotonic clock; -1 when the arm echoes
+    but has received no command yet; None when it does not echo."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, tuple):

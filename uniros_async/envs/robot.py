@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import abc
 import asyncio
-import collections
 import contextlib
 import dataclasses
 import logging
@@ -46,6 +45,7 @@ from uniros_async.envs.base import BaseEnv
 from uniros_async.envs.config import EnvConfig
 from uniros_async.envs.safety import SafetyChecker, SafetyConfig
 from uniros_async.envs.timing import Timing
+from uniros_async.envs.transit import StateTransit
 from uniros_async.errors import ConfigError, DomainError, NameConflictError, RobotError, TransportError
 from uniros_async.kinematics import Kinematics
 from uniros_async.placements import PlacementRequest, placement_spec
@@ -67,8 +67,6 @@ period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the
 must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and
 action cycles that are multiples of their periods) keep one phase, give or take each member's
 ``RobotEnv.loop_phase_ns`` of a few ms: the agent gets every member's returns about equally fresh."""
-TRANSIT_WINDOW_S = 60.0
-"""How far back ``RobotEnv._transit_delay_ns`` looks for the quickest joint state (stamp to arrival)."""
 REJOIN_RETRY_S = 0.1
 """First wait between attempts to join the arm's domain again after the connection to it was lost (doubling to
 1 s)."""
@@ -93,32 +91,6 @@ def _local_host_toward(uri: str) -> str:
             return str(s.getsockname()[0])
     except OSError as exc:
         raise ConfigError(f"robot={uri!r}: no route to {host} from this machine ({exc})") from exc
-
-
-class _TransitWindow:
-    """The smallest stamp-to-arrival time of the joint states of the last ``TRANSIT_WINDOW_S`` (a monotonic deque:
-    O(1) per state)."""
-
-    def __init__(self) -> None:
-        self.sub: Any = None
-        self.seen = -1
-        self._q: collections.deque[tuple[int, int]] = collections.deque()
-
-    def reset(self, sub: Any) -> None:
-        self.sub, self.seen = sub, -1
-        self._q.clear()
-
-    def add(self, now: int, transit_ns: int) -> None:
-        q = self._q
-        while q and q[-1][1] >= transit_ns:
-            q.pop()
-        q.append((now, transit_ns))
-
-    def floor(self, now: int) -> int:
-        q, horizon = self._q, now - round(TRANSIT_WINDOW_S * 1e9)
-        while len(q) > 1 and q[0][0] < horizon:
-            q.popleft()
-        return q[0][1]
 
 
 async def _settle() -> None:
@@ -167,7 +139,9 @@ class RobotEnv(BaseEnv):
         clock), the same instant for every member; used once, then cleared (see ``_step_deadline``)."""
         self._last_return_wall_ns: int | None = None
         self._cmd_seq = 0
-        self._transit = _TransitWindow()
+        self._transit = StateTransit(stall_s=config.robot_timeout_s)
+        self._transit_sub: Any = None  # the subscription whose states _transit has seen
+        self._transit_seen = -1  # how many of them (its ``received``)
         self.unsafe_actions = 0
         self.robot_process: Any = None  # a process the placement runs the arm in (ArmLink.process), or None
 
@@ -347,13 +321,15 @@ class RobotEnv(BaseEnv):
     def _send(self, q: np.ndarray, now: int) -> None:
         self._cmd_seq += 1
         self._cmd.publish(JointCommand(header=Header(stamp_ns=now, seq=self._cmd_seq), position=q, duration_s=0.0))
+        self._transit.sent(now)  # an arm that echoes this stamp gives the link's round trip
         self.timing.command_ns.append(now)
 
     def _state_age_s(self) -> float:
         """How old the newest joint state is. On a sim clock: since its stamp (the sim in this process stamps it on
-        the same clock). On a wall clock: since it arrived, plus how much longer than the quickest recent state it
-        took to arrive (``_transit_delay_ns``): a state that waited in a starved link or a socket buffer counts as
-        old as it is, while the arm's clock need not be ours."""
+        the same clock). On a wall clock: since it arrived, plus its transit (``_transit_delay_ns``): how much longer
+        than the quickest recent state it took to arrive (a state that waited in a starved link or a socket buffer
+        counts as old as it is), and at least half the link's round trip when the arm echoes our commands (a fixed
+        delay counts too), while the arm's clock need not be ours."""
         js = self._js.latest()
         if js is None:
             return float("inf")
@@ -363,18 +339,35 @@ class RobotEnv(BaseEnv):
         return (now - self._js.latest_recv_ns + self._transit_delay_ns(js, now)) / 1e9
 
     def _transit_delay_ns(self, js: JointState, now: int) -> int:
-        """How much longer than the quickest state of the last ``TRANSIT_WINDOW_S`` the newest one took from its
-        stamp to its arrival. The difference of two clocks cancels out (so does a fixed delay); what is left is
-        time spent queued on the way. A sliding window, not the minimum ever seen, so that a restarted arm (a new
-        clock) is judged afresh after one window."""
+        """How long the newest state spent on its way from the arm (``envs.transit``: against the quickest state
+        of the last minute, and half a round trip of the link when the arm echoes our commands). A new subscription
+        (the arm's domain joined again: perhaps a new arm, a new clock) starts afresh."""
         sub = self._js
-        window = self._transit
-        if window.sub is not sub:
-            window.reset(sub)
-        if sub.received != window.seen:
-            window.seen = sub.received
-            window.add(now, sub.latest_recv_ns - js.header.stamp_ns)
-        return max(0, sub.latest_recv_ns - js.header.stamp_ns - window.floor(now))
+        transit = self._transit
+        if self._transit_sub is not sub:
+            self._transit_sub, self._transit_seen = sub, -1
+            transit.clear()
+        if sub.received != self._transit_seen:
+            self._transit_seen = sub.received
+            transit.observe(js, sub.latest_recv_ns)
+        return transit.transit_ns(js, sub.latest_recv_ns)
+
+    def _round_trip_text(self) -> str:
+        """What the echo of our commands told of the link's round trip, for an error's message ("" when nothing)."""
+        transit = self._transit
+        used = transit.offset_round_trip_ns
+        if transit.round_trip_ns is not None and used is not None:
+            return (
+                f"; the round trip to the arm measured {transit.round_trip_ns / 1e9:.2f} s by its echo of our commands"
+                f" (half of {used / 1e9:.2f} s counted as a state's transit)"
+            )
+        unechoed = transit.unechoed_ns(time.monotonic_ns())
+        if unechoed:
+            return (
+                f"; the arm echoed none of our commands of the last {unechoed / 1e9:.2f} s: a round trip at least that"
+                " long"
+            )
+        return ""
 
     def _stale_at_ns(self) -> int:
         """When, on the env's clock, the newest joint state turns older than ``robot_timeout_s``."""
@@ -393,8 +386,9 @@ class RobotEnv(BaseEnv):
             else f"no joint state on {self._js.topic} since the env joined the arm's domain again"
         )
         return RobotError(
-            f"{self.robot_spec.name}: {what}: {newest} (robot_timeout_s={self.config.robot_timeout_s}); no command "
-            "is sent until joint states arrive again, and the arm's watchdog holds it"
+            f"{self.robot_spec.name}: {what}: {newest} (robot_timeout_s={self.config.robot_timeout_s}"
+            f"{self._round_trip_text()}); no command is sent until joint states arrive again, and the arm's watchdog"
+            " holds it"
         )
 
     async def _wait_for_fresh_state(self, what: str) -> JointState:
@@ -657,7 +651,10 @@ class RobotEnv(BaseEnv):
             if self._state_age_s() > self.config.robot_timeout_s:  # settling is judged on fresh states only
                 raise self._stale_error("reset")
             js = self._js.latest()
-            if js is not None:
+            # an arm that echoes our commands must have echoed one: until then a fixed delay on the link is invisible
+            # to the state's age, and an arm already at home would settle at once on a state of any age
+            echo_due = self._transit.awaiting_round_trip and not isinstance(self._clock, SimClock)
+            if js is not None and not echo_due:
                 q = js.position[self._arm_idx]
                 v = js.velocity[self._arm_idx]
                 if np.max(np.abs(q - self.home_q)) < tol and np.max(np.abs(v)) < 10 * tol:
@@ -666,6 +663,8 @@ class RobotEnv(BaseEnv):
                 err = (
                     "no state"
                     if js is None
+                    else "the arm echoed none of our commands: no round trip measured"
+                    if echo_due
                     else f"{np.max(np.abs(js.position[self._arm_idx] - self.home_q)):.3f} rad away"
                 )
                 raise RobotError(f"{self.robot_spec.name}: did not settle at home within {timeout_s} s ({err})")

@@ -24,7 +24,7 @@ an ordinary one (``supervisor.WorkerHandle``); a step costs the transport's roun
 exit code when it ends and fails when the actor or its node dies), ``poll_exit``, ``stop`` and ``aclose``.
 
 Lifetime: a worker ends when its agent connection goes away (EOF, as for every worker), when its actor dies (the
-parent-pid watchdog, within 0.1 s), and on ``stop``: terminate, then kill, through the actor; then the actor is
+parent-pid watchdog, at once), and on ``stop``: terminate, then kill, through the actor; then the actor is
 killed (``ray.kill``). A node whose raylet ends (stopped, killed, the node going down) is lost: the actor watches
 its raylet (``_WorkerHost._watch_node``, a pidfd) and ends the worker at once, so its connection closes, and the
 step in flight raises the worker's WorkerError within milliseconds, naming the node
@@ -280,7 +280,7 @@ class _WorkerHost:
         """Until the worker exits: if this node's raylet ends (the node is being lost), end the worker at once.
 
         Ray's own worker processes notice a dead raylet only at their next check (about once a second) and the
-        worker's parent-pid watchdog then takes another 0.1 s; ended here, the worker's connections close at once and
+        worker's parent-pid watchdog follows only then; ended here, the worker's connections close at once and
         the agent's pending step learns of it within milliseconds (``Supervisor._take_replies`` watches them).
         SIGTERM first (the env closes, as on any stop), SIGKILL after ``_NODE_LOST_GRACE_S``.
         """

@@ -22,19 +22,26 @@ the reply to the first request, and the worker exits.
 Lifetime: the worker ignores SIGINT (the agent's Ctrl-C is the supervisor's business), stops on SIGTERM
 (the root task is cancelled, the env closed in ``finally``), and stops when the supervisor dies: the connection
 breaks (EOF on the shm socket) and, as a backstop for a worker blocked in a long env call, a watchdog thread sees
-the parent pid change, cancels the root task and, if that has not ended the process within ``exit_grace_s``,
-calls ``os._exit``.
+the parent exit, cancels the root task and, if that has not ended the process within ``exit_grace_s``, calls
+``os._exit``. The watchdog waits in ``poll(2)`` on a pidfd of the parent, which holds no GIL until the parent
+exits. A thread that woke every 0.1 s to compare ``getppid()`` took the GIL ten times a second in the ordinary
+scheduling class. The env loop's thread, in the real-time class, then had to wait for it whenever CPU load beside
+kept it off a core while it held or was being handed the GIL (CPython's forced switch waits until the other thread
+has taken the GIL): an inversion of priorities that showed as actuator cycles of 60-140 ms instead of 40-100 ms
+under load (docs/reliability.md, "Real time under load").
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import ipaddress
 import logging
 import multiprocessing
 import multiprocessing.connection
 import os
+import select
 import signal
 import sys
 import threading
@@ -139,12 +146,33 @@ def worker_entry(spec: WorkerSpec, conn: multiprocessing.connection.Connection) 
         conn.close()
 
 
+def _wait_for_exit(pid: int) -> None:
+    """Return once ``pid``, this process's parent, has exited (or is not our parent any more).
+
+    Blocks in ``poll(2)`` on a pidfd, without the GIL and without waking until then; where pidfds are missing (not
+    Linux, or a kernel before 5.3), polls ``getppid()`` every 0.1 s instead.
+    """
+    fd = None
+    with contextlib.suppress(AttributeError, OSError):  # no os.pidfd_open, or the pid is gone already
+        fd = os.pidfd_open(pid)
+    if fd is not None:
+        try:
+            if os.getppid() == pid:  # the pidfd is our parent's, not a reused pid's
+                poller = select.poll()
+                poller.register(fd, select.POLLIN)
+                poller.poll()  # readable when the process exits
+            return
+        finally:
+            os.close(fd)
+    while os.getppid() == pid:
+        time.sleep(0.1)
+
+
 def _start_watchdog(spec: WorkerSpec, loop: asyncio.AbstractEventLoop, task: asyncio.Task[Any]) -> None:
     parent = spec.parent_pid or os.getppid()
 
     def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.1)
+        _wait_for_exit(parent)
         logger.warning("worker %d: supervisor %d is gone; stopping", spec.index, parent)
         try:
             loop.call_soon_threadsafe(task.cancel)

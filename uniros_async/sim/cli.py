@@ -229,10 +229,9 @@ def _bridge_ros2(args: argparse.Namespace) -> int:
 
 
 def _bridge(args: argparse.Namespace) -> int:
-    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, serve_ros1_bridge
-
     if args.ros2 is not None:
         return _bridge_ros2(args)
+    from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, serve_ros1_bridge
 
     cfg = Ros1BridgeConfig(
         robot=args.robot,

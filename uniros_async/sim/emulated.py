@@ -203,6 +203,8 @@ def add_sensor_noise(state: JointState, config: EmulationConfig, rng: np.random.
         position=pos,
         velocity=vel,
         effort=state.effort,
+        command_stamp_ns=state.command_stamp_ns,
+        command_age_ns=state.command_age_ns,
     )
 
 

@@ -10,6 +10,11 @@ In namespace ``/<robot name>`` (configurable) the node
 - publishes Marker messages on ``markers`` when asked (``publish_markers=True``): the goal marker given by
   ``set_goal_marker(pos)`` or received on ``markers_in``, and the EE marker at every tick.
 
+Every joint state echoes the stamp of the newest command received (``command_stamp_ns``, verbatim, whether applied or
+not) and how long before the state's stamp it arrived (``command_age_ns``, on this process's monotonic clock; an
+emulated arm's command latency counts as the link's): the commanding env gets a round trip of the link on its own
+clock, and with it the age of a state whatever the offset between the two clocks (``uniros_async.envs.transit``).
+
 Commands carry the sender's stamp (``header.stamp_ns``, the domain's clock). With ``max_command_age_s`` the node
 drops a command older than that when it arrives at a tick (``stale_commands``), so a command that sat in a buffer
 of a broken or frozen link never moves the arm when the link comes back; the sender must share the node's clock (a
@@ -32,6 +37,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import time
 from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any
 
@@ -110,6 +116,7 @@ class ServoSimNode:
         self._rng = np.random.default_rng(None if emulation is None else emulation.seed + 1)
         self._pending: JointCommand | None = None
         self._seen = 0
+        self._delayed_echo: tuple[int, int] | None = None  # behind a command delay line: (stamp, arrival) of the newest
         self._state_line: DelayLine[JointState] | None = None
         self._cmd_line: DelayLine[JointCommand] | None = None
         self.timer: Any = None
@@ -171,6 +178,21 @@ class ServoSimNode:
 
     def _on_delayed_command(self, cmd: JointCommand) -> None:
         self._pending = cmd
+        self._delayed_echo = (cmd.header.stamp_ns, time.monotonic_ns())
+
+    def _echo(self) -> tuple[int | None, int | None]:
+        """A state's ``command_stamp_ns`` and ``command_age_ns``: the newest command received, and how long ago it
+        arrived (``JointState``); taken when the state is stamped."""
+        if self._cmd_line is not None:
+            echo = self._delayed_echo
+            if echo is None:
+                return None, -1
+            return echo[0], time.monotonic_ns() - echo[1]
+        sub = self.commands
+        cmd = sub.latest()
+        if cmd is None:
+            return None, -1
+        return cmd.header.stamp_ns, time.monotonic_ns() - sub.latest_recv_ns
 
     def _take_command(self) -> JointCommand | None:
         if self._cmd_line is not None:
@@ -204,7 +226,8 @@ class ServoSimNode:
     def _on_tick(self) -> None:
         cmd = self._take_command()
         holds = self.sim.stats.watchdog_holds
-        state = self.sim.tick(cmd, stamp_ns=self.node.now_ns())  # SimulationError ends the node: not hidden
+        # SimulationError ends the node: not hidden
+        state = self.sim.tick(cmd, stamp_ns=self.node.now_ns(), echo=self._echo())
         if self.on_event is not None and self.sim.stats.watchdog_holds != holds:
             self.on_event({"ev": "hold", "t_ns": self.node.now_ns(), "tick": self.sim.stats.ticks})
         if self.emulation is not None and (self.emulation.position_noise_std or self.emulation.velocity_noise_std):

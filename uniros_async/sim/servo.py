@@ -432,8 +432,15 @@ class ServoSim:
         """World position of the end-effector site (m), as of the last physics step."""
         return cast(np.ndarray, self.data.site_xpos[self._ee_site].copy())
 
-    def joint_state(self, stamp_ns: int | None = None, seq: int | None = None) -> JointState:
-        """The joint state now, for ``RobotSpec.joint_state_names``; stamped with sim time unless told."""
+    def joint_state(
+        self,
+        stamp_ns: int | None = None,
+        seq: int | None = None,
+        *,
+        echo: tuple[int | None, int | None] = (None, None),
+    ) -> JointState:
+        """The joint state now, for ``RobotSpec.joint_state_names``; stamped with sim time unless told. ``echo``:
+        its ``command_stamp_ns`` and ``command_age_ns`` (the round-trip echo, ``ServoSimNode``)."""
         d = self.data
         return JointState(
             header=Header(
@@ -443,16 +450,25 @@ class ServoSim:
             position=d.qpos[self._qadr],
             velocity=d.qvel[self._vadr],
             effort=d.qfrc_actuator[self._vadr],
+            command_stamp_ns=echo[0],
+            command_age_ns=echo[1],
         )
 
     # ---- the hardware loop
 
-    def tick(self, cmd: JointCommand | None = None, *, stamp_ns: int | None = None) -> JointState:
+    def tick(
+        self,
+        cmd: JointCommand | None = None,
+        *,
+        stamp_ns: int | None = None,
+        echo: tuple[int | None, int | None] = (None, None),
+    ) -> JointState:
         """One hardware cycle: step physics one period, read the state, apply ``cmd`` (the newest, or None).
 
         Args:
             cmd: the newest command if a new one arrived since the last tick, else None.
             stamp_ns: stamp of the returned state; default: the sim time.
+            echo: the returned state's ``command_stamp_ns`` and ``command_age_ns`` (see ``JointState``).
 
         Returns:
             The joint state at this tick (before ``cmd`` acts).
@@ -465,7 +481,7 @@ class ServoSim:
         if self._episode_ticks > 0:
             self._step_period()
         self._episode_ticks += 1
-        state = self.joint_state(stamp_ns)
+        state = self.joint_state(stamp_ns, echo=echo)
         self.stats.ticks += 1
         if cmd is not None:
             self.apply(cmd)

@@ -7,15 +7,18 @@ before the chunk read ahead of it (the byte stream keeps its order, as TCP's doe
 TCP's own window instead of the relay's memory growing. Connection setup is not delayed (the relay accepts and
 connects at once), only the bytes; a reset or an end on one side is passed on.
 
-Transparent use in a network namespace (``NetnsPair.delay``): nftables redirects every tcp connection that enters
-the arm's namespace over the veth link, and every one its processes open across it, to the relay's port; the relay
-reads each connection's original destination (``SO_ORIGINAL_DST``) and connects there itself, its own outgoing
+Transparent use in a network namespace (``NetnsPair.delay_through``): nftables redirects every tcp connection that
+enters the arm's namespace over the veth link, and every one its processes open across it, to the relay's port; the
+relay reads each connection's original destination (``SO_ORIGINAL_DST``) and connects there itself, its own outgoing
 connections marked (``SO_MARK``) so that they are not redirected again. So each byte that crosses the link passes
 the relay once, whichever side opened the connection::
 
     python -m uniros_async.testing.delayrelay --port 7100 --delay 0.2 --jitter 0.02 --mark 1   # until SIGTERM
 
-It prints ``ready`` once listening, and on SIGTERM the chunk counts and the largest delay it applied as JSON.
+It prints ``ready`` once listening, and on SIGTERM the chunk counts and the largest delay it applied as JSON. With
+``--control`` it reads lines ``delay SECONDS JITTER`` on stdin and holds every chunk read from then on that long
+(what it holds already goes out when due, and the chunks behind it no earlier), printing ``{"ev": "delay", ...}``
+when set: a delay that goes away, or comes, on a link that stays up.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import signal
 import socket
 import struct
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -212,6 +216,21 @@ class DelayRelay:
             tg.create_task(write_side())
 
 
+def _read_control(relay: DelayRelay) -> None:
+    """Set the relay's delay from ``delay SECONDS JITTER`` lines on stdin (a thread: two floats the relay reads per
+    chunk); a malformed line is reported and ignored."""
+    for line in sys.stdin:
+        try:
+            word, delay, jitter = line.split()
+            if word != "delay" or float(delay) < 0 or float(jitter) < 0:
+                raise ValueError(line)
+        except ValueError:
+            print(f"delayrelay: expected 'delay SECONDS JITTER' (both >= 0), got {line.strip()!r}", file=sys.stderr)
+            continue
+        relay.delay_s, relay.jitter_s = float(delay), float(jitter)
+        print(json.dumps({"ev": "delay", "t_ns": time.monotonic_ns(), "delay_s": relay.delay_s}), flush=True)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m uniros_async.testing.delayrelay``: see the module docstring."""
     parser = argparse.ArgumentParser(prog="python -m uniros_async.testing.delayrelay")
@@ -223,6 +242,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mark", type=int, default=None, help="SO_MARK of the relay's own outgoing connections")
     parser.add_argument("--max-buffer", type=int, default=1 << 20, help="bytes held per direction")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--control", action="store_true", help="read 'delay SECONDS JITTER' lines on stdin")
     args = parser.parse_args(argv)
     target = None
     if args.target:
@@ -231,6 +251,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     relay = DelayRelay(
         args.delay, args.jitter, target=target, mark=args.mark, max_buffer_bytes=args.max_buffer, seed=args.seed
     )
+
+    if args.control:
+        threading.Thread(target=_read_control, args=(relay,), daemon=True).start()
 
     async def run() -> None:
         ready = asyncio.Event()

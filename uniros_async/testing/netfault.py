@@ -18,9 +18,10 @@ A frozen peer is ``os.kill(pid, SIGSTOP)`` / ``SIGCONT`` of the arm's process. T
 
 ``python -m uniros_async.testing.netfault drive --robot tcp://HOST:PORT ...`` is the agent side: it makes a reach
 env on that arm and steps it forever, resetting after every episode end and every RobotError, and prints each
-event as a JSON line with its ``time.monotonic_ns()`` (one clock for every namespace of the machine): ``reset``,
-``step`` (with the observation's age, and at an episode's end why, from ``info``), ``robot_error`` (the message)
-and ``error`` (anything else: an uncaught exception, with its traceback).
+event as a JSON line with its ``time.monotonic_ns()`` (one clock for every namespace of the machine): ``reset`` and
+``step`` (with the age of the joint state they returned on, by its stamp and as the env estimates it, the link's
+round trip the env measured, and at an episode's end why, from ``info``), ``robot_error`` (the message) and
+``error`` (anything else: an uncaught exception, with its traceback).
 
 ``python -m uniros_async.testing.netfault commands --master URI --ros-host IP`` is a bare commander on a ROS 1 arm:
 the ROS 1 bridge (``adapters.ros1_bridge``) and, on its bus, a publisher of ``JointCommand`` at the hardware rate
@@ -43,7 +44,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -239,15 +240,23 @@ class EventPeer:
         """Events of kind ``ev`` at or after ``t_ns``."""
         return [e for e in list(self.events) if e["ev"] == ev and e["t_ns"] >= t_ns]
 
-    def wait_for(self, t_ns: int, ev: str, timeout_s: float, what: str) -> dict[str, Any]:
-        """The first ``ev`` event at or after ``t_ns``, waiting up to ``timeout_s``.
+    def wait_for(
+        self,
+        t_ns: int,
+        ev: str,
+        timeout_s: float,
+        what: str,
+        where: Callable[[dict[str, Any]], bool] | None = None,
+    ) -> dict[str, Any]:
+        """The first ``ev`` event at or after ``t_ns`` (for which ``where`` is true, when given), waiting up to
+        ``timeout_s``.
 
         Raises:
             AssertionError: none came, or the process ended (its last lines are in the message).
         """
         deadline = time.monotonic() + timeout_s
         while True:
-            found = self.after(t_ns, ev)
+            found = [e for e in self.after(t_ns, ev) if where is None or where(e)]
             if found:
                 return found[0]
             if self.proc.poll() is not None or time.monotonic() > deadline:
@@ -256,7 +265,7 @@ class EventPeer:
             time.sleep(0.02)
 
     def stop(self, sig: int = signal.SIGTERM) -> None:
-        """Resume it if frozen, send ``sig``, kill after 10 s; reap it and close its pipe."""
+        """Resume it if frozen, send ``sig``, kill after 10 s; reap it and close its pipes."""
         proc = self.proc
         if proc.poll() is None:
             os.kill(proc.pid, signal.SIGCONT)  # a frozen process cannot handle the signal
@@ -268,8 +277,10 @@ class EventPeer:
                 proc.wait(5)
         if self.reader is not None:
             self.reader.join(5)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        for pipe in (proc.stdin, proc.stdout):
+            if pipe is not None:
+                with contextlib.suppress(BrokenPipeError):  # what was written and not read: the process is gone
+                    pipe.close()
 
 
 def fault_figures(
@@ -342,6 +353,27 @@ def _plain(value: Any) -> Any:
     return value if isinstance(value, bool | int | float | str) or value is None else str(value)
 
 
+def _state_fields(u: Any) -> dict[str, Any]:
+    """The newest joint state's age by its stamp (meaningful when the arm shares this machine's monotonic clock) and
+    as the env estimates it, and the link's round trip the env measured (the newest, and the one its clock offset
+    comes from; None: none). Read on the env's own loop, whose bookkeeping reading the age updates."""
+
+    async def read() -> dict[str, Any]:
+        js = u._js.latest()
+        rtt, used = u._transit.round_trip_ns, u._transit.offset_round_trip_ns
+        return {
+            "state_stamp_age_s": (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0,
+            "state_age_s": u._state_age_s(),
+            "round_trip_s": None if rtt is None else rtt / 1e9,
+            "offset_round_trip_s": None if used is None else used / 1e9,
+        }
+
+    try:
+        return dict(u._call(read(), 5.0))
+    except Exception as exc:  # noqa: BLE001 - the env's world is gone: said here, raised by the next step or reset
+        return {"state_fields_error": f"{type(exc).__name__}: {exc}"}
+
+
 def _loop_late_s(u: Any, window_s: float) -> float:
     """How late the env loop's ticks ran over the last ``window_s`` plus two periods (the largest gap between ticks,
     or since the last one, beyond one hardware period): the host's scheduling, which a notice's time includes."""
@@ -405,26 +437,22 @@ def drive(
                 if need_reset:
                     env.reset()
                     need_reset = False
-                    _emit("reset")
+                    _emit("reset", **_state_fields(u))
                     continue
                 _, _, terminated, truncated, info = env.step(action)
-                js = u._js.latest()
-                # by the state's own stamp: meaningful when the arm shares this machine's monotonic clock
-                stamp_age = (time.monotonic_ns() - js.header.stamp_ns) / 1e9 if js is not None else -1.0
                 age = u.timing.observation_age_ns[-1] if u.timing.observation_age_ns else -1
                 why = {k: _plain(info[k]) for k in _END_KEYS if k in info} if terminated or truncated else {}
                 _emit(
                     "step",
                     obs_age_ns=age,
-                    state_age_s=u._state_age_s(),
-                    state_stamp_age_s=stamp_age,
+                    **_state_fields(u),
                     terminated=bool(terminated),
                     truncated=bool(truncated),
                     info=why,
                 )
                 need_reset = terminated or truncated
             except RobotError as exc:
-                _emit("robot_error", msg=str(exc), loop_late_s=_loop_late_s(u, robot_timeout_s))
+                _emit("robot_error", msg=str(exc), loop_late_s=_loop_late_s(u, robot_timeout_s), **_state_fields(u))
                 need_reset = True
             except Exception as exc:  # noqa: BLE001 - counted as uncaught by the tests, never hidden
                 _emit("error", kind=type(exc).__name__, msg=str(exc), tb=traceback.format_exc())
