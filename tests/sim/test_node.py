@@ -48,15 +48,15 @@ async def test_command_over_the_bus_reaches_target(robot: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize(("robot", "rate_hz"), [("rx200", 10.0), ("ned2", 25.0)])
 async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: float) -> None:
-    """Wall clock. The median period error is below 0.1 ms: the stamps are the timer's
-    fire times at absolute deadlines, so their median period holds even when a busy machine delays single ticks
-    (the max is printed, not asserted)."""
+    """Wall clock. The median period error is below 0.1 ms: the timer fires at absolute deadlines, so a tick that a
+    busy machine delays lengthens one period and shortens the next, and the median over 3 s holds (the max is
+    printed, not asserted)."""
     async with open_domain("memory://") as domain:
         async with open_servo_sim(robot, domain=domain), open_node("env", domain=domain) as env:
             states = await env.create_subscription(JointState, f"/{robot}/joint_states", qos=reliable(1000))
             stamps: list[int] = []
             async with asyncio.timeout(10):
-                while len(stamps) < round(1.2 * rate_hz) + 1:
+                while len(stamps) < round(3 * rate_hz) + 1:  # 3 s: a median over 30-75 periods
                     stamps.append((await states.receive()).header.stamp_ns)
     periods_ms = np.diff(stamps) / 1e6
     median = statistics.median(periods_ms)
