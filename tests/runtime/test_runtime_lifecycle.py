@@ -112,6 +112,15 @@ def test_workers_ignore_sigint() -> None:
         venv.close()
 
 
+def _reap(proc: subprocess.Popen[str]) -> None:
+    """Kill ``proc`` if it still runs, wait for it, close its stdout."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(5)
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
 CHILD = textwrap.dedent(
     """
     import sys, time
@@ -136,11 +145,7 @@ def test_no_worker_or_shm_entry_outlives_a_sigkilled_parent() -> None:
         proc.wait(5)
         assert _wait_gone(pids, 8.0) == []
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        _reap(proc)
     assert _shm_entries() - shm_before == set()
 
 
@@ -296,8 +301,4 @@ def test_the_parent_watchdog_sleeps_until_the_parent_exits() -> None:
         assert _wait_gone([waiter], 5.0) == []  # it returned and exited once the parent was gone
         assert float(proc.stdout.readline()) >= 0.3
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        _reap(proc)
