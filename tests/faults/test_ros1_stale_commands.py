@@ -2,7 +2,8 @@
 
 The arm's driver commands carry no stamp (``interbotix_xs_msgs/JointGroupCommand``), so only the bridge can keep
 old ones from the arm: while the link is cut, what it publishes waits in the kernel's send queue of its TCPROS
-connection, and TCP delivers it when the link heals. The bridge resets such a connection (``Ros1Bridge.run_commands``, its guard).
+connection, and TCP delivers it when the link heals. The bridge resets such a connection (its guard,
+``Ros1Bridge.run_commands``).
 
 In the arm's namespace: a real ``rosmaster``, our sim as the rx200's ROS 1 driver (``uniros robot serve
 --ros1-master``, which publishes the joint states the bridge needs) and a real rospy subscriber to the driver's
