@@ -27,8 +27,8 @@ the parent exit, cancels the root task and, if that has not ended the process wi
 exits. A thread that woke every 0.1 s to compare ``getppid()`` took the GIL ten times a second in the ordinary
 scheduling class. The env loop's thread, in the real-time class, then had to wait for it whenever CPU load beside
 kept it off a core while it held or was being handed the GIL (CPython's forced switch waits until the other thread
-has taken the GIL): an inversion of priorities that showed as actuator cycles of 60-140 ms instead of 40-100 ms
-under load (docs/reliability.md, "Real time under load").
+has taken the GIL): an inversion of priorities that no class on the loop's thread prevents (docs/reliability.md,
+"Real time under load").
 """
 
 from __future__ import annotations
