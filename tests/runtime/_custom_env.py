@@ -4,6 +4,7 @@ worker."""
 
 from __future__ import annotations
 
+import gc
 import os
 from typing import Any
 
@@ -19,6 +20,10 @@ class MarkedCartPole(CartPoleEnv):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = super().step(action)
         return obs, reward, terminated, truncated, {**info, "stepped_by_pid": os.getpid()}
+
+    def gc_state(self) -> list[int]:
+        """The cyclic collector's view of this process: objects frozen out of its reach, objects it walks."""
+        return [gc.get_freeze_count(), len(gc.get_objects())]
 
 
 if ENV_ID not in gym.registry:

@@ -152,6 +152,22 @@ def test_a_users_own_env_as_module_colon_id_runs_in_its_worker() -> None:
         venv.close()
 
 
+def test_a_worker_freezes_what_it_built_out_of_the_collectors_reach() -> None:
+    """A full collection walks only what a worker made after its env was built: on a worker that runs a real-time
+    env loop, a walk of the whole heap (~15 ms for a reach env) would delay the ticks due meanwhile."""
+    from uniros_async.runtime import make_vec
+
+    venv = make_vec(["_custom_env:UnirosTestMarkedCartPole-v0"], pad=False)
+    try:
+        venv.reset(seed=0)
+        venv.step(np.array([0]))
+        ((frozen, walked),) = venv.call("gc_state")
+        assert frozen > 10_000, f"only {frozen} objects frozen in the worker"  # the modules, the env
+        assert walked < frozen / 4, f"the collector still walks {walked} objects beside {frozen} frozen"
+    finally:
+        venv.close()
+
+
 def test_a_module_colon_id_whose_module_is_missing_fails_in_the_caller() -> None:
     before = set(children())
     with pytest.raises(ConfigError, match=r"cannot import 'no_such_module_here'.*'Thing-v0'"):

@@ -274,10 +274,11 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         async with asyncio.timeout(spec.accept_timeout_s):
             transport = await listener.accept()
         await listener.aclose()
-        from uniros_async.priority import thread_ids
+        from uniros_async.priority import freeze_heap, thread_ids
 
         before = thread_ids()
         await server.build()
+        freeze_heap()  # before the loop's ticks matter: full collections then skip the env and the modules
         server.raise_loop_priority(thread_ids() - before)
         if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll

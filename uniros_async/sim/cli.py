@@ -318,8 +318,9 @@ def _print_ready(uri: str) -> None:
     when a ROS 1 master carries the arm, or ``export ROS_DOMAIN_ID=N`` for a ROS 2 driver (the hint line then gives
     the ``ros2://`` URI to drive it by); scripts read the value after the ``=``.
     """
-    from uniros_async.priority import raise_loop_priority, thread_ids
+    from uniros_async.priority import freeze_heap, raise_loop_priority, thread_ids
 
+    freeze_heap()
     raise_loop_priority()
     for tid in thread_ids() - _THREADS_BEFORE_SERVING:  # a ROS 2 driver's cyclonedds receive threads
         raise_loop_priority(thread_id=tid)

@@ -187,8 +187,9 @@ async def _child_async(config: ServeConfig, conn: multiprocessing.connection.Con
         main.cancel()
 
     def ready(uri: str) -> None:
-        from uniros_async.priority import raise_loop_priority
+        from uniros_async.priority import freeze_heap, raise_loop_priority
 
+        freeze_heap()
         # the hardware loop of a (emulated) real arm: on time beside learners and other loops, once it serves (its
         # start-up, the MuJoCo model and the domain, at normal priority: see uniros_async.priority)
         raise_loop_priority()
