@@ -171,3 +171,18 @@ def test_the_async_learner_trains_checkpoints_and_resumes(tmp_path: Path) -> Non
     assert train(_cfg(run, total_steps=200, **over), resume=True).steps == 200
     model, meta, _ = load_policy(run)
     assert type(model).__name__ == "AsyncTD3" and meta.step == 200
+
+
+def test_training_stops_once_every_env_reaches_eval_stop_success(tmp_path: Path) -> None:
+    """With a reach tolerance of a metre every episode succeeds at its first step: the first evaluation (at 100)
+    finds both envs at 100 %, training stops there, and the run still ends with its final evaluation and
+    checkpoint. Without ``stop_success`` the same run goes on to ``total_steps``."""
+    easy = {"reach_tolerance": 1.0}
+    envs = [{"id": RX, "name": "rx200", "kwargs": easy}, {"id": NED, "name": "ned2", "kwargs": easy}]
+    run = tmp_path / "stops"
+    result = train(_cfg(run, envs=envs, total_steps=2000, eval={"stop_success": 0.9}))
+    assert 100 <= result.steps < 200, f"training went on to step {result.steps}"
+    assert {r.label: r.success_rate for r in result.final_eval} == {"rx200": 1.0, "ned2": 1.0}
+    assert read_meta(latest_checkpoint(run)).step == result.steps  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"eval.stop_success"):
+        _cfg(tmp_path / "bad", eval={"stop_success": 1.5})

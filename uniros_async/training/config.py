@@ -165,6 +165,10 @@ class EvalConfig(ConfigModel):
     """Episodes per env and evaluation."""
     final_episodes: Int | None = Field(default=None, ge=1)
     """Episodes per env of the evaluation at the end of the run; unset: ``episodes``."""
+    stop_success: Float | None = Field(default=None, gt=0, le=1)
+    """Stop training once a periodic evaluation finds every env at this success rate or above (then evaluate and
+    save as at ``total_steps``): train until each env reaches its target; unset: train to ``total_steps`` or
+    ``max_wall_s``."""
     envs: EnvList = ()
     """Evaluation envs (as ``envs``); empty: the training envs."""
 

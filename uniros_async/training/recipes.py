@@ -576,6 +576,7 @@ def _make_callback(run: _Run, progress: bool) -> Any:
 
         def _on_training_start(self) -> None:
             self.bar = None
+            self.targets_met = False  # eval.stop_success reached: the next step ends training
             self.last_step = self.num_timesteps
             self.vector_steps = 0
             if progress:
@@ -615,6 +616,8 @@ def _make_callback(run: _Run, progress: bool) -> Any:
                     self.bar.set_postfix_str(
                         " ".join(f"{k}:{100 * np.mean(v):.0f}%" for k, v in run.windows.items() if v), refresh=False
                     )
+            if self.targets_met:
+                return False
             return cfg.max_wall_s is None or run.wall_s() < cfg.max_wall_s
 
         def _on_rollout_end(self) -> None:
@@ -626,7 +629,14 @@ def _make_callback(run: _Run, progress: bool) -> Any:
             if run.concurrent is not None and self.vector_steps % TIMING_WINDOW_STEPS == 0:
                 self.write(run.progress_line(step, run.timing(step)))
             if cfg.eval.every_steps and step // cfg.eval.every_steps > last // cfg.eval.every_steps:
-                self.run_eval(self.model, step)
+                results = self.run_eval(self.model, step)
+                target = cfg.eval.stop_success
+                if target is not None and results and all(r.success_rate >= target for r in results):
+                    self.targets_met = True
+                    self.write(
+                        f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: every env at {100 * target:.0f} % "
+                        "or above (eval.stop_success): training stops"
+                    )
             if cfg.checkpoint.every_steps and step // cfg.checkpoint.every_steps > last // cfg.checkpoint.every_steps:
                 run.checkpoint = _save(self.model, cfg, run.run_dir, layout, step)
 
@@ -810,7 +820,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
                     else "no checkpoint was written yet: start the run again"
                 )
                 raise TrainingInterrupted(
-                    f"{cfg.name} interrupted at step {int(model.num_timesteps)} ({exc or 'Ctrl-C'}); {then}", last
+                    f"{cfg.name} interrupted at step {int(model.num_timesteps)} ({str(exc) or 'Ctrl-C'}); {then}", last
                 ) from None
         results: list[EvalResult] = run.last_eval
         (run_dir / "final_eval.json").write_text(
