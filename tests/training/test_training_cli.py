@@ -55,6 +55,7 @@ def test_train_sigterm_resume_eval_plot(tmp_path: Path, capsys: pytest.CaptureFi
             proc.wait()
     assert proc.returncode == 130, err
     assert "interrupted at step" in err and "--resume" in err
+    assert "(signal 15);" in err, err  # what stopped it, named
     assert "Task was destroyed but it is pending" not in err  # the interrupted step's task was cancelled
     latest = (run / "checkpoints" / "latest").read_text().strip()
     assert (run / "checkpoints" / latest / "model.zip").is_file()
