@@ -274,11 +274,10 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         async with asyncio.timeout(spec.accept_timeout_s):
             transport = await listener.accept()
         await listener.aclose()
-        from uniros_async.priority import freeze_heap, thread_ids
+        from uniros_async.priority import thread_ids
 
         before = thread_ids()
         await server.build()
-        freeze_heap()  # before the loop's ticks matter: full collections then skip the env and the modules
         server.raise_loop_priority(thread_ids() - before)
         if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
@@ -397,6 +396,7 @@ class _Server:
     async def build(self) -> None:
         import uniros_async  # noqa: F401  (registers the uniros ids in this fresh interpreter)
         from uniros_async.envs.runtime import deferred_start
+        from uniros_async.priority import freeze_heap
 
         os.environ.update(self.spec.environ)
         try:
@@ -405,6 +405,9 @@ class _Server:
                 gym.register(**reg)
             with deferred_start():
                 self.env = env = gym.make(self.spec.env_id, **self.spec.kwargs)
+            # before the env's loop starts: the collection that starts a freeze walks the whole heap (~15 ms), and
+            # without the freeze the first full collection would come in the loop's first seconds, on its thread
+            freeze_heap()
             self._conform_action = _action_conformer(env.action_space)
             base = env.unwrapped
             realtime = getattr(getattr(base, "config", None), "clock", "sim") != "sim"
