@@ -1,10 +1,11 @@
 """Placements: where an env's arm runs and how the env reaches it on the bus, as a registry open to user code.
 
 An env's ``robot=`` setting names a placement: an exact name (``"sim"``, ``"sim-process"``, ``"emulated-real"``)
-or a URI whose scheme is registered (``"tcp://127.0.0.1:7000"``, ``"ros1://robot-pc:11311"``). A placement is a
-factory: given a ``PlacementRequest`` (the robot's spec, the env's config, its clock) it returns an async context
-manager that starts, or connects to, the arm and yields an ``ArmLink``, the domain the env's node joins and the
-transport it uses there. The env then reaches the arm only through its topics and services, whatever the placement.
+or a URI whose scheme is registered (``"tcp://127.0.0.1:7000"``, ``"tls://robot-pc:7000"``,
+``"ros1://robot-pc:11311"``). A placement is a factory: given a ``PlacementRequest`` (the robot's spec, the env's
+config, its clock) it returns an async context manager that starts, or connects to, the arm and yields an
+``ArmLink``, the domain the env's node joins and the transport it uses there. The env then reaches the arm only
+through its topics and services, whatever the placement.
 
 Like gymnasium's ``register``, one dict holds every placement behind ``register_placement``; entry points are
 ``"module:function"`` strings, imported only when a placement is opened, so ``uniros_async.envs`` never imports
@@ -81,9 +82,10 @@ class ArmLink:
     """What an env needs to reach its arm: the domain its node joins and how.
 
     Attributes:
-        domain: an open ``Domain`` or a domain URI (``"tcp://HOST:PORT"``) where the arm's node serves
-            ``/<robot>/joint_states``, ``/<robot>/command`` and the ``hold`` and ``reset`` services.
-        transport: the env node's transport choice there (``"auto"``, ``"memory"``, ``"shm"``, ``"tcp"``).
+        domain: an open ``Domain`` or a domain URI (``"tcp://HOST:PORT"``, ``"tls://HOST:PORT"``) where the arm's
+            node serves ``/<robot>/joint_states``, ``/<robot>/command`` and the ``hold`` and ``reset`` services.
+        transport: the env node's transport choice there (``"auto"``, ``"memory"``, ``"shm"``, ``"tcp"``,
+            ``"tls"``).
         process: a process that runs the arm for this env (a ``ServoSimProcess``), or None; the env keeps it as
             ``robot_process`` (tests kill it to see the env fail cleanly).
     """
@@ -349,15 +351,37 @@ async def open_tcp(request: PlacementRequest) -> AsyncIterator[ArmLink]:
     yield ArmLink(domain=request.uri, transport="tcp")
 
 
+@contextlib.asynccontextmanager
+async def open_tls(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+    """``robot="tls://HOST:PORT"``: the domain of an arm served elsewhere on tls (``uniros robot serve --tls``); the
+    env's node needs a certificate signed by the domain's CA (``$UNIROS_TLS_CERT``, ``KEY``, ``CA``)."""
+    yield ArmLink(domain=request.uri, transport="tls")
+
+
+def _check_host_port(robot: str, scheme: str) -> None:
+    host, sep, port = robot.removeprefix(f"{scheme}://").rstrip("/").rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(
+            f"robot: expected a domain URI {scheme}://HOST:PORT (e.g. {scheme}://127.0.0.1:7000), got {robot!r}"
+        )
+
+
 def check_tcp(robot: str, config: EnvConfig) -> None:
     """A ``tcp://HOST:PORT`` URI with a port.
 
     Raises:
         ConfigError: malformed.
     """
-    host, sep, port = robot.removeprefix("tcp://").rstrip("/").rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ConfigError(f"robot: expected a domain URI tcp://HOST:PORT (e.g. tcp://127.0.0.1:7000), got {robot!r}")
+    _check_host_port(robot, "tcp")
+
+
+def check_tls(robot: str, config: EnvConfig) -> None:
+    """A ``tls://HOST:PORT`` URI with a port.
+
+    Raises:
+        ConfigError: malformed.
+    """
+    _check_host_port(robot, "tls")
 
 
 def _register_builtins() -> None:
@@ -382,6 +406,12 @@ def _register_builtins() -> None:
     )
     register_placement(
         "tcp://", f"{here}:open_tcp", check=f"{here}:check_tcp", description="the domain of an arm served elsewhere"
+    )
+    register_placement(
+        "tls://",
+        f"{here}:open_tls",
+        check=f"{here}:check_tls",
+        description="the domain of an arm served elsewhere on tls (mutual TLS, encrypted)",
     )
     register_placement(
         "ros1://",

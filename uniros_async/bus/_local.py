@@ -27,7 +27,9 @@ def _host_id() -> str:
 
 
 HOST_ID = _host_id()
-TRANSPORT_CHOICES = ("auto", "memory", "shm", "tcp")
+TRANSPORT_CHOICES = ("auto", "memory", "shm", "tcp", "tls")
+NETWORK_SCHEMES = ("tcp", "tls")
+"""Schemes a domain serves other processes on; a node of the domain listens for its peers on the same one."""
 
 # In-process delivery tables, keyed by (domain_id, topic). Only subscriptions that accept in-process delivery
 # (their node's transport is "auto" or "memory") are listed.

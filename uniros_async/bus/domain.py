@@ -1,7 +1,8 @@
 """Domains: an isolated graph with its own registry of nodes, topics, services and parameters.
 
 A domain is what a separate roscore was in UniROS. ``open_domain()`` serves its registry from the calling
-process, on a free port, from Python (no CLI, no daemon); nodes join by URI (``UNIROS_DOMAIN``, the
+process, on a free port, from Python (no CLI, no daemon), over ``tcp://`` or, encrypted, ``tls://`` (then every
+node of the domain reaches its peers on other machines over tls too); nodes join by URI (``UNIROS_DOMAIN``, the
 ROS_MASTER_URI of this world). Several domains run side by side without crosstalk: each has its own id, and
 in-process delivery is keyed by that id.
 
@@ -322,14 +323,23 @@ async def open_domain(
     """Serve a new domain registry from this process until the block exits.
 
     Args:
-        uri: where to listen: ``tcp://127.0.0.1:0`` (a free port, reachable from other processes) or
+        uri: where to listen: ``tcp://127.0.0.1:0`` (a free port, reachable from other processes),
+            ``tls://HOST:PORT`` (the same over mutual TLS: the registry and every node's peer connections across
+            machines are encrypted, and each process needs a certificate signed by the domain's CA), or
             ``memory://`` (this process only).
         params: initial parameters, nested mappings flattened to absolute ``/a/b`` names.
-        options: transport options (``auth_key`` makes every node prove the shared key); None: defaults, with
-            ``auth_key`` from ``$UNIROS_AUTH_KEY`` when set.
+        options: transport options (``auth_key`` makes every node prove the shared key; ``tls_cert_file``,
+            ``tls_key_file``, ``tls_ca_file`` for ``tls://``); None: defaults, with ``auth_key`` from
+            ``$UNIROS_AUTH_KEY`` when set and the TLS files from ``$UNIROS_TLS_CERT``, ``$UNIROS_TLS_KEY`` and
+            ``$UNIROS_TLS_CA``.
 
     Yields:
         The running Domain; ``domain.uri`` is what nodes join.
+
+    Raises:
+        ConfigError: a malformed URI, a non-loopback ``tcp://`` host without ``auth_key`` (or ``insecure``), or a
+            ``tls://`` domain without its certificate, key or CA (the message names the options and variables).
+        OSError: the address cannot be bound.
     """
     listener = await listen(uri, options or options_from_environ())
     flat: dict[str, Any] = {}

@@ -5,8 +5,10 @@ namespace (``"joint_states"`` in namespace ``/rx200_1`` is ``/rx200_1/joint_stat
 ``"~/status"`` is under the node's own name). The transport of a topic connection is chosen per connection:
 
 - same process (and same domain): no transport at all, the subscriber gets the message object itself;
-- same machine: ``shm://`` (shared-memory rings), unless the node asked for ``transport="tcp"``;
-- otherwise ``tcp://``.
+- same machine: ``shm://`` (shared-memory rings), unless the node asked for ``transport="tcp"`` (or ``"tls"``);
+- otherwise the domain's network scheme: ``tcp://``, or ``tls://`` for a domain served on ``tls://`` (every node of
+  such a domain listens for its peers on ``tls://`` and offers no clear tcp endpoint, so nothing of it crosses the
+  network unencrypted; shm stays: it never leaves the machine).
 
 Publishing never blocks: ``publish`` hands the message to in-process subscribers and the encoded frame (encoded
 once, however many remote subscribers) to one bounded queue per remote subscriber, which a sender task drains.
@@ -35,6 +37,7 @@ from uniros_async.bus._local import (
     _LOCAL_SERVICES,
     _LOCAL_SUBS,
     HOST_ID,
+    NETWORK_SCHEMES,
     PROCESS_TOKEN,
     TRANSPORT_CHOICES,
 )
@@ -89,6 +92,7 @@ class Node:
         self.name = _join(self.namespace, name)
         self.clock = clock
         self.transport = transport
+        self.network = "tcp"  # the scheme peers on other machines are reached by: the domain's (open_node sets it)
         self.options = options
         self._tg: asyncio.TaskGroup = None  # type: ignore[assignment]  # set by open_node
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -136,7 +140,7 @@ class Node:
             return await connect(endpoints["memory"], self.options)
         kind = self.transport
         if kind in ("auto", "memory"):
-            kind = "shm" if info.get("host") == HOST_ID and "shm" in endpoints else "tcp"
+            kind = "shm" if info.get("host") == HOST_ID and "shm" in endpoints else self.network
         if kind not in endpoints:
             raise ConfigError(f"{info.get('node')} offers {sorted(endpoints)}, not {kind}")
         return await connect(endpoints[kind], self.options)
@@ -336,6 +340,32 @@ class Node:
         return list(await self._registry.request("list_services"))
 
 
+def _network_scheme(uri: str, transport: str) -> str | None:
+    """The scheme a node of the domain at ``uri`` listens on for peers in other processes: ``tls`` in a ``tls://``
+    domain, else ``tcp``; None for a ``memory://`` domain (its peers are all in this process).
+
+    Raises:
+        ConfigError: ``transport`` forces a network scheme other than the domain's (``tcp`` in a tls domain would
+            carry the node's topics in clear; ``tls`` in a tcp domain finds no peer listening on tls).
+    """
+    scheme = uri.partition("://")[0]
+    if scheme == "memory":
+        return None
+    network = "tls" if scheme == "tls" else "tcp"
+    if transport in NETWORK_SCHEMES and transport != network:
+        if network == "tls":
+            raise ConfigError(
+                f"transport='tcp' would carry this node's topics and services in clear, but the domain {uri} is "
+                "served on tls://, whose nodes reach each other over tls: use transport='tls' (network only) or "
+                "'auto' (shm to peers on this machine, tls to the others)"
+            )
+        raise ConfigError(
+            f"transport='tls' needs a domain served on tls://HOST:PORT; the nodes of {uri} listen on {network}:// "
+            "(open the domain with open_domain('tls://HOST:PORT'), or use transport='tcp')"
+        )
+    return network
+
+
 def _domain_uri(domain: str | Domain | None) -> str:
     if isinstance(domain, Domain):
         return domain.uri
@@ -365,32 +395,51 @@ async def open_node(
         domain: a Domain, its URI, or None for ``$UNIROS_DOMAIN``.
         namespace: prefix of the node's relative names (``/rx200_1``).
         clock: the domain's clock (default: the wall clock); timers and stamps follow it.
-        transport: ``auto`` (in-process, then shm on one machine, else tcp), or force ``memory``, ``shm``, ``tcp``.
-        options: transport options (``auth_key`` must match the domain's and the peers'); None: defaults, with
-            ``auth_key`` from ``$UNIROS_AUTH_KEY`` when set.
+        transport: ``auto`` (in-process, then shm on one machine, else the domain's scheme: tcp, or tls in a
+            ``tls://`` domain), or force ``memory``, ``shm``, ``tcp`` (a tcp domain) or ``tls`` (a tls domain): the
+            last two use the network even to peers on this machine.
+        options: transport options (``auth_key`` must match the domain's and the peers'; in a ``tls://`` domain the
+            node's certificate, key and CA, ``tls_*`` or ``$UNIROS_TLS_CERT``/``KEY``/``CA``); None: defaults, with
+            ``auth_key`` from ``$UNIROS_AUTH_KEY`` when set and the TLS files from the environment.
         registry_timeout_s: bound on every request to the registry.
 
     Raises:
-        DomainError: the domain is unreachable within ``options.connect_timeout_s``.
+        ConfigError: bad name or transport; a ``tls://`` domain without this node's TLS files.
+        DomainError: the domain is unreachable within ``options.connect_timeout_s``, or (``tls://``) refused this
+            node's certificate.
+        AuthenticationError: the domain failed to prove the shared key, or (``tls://``) its certificate is not
+            signed by this node's CA or does not name the host dialled.
         NameConflictError: the node name is taken.
     """
     options = options or options_from_environ()
     uri = _domain_uri(domain)
     node = Node(name, namespace, clock or wall_clock(), transport, options)
+    network = _network_scheme(uri, transport)
+    node.network = network or "tcp"
     async with unwrap_task_group() as tg:
         node._tg = tg
         try:
             try:
                 conn = await connect(uri, options)
+            except TransportBrokenError as exc:
+                hint = ""
+                if network == "tls":  # a tls listener hangs up on a client certificate it cannot verify
+                    from uniros_async.transports.tls import CERT_ENV
+
+                    hint = (
+                        "; a tls domain hangs up on a node whose certificate is not signed by the domain's CA: check "
+                        f"this node's certificate (tls_cert_file or ${CERT_ENV}) against the CA the domain trusts"
+                    )
+                raise DomainError(f"cannot reach the domain at {uri}: {exc}{hint}") from exc
             except (TimeoutError, OSError, TransportError) as exc:
                 raise DomainError(f"cannot reach the domain at {uri}: {exc}") from exc
             node._registry = _RegistryClient(conn, registry_timeout_s, node._on_notify)
             node._start(node._registry.run(), name=f"{node.name} registry")
-            if uri.startswith("memory://"):  # an in-process domain: peers can only be in this process
+            if network is None:  # an in-process domain: peers can only be in this process
                 node._listeners["memory"] = await listen("memory://", options)
             else:
-                node._listeners["tcp"] = await listen(f"tcp://{options.bind_host}:0", options)
-            if transport in ("auto", "shm") and "tcp" in node._listeners:
+                node._listeners[network] = await listen(f"{network}://{options.bind_host}:0", options)
+            if transport in ("auto", "shm") and network is not None:
                 try:
                     node._listeners["shm"] = await listen("shm://", options)
                 except (ImportError, OSError, ConfigError) as exc:  # pragma: no cover - non-Linux

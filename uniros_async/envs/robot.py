@@ -76,8 +76,9 @@ published at the period's start."""
 
 
 def _local_host_toward(uri: str) -> str:
-    """This machine's address on the interface that reaches the host of ``tcp://HOST:PORT`` (no packet is sent: a
-    UDP socket's ``connect`` only picks the route), so that a node's listener is bound there and nowhere else.
+    """This machine's address on the interface that reaches the host of ``tcp://HOST:PORT`` or ``tls://HOST:PORT``
+    (no packet is sent: a UDP socket's ``connect`` only picks the route), so that a node's listener is bound there
+    and nowhere else.
 
     Raises:
         ConfigError: HOST has no route from here (the message names it).
@@ -197,9 +198,10 @@ class RobotEnv(BaseEnv):
                 self.robot_process = link.process
                 domain, transport = link.domain, link.transport
                 options = None
-                if isinstance(domain, str) and domain.startswith("tcp://"):
+                if isinstance(domain, str) and domain.startswith(("tcp://", "tls://")):
                     # the arm subscribes to our commands: listen where it can reach us (loopback for an arm on loopback;
-                    # beyond it, the domain's key from $UNIROS_AUTH_KEY is required, as for every listener)
+                    # beyond it, the domain's key from $UNIROS_AUTH_KEY is required, as for every listener, or tls://,
+                    # whose certificates authenticate: then this host's certificate must name that address)
                     options = dataclasses.replace(options_from_environ(), bind_host=_local_host_toward(domain))
                 await self._join(domain, transport, options)
                 stack.push_async_callback(self._leave)

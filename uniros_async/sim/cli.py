@@ -1,6 +1,7 @@
 """``uniros robot ...``: serve, render and view simulated arms (wired into uniros_async/cli.py).
 
     uniros robot serve rx200 --port 0 --emulate-real   # prints the domain URI, serves until SIGINT/SIGTERM
+    uniros robot serve rx200 --host 192.168.1.20 --port 7000 --tls   # the same on tls:// ($UNIROS_TLS_*)
     uniros robot bridge rx200 --ros-master http://robot-pc:11311/   # a ROS 1 arm on the bus; prints the URI
     uniros robot bridge rx200 --ros2 0                 # a ROS 2 arm (domain 0) on the bus; prints the URI
     uniros robot render rx200 --out pic.png --goal 0.3 0.1 0.25
@@ -40,7 +41,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     actions = robot.add_subparsers(dest="robot_action", required=True)
 
-    serve = actions.add_parser("serve", help="serve a servo sim in an own tcp domain; prints the domain URI")
+    serve = actions.add_parser(
+        "serve", help="serve a servo sim in an own tcp (or, with --tls, tls) domain; prints the domain URI"
+    )
     serve.add_argument("robot", help=ROBOT_HELP)
     serve.add_argument("--host", default="127.0.0.1", help="bind host of the domain and the node (default %(default)s)")
     serve.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
@@ -96,6 +99,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "domain id (default $ROS_DOMAIN_ID, else 0); prints the ros2:// URI to drive it by",
     )
     _add_exposure_flags(serve)
+    _add_tls_flags(serve)
 
     bridge = actions.add_parser(
         "bridge",
@@ -314,9 +318,10 @@ def _print_ready(uri: str) -> None:
     ran at normal priority: see ``uniros_async.priority``); then say on stdout how to reach it: a shell line to
     paste (or ``eval``) elsewhere, then a hint.
 
-    The first line is ``export UNIROS_DOMAIN=tcp://...`` for our domain, ``export ROS_MASTER_URI=http://...``
-    when a ROS 1 master carries the arm, or ``export ROS_DOMAIN_ID=N`` for a ROS 2 driver (the hint line then gives
-    the ``ros2://`` URI to drive it by); scripts read the value after the ``=``.
+    The first line is ``export UNIROS_DOMAIN=tcp://...`` (or ``tls://...``) for our domain,
+    ``export ROS_MASTER_URI=http://...`` when a ROS 1 master carries the arm, or ``export ROS_DOMAIN_ID=N`` for a
+    ROS 2 driver (the hint line then gives the ``ros2://`` URI to drive it by); scripts read the value after the
+    ``=``.
     """
     from uniros_async.priority import freeze_heap, raise_loop_priority, thread_ids
 
@@ -331,6 +336,12 @@ def _print_ready(uri: str) -> None:
         )
     elif uri.startswith("http://"):
         sys.stdout.write(f"export ROS_MASTER_URI={uri}\n# the arm serves a ROS 1 driver's topics on this master\n")
+    elif uri.startswith("tls://"):
+        sys.stdout.write(
+            f"export UNIROS_DOMAIN={uri}\n# in another shell, with $UNIROS_TLS_CERT, $UNIROS_TLS_KEY and "
+            "$UNIROS_TLS_CA set to that host's certificate, its key and this CA, the line above, then: "
+            "uniros topic list\n"
+        )
     else:
         sys.stdout.write(f"export UNIROS_DOMAIN={uri}\n# in another shell, the line above, then: uniros topic list\n")
     sys.stdout.flush()
@@ -369,6 +380,8 @@ def _serve(args: argparse.Namespace) -> int:
     from uniros_async.sim.serve import ServeConfig, serve_servo_sim
     from uniros_async.sim.servo import ServoSimConfig
 
+    other = "--ros2" if args.ros2 is not None else "--ros1-master" if args.ros1_master is not None else None
+    _check_tls_flags(args, other)
     if args.ros2 is not None:
         return _serve_ros2(args)
     if args.ros1_master is not None:
@@ -387,6 +400,10 @@ def _serve(args: argparse.Namespace) -> int:
         trace=args.trace,
         auth_key=_auth_key(args),
         insecure=args.insecure,
+        tls=args.tls,
+        tls_cert_file=args.tls_cert,
+        tls_key_file=args.tls_key,
+        tls_ca_file=args.tls_ca,
     )
     return _run_until_signal(serve_servo_sim(cfg, on_ready=_print_ready))
 
@@ -406,6 +423,31 @@ def _add_exposure_flags(parser: argparse.ArgumentParser) -> None:
         "any ROS 1 listener beyond loopback, since ROS 1 cannot authenticate; ROS 2 discovery=subnet, as DDS without "
         "SROS2 cannot either)",
     )
+
+
+def _add_tls_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--tls",
+        action="store_true",
+        help="serve the domain on tls://HOST:PORT (mutual TLS: the registry and the arm's topics are encrypted, and "
+        "peers need a certificate signed by the CA; no key needed beyond loopback). The certificate must name "
+        "--host. Files: --tls-cert/--tls-key/--tls-ca, else $UNIROS_TLS_CERT/$UNIROS_TLS_KEY/$UNIROS_TLS_CA",
+    )
+    parser.add_argument("--tls-cert", default=None, metavar="PEM", help="with --tls: this host's certificate")
+    parser.add_argument("--tls-key", default=None, metavar="PEM", help="with --tls: its private key")
+    parser.add_argument("--tls-ca", default=None, metavar="PEM", help="with --tls: the CA that signed the peers'")
+
+
+def _check_tls_flags(args: argparse.Namespace, where: str | None) -> None:
+    """``--tls-*`` files only with ``--tls``; ``--tls`` only where a uniros domain is served (``where`` None)."""
+    from uniros_async.errors import ConfigError
+
+    files = [f for f in ("tls_cert", "tls_key", "tls_ca") if getattr(args, f) is not None]
+    if files and not args.tls:
+        flags = ", ".join("--" + f.replace("_", "-") for f in files)
+        raise ConfigError(f"{flags} only apply with --tls (the domain on tls://)")
+    if args.tls and where is not None:
+        raise ConfigError(f"--tls serves a uniros domain on tls://; {where} serves no uniros domain")
 
 
 def _auth_key(args: argparse.Namespace) -> bytes | None:

@@ -1,13 +1,15 @@
 """A servo sim outside the caller's process: in a child process of the same domain, or as a remote service.
 
 - ``open_servo_sim_process(robot, domain=uri)``: spawns a process (``get_context("spawn")``, daemon) that joins
-  the caller's domain by its tcp URI and runs the ServoSimNode there; data between the processes goes over shm
-  when both are on one machine (the bus picks it per connection), else tcp. Leaving the block stops the
-  process (a stop message, then ``join``, then ``terminate``, then ``kill``): no process outlives the block.
-- ``serve_servo_sim(robot, host=..., port=...)``: opens its own domain on ``tcp://HOST:PORT`` and runs the node
-  in it until cancelled; ``uniros robot serve rx200 --port 0 --emulate-real`` prints that URI on stdout and
-  serves until SIGINT/SIGTERM. With ``emulation`` it is the emulated real arm (sim/emulated.py), reached
-  only over tcp (its node offers no shm endpoint), as a physical arm on the network would be.
+  the caller's domain by its tcp (or tls) URI and runs the ServoSimNode there; data between the processes goes over
+  shm when both are on one machine (the bus picks it per connection), else the domain's tcp or tls. Leaving the
+  block stops the process (a stop message, then ``join``, then ``terminate``, then ``kill``): no process outlives
+  the block.
+- ``serve_servo_sim(robot, host=..., port=...)``: opens its own domain on ``tcp://HOST:PORT`` (``tls=True``:
+  ``tls://HOST:PORT``, mutual TLS) and runs the node in it until cancelled; ``uniros robot serve rx200 --port 0
+  --emulate-real`` (``--tls``) prints that URI on stdout and serves until SIGINT/SIGTERM. With ``emulation`` it is
+  the emulated real arm (sim/emulated.py), reached only over the network, tcp or tls (its node offers no shm
+  endpoint), as a physical arm on the network would be.
 
 Clocks: by default the sim follows wall time. ``clock="sim"`` makes it a SimClock source at ``time_scale`` that
 publishes ``/clock``; nodes in other processes follow it with ``uniros_async.sim_clock.follow_clock``.
@@ -54,8 +56,10 @@ class ServeConfig:
     Attributes:
         robot: a registered robot's name, or its RobotSpec (picklable plain data: the child then needs no import
             of the package that registered it).
-        domain: URI of the domain to join; None: open an own domain on ``tcp://host:port``.
-        host: bind host of an own domain and of the node's endpoints.
+        domain: URI of the domain to join (``tcp://`` or ``tls://``); None: open an own domain on
+            ``tcp://host:port`` (``tls://host:port`` with ``tls``).
+        host: bind host of an own domain and of the node's endpoints (under tls, the host's certificate must name
+            it: peers verify the address they dial).
         port: port of an own domain (0: a free one).
         namespace: topic namespace; None: ``/<robot>``.
         node_name: the node's name.
@@ -67,6 +71,10 @@ class ServeConfig:
         publish_markers: publish EE and goal markers.
         auth_key: shared key of the domain; None: ``$UNIROS_AUTH_KEY`` if set, else none.
         insecure: allow a non-loopback ``host`` without ``auth_key`` (else the domain refuses to start).
+        tls: open the own domain on ``tls://`` (mutual TLS; no ``auth_key`` needed beyond loopback).
+        tls_cert_file: this process's certificate for ``tls://``; None: ``$UNIROS_TLS_CERT``.
+        tls_key_file: its private key; None: ``$UNIROS_TLS_KEY`` (or in the certificate file).
+        tls_ca_file: the CA the peers' certificates must be signed by; None: ``$UNIROS_TLS_CA``.
         max_command_age_s: drop commands older than this (``ServoSimNode.max_command_age_s``); None: keep all.
         trace: write every command's age and every watchdog hold as a JSON line on stdout (``ServoSimNode.on_event``).
     """
@@ -85,6 +93,10 @@ class ServeConfig:
     publish_markers: bool = False
     auth_key: bytes | None = None
     insecure: bool = False
+    tls: bool = False
+    tls_cert_file: str | None = None
+    tls_key_file: str | None = None
+    tls_ca_file: str | None = None
     max_command_age_s: float | None = None
     trace: bool = False
 
@@ -93,15 +105,34 @@ class ServeConfig:
             raise ConfigError(f"ServeConfig.clock: expected one of {CLOCKS}, got {self.clock!r}")
         if not 0 <= self.port <= 65535:
             raise ConfigError(f"ServeConfig.port: expected 0..65535, got {self.port}")
-        if self.domain is not None and not self.domain.startswith("tcp://"):
+        if self.domain is not None and not self.domain.startswith(("tcp://", "tls://")):
             raise ConfigError(
-                f"ServeConfig.domain: another process joins a domain over tcp; expected tcp://HOST:PORT, got "
-                f"{self.domain!r} (open the domain with open_domain('tcp://127.0.0.1:0'))"
+                f"ServeConfig.domain: another process joins a domain over tcp or tls; expected tcp://HOST:PORT or "
+                f"tls://HOST:PORT, got {self.domain!r} (open the domain with open_domain('tcp://127.0.0.1:0'))"
             )
+        if self.domain is not None and self.tls:
+            raise ConfigError(
+                f"ServeConfig.tls opens an own domain on tls://; to join the domain {self.domain!r} over tls, give its "
+                "tls:// URI as domain instead"
+            )
+
+    @property
+    def scheme(self) -> str:
+        """The network scheme of the domain served or joined: ``tls`` or ``tcp``."""
+        if self.domain is not None:
+            return "tls" if self.domain.startswith("tls://") else "tcp"
+        return "tls" if self.tls else "tcp"
 
     def options(self) -> TransportOptions:
         key = self.auth_key if self.auth_key is not None else options_from_environ().auth_key
-        return TransportOptions(bind_host=self.host, auth_key=key, insecure=self.insecure)
+        return TransportOptions(
+            bind_host=self.host,
+            auth_key=key,
+            insecure=self.insecure,
+            tls_cert_file=self.tls_cert_file,
+            tls_key_file=self.tls_key_file,
+            tls_ca_file=self.tls_ca_file,
+        )
 
     def make_clock(self) -> Clock | None:
         return SimClock(time_scale=self.time_scale) if self.clock == "sim" else None
@@ -124,13 +155,13 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
     async with contextlib.AsyncExitStack() as stack:
         if config.domain is None:
             dom: Domain | str = await stack.enter_async_context(
-                open_domain(f"tcp://{config.host}:{config.port}", options=options)
+                open_domain(f"{config.scheme}://{config.host}:{config.port}", options=options)
             )
             uri = dom.uri  # type: ignore[union-attr]
         else:
             dom = uri = config.domain
-        # the emulated real arm is a device on the network: tcp only
-        transport = "tcp" if config.emulation is not None and config.transport == "auto" else config.transport
+        # the emulated real arm is a device on the network: the domain's tcp or tls only
+        transport = config.scheme if config.emulation is not None and config.transport == "auto" else config.transport
         sim_node = await stack.enter_async_context(
             open_servo_sim(
                 config.robot,
@@ -259,7 +290,8 @@ async def open_servo_sim_process(
     Args:
         robot: a registered robot's name, or its RobotSpec (a robot registered by user code: the child gets the
             spec itself, so it needs no import of the user's module).
-        domain: the Domain or its ``tcp://`` URI (a ``memory://`` domain cannot be joined from another process).
+        domain: the Domain or its ``tcp://`` or ``tls://`` URI (a ``memory://`` domain cannot be joined from another
+            process; a ``tls://`` one needs the ``$UNIROS_TLS_*`` files, which the child inherits).
         namespace: topic namespace; default ``/<robot>``.
         config: servo settings.
         emulation: run the emulated real arm instead of the nominal sim.
@@ -275,7 +307,7 @@ async def open_servo_sim_process(
         A ServoSimProcess; its topics are live when the block starts.
 
     Raises:
-        ConfigError: a non-tcp domain or bad settings.
+        ConfigError: a domain neither tcp nor tls, or bad settings.
         RobotError: the child failed to start (its traceback is in the message) or did not start in time.
     """
     uri = domain.uri if isinstance(domain, Domain) else domain
