@@ -3,6 +3,7 @@ domain URI (``robot="tls://..."``), with throw-away certificates (``uniros_async
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
 import gymnasium as gym
@@ -11,9 +12,11 @@ import pytest
 
 import uniros_async  # noqa: F401  (registers the ids)
 from tests.hostile import _served
+from uniros_async.bus import open_domain, open_node
+from uniros_async.bus.messages import JointState
 from uniros_async.errors import ConfigError
 from uniros_async.sim import cli
-from uniros_async.sim.serve import ServeConfig
+from uniros_async.sim.serve import ServeConfig, open_servo_sim_process
 from uniros_async.testing.tls import TlsFiles, write_test_certs
 
 TLS_VARS = ("UNIROS_TLS_CERT", "UNIROS_TLS_KEY", "UNIROS_TLS_CA")
@@ -56,6 +59,23 @@ def test_a_reach_env_steps_an_arm_served_on_tls(
     finally:
         _served.stop_serve(proc)
     assert proc.returncode == 0, (tmp_path / "serve.log").read_text()[-2000:]
+
+
+@pytest.mark.slow
+async def test_a_servo_sim_process_joins_a_tls_domain(tls_files: TlsFiles, monkeypatch: pytest.MonkeyPatch) -> None:
+    for var, value in tls_files.environ().items():  # the child inherits them
+        monkeypatch.setenv(var, value)
+    async with (
+        asyncio.timeout(60),
+        open_domain("tls://127.0.0.1:0") as domain,
+        open_servo_sim_process("ned2", domain=domain, transport="tls"),
+        open_node("env", domain=domain, transport="tls") as env,
+    ):
+        eps = domain._nodes["/ned2/servo_sim"].info["endpoints"]
+        assert set(eps) == {"tls"}, eps
+        states = await env.create_subscription(JointState, "/ned2/joint_states")
+        await states.wait_for_publishers(1, timeout_s=10)
+        assert len((await states.receive()).position) == 6
 
 
 def test_tls_flags_and_settings_are_checked(
