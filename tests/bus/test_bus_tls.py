@@ -4,6 +4,7 @@ throw-away certificates (``uniros_async.testing.tls``) on loopback."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -113,3 +114,26 @@ async def test_a_tls_domain_needs_its_files_and_keeps_its_nodes_off_clear_tcp(
         with pytest.raises(ConfigError, match="transport='tls' needs a domain served on tls://"):
             async with open_node("n", domain=plain, options=opts, transport="tls"):
                 pass
+
+
+async def test_a_peer_whose_certificate_does_not_name_its_address_is_refused_not_fatal(
+    tls_files: TlsFiles, caplog: pytest.LogCaptureFixture
+) -> None:
+    opts = tls_files.options()
+    misnamed = dataclasses.replace(opts, bind_host="127.0.0.2")  # loopback, but the certificate names 127.0.0.1
+    async with (
+        asyncio.timeout(T_S),
+        open_domain("tls://127.0.0.1:0", options=opts) as domain,
+        open_node("misnamed", domain=domain, options=misnamed, transport="tls") as bad,
+        open_node("named", domain=domain, options=opts, transport="tls") as good,
+        open_node("reader", domain=domain, options=opts, transport="tls") as reader,
+    ):
+        await bad.create_publisher(Data, "/x")
+        pub = await good.create_publisher(Data, "/x")
+        sub = await reader.create_subscription(Data, "/x")
+        await sub.wait_for_publishers(1, timeout_s=10)
+        while not any("IP address mismatch" in r.getMessage() for r in caplog.records):  # noqa: ASYNC110 - a log
+            await asyncio.sleep(0.02)
+        assert sub.publisher_count == 1, "the misnamed publisher is not connected"
+        pub.publish(Data(value=[7.0]))
+        assert list((await sub.receive()).value) == [7.0], "the reader's node kept working"

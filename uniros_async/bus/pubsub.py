@@ -21,7 +21,9 @@ from uniros_async.bus._local import (
 )
 from uniros_async.bus.qos import QoS
 from uniros_async.errors import (
+    AuthenticationError,
     CodecError,
+    ConfigError,
     DomainError,
     TransportBrokenError,
     TransportClosedError,
@@ -271,7 +273,11 @@ class Subscription(Generic[M]):
         while True:
             conn: Transport | None = None
             try:
-                conn = await self.node._connect_to(info)
+                try:
+                    conn = await self.node._connect_to(info)
+                except ConfigError as exc:  # no endpoint this node may use (tcp only, in a tls domain): no retry
+                    self.node._log.warning("%s: cannot subscribe to %s: %s", self.topic, info["node"], exc)
+                    return
                 await conn.send(
                     codec.encode_plain(
                         {
@@ -309,6 +315,9 @@ class Subscription(Generic[M]):
                         r = _maybe_await(self.callback(msg))
                         if r is not None:
                             await r
+            except AuthenticationError as exc:  # a key that differs; a tls certificate not naming the address dialled
+                msg = "%s: refused publisher %s (%s); retrying in %.2f s"
+                self.node._log.warning(msg, self.topic, info["node"], exc, backoff.delay_s)
             except (TransportError, TimeoutError, OSError, CodecError) as exc:
                 msg = "%s: connection to %s lost (%s); retrying in %.2f s"
                 logger.debug(msg, self.topic, info["node"], exc, backoff.delay_s)
