@@ -62,7 +62,7 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument(
         "--robot",
         default="sim",
-        help="sim, sim-process, emulated-real, tcp://host:port, ros1://host:port or ros2://[domain]",
+        help="sim, sim-process, emulated-real, tcp://host:port, tls://host:port, ros1://host:port or ros2://[domain]",
     )
     be.add_argument("--concurrent", action="store_true", help="run the arms at the same time")
     be.add_argument(

@@ -1,8 +1,9 @@
 """Secure by default: a listener beyond loopback needs authentication, or an explicit ``insecure``.
 
 Every listener that accepts network connections calls ``check_exposure`` before binding: tcp:// (the domain, nodes,
-served arms), tls:// (client certificates count as authentication), and the ROS 1 adapter's XML-RPC and TCPROS
-servers (which cannot authenticate at all, so beyond loopback they always need ``insecure``).
+served arms), and the ROS 1 adapter's XML-RPC and TCPROS servers (which cannot authenticate at all, so beyond
+loopback they always need ``insecure``). A tls:// listener (a tls domain, its nodes, an arm served with ``--tls``)
+skips the check: its client certificates authenticate every peer.
 """
 
 from __future__ import annotations
