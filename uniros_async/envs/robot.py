@@ -141,8 +141,6 @@ class RobotEnv(BaseEnv):
         self._last_return_wall_ns: int | None = None
         self._cmd_seq = 0
         self._transit = StateTransit(stall_s=config.robot_timeout_s)
-        self._transit_sub: Any = None  # the subscription whose states _transit has seen
-        self._transit_seen = -1  # how many of them (its ``received``)
         self.unsafe_actions = 0
         self.robot_process: Any = None  # a process the placement runs the arm in (ArmLink.process), or None
 
@@ -345,31 +343,8 @@ class RobotEnv(BaseEnv):
         of the last minute, and half a round trip of the link when the arm echoes our commands). A new subscription
         (the arm's domain joined again: perhaps a new arm, a new clock) starts afresh."""
         sub = self._js
-        transit = self._transit
-        if self._transit_sub is not sub:
-            self._transit_sub, self._transit_seen = sub, -1
-            transit.clear()
-        if sub.received != self._transit_seen:
-            self._transit_seen = sub.received
-            transit.observe(js, sub.latest_recv_ns)
-        return transit.transit_ns(js, sub.latest_recv_ns)
-
-    def _round_trip_text(self) -> str:
-        """What the echo of our commands told of the link's round trip, for an error's message ("" when nothing)."""
-        transit = self._transit
-        used = transit.offset_round_trip_ns
-        if transit.round_trip_ns is not None and used is not None:
-            return (
-                f"; the round trip to the arm measured {transit.round_trip_ns / 1e9:.2f} s by its echo of our commands"
-                f" (half of {used / 1e9:.2f} s counted as a state's transit)"
-            )
-        unechoed = transit.unechoed_ns(time.monotonic_ns())
-        if unechoed:
-            return (
-                f"; the arm echoed none of our commands of the last {unechoed / 1e9:.2f} s: a round trip at least that"
-                " long"
-            )
-        return ""
+        self._transit.follow(sub)
+        return self._transit.transit_ns(js, sub.latest_recv_ns)
 
     def _stale_at_ns(self) -> int:
         """When, on the env's clock, the newest joint state turns older than ``robot_timeout_s``."""
@@ -387,9 +362,11 @@ class RobotEnv(BaseEnv):
             if self._js.latest() is not None
             else f"no joint state on {self._js.topic} since the env joined the arm's domain again"
         )
+        round_trip = self._transit.describe(time.monotonic_ns())
+        round_trip = f"; {round_trip}" if round_trip else ""
         return RobotError(
             f"{self.robot_spec.name}: {what}: {newest} (robot_timeout_s={self.config.robot_timeout_s}"
-            f"{self._round_trip_text()}); no command is sent until joint states arrive again, and the arm's watchdog"
+            f"{round_trip}); no command is sent until joint states arrive again, and the arm's watchdog"
             " holds it"
         )
 

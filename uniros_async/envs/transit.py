@@ -39,13 +39,21 @@ Bounded: the windows hold at most one sample per state of ``TRANSIT_WINDOW_S`` (
 and the send stamps an echo is matched against are the env's last ``SENT_RING`` commands (an echo of anything else,
 another sender's command or a stamp too old, measures nothing). An arm that does not echo (``command_age_ns`` None:
 an adapter's arm, an older ``uniros robot serve``) leaves the quickest-state estimate alone.
+
+The env feeds it from its joint-state subscription (``follow``): each new state is observed once, and a new
+subscription (the arm's domain joined again: perhaps a new arm, a new clock) starts afresh. ``describe`` puts what
+the round trips told into words for the env's error messages.
 """
 
 from __future__ import annotations
 
 import collections
+from typing import TYPE_CHECKING
 
 from uniros_async.bus.messages import JointState
+
+if TYPE_CHECKING:
+    from uniros_async.bus.pubsub import Subscription
 
 __all__ = ["SENT_RING", "TRANSIT_WINDOW_S", "StateTransit"]
 
@@ -59,8 +67,9 @@ SENT_RING = 256
 class StateTransit:
     """The transit of the joint states of one subscription (see the module docstring).
 
-    Feed it with ``sent`` for every command and ``observe`` for every new state; ``transit_ns`` is a state's
-    transit. Times are the env's ``time.monotonic_ns()``, stamps the arm's clock.
+    Feed it with ``sent`` for every command and ``observe`` for every new state (``follow`` does that for a
+    subscription's states); ``transit_ns`` is a state's transit. Times are the env's ``time.monotonic_ns()``, stamps
+    the arm's clock.
 
     Args:
         stall_s: no state for longer than this is a stall of the link (the env's robot timeout): a command sent
@@ -77,6 +86,8 @@ class StateTransit:
         self._unechoed_since: int | None = None  # with no round trip in the window: the first command sent since
         self._last_arrival: int | None = None
         self._stall_end = 0  # the arrival of the first state after the newest stall
+        self._sub: Subscription[JointState] | None = None  # the subscription ``follow`` last saw
+        self._seen = -1  # how many of its states were observed (its ``received``)
         self.echoes = False
         """Whether the arm echoes commands (a state with ``command_age_ns`` set was seen since ``clear``)."""
         self.round_trip_ns: int | None = None
@@ -142,6 +153,35 @@ class StateTransit:
         while trips and trips[-1][1] <= offset:
             trips.pop()
         trips.append((arrival_ns, offset, rtt))
+
+    def follow(self, sub: Subscription[JointState]) -> None:
+        """Observe the newest state of ``sub`` if it is new (each state once, at its arrival ``sub.latest_recv_ns``).
+        A subscription other than the one followed before (the arm's domain joined again: perhaps a new arm, a new
+        clock) is started afresh: ``clear`` first."""
+        if self._sub is not sub:
+            self._sub, self._seen = sub, -1
+            self.clear()
+        js = sub.latest()
+        if js is not None and sub.received != self._seen:
+            self._seen = sub.received
+            self.observe(js, sub.latest_recv_ns)
+
+    def describe(self, now_ns: int) -> str:
+        """What the echo of our commands told of the link's round trip at ``now_ns``, for an error's message: the
+        newest round trip and the one counted, or how long our commands went unechoed ("" when nothing)."""
+        used = self.offset_round_trip_ns
+        if self.round_trip_ns is not None and used is not None:
+            return (
+                f"the round trip to the arm measured {self.round_trip_ns / 1e9:.2f} s by its echo of our commands"
+                f" (half of {used / 1e9:.2f} s counted as a state's transit)"
+            )
+        unechoed = self.unechoed_ns(now_ns)
+        if unechoed:
+            return (
+                f"the arm echoed none of our commands of the last {unechoed / 1e9:.2f} s: a round trip at least that"
+                " long"
+            )
+        return ""
 
     @property
     def awaiting_round_trip(self) -> bool:
