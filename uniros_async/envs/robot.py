@@ -575,9 +575,9 @@ class RobotEnv(BaseEnv):
         when the action arrived): the first grid point at least ``cycle / 8`` after it (an action acts about that
         long, e.g. 100 ms of 800, before its returns). A step whose regular deadline is nearer than that is late
         too. Every member of a vector env on one machine decides from the same instant, so none can fall on the
-        other side of a cut-off from the rest. (A reset that ended half a cycle or more before the next grid
-        point used to align its first step one cycle later than the members that kept their deadline: they then
-        returned a cycle early and the agent got their returns 800 ms old.)
+        other side of a cut-off from the rest. (Were a reset that ended half a cycle or more before the next grid
+        point to align its first step one cycle later than the members that kept their deadline, those would return
+        a cycle early and the agent would get their returns 800 ms old.)
         """
         cfg = self.config
         cycle_ns = round(cfg.action_cycle_s * 1e9)
