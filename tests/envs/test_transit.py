@@ -1,16 +1,21 @@
-"""The env's estimate of a joint state's transit (``envs.transit.StateTransit``): pure bookkeeping, no sockets.
+"""The env's estimate of a joint state's transit (``envs.transit.StateTransit``): bookkeeping, no network.
 
-A link is simulated on paper: the arm's clock runs ``OFFSET_NS`` ahead of the env's, a command sent at env time ``t``
-arrives after ``fwd``, and a state stamped at env time ``ts`` arrives after ``back``, echoing the newest command
-received and how long before its stamp that arrived, as ``ServoSimNode`` does.
+Following a subscription is tested on a real one, in an in-process memory domain. Otherwise a link is simulated on
+paper: the arm's clock runs ``OFFSET_NS`` ahead of the env's, a command sent at env time ``t`` arrives after ``fwd``,
+and a state stamped at env time ``ts`` arrives after ``back``, echoing the newest command received and how long
+before its stamp that arrived, as ``ServoSimNode`` does.
 """
 
 from __future__ import annotations
 
+import asyncio
+import re
+import time
+
 import numpy as np
 import pytest
 
-from uniros_async.bus import codec
+from uniros_async.bus import codec, open_domain, open_node
 from uniros_async.bus.messages import Header, JointState
 from uniros_async.envs.transit import SENT_RING, TRANSIT_WINDOW_S, StateTransit
 from uniros_async.errors import CodecError
@@ -193,6 +198,76 @@ def test_without_commands_the_round_trips_expire_and_an_unechoed_command_bounds_
     assert transit.transit_ns(js, arrival) == 700 * MS
     js, arrival = link.run(2.0)
     assert transit.transit_ns(js, arrival) == S
+
+
+class CountingTransit(StateTransit):
+    """A StateTransit that counts the states it observes."""
+
+    def __init__(self, stall_s: float) -> None:
+        super().__init__(stall_s)
+        self.observed: list[JointState] = []
+
+    def observe(self, js: JointState, arrival_ns: int) -> None:
+        self.observed.append(js)
+        super().observe(js, arrival_ns)
+
+
+async def test_following_a_subscription_observes_each_state_once_and_a_new_one_afresh() -> None:
+    transit = CountingTransit(stall_s=1000.0)  # the test's pauses are no stall
+    async with open_domain("memory://") as domain, open_node("arm", domain=domain) as arm:
+        async with open_node("env", domain=domain) as env:
+            pub = await arm.create_publisher(JointState, "joint_states")
+            sub = await env.create_subscription(JointState, "joint_states")
+            transit.follow(sub)  # nothing received yet: nothing to observe
+            assert transit.observed == [] and not transit.echoes
+            sent = time.monotonic_ns()
+            transit.sent(sent)
+            first = _state(sent, (sent, sent))  # echoes the command at once (age 0): the round trip is its way
+            pub.publish(first)
+            async with asyncio.timeout(5):
+                assert await sub.receive() is first
+            transit.follow(sub)
+            transit.follow(sub)  # no new state: not observed again
+            assert transit.observed == [first]
+            assert transit.round_trips == 1 and transit.echoes
+            rtt = transit.round_trip_ns
+            assert rtt is not None and 0 <= rtt <= time.monotonic_ns() - sent
+            # another subscription (the arm's domain joined again) that has received as many states as the first
+            # had when last followed: cleared, and its state observed all the same
+            again = await env.create_subscription(JointState, "joint_states")
+            second = _state(time.monotonic_ns(), None, echoes=False)
+            pub.publish(second)
+            async with asyncio.timeout(5):
+                assert await again.receive() is second
+            assert again.received == 1 and sub.received == 2
+            transit.follow(again)
+            assert transit.observed == [first, second]
+            assert transit.round_trips == 0 and transit.round_trip_ns is None and not transit.echoes
+            transit.follow(again)
+            transit.follow(sub)  # back to the first: afresh again, its newest state observed once more
+            assert transit.observed == [first, second, second] and transit.round_trips == 0
+
+
+def test_describe_names_the_round_trips_or_the_unechoed_commands() -> None:
+    transit = StateTransit()
+    assert transit.describe(10 * S) == ""  # nothing sent, nothing echoed
+    link = Link(transit, fwd_ns=S, back_ns=S)
+    _, arrival = link.run(0.5)  # the first command went out at 10.1 s, none echoed by 11.5 s
+    assert transit.describe(arrival) == (
+        "the arm echoed none of our commands of the last 1.40 s: a round trip at least that long"
+    )
+    _, arrival = link.run(3.0)
+    assert transit.describe(arrival) == (
+        "the round trip to the arm measured 2.00 s by its echo of our commands (half of 2.00 s counted as a"
+        " state's transit)"
+    )
+    link.commanding = False
+    link.back = 20 * MS  # the delay goes: the newest round trip is shorter than the one counted
+    _, arrival = link.run(1.0)
+    text = transit.describe(arrival)
+    assert re.fullmatch(r"the round trip to the arm measured 1\.02 s .* \(half of 2\.00 s counted .*\)", text), text
+    transit.clear()
+    assert transit.describe(arrival) == ""  # an arm not known to echo: no claim about unechoed commands
 
 
 def test_a_joint_state_from_a_publisher_without_the_echo_decodes_without_one() -> None:
