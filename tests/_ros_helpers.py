@@ -108,10 +108,12 @@ async def check_bridge_drives_the_mirror(
         assert bridge.stats.commands_out == 1 and bridge.stats.states_dropped == 0
 
 
-def check_cli_bridge(*args: str, tls: TlsFiles | None = None) -> None:
-    """``uniros robot bridge rx200 ARGS``: its domain's URI printed, the arm's joint states served there over tcp
-    (``tls``: with ``--tls`` and these files by flag, over tls), and a clean exit on SIGINT."""
+def check_cli_bridge(*args: str, host: str = "127.0.0.1", tls: TlsFiles | None = None) -> None:
+    """``uniros robot bridge rx200 ARGS --host HOST``: its domain's URI printed, the arm's joint states served there
+    over tcp (``tls``: with ``--tls`` and these files by flag, over tls), the bridge's node offering only that
+    scheme, at ``host``, and a clean exit on SIGINT."""
     scheme = "tcp" if tls is None else "tls"
+    args = (*args, "--host", host)
     if tls is not None:
         args = (*args, "--tls", "--tls-cert", tls.cert_file, "--tls-key", tls.key_file, "--tls-ca", tls.ca_file)
     proc = subprocess.Popen(
@@ -121,17 +123,20 @@ def check_cli_bridge(*args: str, tls: TlsFiles | None = None) -> None:
         text=True,
     )
     try:
-        line = wait_for_line(proc, f"export UNIROS_DOMAIN={scheme}://", timeout_s=60.0)
+        line = wait_for_line(proc, f"export UNIROS_DOMAIN={scheme}://{host}:", timeout_s=60.0)
         uri = line.removeprefix("export UNIROS_DOMAIN=")
         options = None if tls is None else tls.options()
 
-        async def one_state() -> JointState:
+        async def one_state() -> tuple[JointState, dict[str, str]]:
             async with open_node("probe", domain=uri, namespace="/rx200", transport=scheme, options=options) as node:
                 sub = await node.create_subscription(JointState, "joint_states")
-                return await asyncio.wait_for(sub.receive(), 10.0)
+                state = await asyncio.wait_for(sub.receive(), 10.0)
+                info = await node._registry.request("lookup_service", name="/rx200/stats")
+                return state, dict(info["endpoints"])
 
-        state = asyncio.run(one_state())
+        state, endpoints = asyncio.run(one_state())
         assert state.name[:5] == get_robot_spec("rx200").arm_joint_names
+        assert set(endpoints) == {scheme} and endpoints[scheme].startswith(f"{scheme}://{host}:"), endpoints
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=15.0) == 0
     finally:

@@ -323,7 +323,7 @@ def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> Non
 @pytest.mark.slow
 def test_cli_bridge_serves_a_domain_until_sigint(ros_master: str, fake_arm: Any) -> None:
     fake_arm("rx200")
-    check_cli_bridge("--ros-master", ros_master)
+    check_cli_bridge("--ros-master", ros_master, host="127.0.0.2")  # the node listens where the domain does
 
 
 def test_cli_bridge_reports_an_unreachable_master() -> None:
