@@ -26,6 +26,7 @@ from uniros_async.bus.messages import Header, JointCommand, JointState
 from uniros_async.errors import RobotError
 from uniros_async.robots import get_robot_spec
 from uniros_async.testing.ros1 import kill_process, wait_for_line
+from uniros_async.testing.tls import TlsFiles
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "docs/results/checkpoints/rx200_reach_dense_td3_uniros"
 """The dense reach policy of docs/results.md, trained in accelerated sim."""
@@ -107,9 +108,14 @@ async def check_bridge_drives_the_mirror(
         assert bridge.stats.commands_out == 1 and bridge.stats.states_dropped == 0
 
 
-def check_cli_bridge(*args: str) -> None:
-    """``uniros robot bridge rx200 ARGS``: its domain's URI printed, the arm's joint states served there over tcp,
-    and a clean exit on SIGINT."""
+def check_cli_bridge(*args: str, host: str = "127.0.0.1", tls: TlsFiles | None = None) -> None:
+    """``uniros robot bridge rx200 ARGS --host HOST``: its domain's URI printed, the arm's joint states served there
+    over tcp (``tls``: with ``--tls`` and these files by flag, over tls), the bridge's node offering only that
+    scheme, at ``host``, and a clean exit on SIGINT."""
+    scheme = "tcp" if tls is None else "tls"
+    args = (*args, "--host", host)
+    if tls is not None:
+        args = (*args, "--tls", "--tls-cert", tls.cert_file, "--tls-key", tls.key_file, "--tls-ca", tls.ca_file)
     proc = subprocess.Popen(
         [sys.executable, "-m", "uniros_async.cli", "robot", "bridge", "rx200", *args],
         stdout=subprocess.PIPE,
@@ -117,15 +123,20 @@ def check_cli_bridge(*args: str) -> None:
         text=True,
     )
     try:
-        uri = wait_for_line(proc, "export UNIROS_DOMAIN=tcp://", timeout_s=60.0).removeprefix("export UNIROS_DOMAIN=")
+        line = wait_for_line(proc, f"export UNIROS_DOMAIN={scheme}://{host}:", timeout_s=60.0)
+        uri = line.removeprefix("export UNIROS_DOMAIN=")
+        options = None if tls is None else tls.options()
 
-        async def one_state() -> JointState:
-            async with open_node("probe", domain=uri, namespace="/rx200", transport="tcp") as node:
+        async def one_state() -> tuple[JointState, dict[str, str]]:
+            async with open_node("probe", domain=uri, namespace="/rx200", transport=scheme, options=options) as node:
                 sub = await node.create_subscription(JointState, "joint_states")
-                return await asyncio.wait_for(sub.receive(), 10.0)
+                state = await asyncio.wait_for(sub.receive(), 10.0)
+                info = await node._registry.request("lookup_service", name="/rx200/stats")
+                return state, dict(info["endpoints"])
 
-        state = asyncio.run(one_state())
+        state, endpoints = asyncio.run(one_state())
         assert state.name[:5] == get_robot_spec("rx200").arm_joint_names
+        assert set(endpoints) == {scheme} and endpoints[scheme].startswith(f"{scheme}://{host}:"), endpoints
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=15.0) == 0
     finally:

@@ -11,6 +11,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -26,9 +28,11 @@ from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
-from uniros_async.testing.ros1 import rospy_process, wait_for_line
+from uniros_async.testing.ros1 import kill_process, rospy_process, wait_for_line
+from uniros_async.testing.tls import write_test_certs
 
 FAKE_ARM = Path(__file__).with_name("ros1_fake_arm.py")
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _md5() -> str:
@@ -319,7 +323,7 @@ def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> Non
 @pytest.mark.slow
 def test_cli_bridge_serves_a_domain_until_sigint(ros_master: str, fake_arm: Any) -> None:
     fake_arm("rx200")
-    check_cli_bridge("--ros-master", ros_master)
+    check_cli_bridge("--ros-master", ros_master, host="127.0.0.2")  # the node listens where the domain does
 
 
 def test_cli_bridge_reports_an_unreachable_master() -> None:
@@ -331,6 +335,95 @@ def test_cli_bridge_reports_an_unreachable_master() -> None:
     )
     assert proc.returncode == 2, proc.stderr
     assert "http://127.0.0.1:9/" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.slow
+def test_a_reach_env_steps_an_arm_bridged_on_tls(
+    ros_master: str, fake_arm: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``uniros robot bridge rx200 --tls`` (a real process, its files by flag and none from the environment) serves
+    the ROS 1 arm's domain on tls://; a reach env (its files by ``$UNIROS_TLS_*``) joins it by ``robot="tls://..."``
+    and steps the arm toward a goal; the bridge's node offers its topics on tls only."""
+    import gymnasium as gym
+
+    import uniros_async  # noqa: F401
+
+    arm = fake_arm("rx200")
+    tls = write_test_certs(tmp_path / "tls")
+    env_vars = {k: v for k, v in os.environ.items() if k not in tls.environ()}
+    env_vars["PYTHONPATH"] = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
+    log = tmp_path / "bridge.log"
+    flags = ["--tls", "--tls-cert", tls.cert_file, "--tls-key", tls.key_file, "--tls-ca", tls.ca_file]
+    with open(log, "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "uniros_async.cli", "robot", "bridge", "rx200", "--ros-master", ros_master, *flags],
+            stdout=subprocess.PIPE,
+            stderr=err,
+            stdin=subprocess.DEVNULL,
+            text=True,
+            env=env_vars,
+        )
+    try:
+        try:
+            line = wait_for_line(proc, "export UNIROS_DOMAIN=", timeout_s=60.0)
+        except (TimeoutError, RuntimeError) as exc:
+            raise AssertionError(f"the bridge did not start ({exc}); its log:\n{log.read_text()[-2000:]}") from exc
+        assert line.startswith("export UNIROS_DOMAIN=tls://127.0.0.1:"), line
+        uri = line.removeprefix("export UNIROS_DOMAIN=")
+        for var, value in tls.environ().items():
+            monkeypatch.setenv(var, value)
+
+        async def bridge_endpoints() -> dict[str, str]:
+            async with asyncio.timeout(30), open_node("probe", domain=uri) as probe:
+                info = await probe._registry.request("lookup_service", name="/rx200/stats")
+                return dict(info["endpoints"])
+
+        endpoints = asyncio.run(bridge_endpoints())
+        assert set(endpoints) == {"tls"} and endpoints["tls"].startswith("tls://127.0.0.1:"), endpoints
+
+        env = gym.make("uniros/Rx200Reach-v0", robot=uri, action_mode="absolute")
+        try:
+            obs, _ = env.reset(seed=3)
+            u = env.unwrapped
+            q, ok = u.kin.ik(u.goal)
+            assert ok, f"goal {u.goal} unreachable"
+            action = (2 * (q - u._lower) / (u._upper - u._lower) - 1).astype(np.float32)
+            distances = [float(obs[6])]  # EE position (3), direction (3), distance
+            for _ in range(3):
+                obs, _, terminated, _, info = env.step(action)
+                distances.append(info["distance"])
+                if terminated:
+                    break
+        finally:
+            env.close()
+        assert np.all(np.isfinite(distances))
+        assert distances[-1] < distances[0] - 0.05, f"the arm bridged on tls did not move toward the goal: {distances}"
+        n, lines = moved_commands(arm, gap_s=0.5)
+        assert n >= 5, lines  # the env loop's commands reached the ROS driver through the tls domain and the bridge
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=15.0) == 0, log.read_text()[-2000:]
+    finally:
+        kill_process(proc)
+
+
+def test_cli_bridge_tls_flags_are_checked(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """The bridge's ``--tls`` flags are serve's, checked the same way before any ROS master is reached."""
+    from uniros_async.sim import cli
+
+    for var in ("UNIROS_TLS_CERT", "UNIROS_TLS_KEY", "UNIROS_TLS_CA"):
+        monkeypatch.delenv(var, raising=False)
+    unreachable = ["--ros-master", "http://127.0.0.1:9/"]
+    assert cli.main(["bridge", "rx200", *unreachable, "--tls-cert", "a.pem", "--tls-key", "a.key"]) == 2
+    assert "--tls-cert, --tls-key only apply with --tls" in capsys.readouterr().err
+    # no certificate given, none in the environment: refused before the ROS 1 master or a ROS 2 domain is reached
+    for ros in (unreachable, ["--ros2", "0"]):
+        assert cli.main(["bridge", "rx200", *ros, "--tls"]) == 2
+        err = capsys.readouterr().err
+        assert "UNIROS_TLS_CERT, UNIROS_TLS_KEY, UNIROS_TLS_CA" in err and "127.0.0.1:9" not in err, err
+    # files that do not exist: named, the bridge not started
+    missing = ["--tls-cert", "nowhere.pem", "--tls-key", "nowhere.key", "--tls-ca", "nowhere-ca.pem"]
+    assert cli.main(["bridge", "rx200", *unreachable, "--tls", *missing]) == 2
+    assert "nowhere" in capsys.readouterr().err
 
 
 @pytest.mark.slow

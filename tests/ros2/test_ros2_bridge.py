@@ -16,6 +16,7 @@ import math
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,7 @@ from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Tri
 from uniros_async.errors import RobotError
 from uniros_async.robots import get_robot_spec
 from uniros_async.testing.ros2 import kill_process
+from uniros_async.testing.tls import write_test_certs
 
 FPC = "forward_position_controller"
 JTC = "joint_trajectory_controller"
@@ -172,6 +174,12 @@ def test_make_vec_mixes_a_ros2_arm_with_a_sim_arm(fake_arm: Any) -> None:
 def test_cli_bridge_serves_a_domain_until_sigint(fake_arm: Any) -> None:
     fake_arm("rx200", FPC)
     check_cli_bridge("--ros2", f"ros2://0?driver={FPC}")
+
+
+@pytest.mark.slow
+def test_cli_bridge_serves_a_domain_on_tls(fake_arm: Any, tmp_path: Path) -> None:
+    fake_arm("rx200", FPC)
+    check_cli_bridge("--ros2", f"ros2://0?driver={FPC}", tls=write_test_certs(tmp_path / "tls"))
 
 
 def test_cli_bridge_reports_a_silent_driver() -> None:

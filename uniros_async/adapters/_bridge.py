@@ -26,6 +26,7 @@ from uniros_async.adapters._driver_mirror import MirrorConfig
 from uniros_async.bus import open_domain
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.bus.qos import latest
+from uniros_async.transports.base import options_from_environ
 
 if TYPE_CHECKING:
     from uniros_async.bus.node import Node
@@ -299,22 +300,37 @@ async def serve_bridge(
     namespace: str | None,
     on_ready: Callable[[str], Any] | None,
     options: TransportOptions | None,
+    tls: bool = False,
 ) -> None:
-    """Run ``open_bridge(config, ...)`` (``open_ros1_bridge``, ``open_ros2_bridge``) in an own tcp domain on
-    ``host:port`` until cancelled; cancelling leaves the bridge and the domain closed.
+    """Run ``open_bridge(config, ...)`` (``open_ros1_bridge``, ``open_ros2_bridge``) in an own domain on
+    ``tcp://host:port`` (``tls``: ``tls://host:port``, mutual TLS) until cancelled; cancelling leaves the bridge and
+    the domain closed.
+
+    The bridge's node joins with the domain's options, listening at ``host``: a peer on another machine reaches the
+    arm's topics at the address it reached the domain at, with the same key or certificates. It reaches its peers
+    over the domain's scheme only (no shm endpoint), as an arm's PC on the network is reached.
 
     Args:
-        open_bridge: opens the bridge on a domain (``domain``, ``namespace`` and ``transport`` keywords).
+        open_bridge: opens the bridge on a domain (``domain``, ``namespace``, ``transport`` and ``options``
+            keywords).
         config: its config.
-        host: the domain's address.
+        host: the domain's address and the bridge node's (under tls, the certificate must name it).
         port: the domain's port (0: any free one).
         namespace: the bridge's bus namespace; None: ``/<robot>``.
         on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
-        options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
+        options: the domain's and the bridge node's transport options (``auth_key``; ``insecure`` for a non-loopback
+            host without one; ``tls_*`` files, else ``$UNIROS_TLS_*``); None: ``options_from_environ()``.
+        tls: serve the domain on ``tls://``.
+
+    Raises:
+        ConfigError: (``tls``) the certificate, key or CA missing; a non-loopback ``tcp://`` host without a key (or
+            ``insecure``).
     """
+    scheme = "tls" if tls else "tcp"
+    node_options = dataclasses.replace(options or options_from_environ(), bind_host=host)
     async with (
-        open_domain(f"tcp://{host}:{port}", options=options) as dom,
-        open_bridge(config, domain=dom, namespace=namespace, transport="tcp"),
+        open_domain(f"{scheme}://{host}:{port}", options=node_options) as dom,
+        open_bridge(config, domain=dom, namespace=namespace, transport=scheme, options=node_options),
     ):
         if on_ready is not None:
             on_ready(dom.uri)

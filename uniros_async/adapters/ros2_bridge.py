@@ -336,9 +336,15 @@ class Ros2Bridge(Bridge[Ros2BridgeConfig]):
 
 @contextlib.asynccontextmanager
 async def open_ros2_bridge(
-    config: Ros2BridgeConfig, *, domain: Any, namespace: str | None = None, transport: str = "auto"
+    config: Ros2BridgeConfig,
+    *,
+    domain: Any,
+    namespace: str | None = None,
+    transport: str = "auto",
+    options: TransportOptions | None = None,
 ) -> AsyncIterator[Ros2Bridge]:
-    """Run the bridge for ``config.robot`` as a node of ``domain`` (an open Domain or a URI) until the block ends.
+    """Run the bridge for ``config.robot`` as a node of ``domain`` (an open Domain or a URI) until the block ends;
+    the node joins with ``transport`` and ``options`` (``open_node``'s).
 
     Returns once the driver's first joint state has been republished and its command subscription matched, so an
     env joining next finds the arm and its commands go somewhere.
@@ -361,7 +367,7 @@ async def open_ros2_bridge(
             )
         )
         node = await stack.enter_async_context(
-            open_node(config.node_name, domain=domain, namespace=ns, transport=transport)
+            open_node(config.node_name, domain=domain, namespace=ns, transport=transport, options=options)
         )
         pub = await node.create_publisher(JointState, "joint_states", qos=latest())
         ros_pub = ros.create_publisher(config.command, config.command_type, qos=COMMANDS)
@@ -410,15 +416,19 @@ async def serve_ros2_bridge(
     namespace: str | None = None,
     on_ready: Callable[[str], Any] | None = None,
     options: TransportOptions | None = None,
+    tls: bool = False,
 ) -> None:
-    """Run the bridge in an own tcp domain on ``host:port`` until cancelled (``uniros robot bridge --ros2``).
+    """Run the bridge in an own domain on ``tcp://host:port`` (``tls``: ``tls://host:port``) until cancelled
+    (``uniros robot bridge --ros2``).
 
     Args:
         on_ready: called with the domain URI once the arm's joint states flow (the CLI prints it).
-        options: the domain's transport options (``auth_key``; ``insecure`` for a non-loopback host without one).
+        options: the domain's and the bridge node's transport options (``auth_key``; ``insecure`` for a non-loopback
+            host without one; ``tls_*`` files, else ``$UNIROS_TLS_*``).
+        tls: serve the domain on ``tls://`` (mutual TLS; the certificate must name ``host``).
     """
     await serve_bridge(
-        open_ros2_bridge, config, host=host, port=port, namespace=namespace, on_ready=on_ready, options=options
+        open_ros2_bridge, config, host=host, port=port, namespace=namespace, on_ready=on_ready, options=options, tls=tls
     )
 
 

@@ -43,8 +43,8 @@ class EnvConfig(ConfigModel):
     """Where the arm is: ``"sim"`` (servo sim in the env's own process, memory transport), ``"sim-process"``
     (servo sim in its own process, shm), ``"emulated-real"`` (the emulated real arm as a tcp service in its own
     process), ``"tcp://host:port"`` (the domain of an arm served elsewhere, e.g. by ``uniros robot serve`` or
-    ``uniros robot bridge``), ``"tls://host:port"`` (the same over mutual TLS, ``uniros robot serve --tls``; the
-    certificate, key and CA from ``$UNIROS_TLS_CERT``, ``$UNIROS_TLS_KEY``, ``$UNIROS_TLS_CA``),
+    ``uniros robot bridge``), ``"tls://host:port"`` (the same over mutual TLS, ``uniros robot serve --tls`` or
+    ``bridge --tls``; the certificate, key and CA from ``$UNIROS_TLS_CERT``, ``$UNIROS_TLS_KEY``, ``$UNIROS_TLS_CA``),
     ``"ros1://host:port"`` (an arm whose driver is a ROS 1 node, reached through that ROS master by a bridge in the
     env's process: ``adapters/ros1_bridge.py``), ``"ros2://[domain][/namespace][?...]"`` (an arm whose driver is a
     ROS 2 node, its settings in the URI's query: ``adapters/ros2_bridge.py``), or any other placement registered

@@ -4,6 +4,7 @@
     uniros robot serve rx200 --host 192.168.1.20 --port 7000 --tls   # the same on tls:// ($UNIROS_TLS_*)
     uniros robot bridge rx200 --ros-master http://robot-pc:11311/   # a ROS 1 arm on the bus; prints the URI
     uniros robot bridge rx200 --ros2 0                 # a ROS 2 arm (domain 0) on the bus; prints the URI
+    uniros robot bridge rx200 --host 192.168.1.20 --port 7000 --tls   # either, its domain on tls://
     uniros robot render rx200 --out pic.png --goal 0.3 0.1 0.25
     uniros robot view rx200                            # needs a display
 
@@ -19,9 +20,12 @@ import os
 import signal
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from uniros_async._signals import cancel_on_signals
+
+if TYPE_CHECKING:
+    from uniros_async.transports.base import TransportOptions
 
 __all__ = ["add_parser", "main", "run"]
 
@@ -103,7 +107,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
     bridge = actions.add_parser(
         "bridge",
-        help="put an arm whose driver is a ROS 1 (or, with --ros2, ROS 2) node on the bus; prints the domain URI",
+        help="put an arm whose driver is a ROS 1 (or, with --ros2, ROS 2) node on the bus, in an own tcp (or, with "
+        "--tls, tls) domain; prints the domain URI",
     )
     bridge.add_argument("robot", help=ROBOT_HELP)
     bridge.add_argument(
@@ -141,10 +146,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         default=None,
         help="address ROS peers reach this process at (default $ROS_IP, else $ROS_HOSTNAME, else 127.0.0.1)",
     )
-    bridge.add_argument("--host", default="127.0.0.1", help="bind host of the domain (default %(default)s)")
+    bridge.add_argument(
+        "--host", default="127.0.0.1", help="bind host of the domain and the bridge's node (default %(default)s)"
+    )
     bridge.add_argument("--port", type=int, default=0, help="domain port; 0 picks a free one (default %(default)s)")
     bridge.add_argument("--namespace", default=None, help="topic namespace (default /ROBOT)")
     _add_exposure_flags(bridge)
+    _add_tls_flags(bridge)
     bridge.add_argument(
         "--state-timeout", type=float, default=10.0, help="seconds to wait for the driver's first joint state"
     )
@@ -223,16 +231,34 @@ def _bridge_ros2(args: argparse.Namespace) -> int:
         "insecure": args.insecure or None,
     }
     cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), **settings)
-    from uniros_async.transports.base import TransportOptions
-
-    options = TransportOptions(auth_key=_auth_key(args), insecure=args.insecure)
     serve = serve_ros2_bridge(
-        cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready, options=options
+        cfg,
+        host=args.host,
+        port=args.port,
+        namespace=args.namespace,
+        on_ready=_print_ready,
+        options=_bridge_options(args),
+        tls=args.tls,
     )
     return _run_until_signal(serve)
 
 
+def _bridge_options(args: argparse.Namespace) -> TransportOptions:
+    """The bridge's domain's and node's options: the shared key, ``--insecure`` and the ``--tls-*`` files (None:
+    ``$UNIROS_TLS_*``, read when the domain opens)."""
+    from uniros_async.transports.base import TransportOptions
+
+    return TransportOptions(
+        auth_key=_auth_key(args),
+        insecure=args.insecure,
+        tls_cert_file=args.tls_cert,
+        tls_key_file=args.tls_key,
+        tls_ca_file=args.tls_ca,
+    )
+
+
 def _bridge(args: argparse.Namespace) -> int:
+    _check_tls_flags(args, None)  # the bridge always serves a uniros domain
     if args.ros2 is not None:
         return _bridge_ros2(args)
     from uniros_async.adapters.ros1_bridge import Ros1BridgeConfig, serve_ros1_bridge
@@ -250,11 +276,14 @@ def _bridge(args: argparse.Namespace) -> int:
         max_command_age_s=args.max_command_age or None,
         insecure=args.insecure,
     )
-    from uniros_async.transports.base import TransportOptions
-
-    options = TransportOptions(auth_key=_auth_key(args), insecure=args.insecure)
     serve = serve_ros1_bridge(
-        cfg, host=args.host, port=args.port, namespace=args.namespace, on_ready=_print_ready, options=options
+        cfg,
+        host=args.host,
+        port=args.port,
+        namespace=args.namespace,
+        on_ready=_print_ready,
+        options=_bridge_options(args),
+        tls=args.tls,
     )
     return _run_until_signal(serve)
 
