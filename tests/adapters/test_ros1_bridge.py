@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _reach import distances_toward_goal
 from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
 from uniros_async.bus import open_domain, open_node
@@ -344,7 +345,6 @@ def test_a_reach_env_steps_an_arm_bridged_on_tls(
     """``uniros robot bridge rx200 --tls`` (a real process, its files by flag and none from the environment) serves
     the ROS 1 arm's domain on tls://; a reach env (its files by ``$UNIROS_TLS_*``) joins it by ``robot="tls://..."``
     and steps the arm toward a goal; the bridge's node offers its topics on tls only."""
-    import gymnasium as gym
 
     import uniros_async  # noqa: F401
 
@@ -381,22 +381,7 @@ def test_a_reach_env_steps_an_arm_bridged_on_tls(
         endpoints = asyncio.run(bridge_endpoints())
         assert set(endpoints) == {"tls"} and endpoints["tls"].startswith("tls://127.0.0.1:"), endpoints
 
-        env = gym.make("uniros/Rx200Reach-v0", robot=uri, action_mode="absolute")
-        try:
-            obs, _ = env.reset(seed=3)
-            u = env.unwrapped
-            q, ok = u.kin.ik(u.goal)
-            assert ok, f"goal {u.goal} unreachable"
-            action = (2 * (q - u._lower) / (u._upper - u._lower) - 1).astype(np.float32)
-            distances = [float(obs[6])]  # EE position (3), direction (3), distance
-            for _ in range(3):
-                obs, _, terminated, _, info = env.step(action)
-                distances.append(info["distance"])
-                if terminated:
-                    break
-        finally:
-            env.close()
-        assert np.all(np.isfinite(distances))
+        distances = distances_toward_goal(uri, 3)
         assert distances[-1] < distances[0] - 0.05, f"the arm bridged on tls did not move toward the goal: {distances}"
         n, lines = moved_commands(arm, gap_s=0.5)
         assert n >= 5, lines  # the env loop's commands reached the ROS driver through the tls domain and the bridge

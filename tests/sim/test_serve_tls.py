@@ -7,8 +7,8 @@ import asyncio
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 import pytest
+from _reach import distances_toward_goal
 
 import uniros_async  # noqa: F401  (registers the ids)
 from tests.hostile import _served
@@ -39,22 +39,7 @@ def test_a_reach_env_steps_an_arm_served_on_tls(
         uri = line.removeprefix("export UNIROS_DOMAIN=")
         for var, value in tls_files.environ().items():
             monkeypatch.setenv(var, value)
-        env = gym.make("uniros/Rx200Reach-v0", robot=uri, action_cycle_s=0.2, action_mode="absolute")
-        try:
-            obs, _ = env.reset(seed=3)
-            u = env.unwrapped
-            q, ok = u.kin.ik(u.goal)
-            assert ok, f"goal {u.goal} unreachable"
-            action = (2 * (q - u._lower) / (u._upper - u._lower) - 1).astype(np.float32)
-            distances = [float(obs[6])]  # EE position (3), direction (3), distance
-            for _ in range(4):
-                obs, _, terminated, _, info = env.step(action)
-                distances.append(info["distance"])
-                if terminated:
-                    break
-        finally:
-            env.close()
-        assert np.all(np.isfinite(distances))
+        distances = distances_toward_goal(uri, 4, action_cycle_s=0.2)
         assert distances[-1] < distances[0] - 0.05, f"the arm served on tls did not move toward the goal: {distances}"
     finally:
         _served.stop_serve(proc)
