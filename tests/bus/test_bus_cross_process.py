@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from uniros_async.bus import open_domain, open_node, reliable
-from uniros_async.bus.messages import Blob, Data, Header, JointState
-from uniros_async.testing.bus_peers import BusPeer
+from uniros_async.bus.messages import Blob, Header, JointState
+from uniros_async.testing.bus_peers import BusPeer, check_talker
 
 pytestmark = pytest.mark.slow
 
@@ -19,17 +19,7 @@ pytestmark = pytest.mark.slow
 async def test_subscriber_in_another_process(transport: str) -> None:
     async with open_domain() as domain, open_node("listener", domain=domain, transport=transport) as node:
         async with BusPeer(domain.uri, "talker", transport):
-            sub = await node.create_subscription(JointState, "/chatter", qos=reliable(1000))
-            async with asyncio.timeout(20):
-                await sub.wait_for_publishers(1, timeout_s=10)
-                msgs = [await sub.receive() for _ in range(20)]
-            seqs = [m.header.seq for m in msgs]
-            assert seqs == list(range(seqs[0], seqs[0] + 20)), "reliable delivery in order"
-            assert all(m.position[0] == m.header.seq for m in msgs)
-            assert sub.rejected == 0
-            # a service across processes
-            cli = node.create_client(Data, Data, "/add")
-            assert (await cli.call(Data(value=[1, 2, 3]), timeout_s=5)).value == 6
+            await check_talker(node)  # pub/sub and a service across processes
 
 
 @pytest.mark.parametrize("transport", ["shm", "tcp"])

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from uniros_async.bus import Domain, open_domain, open_node, reliable
-from uniros_async.bus.messages import Data, JointState
+from uniros_async.bus import Domain, open_domain, open_node
+from uniros_async.bus.messages import Data
 from uniros_async.errors import AuthenticationError, ConfigError, DomainError
-from uniros_async.testing.bus_peers import BusPeer
+from uniros_async.testing.bus_peers import BusPeer, check_talker
 from uniros_async.testing.tls import TlsFiles, write_test_certs
 from uniros_async.transports.base import TransportOptions, listen
 
@@ -53,15 +53,7 @@ async def test_nodes_in_two_processes_exchange_a_topic_and_a_service(transport: 
             eps = endpoints(domain, name)
             assert eps["tls"].startswith("tls://127.0.0.1:"), eps
             assert set(eps) == ({"tls"} if transport == "tls" else {"tls", "shm"}), eps
-        sub = await node.create_subscription(JointState, "/chatter", qos=reliable(1000))
-        await sub.wait_for_publishers(1, timeout_s=10)
-        msgs = [await sub.receive() for _ in range(20)]
-        seqs = [m.header.seq for m in msgs]
-        assert seqs == list(range(seqs[0], seqs[0] + 20)), "reliable delivery in order"
-        assert all(m.position[0] == m.header.seq for m in msgs)
-        assert sub.rejected == 0
-        cli = node.create_client(Data, Data, "/add")
-        assert (await cli.call(Data(value=[1, 2, 3]), timeout_s=5)).value == 6
+        await check_talker(node)
 
 
 async def test_a_node_whose_certificate_the_ca_did_not_sign_cannot_join(tls_files: TlsFiles, tmp_path: Path) -> None:

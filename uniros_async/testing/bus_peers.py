@@ -1,4 +1,5 @@
-"""Bus nodes that run in another process, for cross-process tests: ``async with BusPeer(uri, "talker"): ...``."""
+"""Bus nodes that run in another process, for cross-process tests: ``async with BusPeer(uri, "talker"): ...``, and
+``check_talker``, what a test node checks of a talker."""
 
 from __future__ import annotations
 
@@ -6,10 +7,14 @@ import asyncio
 import multiprocessing as mp
 import signal
 from multiprocessing.connection import Connection
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-__all__ = ["BusPeer", "peer_main"]
+if TYPE_CHECKING:
+    from uniros_async.bus.node import Node
+
+__all__ = ["BusPeer", "check_talker", "peer_main"]
 
 
 def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> None:
@@ -52,6 +57,29 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
             await stop.wait()
 
     asyncio.run(main())
+
+
+async def check_talker(node: Node, count: int = 20, timeout_s: float = 20.0) -> None:
+    """From ``node``, check a ``talker`` peer: ``count`` of its JointStates on /chatter arrive reliably, in order and
+    intact (none rejected), and its /add service answers.
+
+    Raises:
+        AssertionError: any of them did not hold.
+        TimeoutError: nothing within ``timeout_s``.
+    """
+    from uniros_async.bus import reliable
+    from uniros_async.bus.messages import Data, JointState
+
+    sub = await node.create_subscription(JointState, "/chatter", qos=reliable(1000))
+    async with asyncio.timeout(timeout_s):
+        await sub.wait_for_publishers(1, timeout_s=timeout_s / 2)
+        msgs = [await sub.receive() for _ in range(count)]
+    seqs = [m.header.seq for m in msgs]
+    assert seqs == list(range(seqs[0], seqs[0] + count)), f"reliable delivery in order, got {seqs}"
+    assert all(m.position[0] == m.header.seq for m in msgs)
+    assert sub.rejected == 0
+    cli = node.create_client(Data, Data, "/add")
+    assert (await cli.call(Data(value=[1, 2, 3]), timeout_s=5)).value == 6, "the talker's /add"
 
 
 class BusPeer:
