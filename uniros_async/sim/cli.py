@@ -20,12 +20,9 @@ import os
 import signal
 import sys
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from uniros_async._signals import cancel_on_signals
-
-if TYPE_CHECKING:
-    from uniros_async.transports.base import TransportOptions
 
 __all__ = ["add_parser", "main", "run"]
 
@@ -231,30 +228,31 @@ def _bridge_ros2(args: argparse.Namespace) -> int:
         "insecure": args.insecure or None,
     }
     cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), **settings)
-    serve = serve_ros2_bridge(
-        cfg,
-        host=args.host,
-        port=args.port,
-        namespace=args.namespace,
-        on_ready=_print_ready,
-        options=_bridge_options(args),
-        tls=args.tls,
-    )
-    return _run_until_signal(serve)
+    return _run_until_signal(serve_ros2_bridge(cfg, **_bridge_serving(args)))
 
 
-def _bridge_options(args: argparse.Namespace) -> TransportOptions:
-    """The bridge's domain's and node's options: the shared key, ``--insecure`` and the ``--tls-*`` files (None:
-    ``$UNIROS_TLS_*``, read when the domain opens)."""
+def _bridge_serving(args: argparse.Namespace) -> dict[str, Any]:
+    """The keywords of ``serve_ros1_bridge`` and ``serve_ros2_bridge`` that ``bridge``'s flags give: where its
+    domain listens (``--host``, ``--port``, ``--tls``), its namespace, ``_print_ready``, and the domain's and node's
+    options: the shared key, ``--insecure`` and the ``--tls-*`` files (None: ``$UNIROS_TLS_*``, read when the domain
+    opens)."""
     from uniros_async.transports.base import TransportOptions
 
-    return TransportOptions(
+    options = TransportOptions(
         auth_key=_auth_key(args),
         insecure=args.insecure,
         tls_cert_file=args.tls_cert,
         tls_key_file=args.tls_key,
         tls_ca_file=args.tls_ca,
     )
+    return {
+        "host": args.host,
+        "port": args.port,
+        "namespace": args.namespace,
+        "on_ready": _print_ready,
+        "options": options,
+        "tls": args.tls,
+    }
 
 
 def _bridge(args: argparse.Namespace) -> int:
@@ -276,16 +274,7 @@ def _bridge(args: argparse.Namespace) -> int:
         max_command_age_s=args.max_command_age or None,
         insecure=args.insecure,
     )
-    serve = serve_ros1_bridge(
-        cfg,
-        host=args.host,
-        port=args.port,
-        namespace=args.namespace,
-        on_ready=_print_ready,
-        options=_bridge_options(args),
-        tls=args.tls,
-    )
-    return _run_until_signal(serve)
+    return _run_until_signal(serve_ros1_bridge(cfg, **_bridge_serving(args)))
 
 
 def _serve_ros1(args: argparse.Namespace) -> int:
