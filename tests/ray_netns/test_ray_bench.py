@@ -11,7 +11,6 @@ import pytest
 
 from uniros_async.bench import latency, throughput
 from uniros_async.bench._ray_rows import RAY_IMPLS
-from uniros_async.runtime.supervisor import REPLY_SPIN_NS
 
 pytestmark = pytest.mark.usefixtures("nothing_left")
 
@@ -86,6 +85,9 @@ def test_ray_placed_workers_that_outnumber_their_nodes_cores_are_pinned_round_ro
         venv.step([0] * n)
         pinned = [w.info["pinned_cpu"] for w in venv._sup.workers]
         assert pinned == [cpus[i % len(cpus)] for i in range(n)]
-        assert all(w.info["cores_shared"] and w.transport.spin_ns == REPLY_SPIN_NS for w in venv._sup.workers)
+        # their node runs on the agent's machine (its address is this machine's): the agent does not poll for their
+        # replies, and takes them last sent first (Supervisor._take_replies)
+        assert all(w.info["cores_shared"] and w.transport.spin_ns == 0 for w in venv._sup.workers)
+        assert venv._sup._reply_rank == [n - 1 - i for i in range(n)]
     finally:
         venv.close()

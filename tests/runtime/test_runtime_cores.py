@@ -132,6 +132,42 @@ def test_workers_that_outnumber_the_cores_are_pinned_round_robin_and_run_their_s
         venv.close()
 
 
+def test_crowded_workers_replies_are_taken_last_sent_first_and_returned_in_index_order(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import gymnasium as gym
+
+    from uniros_async.runtime.supervisor import WorkerHandle
+
+    n = len(os.sched_getaffinity(0)) + 1
+    taken: list[int] = []
+    take = WorkerHandle.receive_reply_blocking
+
+    def recording(self: WorkerHandle, *args: object, **kwargs: object) -> object:
+        taken.append(self.index)
+        return take(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(WorkerHandle, "receive_reply_blocking", recording)
+    venv = make_vec(["CartPole-v1"] * n, pad=False)
+    bare = [gym.make("CartPole-v1") for _ in range(n)]
+    try:
+        obs, _ = venv.reset(seed=0)
+        want = np.stack([env.reset(seed=i)[0] for i, env in enumerate(bare)])
+        np.testing.assert_allclose(obs, want)
+        for k in range(6):
+            actions = np.array([(k + i) % 2 for i in range(n)])
+            taken.clear()
+            obs, reward, *_ = venv.step(actions)
+            assert taken[0] == n - 1 and sorted(set(taken)) == list(range(n))  # the last sent first, each taken
+            want = np.stack([env.step(int(a))[0] for env, a in zip(bare, actions, strict=True)])
+            np.testing.assert_allclose(obs, want)  # each sub-env's own observation in its own row
+            assert reward.shape == (n,)
+    finally:
+        venv.close()
+        for env in bare:
+            env.close()
+
+
 def test_as_many_workers_as_cores_are_left_where_the_scheduler_puts_them() -> None:
     cpus = os.sched_getaffinity(0)
     venv = make_vec(["CartPole-v1"] * len(cpus), pad=False)
@@ -144,6 +180,7 @@ def test_as_many_workers_as_cores_are_left_where_the_scheduler_puts_them() -> No
             # (the policy it started with: a gymnasium env's worker may run SCHED_RR, see worker._real_time)
             assert _unpinned(pid, cpus) and os.sched_getscheduler(pid) != os.SCHED_BATCH
             assert w.transport.spin_ns == REPLY_SPIN_NS
+        assert venv._sup._reply_rank == list(range(len(cpus)))  # their replies taken in index order
     finally:
         venv.close()
 
@@ -198,3 +235,14 @@ def test_real_time_workers_that_outnumber_the_cores_keep_their_own_priority_and_
             assert w.transport.spin_ns == ShmTransport.spin_ns
     finally:
         venv.close()
+
+
+def test_a_ray_nodes_address_counts_as_this_machine_only_when_it_is_one_of_its_own() -> None:
+    """Workers of a Ray node on the agent's machine share its cores (the agent does not poll for their replies when
+    they outnumber them): the node's address is one this machine can bind."""
+    from uniros_async.runtime.supervisor import _local_address
+
+    assert _local_address("127.0.0.1")
+    assert not _local_address("192.0.2.1")  # TEST-NET-1 (RFC 5737): no machine's own
+    assert not _local_address("")
+    assert not _local_address("not an address")

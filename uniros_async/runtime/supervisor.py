@@ -79,7 +79,8 @@ spin credit stops the polling when replies take longer (a 10 Hz env's step). Not
 loop: there the acting thread may run SCHED_RR above the workers, and its poll would keep a lower-ranked worker
 from the very reply it waits for; their connections keep the transport's default. Nor when the workers outnumber
 the cores (``worker.cores_shared``): the replies then come one core's share of the physics apart, a poll seldom
-catches one, and while it polls a worker waiting for that core's turn does not run."""
+catches one, and while it polls a worker waiting for that core's turn does not run; that holds for workers that
+a Ray node on the agent's own machine runs too (its address is one of this machine's: ``_local_address``)."""
 Request = dict[str, Any] | PackedRequest
 """A request to a worker: a message, or a step request already packed (``worker.pack_step_request``)."""
 StepDecoder = Callable[[int, memoryview], Any]
@@ -310,6 +311,7 @@ class Supervisor:
         """A step raises a Ray-placed worker's hang-up at once, without the replies the others still owe (the vector
         env sets it unless it restarts failed workers, which needs every reply): ``_take_replies``."""
         self._hangup_fds: list[tuple[int, int]] = []  # (index, hangup_fd) of the workers that have one
+        self._reply_rank: list[int] = []  # worker index -> its place in the order replies are taken (_take_replies)
         try:
             self._start(specs, start_timeout_s)
         except BaseException:
@@ -334,6 +336,11 @@ class Supervisor:
 
     def _note_hangup_fds(self) -> None:
         self._hangup_fds = [(w.index, w.hangup_fd) for w in self.workers if w.hangup_fd >= 0]
+        n = len(self.workers)
+        if any(w.info.get("cores_shared") for w in self.workers):  # see _take_replies: the last sent first
+            self._reply_rank = [n - 1 - i for i in range(n)]
+        else:
+            self._reply_rank = list(range(n))
 
     def _new_handle(
         self,
@@ -494,7 +501,7 @@ class Supervisor:
             spaces = {"op": "spaces", "tag_infos": self.tag_infos, "share": share}
             w.info = await w.request(spaces, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
-                here = self._machine(w) == ""
+                here = w.remote is None or self._machine(w) == "" or _local_address(w.remote.node_ip)
                 polls = share[2] == "off" or not here or not cores_shared(share[1])
                 w.transport.spin_ns = REPLY_SPIN_NS if polls else 0
             w.try_send = getattr(w.transport, "try_send", None)  # shm, tcp (a Ray-placed worker too)
@@ -608,72 +615,82 @@ class Supervisor:
         n = len(messages)
         results: list[Any] = [None] * n
         deadline = time.monotonic() + self.call_timeout_s
-        got, unexpected, hung = self._take_replies(sent, deadline, results, decode)
+        owing, unexpected, hung = self._take_replies(sent, deadline, results, decode)
         if hung is not None:
-            self._report_hang_up(hung, got, sent, deadline)
-        if got == n:
+            self._report_hang_up(hung, owing, deadline)
+        if not owing and sent == n:
             if unexpected is not None:
                 raise unexpected
             return results
-        pending = _SentPending(self, messages, sent, results, set(range(got, n)))
+        pending = _SentPending(self, messages, sent, results, owing.union(range(sent, n)))
         pending.to_loop(deadline)
         return pending.result(decode=decode)
 
     def _take_replies(
         self, sent: int, deadline: float, results: list[Any], decode: StepDecoder | None
-    ) -> tuple[int, Exception | None, int | None]:
-        """Take the step replies of the first ``sent`` workers in this thread, in index order, into ``results``,
-        until one cannot be had that way (``WorkerHandle.receive_reply_blocking``, with ``decode``; nothing is
-        consumed then). Returns how many were taken, the first error other than a WorkerError that taking one
-        raised (it is in that one's slot as well; ``request_all`` raises such an error once every reply is in),
-        and, with ``fail_fast``, the index of a later Ray-placed worker whose tcp connection ended without its
-        reply while an earlier reply was awaited (its node or process is gone: ``_report_hang_up``), else None."""
+    ) -> tuple[set[int], Exception | None, int | None]:
+        """Take the step replies of the first ``sent`` workers in this thread into ``results``, one after the other in
+        the order of ``_reply_rank``, until one cannot be had that way (``WorkerHandle.receive_reply_blocking``, with
+        ``decode``; nothing is consumed then). Returns the indices among the first ``sent`` whose replies were not
+        taken, the first error other than a WorkerError that taking one raised (it is in that one's slot as well;
+        ``request_all`` raises such an error once every reply is in), and, with ``fail_fast``, the index of a Ray-placed
+        worker still owing its reply whose tcp connection ended while another reply was awaited (its node or process
+        is gone: ``_report_hang_up``), else None.
+
+        The order: index order, unless the workers outnumber their cores (``worker.cores_shared``), then the last sent
+        first. Those run their steps one after the other on their core in the order their requests came, so the last
+        one sent to each core replies last; waiting for it first, the agent sleeps until its core is done and then
+        finds the replies before it waiting, instead of waking once per reply and taking a core from a worker in the
+        middle of its step each time (the agent's wake-ups per vector step: docs/performance.md)."""
         if not sent or not self._lock.acquire(blocking=False):
-            return 0, None, None
+            return set(range(sent)), None, None
         workers = self.workers
-        got = 0
+        rank = self._reply_rank
+        order = sorted(range(sent), key=rank.__getitem__) if rank and rank[0] else range(sent)
+        k = 0
         unexpected: Exception | None = None
         watched = self._hangup_fds if self.fail_fast and sent > 1 else ()
         try:
             if self._orphans or self._loop.is_closed():
-                return 0, None, None
-            while got < sent:
-                watch = [fd for i, fd in watched if i > got] if watched else ()
+                return set(range(sent)), None, None
+            while k < sent:
+                i = order[k]
+                here = rank[i]
+                watch = [fd for j, fd in watched if rank[j] > here] if watched else ()
                 try:
-                    r = workers[got].receive_reply_blocking(
-                        "step", max(deadline - time.monotonic(), 0.0), decode, watch
-                    )
+                    r = workers[i].receive_reply_blocking("step", max(deadline - time.monotonic(), 0.0), decode, watch)
                 except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
                     r = exc
                     if unexpected is None and not isinstance(exc, WorkerError):
                         unexpected = exc
                 if r is LATER:
                     if watched:  # a hang-up, of one of them or of this one (then no need to wait for the others)?
-                        hung, replied = _hung_up([(i, fd) for i, fd in watched if i >= got])
+                        hung, replied = _hung_up([(j, fd) for j, fd in watched if rank[j] >= here])
                         if hung is not None:
-                            return got, unexpected, hung
+                            return set(order[k:]), unexpected, hung
                         if replied and deadline > time.monotonic():  # its reply came before it hung up: taken in
-                            watched = [(i, fd) for i, fd in watched if fd not in replied]  # its turn
+                            watched = [(j, fd) for j, fd in watched if fd not in replied]  # its turn
                             continue
                     break
-                results[got] = r
-                got += 1
-            return got, unexpected, None
+                results[i] = r
+                k += 1
+            return set(order[k:]), unexpected, None
         except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
-            for w in workers[got:sent]:
+            for j in order[k:]:
+                w = workers[j]
                 if w.in_flight and w.broken is None:
                     w.broken = f"waiting for its reply was interrupted ({w.spec.env_id})"
             raise
         finally:
             self._lock.release()
 
-    def _report_hang_up(self, hung: int, got: int, sent: int, deadline: float) -> NoReturn:
+    def _report_hang_up(self, hung: int, owing: set[int], deadline: float) -> NoReturn:
         """Raise the WorkerError of worker ``hung``, whose connection ended without the reply to its step request
         (``_take_replies``), now: what ``WorkerHandle.receive_reply`` makes of it (its Ray actor's report: exit code,
-        or its node lost). The replies the workers ``got`` to ``sent`` still owe are not waited for: a task on the loop
+        or its node lost). The replies the workers in ``owing`` still owe are not waited for: a task on the loop
         collects them under ``deadline``; the next call lets it finish first and ``close`` cancels it (``_drive``)."""
         w = self.workers[hung]
-        owed = [self.workers[i] for i in range(got, sent) if i != hung]
+        owed = [self.workers[i] for i in sorted(owing) if i != hung]
 
         async def collect() -> None:
             for other in owed:
@@ -897,10 +914,24 @@ class Supervisor:
             self.close()
 
 
+@functools.cache
+def _local_address(ip: str) -> bool:
+    """Whether ``ip`` (a Ray node's address) is one of this machine's own: a node started on the agent's machine
+    (``ray.cluster_utils.Cluster``, several ``ray start`` on one host), whose workers share the agent's cores."""
+    if not ip:
+        return False
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in ip else socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind((ip, 0))  # only an address of one of this machine's interfaces can be bound
+    except OSError:
+        return False
+    return True
+
+
 def _hung_up(watched: list[tuple[int, int]]) -> tuple[int | None, set[int]]:
-    """Which of ``watched`` ((index, socket descriptor), in index order) hung up or were reset: the index of the first
-    one whose peer is gone with nothing left to read (its reply will never come), or None; and the descriptors of
-    those hung up with data still to read (a reply sent before the hang-up)."""
+    """Which of ``watched`` ((index, socket descriptor), in the order their replies are taken) hung up or were
+    reset: the index of the first one whose peer is gone with nothing left to read (its reply will never come), or
+    None; and the descriptors of those hung up with data still to read (a reply sent before the hang-up)."""
     poller = select.poll()
     for _, fd in watched:
         poller.register(fd, _HANG_UP)
@@ -1061,11 +1092,11 @@ class _SentPending(_Pending[list[Any]]):
         if self._rest is None:
             deadline = now + sup.call_timeout_s
             until = deadline if end is None else min(deadline, end)
-            got, _, hung = sup._take_replies(self._sent, until, self._results, decode)  # raised below, with the rest
+            owing, _, hung = sup._take_replies(self._sent, until, self._results, decode)  # raised below, with the rest
             if hung is not None:
                 self._rest = set()
-                sup._report_hang_up(hung, got, self._sent, deadline)
-            self._rest = set(range(got, len(self._messages)))
+                sup._report_hang_up(hung, owing, deadline)
+            self._rest = owing.union(range(self._sent, len(self._messages)))
             self.to_loop(deadline)
         if self._task is not None:
             more = super().result(None if end is None else max(end - time.monotonic(), 0.0))
