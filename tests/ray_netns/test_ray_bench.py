@@ -1,16 +1,21 @@
 """``uniros bench throughput --backend ray`` and ``uniros bench latency --backend ray`` on a real two-node Ray
 cluster: the Ray rows beside the others, in one run, and the goal line; the latency scenario's envs placed by Ray;
-``--repeat`` with Ray-placed rows, and Ray-placed workers that outnumber their node's cores pinned round robin.
+``--repeat`` with Ray-placed rows, Ray-placed workers that outnumber their node's cores pinned round robin, and the
+bench's own cluster started without the daemons it does not need.
 Checks what the records say, never a figure's size (docs/performance.md)."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+import textwrap
 from typing import Any
 
 import pytest
 
 from uniros_async.bench import latency, throughput
-from uniros_async.bench._ray_rows import RAY_IMPLS
+from uniros_async.bench._ray_rows import QUIET_ENV, QUIET_SYSTEM_CONFIG, RAY_IMPLS
 
 pytestmark = pytest.mark.usefixtures("nothing_left")
 
@@ -91,3 +96,63 @@ def test_ray_placed_workers_that_outnumber_their_nodes_cores_are_pinned_round_ro
         assert venv._sup._reply_rank == [n - 1 - i for i in range(n)]
     finally:
         venv.close()
+
+
+def test_the_benchs_own_cluster_starts_without_the_daemons_it_does_not_need() -> None:
+    """Without ``--ray-address`` the bench starts its own two-node cluster (``RayRows.start``): no log monitor, no
+    autoscaler, and the system config and environment that keep its daemons' own work down reach them (read back
+    from their command lines and environments, in a process of its own: this one is connected to the module's
+    cluster); everything stopped at the end."""
+    code = textwrap.dedent(
+        r"""
+        import base64, json, os, subprocess
+        from uniros_async.bench._ray_rows import RayRows
+
+        def tree(root):
+            out = subprocess.run(["ps", "-eo", "pid=,ppid="], capture_output=True, text=True, check=True).stdout
+            kids = {}
+            for line in out.splitlines():
+                pid, ppid = (int(x) for x in line.split())
+                kids.setdefault(ppid, []).append(pid)
+            found, todo = [], [root]
+            while todo:
+                more = kids.get(todo.pop(), [])
+                found += more
+                todo += more
+            return found
+
+        def read(path):
+            try:
+                with open(path, "rb") as f:
+                    return f.read().replace(b"\0", b" ").decode(errors="replace")
+            except OSError:
+                return ""
+
+        rows = RayRows()
+        rows.start()
+        try:
+            procs = {p: (read(f"/proc/{p}/cmdline"), read(f"/proc/{p}/environ")) for p in tree(os.getpid())}
+        finally:
+            rows.close()
+        configs = [a.split("--config_list=", 1)[1].split()[0] for a, _ in procs.values() if "--config_list=" in a]
+        print(json.dumps({
+            "commands": [a for a, _ in procs.values()],
+            "configs": [json.loads(base64.b64decode(c)) for c in configs],
+            "daemon_env": [e for a, e in procs.values() if "raylet/raylet" in a or "gcs/gcs_server" in a],
+            "nodes": [rows.agent_node, rows.other_node],
+        }))
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert all(got["nodes"]) and got["nodes"][0] != got["nodes"][1]
+    commands = "\n".join(got["commands"])
+    assert "gcs_server" in commands and commands.count("raylet/raylet") == 2
+    assert "log_monitor.py" not in commands and "autoscaler/_private/monitor.py" not in commands
+    assert got["configs"] and all(c.items() >= QUIET_SYSTEM_CONFIG.items() for c in got["configs"])
+    # (the raylets start the dashboard and runtime env agents with theirs; an agent's own /proc environ is not
+    # readable as such: its process title overwrites it)
+    assert len(got["daemon_env"]) == 3 and all(
+        f"{name}={value}" in env.split() for env in got["daemon_env"] for name, value in QUIET_ENV.items()
+    )

@@ -11,7 +11,8 @@ Rows (each a vector env of ``n`` sub-envs, stepped as the other rows are):
   (``ray.get(actor.step.remote(action))``) per sub-env per step, all sub-envs' calls in flight together.
 
 The cluster: the one at ``--ray-address``, else a local one started here (a head, where the agent runs, and a
-second node; ``ray.cluster_utils.Cluster``, small CPU counts, no dashboard) and stopped at the end. On a shared
+second node; ``ray.cluster_utils.Cluster``, small CPU counts, no dashboard, and without the background work of Ray's
+daemons that the bench does not need: ``QUIET_SYSTEM_CONFIG``, ``QUIET_ENV``) and stopped at the end. On a shared
 host, run the whole bench in a network namespace with only ``lo`` up, where Ray cannot bind the host's interfaces::
 
     unshare --net -- sh -c 'ip link set lo up && python -m uniros_async.cli bench throughput --backend ray'
@@ -25,12 +26,29 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.bench._environ import environ_set
 from uniros_async.errors import ConfigError
 
-__all__ = ["RAY_IMPLS", "RayRows", "local_cluster"]
+__all__ = ["QUIET_ENV", "QUIET_SYSTEM_CONFIG", "RAY_IMPLS", "RayRows", "local_cluster"]
 
 RAY_IMPLS = ("uniros-ray", "uniros-ray-local", "uniros-tcp", "ray-actor")
 _OBJECT_STORE_BYTES = 80 * 1024 * 1024
+QUIET_SYSTEM_CONFIG: dict[str, Any] = {
+    "enable_metrics_collection": False,  # no metrics recorded and exported by every process
+    "memory_monitor_refresh_ms": 0,  # no reading of the node's memory use four times a second (Ray's OOM killer)
+    "raylet_report_resources_period_milliseconds": 1000,  # each raylet's resource report: once a second, not ten
+    "kill_idle_workers_interval_ms": 5000,  # each raylet's look for idle Ray workers to stop: every 5 s, not 0.2 s
+    "task_events_report_interval_ms": 10000,  # the task events each process sends the GCS: every 10 s
+    "prestart_worker_first_driver": False,  # no idle Ray workers started for the driver: its actors have their own
+}
+"""The Ray system config of the throughput bench's own cluster: what its daemons do on their own while the bench runs
+takes the cores the physics bound assumes (``RayRows.start``; the CPU they take idle: docs/performance.md)."""
+QUIET_ENV = {
+    "RAY_USAGE_STATS_ENABLED": "0",
+    "REPORTER_UPDATE_INTERVAL_MS": "60000",  # the dashboard agent's scan of the node's processes: once a minute
+    "RAY_DASHBOARD_AGENT_CHECK_PARENT_INTERVAL_S": "2",  # its check that its raylet is alive: every 2 s, not 0.4 s
+}
+"""Environment of the throughput bench's cluster processes, read as they start (``QUIET_SYSTEM_CONFIG``)."""
 
 
 @contextlib.contextmanager
@@ -99,8 +117,11 @@ class _ActorVec:
 class RayRows:
     """The cluster the Ray rows run on, and their vector envs (``vector``); ``close`` stops what ``start`` started."""
 
-    def __init__(self, address: str | None = None) -> None:
+    def __init__(self, address: str | None = None, *, quiet: bool = True) -> None:
+        """``address``: a cluster to use, else ``start`` starts one, with ``QUIET_SYSTEM_CONFIG`` and ``QUIET_ENV``
+        unless ``quiet`` is False (Ray's defaults: benchmarks/ray_idle_cpu.py compares the two)."""
         self.address = address
+        self.quiet = quiet
         self._cluster: Any = None
         self._ray: Any = None
         self.agent_node = ""
@@ -119,10 +140,21 @@ class RayRows:
                 from ray.cluster_utils import Cluster
             except ImportError as exc:
                 raise ConfigError(f"--backend ray needs Ray: pip install 'uniros_async[ray]' ({exc})") from exc
-            head = {"num_cpus": 2, "include_dashboard": False, "object_store_memory": _OBJECT_STORE_BYTES}
-            self._cluster = Cluster(initialize_head=True, head_node_args=head)
-            self._cluster.add_node(num_cpus=2, object_store_memory=_OBJECT_STORE_BYTES)
-            self._cluster.wait_for_nodes()
+            head: dict[str, Any] = {
+                "num_cpus": 2,
+                "include_dashboard": False,
+                "object_store_memory": _OBJECT_STORE_BYTES,
+            }
+            if self.quiet:
+                head["include_log_monitor"] = False  # nothing here reads the workers' logs through the driver
+                head["no_monitor"] = True  # no autoscaler: the cluster has the nodes it starts with
+                head["_system_config"] = QUIET_SYSTEM_CONFIG
+            with contextlib.ExitStack() as env:
+                for name, value in QUIET_ENV.items() if self.quiet else ():
+                    env.enter_context(environ_set(name, value))
+                self._cluster = Cluster(initialize_head=True, head_node_args=head)
+                self._cluster.add_node(num_cpus=2, object_store_memory=_OBJECT_STORE_BYTES)
+                self._cluster.wait_for_nodes()
             self.address = self._cluster.address
         ray = self._ray = connect(self.address)
         self.agent_node = ray.get_runtime_context().get_node_id()
