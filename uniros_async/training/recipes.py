@@ -11,16 +11,20 @@ A run directory holds::
     timing.csv       (``concurrent`` runs) per timing window and env: the action cycle, actuator cycle and
                      observation age (median, IQR, p99, count, in ms) while training
     timing.json      (``concurrent`` runs) the same over the whole run, env steps, env steps per wall hour (and per
-                     hour of training: without the evaluations)
+                     hour of training: without the evaluations that paused it), and with ``eval.alongside`` the
+                     evaluation envs' timing over every evaluation
     tb/              TensorBoard (SB3's scalars plus train/success_rate/<env> and eval/*/<env>)
     checkpoints/     see checkpoint.py
 
 Every env goes through ``TaskSamplerEnv`` (multitask.py): with one env it only tags infos; with several it is the
 paper's Algorithm 1 (an env sampled per episode, one replay buffer, one policy). With ``concurrent: true`` the envs
 instead run as one vector env over worker processes (concurrent.py): every env acts in every step, and the
-evaluation steps them all at once. Interruption (Ctrl-C, SIGTERM,
-a dead worker) stops the run and leaves the last checkpoint intact; ``train(cfg, resume=True)`` continues from it
-(model, optimisers, step counter, action noise and replay buffer; the env starts a fresh episode).
+evaluation steps them all at once, between two training steps, or, with ``eval.alongside``, on a second set of the
+envs, on a thread of its own with a copy of the policy, while training goes on (``_Alongside``).
+
+Interruption (Ctrl-C, SIGTERM, a dead worker) stops the run and leaves the last checkpoint intact;
+``train(cfg, resume=True)`` continues from it (model, optimisers, step counter, action noise and replay buffer; the
+env starts a fresh episode).
 
 With ``normalize_obs`` the training VecEnv is wrapped in SB3's ``VecNormalize`` (observations only, statistics
 updated as it steps): SB3 stores raw observations in the replay buffer and normalises them when it samples a batch
