@@ -63,6 +63,7 @@ __all__ = [
     "ACTOR_RT_PRIORITY",
     "cores_kept_awake",
     "DEFAULT_LOOP_NICE",
+    "environ_choice",
     "freeze_heap",
     "LOOP_RT_PRIORITY",
     "MAX_LOOP_RANK",
@@ -101,16 +102,27 @@ RESET_ON_FORK: int = getattr(os, "SCHED_RESET_ON_FORK", 0)
 inherit its real-time class or negative nice value."""
 
 
+def environ_choice(name: str, choices: Sequence[str], default: str) -> str:
+    """The environment variable ``name``, stripped and lower-cased, one of ``choices``; unset or empty: ``default``.
+
+    Raises:
+        ConfigError: another value (the message names the variable, the choices and the value).
+    """
+    from uniros_async.errors import ConfigError
+
+    raw = os.environ.get(name, default).strip().lower() or default
+    if raw not in choices:
+        raise ConfigError(f"{name} must be one of {tuple(choices)}, got {raw!r}")
+    return raw
+
+
 def loop_priority_mode() -> str:
     """``UNIROS_LOOP_PRIORITY`` (default ``rt``).
 
     Raises:
-        ValueError: not one of ``rt``, ``nice``, ``off``.
+        ConfigError: not one of ``rt``, ``nice``, ``off``.
     """
-    raw = os.environ.get("UNIROS_LOOP_PRIORITY", "rt").strip().lower() or "rt"
-    if raw not in MODES:
-        raise ValueError(f"UNIROS_LOOP_PRIORITY must be one of {MODES}, got {raw!r}")
-    return raw
+    return environ_choice("UNIROS_LOOP_PRIORITY", MODES, "rt")
 
 
 def loop_nice() -> int | None:

@@ -99,6 +99,44 @@ def test_four_arms_train_at_once_in_real_time(tmp_path: Path, learner: str) -> N
     assert plot_runs([old], out=tmp_path / "old_steps.png").is_file()
 
 
+def test_evaluation_alongside_training_does_not_pause_it(tmp_path: Path) -> None:
+    """eval.alongside: the periodic evaluations step a second set of the envs on a thread while training goes on."""
+    run = tmp_path / "alongside"
+    steps = 4 * VECTOR_STEPS
+    result = train(
+        _cfg(
+            run,
+            "async",
+            total_steps=steps,
+            eval={"every_steps": 4, "episodes": 1, "final_episodes": 2, "alongside": True},
+        ),
+    )
+    assert result.steps == steps
+
+    evals = _rows(run / "eval.csv")
+    periodic = [r for r in evals if int(r["step"]) < steps]
+    assert periodic, evals
+    first = min(periodic, key=lambda r: float(r["wall_s"]))
+    # training went on while that evaluation ran: a training episode ended after the evaluation's step and before
+    # its results were written (an evaluation episode takes EPISODE_STEPS action cycles, a vector step one)
+    episodes = _rows(run / "episodes.csv")
+    assert any(int(e["step"]) > int(first["step"]) and float(e["wall_s"]) < float(first["wall_s"]) for e in episodes), (
+        first,
+        episodes,
+    )
+    # the final evaluation ran on the evaluation envs, its episode count per env
+    final = json.loads((run / "final_eval.json").read_text())
+    assert [(r["label"], r["episodes"]) for r in final["results"]] == [("rx200_sim", 2), ("ned2_real", 2)]
+    assert {(int(r["step"]), r["task"]) for r in evals} >= {(steps, "rx200_sim"), (steps, "ned2_real")}
+
+    # the evaluation envs' action cycles are recorded beside the training envs'
+    timing = json.loads((run / "timing.json").read_text())
+    assert timing["eval_alongside"] is True
+    for label in ("rx200_sim", "ned2_real"):
+        assert timing["eval_envs"][label]["action_cycle"]["count"] >= 1
+        assert timing["envs"][label]["action_cycle"]["count"] >= 1
+
+
 def test_wall_budget_stops_a_run(tmp_path: Path) -> None:
     run = tmp_path / "budget"
     result = train(_cfg(run, "async", total_steps=10_000, max_wall_s=3 * CYCLE_S))
@@ -111,6 +149,7 @@ def test_wall_budget_stops_a_run(tmp_path: Path) -> None:
         ({"placement": "inprocess"}, "needs placement: workers"),
         ({"task_id_in_obs": True}, "does not support task_id_in_obs"),
         ({"eval": {"envs": ["uniros/Rx200Reach-v0"]}}, "remove eval.envs"),
+        ({"concurrent": False, "eval": {"alongside": True}}, "eval.alongside: .*needs concurrent: true"),
         ({"max_wall_s": 0}, "max_wall_s: must be > 0, got 0"),
         ({"eval": {"final_episodes": 0}}, "eval.final_episodes: must be >= 1, got 0"),
     ],

@@ -52,7 +52,7 @@ import gymnasium as gym
 import numpy as np
 
 from uniros_async._signals import cancel_on_signals
-from uniros_async.errors import ConfigError, TransportError
+from uniros_async.errors import TransportError
 from uniros_async.runtime.protocol import (
     AUTORESET_MODES,
     conform,
@@ -340,10 +340,9 @@ def shared_cores_mode() -> str:
     Raises:
         ConfigError: not one of ``pin``, ``through``, ``off``.
     """
-    raw = os.environ.get("UNIROS_SHARED_CORES", "pin").strip().lower() or "pin"
-    if raw not in SHARED_CORES_MODES:
-        raise ConfigError(f"UNIROS_SHARED_CORES must be one of {SHARED_CORES_MODES}, got {raw!r}")
-    return raw
+    from uniros_async.priority import environ_choice
+
+    return environ_choice("UNIROS_SHARED_CORES", SHARED_CORES_MODES, "pin")
 
 
 def usable_cpus() -> list[int]:

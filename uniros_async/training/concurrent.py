@@ -11,7 +11,8 @@ four arms give four transitions per 0.8 s cycle, all into the one replay buffer 
 ended an episode, and on ``timing_window()`` reads every env's timing records from its worker (cleared after the
 read) and turns them into the action-cycle statistics of ``uniros bench latency`` (``bench.looptiming``): the
 period between the agent's actions reaching each env loop, periods spanning a reset left out. The evaluation
-(``evaluate.evaluate_vec_policy``) steps the same envs, all four at once, between two training windows.
+(``evaluate.evaluate_vec_policy``) steps the same envs, all four at once, between two training windows; with
+``eval.alongside`` a second ConcurrentVecEnv of the same envs is evaluated on a thread while training goes on.
 """
 
 from __future__ import annotations

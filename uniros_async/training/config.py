@@ -171,6 +171,11 @@ class EvalConfig(ConfigModel):
     ``max_wall_s``."""
     envs: EnvList = ()
     """Evaluation envs (as ``envs``); empty: the training envs."""
+    alongside: Bool = False
+    """(``concurrent`` runs) Evaluate on a second set of the training envs, in worker processes of their own (an
+    emulated real arm gets its own arm), on a thread beside training, so training never pauses for an evaluation:
+    each periodic evaluation acts with a copy of the policy taken at its step, and its rows are written when it
+    ends (one falling due while another runs starts when that one ends). The final evaluation runs on them too."""
 
 
 class CheckpointConfig(ConfigModel):
@@ -269,6 +274,10 @@ class TrainConfig(ConfigModel):
                     raise key_error("concurrent", f"does not support {key} (the envs are padded alike)")
             if self.eval.envs:
                 raise key_error("concurrent", "evaluates on the training envs; remove eval.envs")
+        elif self.eval.alongside:
+            raise key_error(
+                "eval.alongside", "evaluates on a second vector env of the training envs: it needs concurrent: true"
+            )
         if self.async_learner.action_l2 and self.learner != "async":
             raise ConfigError(
                 f"async_learner.action_l2={self.async_learner.action_l2} needs learner: async (AsyncTD3's update; "

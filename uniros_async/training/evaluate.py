@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,7 @@ from uniros_async.training.multitask import TaskIdObservation, build_env, space_
 
 __all__ = [
     "EvalResult",
+    "EvaluationStopped",
     "evaluate_checkpoint",
     "evaluate_policy",
     "evaluate_vec_policy",
@@ -137,6 +139,10 @@ def evaluate_policy(
     )
 
 
+class EvaluationStopped(Exception):
+    """An evaluation ended early by its ``stop`` event (``evaluate_vec_policy``)."""
+
+
 def evaluate_vec_policy(
     model: Any,
     venv: Any,
@@ -146,6 +152,7 @@ def evaluate_vec_policy(
     seed: int | None = 0,
     deterministic: bool = True,
     env_ids: Sequence[str] | None = None,
+    stop: threading.Event | None = None,
 ) -> list[EvalResult]:
     """Evaluate on every env of an SB3 VecEnv at once: each step acts in all of them, until each has ended
     ``episodes`` episodes (an env that is done keeps acting, its further episodes not counted), so the envs are
@@ -154,6 +161,9 @@ def evaluate_vec_policy(
     The envs are reset first (with ``seed``, ``seed + 1``, ... when given) and left in mid-episode: reset them
     before training goes on. Observations are normalised as in ``evaluate_policy``. Success is the last step's
     ``info["is_success"]``.
+
+    ``stop`` (an evaluation on a thread of its own): checked before every step; once set, the evaluation ends
+    with ``EvaluationStopped``.
 
     Returns:
         One EvalResult per env, in order, labelled with ``labels``.
@@ -174,6 +184,8 @@ def evaluate_vec_policy(
     wins = [0] * n
     ret, length = np.zeros(n), np.zeros(n, dtype=np.int64)
     while min(len(r) for r in returns) < episodes:
+        if stop is not None and stop.is_set():
+            raise EvaluationStopped(f"stopped with {min(len(r) for r in returns)} of {episodes} episodes per env")
         action, _ = model.predict(obs if stats is None else stats.normalize_obs(obs), deterministic=deterministic)
         obs, rewards, dones, infos = venv.step(action)
         ret += rewards

@@ -11,16 +11,20 @@ A run directory holds::
     timing.csv       (``concurrent`` runs) per timing window and env: the action cycle, actuator cycle and
                      observation age (median, IQR, p99, count, in ms) while training
     timing.json      (``concurrent`` runs) the same over the whole run, env steps, env steps per wall hour (and per
-                     hour of training: without the evaluations)
+                     hour of training: without the evaluations that paused it), and with ``eval.alongside`` the
+                     evaluation envs' timing over every evaluation
     tb/              TensorBoard (SB3's scalars plus train/success_rate/<env> and eval/*/<env>)
     checkpoints/     see checkpoint.py
 
 Every env goes through ``TaskSamplerEnv`` (multitask.py): with one env it only tags infos; with several it is the
 paper's Algorithm 1 (an env sampled per episode, one replay buffer, one policy). With ``concurrent: true`` the envs
 instead run as one vector env over worker processes (concurrent.py): every env acts in every step, and the
-evaluation steps them all at once. Interruption (Ctrl-C, SIGTERM,
-a dead worker) stops the run and leaves the last checkpoint intact; ``train(cfg, resume=True)`` continues from it
-(model, optimisers, step counter, action noise and replay buffer; the env starts a fresh episode).
+evaluation steps them all at once, between two training steps, or, with ``eval.alongside``, on a second set of the
+envs, on a thread of its own with a copy of the policy, while training goes on (``_Alongside``).
+
+Interruption (Ctrl-C, SIGTERM, a dead worker) stops the run and leaves the last checkpoint intact;
+``train(cfg, resume=True)`` continues from it (model, optimisers, step counter, action noise and replay buffer; the
+env starts a fresh episode).
 
 With ``normalize_obs`` the training VecEnv is wrapped in SB3's ``VecNormalize`` (observations only, statistics
 updated as it steps): SB3 stores raw observations in the replay buffer and normalises them when it samples a batch
@@ -64,7 +68,7 @@ from uniros_async.training.checkpoint import (
     write_atomic,
 )
 from uniros_async.training.config import TrainConfig, config_to_dict
-from uniros_async.training.evaluate import EvalResult, evaluate_policy, evaluate_vec_policy
+from uniros_async.training.evaluate import EvalResult, evaluate_policy, evaluate_vec_policy, frozen_obs_stats
 from uniros_async.training.multitask import TaskIdObservation, TaskSamplerEnv, build_env, space_sizes
 
 if TYPE_CHECKING:
@@ -80,6 +84,9 @@ TIMING_FIELDS = ("step", "wall_s", "task", "metric", "median_ms", "iqr_ms", "p99
 # vector steps between two reads of the envs' timing records in a concurrent run (200 s at 0.8 s per step); the
 # read, a round trip per worker, falls between two steps whose period is in neither window
 TIMING_WINDOW_STEPS = 250
+# how long closing waits for the evaluation thread of eval.alongside: it checks its stop event before every step,
+# and a step waits at most for its action cycle or the workers' step deadline
+_ALONGSIDE_JOIN_S = 60.0
 
 
 class TrainingInterrupted(UnirosError):
@@ -390,6 +397,113 @@ class _CsvLog:
         self._f.close()
 
 
+class _FrozenPolicy:
+    """A copy of a model's policy (and observation statistics) at one step, for an evaluation on another thread:
+    the learner goes on updating the model's networks while it acts."""
+
+    def __init__(self, model: Any) -> None:
+        import copy
+
+        paused = getattr(model, "learner_paused", contextlib.nullcontext)
+        with paused():  # AsyncTD3: between two updates, so the copy is one consistent set of weights
+            self.policy = copy.deepcopy(model.policy)
+        self.policy.set_training_mode(False)
+        live = model.get_vec_normalize_env()
+        self.stats = None if live is None else frozen_obs_stats(live)
+
+    def predict(self, observation: Any, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """The copied policy's actions (SB3's ``predict``)."""
+        actions, _ = self.policy.predict(observation, deterministic=deterministic)
+        return actions, None
+
+    def get_vec_normalize_env(self) -> Any:
+        """The observation statistics at the copy's step (frozen), or None."""
+        return self.stats
+
+
+class _Alongside:
+    """The periodic evaluation of ``eval.alongside``: a second ConcurrentVecEnv of the training envs, stepped by a
+    thread of its own (one evaluation at a time) while training goes on. ``request`` starts an evaluation with a
+    copy of the policy (or, while one runs, marks the next as due), ``take`` hands over a finished one's results,
+    ``close`` stops a running one (within one action cycle) and closes the envs."""
+
+    def __init__(self, venv: ConcurrentVecEnv, env_ids: list[str]) -> None:
+        self.venv = venv
+        self.env_ids = env_ids
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._outcome: tuple[int, float, list[EvalResult] | BaseException] | None = None
+        self._due: int | None = None  # the step of an evaluation that fell due while another ran
+
+    def busy(self) -> bool:
+        """Whether an evaluation runs (or has ended and waits for ``take``)."""
+        return self._thread is not None
+
+    def request(self, model: Any, step: int, episodes: int, seed: int) -> None:
+        """Evaluate the policy as it is at ``step``, now or (one running) when the running one ends."""
+        if self.busy():
+            self._due = step
+            return
+        policy = _FrozenPolicy(model)
+        t0 = time.monotonic()
+
+        def run() -> None:
+            try:
+                out: list[EvalResult] | BaseException = self.evaluate(policy, episodes, seed, self._stop)
+            except BaseException as exc:  # noqa: BLE001 - handed to the training thread by take()
+                out = exc
+            self._outcome = (step, time.monotonic() - t0, out)
+
+        self._thread = threading.Thread(target=run, name=f"eval-alongside-{step}", daemon=True)
+        self._thread.start()
+
+    def evaluate(self, policy: Any, episodes: int, seed: int, stop: threading.Event | None = None) -> list[EvalResult]:
+        """One evaluation of ``policy`` on the envs (in the calling thread), their action-cycle timing kept."""
+        results = evaluate_vec_policy(
+            policy, self.venv, episodes, self.venv.labels, seed=seed, env_ids=self.env_ids, stop=stop
+        )
+        self.venv.timing_window()  # the evaluation's action cycles, kept in venv.samples for timing.json
+        return results
+
+    def take(self, model: Any, step: int, episodes: int, seed: int) -> tuple[int, float, list[EvalResult]] | None:
+        """A finished evaluation's (step, seconds it took, results), or None; starts the one that fell due meanwhile
+        (with the policy at ``step``). Raises what the evaluation raised (e.g. WorkerError)."""
+        thread = self._thread
+        if thread is None or thread.is_alive():
+            return None
+        thread.join()
+        self._thread = None
+        assert self._outcome is not None
+        done_step, took_s, out = self._outcome
+        self._outcome = None
+        if isinstance(out, BaseException):
+            raise out
+        if self._due is not None:
+            self._due = None
+            self.request(model, step, episodes, seed)
+        return done_step, took_s, out
+
+    def cancel(self) -> None:
+        """Stop a running evaluation (it ends before its next step, within an action cycle) and drop it."""
+        self._due = None
+        thread = self._thread
+        if thread is not None:
+            self._stop.set()
+            thread.join(_ALONGSIDE_JOIN_S)
+            if thread.is_alive():
+                raise UnirosError(f"the evaluation alongside training did not stop within {_ALONGSIDE_JOIN_S:.0f} s")
+            self._thread = None
+            self._outcome = None
+            self._stop.clear()
+
+    def close(self) -> None:
+        """``cancel`` and close the envs."""
+        try:
+            self.cancel()
+        finally:
+            self.venv.close()
+
+
 class _Run:
     """What the callback and ``train`` share: the logs, the evaluation, the wall clock and (concurrent runs) the
     envs' timing."""
@@ -405,8 +519,10 @@ class _Run:
         eval_log: _CsvLog,
         timing_log: _CsvLog | None,
         wall_offset_s: float,
+        alongside: _Alongside | None = None,
     ) -> None:
         self.cfg = cfg
+        self.alongside = alongside
         self.run_dir = run_dir
         self.layout = layout
         self.eval_envs = eval_envs
@@ -489,6 +605,7 @@ class _Run:
             # the same without the evaluations' wall time (they step the same envs, but store nothing)
             "env_steps_per_training_hour": round(step / train_s * 3600, 1) if train_s > 0 else None,
             "learner": self.cfg.learner,
+            "eval_alongside": self.alongside is not None,
             "envs": {
                 label: {
                     "step_overruns": self.concurrent.step_overruns[label],
@@ -500,6 +617,14 @@ class _Run:
                 for label in self.concurrent.labels
             },
         }
+        if self.alongside is not None:  # the evaluation envs' timing, over every evaluation
+            out["eval_envs"] = {
+                label: {
+                    metric: {k: _num(v) for k, v in summary(samples).items()}
+                    for metric, samples in self.alongside.venv.samples[label].items()
+                }
+                for label in self.alongside.venv.labels
+            }
         (self.run_dir / "timing.json").write_text(json.dumps(out, indent=2))
 
 
@@ -512,7 +637,11 @@ def _run_eval(model: Any, step: int, run: _Run, sb3_logger: Any, *, training_goe
     episodes = run.cfg.eval.episodes
     if not training_goes_on and run.cfg.eval.final_episodes is not None:
         episodes = run.cfg.eval.final_episodes
-    if run.concurrent is not None:
+    if run.alongside is not None and not training_goes_on:  # the final evaluation, on the evaluation envs
+        run.alongside.cancel()  # a periodic one still running: superseded by this one
+        run.timing(step)
+        results = run.alongside.evaluate(model, episodes, seed)
+    elif run.concurrent is not None:
         run.timing(step)  # the training window ends here: the evaluation's steps are not training's
         results = evaluate_vec_policy(
             model,
@@ -530,6 +659,12 @@ def _run_eval(model: Any, step: int, run: _Run, sb3_logger: Any, *, training_goe
             for label, env_id, env in run.eval_envs
         ]
     run.eval_s += time.monotonic() - t0
+    _record_eval(run, step, results, sb3_logger)
+    return results
+
+
+def _record_eval(run: _Run, step: int, results: list[EvalResult], sb3_logger: Any) -> None:
+    """An evaluation's rows to eval.csv (``wall_s``: now, when its results are known), scalars to TensorBoard."""
     wall = round(run.wall_s(), 1)
     for r in results:
         run.eval_log.write(
@@ -546,7 +681,6 @@ def _run_eval(model: Any, step: int, run: _Run, sb3_logger: Any, *, training_goe
             sb3_logger.record(f"eval/mean_return/{r.label}", r.mean_return)
             sb3_logger.record(f"eval/mean_ep_length/{r.label}", r.mean_length)
         logger.info("step %d eval %s", step, r.summary())
-    return results
 
 
 def _num(x: float) -> float | None:
@@ -628,15 +762,13 @@ def _make_callback(run: _Run, progress: bool) -> Any:
             self.vector_steps += 1
             if run.concurrent is not None and self.vector_steps % TIMING_WINDOW_STEPS == 0:
                 self.write(run.progress_line(step, run.timing(step)))
+            if run.alongside is not None:
+                self.take_alongside(step)
             if cfg.eval.every_steps and step // cfg.eval.every_steps > last // cfg.eval.every_steps:
-                results = self.run_eval(self.model, step)
-                target = cfg.eval.stop_success
-                if target is not None and results and all(r.success_rate >= target for r in results):
-                    self.targets_met = True
-                    self.write(
-                        f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: every env at {100 * target:.0f} % "
-                        "or above (eval.stop_success): training stops"
-                    )
+                if run.alongside is not None:
+                    run.alongside.request(self.model, step, cfg.eval.episodes, cfg.seed + 10_000 + step)
+                else:
+                    self.check_targets(step, self.run_eval(self.model, step))
             if cfg.checkpoint.every_steps and step // cfg.checkpoint.every_steps > last // cfg.checkpoint.every_steps:
                 run.checkpoint = _save(self.model, cfg, run.run_dir, layout, step)
 
@@ -648,6 +780,30 @@ def _make_callback(run: _Run, progress: bool) -> Any:
             from tqdm import tqdm
 
             tqdm.write(line, file=sys.stderr) if self.bar is None else self.bar.write(line, file=sys.stderr)
+
+        def check_targets(self, step: int, results: list[EvalResult]) -> None:
+            target = cfg.eval.stop_success
+            if target is not None and results and all(r.success_rate >= target for r in results):
+                self.targets_met = True
+                self.write(
+                    f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: every env at {100 * target:.0f} % "
+                    "or above (eval.stop_success): training stops"
+                )
+
+        def take_alongside(self, step: int) -> None:
+            assert run.alongside is not None
+            done = run.alongside.take(self.model, step, cfg.eval.episodes, cfg.seed + 10_000 + step)
+            if done is None:
+                return
+            at, took_s, results = done
+            _record_eval(run, at, results, self.logger)
+            run.last_eval, run.last_eval_step = results, at
+            self.write(
+                f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: evaluated alongside training "
+                f"(policy of step {at}, {took_s:.0f} s): "
+                + "; ".join(f"{r.label} {100 * r.success_rate:.0f}% len {r.mean_length:.1f}" for r in results)
+            )
+            self.check_targets(step, results)
 
         def run_eval(self, model: Any, step: int) -> list[EvalResult]:
             results = run.evaluate(model, step, self.logger)
@@ -738,11 +894,15 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
     else:
         env, layout = build_train_env(cfg)
     eval_envs: list[tuple[str, str, gym.Env[Any, Any]]] = []
+    alongside: _Alongside | None = None
     logs: list[_CsvLog] = []
     model: Any = None
     try:
         if not cfg.concurrent:
             eval_envs = build_eval_envs(cfg, layout)
+        elif cfg.eval.alongside:
+            eval_venv, _ = build_concurrent_env(cfg)
+            alongside = _Alongside(eval_venv, [i for _, i, _ in cfg.env_specs()])
         if ckpt is not None:
             meta = read_meta(ckpt)
             check_sizes(meta, layout.obs_size, layout.action_size, layout.goal_env, f"the envs of {cfg.name}")
@@ -785,6 +945,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
             eval_log,
             timing_log,
             wall_offset_s=max([0.0, *episodes_log.kept_wall_s, *eval_log.kept_wall_s]),
+            alongside=alongside,
         )
         run.checkpoint = ckpt
         callback = _make_callback(run, progress)
@@ -832,5 +993,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
     finally:
         for log in logs:
             log.close()
-        env.close()
+        try:
+            if alongside is not None:
+                alongside.close()
+        finally:
+            env.close()
         _close_all([e for _, _, e in eval_envs])
