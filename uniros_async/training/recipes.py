@@ -433,7 +433,7 @@ class _Alongside:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._outcome: tuple[int, float, list[EvalResult] | BaseException] | None = None
-        self._due: int | None = None  # the step of an evaluation that fell due while another ran
+        self._due = False  # an evaluation fell due while another ran
 
     def busy(self) -> bool:
         """Whether an evaluation runs (or has ended and waits for ``take``)."""
@@ -442,7 +442,7 @@ class _Alongside:
     def request(self, model: Any, step: int, episodes: int, seed: int) -> None:
         """Evaluate the policy as it is at ``step``, now or (one running) when the running one ends."""
         if self.busy():
-            self._due = step
+            self._due = True
             return
         policy = _FrozenPolicy(model)
         t0 = time.monotonic()
@@ -478,14 +478,14 @@ class _Alongside:
         self._outcome = None
         if isinstance(out, BaseException):
             raise out
-        if self._due is not None:
-            self._due = None
+        if self._due:
+            self._due = False
             self.request(model, step, episodes, seed)
         return done_step, took_s, out
 
     def cancel(self) -> None:
         """Stop a running evaluation (it ends before its next step, within an action cycle) and drop it."""
-        self._due = None
+        self._due = False
         thread = self._thread
         if thread is not None:
             self._stop.set()
@@ -593,11 +593,9 @@ class _Run:
         """timing.json: env steps, wall time, env steps per wall hour and each env's timing over the run."""
         if self.concurrent is None:
             return
-        from uniros_async.bench.stats import summary
-
         wall = self.wall_s()
         train_s = wall - self.eval_s
-        out = {
+        out: dict[str, Any] = {
             "env_steps": step,
             "wall_s": round(wall, 1),
             "eval_wall_s": round(self.eval_s, 1),
@@ -607,25 +605,33 @@ class _Run:
             "learner": self.cfg.learner,
             "eval_alongside": self.alongside is not None,
             "envs": {
-                label: {
-                    "step_overruns": self.concurrent.step_overruns[label],
-                    **{
-                        metric: {k: _num(v) for k, v in summary(samples).items()}
-                        for metric, samples in self.concurrent.samples[label].items()
-                    },
-                }
-                for label in self.concurrent.labels
+                label: {"step_overruns": self.concurrent.step_overruns[label], **metrics}
+                for label, metrics in _timing_summaries(self.concurrent).items()
             },
         }
         if self.alongside is not None:  # the evaluation envs' timing, over every evaluation
-            out["eval_envs"] = {
-                label: {
-                    metric: {k: _num(v) for k, v in summary(samples).items()}
-                    for metric, samples in self.alongside.venv.samples[label].items()
-                }
-                for label in self.alongside.venv.labels
-            }
+            out["eval_envs"] = _timing_summaries(self.alongside.venv)
         (self.run_dir / "timing.json").write_text(json.dumps(out, indent=2))
+
+
+def _timing_summaries(venv: ConcurrentVecEnv) -> dict[str, dict[str, dict[str, float | None]]]:
+    """Every env's timing samples so far (``ConcurrentVecEnv.samples``) as summaries (median, IQR, p99, ... in ms)."""
+    from uniros_async.bench.stats import summary
+
+    return {
+        label: {metric: {k: _num(v) for k, v in summary(samples).items()} for metric, samples in metrics.items()}
+        for label, metrics in venv.samples.items()
+    }
+
+
+def _results_text(results: list[EvalResult]) -> str:
+    """One evaluation's success and mean episode length per env, for a progress line."""
+    return "; ".join(f"{r.label} {100 * r.success_rate:.0f}% len {r.mean_length:.1f}" for r in results)
+
+
+def _eval_seed(cfg: TrainConfig, step: int) -> int:
+    """The seed of the evaluation at ``step`` (apart from the training envs' seeds)."""
+    return cfg.seed + 10_000 + step
 
 
 def _run_eval(model: Any, step: int, run: _Run, sb3_logger: Any, *, training_goes_on: bool = True) -> list[EvalResult]:
@@ -633,7 +639,7 @@ def _run_eval(model: Any, step: int, run: _Run, sb3_logger: Any, *, training_goe
     ``training_goes_on``, reset them for training); rows to eval.csv, scalars to TensorBoard (when ``sb3_logger``
     is given)."""
     t0 = time.monotonic()
-    seed = run.cfg.seed + 10_000 + step
+    seed = _eval_seed(run.cfg, step)
     episodes = run.cfg.eval.episodes
     if not training_goes_on and run.cfg.eval.final_episodes is not None:
         episodes = run.cfg.eval.final_episodes
@@ -766,7 +772,7 @@ def _make_callback(run: _Run, progress: bool) -> Any:
                 self.take_alongside(step)
             if cfg.eval.every_steps and step // cfg.eval.every_steps > last // cfg.eval.every_steps:
                 if run.alongside is not None:
-                    run.alongside.request(self.model, step, cfg.eval.episodes, cfg.seed + 10_000 + step)
+                    run.alongside.request(self.model, step, cfg.eval.episodes, _eval_seed(cfg, step))
                 else:
                     self.check_targets(step, self.run_eval(self.model, step))
             if cfg.checkpoint.every_steps and step // cfg.checkpoint.every_steps > last // cfg.checkpoint.every_steps:
@@ -792,7 +798,7 @@ def _make_callback(run: _Run, progress: bool) -> Any:
 
         def take_alongside(self, step: int) -> None:
             assert run.alongside is not None
-            done = run.alongside.take(self.model, step, cfg.eval.episodes, cfg.seed + 10_000 + step)
+            done = run.alongside.take(self.model, step, cfg.eval.episodes, _eval_seed(cfg, step))
             if done is None:
                 return
             at, took_s, results = done
@@ -800,18 +806,14 @@ def _make_callback(run: _Run, progress: bool) -> Any:
             run.last_eval, run.last_eval_step = results, at
             self.write(
                 f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: evaluated alongside training "
-                f"(policy of step {at}, {took_s:.0f} s): "
-                + "; ".join(f"{r.label} {100 * r.success_rate:.0f}% len {r.mean_length:.1f}" for r in results)
+                f"(policy of step {at}, {took_s:.0f} s): " + _results_text(results)
             )
             self.check_targets(step, results)
 
         def run_eval(self, model: Any, step: int) -> list[EvalResult]:
             results = run.evaluate(model, step, self.logger)
             if progress or run.concurrent is not None:
-                self.write(
-                    f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: "
-                    + "; ".join(f"{r.label} {100 * r.success_rate:.0f}% len {r.mean_length:.1f}" for r in results)
-                )
+                self.write(f"[{cfg.name}] step {step}, {run.wall_s() / 60:.1f} min: " + _results_text(results))
             return results
 
     return TrainingCallback()
