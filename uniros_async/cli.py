@@ -152,6 +152,15 @@ def _build_parser() -> argparse.ArgumentParser:
         default=None,
         help="with --repeat: a row per UNIROS_SHARED_CORES mode, runs interleaved (default: the environment's)",
     )
+    bth.add_argument(
+        "--envs-per-worker",
+        dest="envs_per_worker",
+        nargs="+",
+        default=None,
+        metavar="K",
+        help="envs per worker process in make_vec's rows: a count, or 'cores' for one process per core where the"
+        " envs outnumber the cores; with --repeat a row per value, runs interleaved (default: 1)",
+    )
     bth.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
     br = bench.add_parser("ros1", help="ROS 1 round trips: our asyncio client against rospy (needs ROS 1 installed)")
@@ -385,6 +394,7 @@ def _run_bench(args: argparse.Namespace) -> int:
                 ray_address=args.ray_address,
                 repeat=args.repeat,
                 shared_cores=tuple(args.shared_cores or ()),
+                envs_per_worker=tuple(args.envs_per_worker or ("1",)),
             )
         )
     elif args.scenario == "ros1":

@@ -41,6 +41,7 @@ import itertools
 import logging
 import math
 import time
+import weakref
 from collections.abc import Callable
 from typing import Any
 
@@ -272,8 +273,14 @@ class SimClock(Clock):
             self._between_events = False
 
 
+_SETTLING: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, list[int]] = weakref.WeakKeyDictionary()
+"""Per loop, how many drivers are in ``_settle`` now (each has one yield in the ready queue while another runs)."""
+
+
 async def _settle(loop: asyncio.AbstractEventLoop) -> None:
-    """Yield until no other callback of ``loop`` is runnable (every task waits again).
+    """Yield until no other callback of ``loop`` is runnable (every task waits again), the yields of other drivers
+    settling on the same loop aside: two sims driven on one loop (a worker process hosting two envs) each see the
+    other's yield in the ready queue, and without that count neither would settle before its 10,000th yield.
 
     The default loop exposes its ready queue; for others (uvloop) a fixed number of yields approximates it.
     """
@@ -282,10 +289,15 @@ async def _settle(loop: asyncio.AbstractEventLoop) -> None:
         for _ in range(16):
             await asyncio.sleep(0)
         return
-    for _ in range(10_000):
-        await asyncio.sleep(0)
-        if not ready:
-            return
+    settling = _SETTLING.setdefault(loop, [0])
+    settling[0] += 1
+    try:
+        for _ in range(10_000):
+            await asyncio.sleep(0)
+            if len(ready) < settling[0]:
+                return
+    finally:
+        settling[0] -= 1
 
 
 def _check_scale(time_scale: float | None) -> None:

@@ -7,6 +7,7 @@ never a figure's size (that is the benchmark's job, docs/performance.md).
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -134,3 +135,26 @@ def test_repeat_runs_the_crowded_rows_run_by_run_with_their_intervals(monkeypatc
 def test_bad_repeat_configs_are_refused(kw: dict[str, object], what: str) -> None:
     with pytest.raises(ConfigError, match=what):
         throughput.ThroughputBenchConfig(**kw)  # type: ignore[arg-type]
+
+
+def test_repeat_rows_with_envs_grouped_one_process_per_core(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", 30)
+    lines: list[str] = []
+    config = throughput.ThroughputBenchConfig(
+        n_envs=(4,), steps=5, repeat=1, envs_per_worker=("cores",), progress=False
+    )
+    (record,) = throughput.main(config, log=lines.append)
+    cores = os.cpu_count() or 1
+    assert record["envs_per_worker"] == throughput.per_worker("cores", 4, cores)
+    assert record["worker_cpu_ms"] > 0  # the processes' CPU time, each process counted once
+    assert f"run 1 N=4 uniros       pin      x{record['envs_per_worker']}" in "\n".join(lines)
+
+
+def test_per_worker_counts_envs_per_process() -> None:
+    assert throughput.per_worker("cores", 8, 2) == 4
+    assert throughput.per_worker("cores", 5, 2) == 3
+    assert throughput.per_worker("cores", 2, 2) == 1  # no more envs than cores: a process each
+    assert throughput.per_worker("3", 8, 2) == 3
+    for bad in ("0", "two", "-1", ""):
+        with pytest.raises(ConfigError, match="envs_per_worker: expected a count >= 1 or 'cores', got"):
+            throughput.ThroughputBenchConfig(envs_per_worker=(bad,))

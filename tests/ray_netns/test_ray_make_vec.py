@@ -97,3 +97,24 @@ def test_a_resource_that_is_taken_fails_after_the_start_timeout_naming_it(cluste
         make_vec([("CartPole-v1", ARM), ("CartPole-v1", ARM)], backend="ray", start_timeout_s=5.0)
     msg = str(err.value)
     assert "within 5" in msg and "rx200_arm" in msg and cluster["arm_id"][:12] in msg, msg
+
+
+def test_envs_grouped_in_one_ray_placed_process_each_over_its_own_connection(cluster: dict[str, Any]) -> None:
+    venv = make_vec([(RX, ARM), (RX, ARM), RX], backend="ray", clock="sim", envs_per_worker=2)
+    try:
+        workers = venv._sup.workers
+        first, second, third = workers
+        assert first.process is second.process and third.process is not first.process  # one actor, one process
+        assert first.process.node_id == cluster["arm_id"]
+        uris = first.process.worker_uris
+        assert len(uris) == 2 and uris[0] != uris[1] and all(u.startswith("tcp://127.0.0.1:") for u in uris)
+        assert venv.pids[0] == venv.pids[1] != venv.pids[2]
+        venv.reset(seed=0)
+        for _ in range(3):
+            obs, rewards, *_ = venv.step(np.zeros((3, 5), np.float32))
+        assert obs.shape[0] == 3 and np.isfinite(obs).all() and np.isfinite(rewards).all()
+        pids = [p for p in set(venv.pids) if p is not None]
+        assert len(pids) == 2 and all(pid_alive(p) for p in pids)
+    finally:
+        venv.close()
+    assert not any(pid_alive(p) for p in pids)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -166,3 +167,78 @@ async def test_paced_sim_stamps_are_exact_hardware_periods() -> None:
             wall = time.perf_counter() - t0
     assert len(stamps) >= 9 and set(np.diff(stamps)) == {40_000_000}, "sim-time stamps, exact at any time scale"
     assert 0.02 < wall < 0.3, f"0.4 s of sim time at 10x took {wall:.3f} s"  # paced, and faster than real time
+
+
+async def test_two_drivers_on_one_loop_settle_at_once_and_still_wait_for_runnable_work(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Two sims' clocks driven on one event loop (a worker process hosting two envs): each driver's yields are
+    the other's only runnable work, which must not keep either from settling (each would otherwise yield up to
+    10,000 times per sim event); a task with work left still keeps both from settling."""
+    import types
+
+    from uniros_async import sim_clock
+
+    yields = [0]
+    real_sleep = asyncio.sleep
+
+    async def counting_sleep(delay: float) -> None:
+        yields[0] += 1
+        await real_sleep(delay)
+
+    monkeypatch.setattr(sim_clock, "asyncio", types.SimpleNamespace(sleep=counting_sleep))
+    loop = asyncio.get_running_loop()
+    await asyncio.gather(sim_clock._settle(loop), sim_clock._settle(loop))
+    assert yields[0] <= 6
+
+    done = asyncio.Event()
+    settled_after_work: list[bool] = []
+
+    async def busy() -> None:
+        for _ in range(50):
+            await real_sleep(0)
+        done.set()
+
+    async def settle() -> None:
+        await sim_clock._settle(loop)
+        settled_after_work.append(done.is_set())
+
+    yields[0] = 0
+    await asyncio.gather(busy(), settle(), settle())
+    assert settled_after_work == [True, True] and yields[0] <= 2 * 60
+
+
+async def test_two_envs_on_one_loop_step_as_they_would_alone() -> None:
+    """Two attached rx200 envs on this loop (as in a worker hosting two): their steps return the same
+    observations as one env stepped alone, stepped one after the other or at once."""
+    import gymnasium as gym
+
+    import uniros_async  # noqa: F401
+    from uniros_async.envs.runtime import deferred_start
+    from uniros_async.runtime.worker import areset_through, astep_through
+
+    kw: dict[str, Any] = {"turn_based": True, "action_mode": "absolute", "max_episode_steps": 10**9}
+
+    async def envs(k: int) -> list[Any]:
+        out = []
+        for _ in range(k):
+            with deferred_start():
+                env = gym.make("uniros/Rx200Reach-v0", **kw)
+            await env.unwrapped.astart()  # type: ignore[attr-defined]
+            await areset_through(env, 3, None)
+            out.append(env)
+        return out
+
+    (alone,) = await envs(1)
+    pair = await envs(2)
+    alone.action_space.seed(0)
+    actions = [alone.action_space.sample() for _ in range(4)]
+    try:
+        for a in actions:
+            want, *_ = await astep_through(alone, a)
+            (first, *_), (second, *_) = await asyncio.gather(astep_through(pair[0], a), astep_through(pair[1], a))
+            np.testing.assert_allclose(first, want)
+            np.testing.assert_allclose(second, want)
+    finally:
+        for env in (alone, *pair):
+            await env.unwrapped.aclose()

@@ -168,9 +168,10 @@ class RayRows:
         return f"Ray cluster at {self.address}: the agent on node {agent}, the remote rows' workers on node {other}"
 
     def vector(
-        self, impl: str, n: int, env_id: str, kwargs: dict[str, Any], pad: bool
+        self, impl: str, n: int, env_id: str, kwargs: dict[str, Any], pad: bool, envs_per_worker: int = 1
     ) -> tuple[Any, Callable[[], Any], Callable[[Any], Any]]:
-        """(vec env, reset(): seeds 0..n-1, step(actions)) for a Ray row."""
+        """(vec env, reset(): seeds 0..n-1, step(actions)) for a Ray row; ``envs_per_worker``: make_vec's, for the
+        rows of make_vec's Ray-placed workers."""
         from uniros_async.runtime import make_vec
 
         if impl == "uniros-tcp":
@@ -178,7 +179,8 @@ class RayRows:
         elif impl in ("uniros-ray", "uniros-ray-local"):
             node = self.other_node if impl == "uniros-ray" else self.agent_node
             where = {"worker": {"ray": {"node_id": node, "num_cpus": 0}}}
-            venv = make_vec([(env_id, where)] * n, pad=pad, backend="ray", **kwargs)
+            per = envs_per_worker
+            venv = make_vec([(env_id, where)] * n, pad=pad, backend="ray", envs_per_worker=per, **kwargs)
         elif impl == "ray-actor":
             from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 

@@ -59,6 +59,7 @@ import asyncio
 import contextlib
 import dataclasses
 import functools
+import itertools
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -125,6 +126,10 @@ class ThroughputBenchConfig:
     shared_cores: tuple[str, ...] = ()
     """With ``repeat``: one row per ``UNIROS_SHARED_CORES`` mode (``worker.shared_cores_mode``) for each N and
     backend, their runs interleaved (empty: as this process has it)."""
+    envs_per_worker: tuple[str, ...] = ("1",)
+    """How many envs one worker process of ``make_vec`` hosts in its rows (local and Ray-placed), per N: a count, or
+    ``cores`` for one process per core where the envs outnumber the cores (``per_worker``). The first value for the
+    full bench; with ``repeat``, one row per value, runs interleaved."""
     repeat: int = 0
     """> 0: measure only the make_vec rows at ``CROWDED_N`` or more sub-envs (and the Ray-placed ones with
     ``backend="ray"``), ``repeat`` runs of each, every run with new workers, and print each run's % of the physics
@@ -144,6 +149,22 @@ class ThroughputBenchConfig:
             raise ConfigError(f"transport must be 'shm' or 'tcp', got {self.transport!r}")
         if self.backend not in ("local", "ray"):
             raise ConfigError(f"backend must be 'local' or 'ray', got {self.backend!r}")
+        for value in self.envs_per_worker:
+            per_worker(value, 1, 1)
+
+
+def per_worker(value: str, n: int, cores: int) -> int:
+    """Envs per worker process for ``n`` sub-envs on ``cores`` cores: ``value`` a count >= 1, or ``cores``: as many
+    as make one process per core when the envs outnumber the cores (ceil(n / cores)), else 1.
+
+    Raises:
+        ConfigError: neither a count >= 1 nor ``cores``.
+    """
+    if value == "cores":
+        return -(-n // cores) if n > cores else 1
+    if not value.isdigit() or int(value) < 1:
+        raise ConfigError(f"envs_per_worker: expected a count >= 1 or 'cores', got {value!r}")
+    return int(value)
 
 
 def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
@@ -158,15 +179,17 @@ def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
 
 
 def _vector(
-    impl: str, n: int, env_id: str, kwargs: dict[str, Any], transport: str = "shm"
+    impl: str, n: int, env_id: str, kwargs: dict[str, Any], transport: str = "shm", envs_per_worker: int = 1
 ) -> tuple[Any, Callable[[], Any], Callable[[Any], Any]]:
     """(vec env, reset(): seeds 0..n-1, step(actions)) for one implementation."""
     if _RAY is not None and impl in RAY_IMPLS:
-        return _RAY.vector(impl, n, env_id, kwargs, pad=env_id == ENV_ID)
+        return _RAY.vector(impl, n, env_id, kwargs, pad=env_id == ENV_ID, envs_per_worker=envs_per_worker)
     if impl == "uniros":
         from uniros_async.runtime import make_vec
 
-        venv = make_vec([env_id] * n, pad=env_id == ENV_ID, transport=transport, **kwargs)
+        venv = make_vec(
+            [env_id] * n, pad=env_id == ENV_ID, transport=transport, envs_per_worker=envs_per_worker, **kwargs
+        )
         return venv, lambda: venv.reset(seed=0), venv.step
     factory = functools.partial(_make_env, env_id, kwargs)
     if impl == "gymnasium-async":
@@ -266,15 +289,16 @@ def _run(
     block: int = 8,
     transport: str = "shm",
     shared_cores: str | None = None,
+    envs_per_worker: int = 1,
 ) -> dict[str, Any]:
     """One row (see the module docstring); ``shared_cores``: the ``UNIROS_SHARED_CORES`` its vector env is made
-    with (None: as this process has it)."""
+    with (None: as this process has it); ``envs_per_worker``: its ``make_vec``'s."""
     block = min(block, steps)
     crowded = n >= CROWDED_N
     actions = _actions(bare.action_space, steps + 1 + (max(MAX_TIGHT_STEPS, steps + 1) if crowded else steps + 1))
     batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
     with environ_set("UNIROS_SHARED_CORES", shared_cores):  # the supervisor reads it when it connects its workers
-        venv, reset, step = _vector(impl, n, env_id, kwargs, transport)
+        venv, reset, step = _vector(impl, n, env_id, kwargs, transport, envs_per_worker)
     vec_t: list[float] = []
     bare_t: list[float] = []
     floor_t: list[float] = []
@@ -295,7 +319,8 @@ def _run(
             time.sleep(TRAIL_S)  # the workers' trailing work (the next servo tick) must not overlap the bare step
             bare_t += b[1:]
             vec_t += v[1:]
-        pids = list(getattr(venv, "pids", ())) if impl == "uniros" else []  # local workers: their CPU time here
+        # local workers: their CPU time here (each process once: envs_per_worker envs share one)
+        pids = list(dict.fromkeys(getattr(venv, "pids", ()))) if impl == "uniros" else []
         cpu0 = [_cpu_s(p) for p in pids], time.process_time()
         host0, t0 = cpu_times(), time.perf_counter()
         tight_t = _tight(step, batch, steps + 1, steps + 1, n, crowded)  # throughput: back to back
@@ -304,6 +329,7 @@ def _run(
     finally:
         venv.close()
     record = _record(env_id, impl, n, tight_t, vec_t, bare_t)
+    record["envs_per_worker"] = envs_per_worker
     workers_s = [b - a for a, b in zip(cpu0[0], cpu1[0], strict=True) if a is not None and b is not None]
     if pids and len(workers_s) == len(pids):  # CPU time per env step, whatever else the host runs meanwhile
         record["worker_cpu_ms"] = round(sum(workers_s) / (n * len(tight_t)) * 1e3, 3)
@@ -497,6 +523,7 @@ def _measure(
 ) -> None:
     """Run every row into ``records``, counting each on ``bar``."""
     impls = IMPLS + (("uniros-ray",) if _RAY is not None else ())
+    cores = os.cpu_count() or 1
     trivial_impls = IMPLS + (RAY_IMPLS if _RAY is not None else ())
     bare = _make_env(ENV_ID, ENV_KW)
     try:
@@ -507,7 +534,9 @@ def _measure(
         for n in ns:
             for impl in impls:
                 floor_n = floor if n == 1 else None
-                records.append(_run(impl, n, bare, ENV_ID, ENV_KW, steps, floor_n, transport=config.transport))
+                k = per_worker(config.envs_per_worker[0], n, cores) if impl in ("uniros", "uniros-ray") else 1
+                how = config.transport
+                records.append(_run(impl, n, bare, ENV_ID, ENV_KW, steps, floor_n, transport=how, envs_per_worker=k))
                 bar(1)
     finally:
         if floor is not None:
@@ -601,16 +630,27 @@ def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = p
     load0 = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),)
     cpu0 = cpu_times()
     with _open_ray_rows(config) as cluster:
-        n_rows = config.repeat * len(ns) * len(impls) * len(modes)
+        pers = config.envs_per_worker
+        n_rows = config.repeat * len(ns) * len(impls) * len(modes) * len(pers)
         bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
         bare = _make_env(ENV_ID, ENV_KW)
         try:
             for run in range(1, config.repeat + 1):
                 for n in ns:
                     for impl in impls:
-                        for mode in modes:
-                            steps, how = config.steps, config.transport
-                            r = _run(impl, n, bare, ENV_ID, ENV_KW, steps, transport=how, shared_cores=mode)
+                        for mode, per in itertools.product(modes, pers):
+                            steps, how, k = config.steps, config.transport, per_worker(per, n, cores)
+                            r = _run(
+                                impl,
+                                n,
+                                bare,
+                                ENV_ID,
+                                ENV_KW,
+                                steps,
+                                transport=how,
+                                shared_cores=mode,
+                                envs_per_worker=k,
+                            )
                             r["run"] = run
                             r["shared_cores"] = mode or os.environ.get("UNIROS_SHARED_CORES", "pin")
                             _bound_pct(r, cores)
@@ -628,20 +668,32 @@ def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = p
     ]
     if where:
         lines.append(where + " (uniros-ray: workers placed by Ray there, over tcp)")
-    head = f"{'N':>3} {'impl':<12} {'cores':<8} {'% of the physics bound, run by run':<44} {'min':>6}"
-    lines += ["", "(cores: UNIROS_SHARED_CORES, what the workers do when they outnumber the cores)", head]
+    head = f"{'N':>3} {'impl':<12} {'cores':<8} {'per proc':>8}  {'% of the physics bound, run by run':<44} {'min':>6}"
+    lines += [
+        "",
+        "(cores: UNIROS_SHARED_CORES, what the workers do when they outnumber the cores; per proc: envs per worker"
+        " process, make_vec's envs_per_worker)",
+        head,
+    ]
     lines.append("-" * len(head))
     for n in ns:
         for impl in impls:
-            for mode in dict.fromkeys(r["shared_cores"] for r in records):
-                rows = [r for r in records if r["n_envs"] == n and r["impl"] == impl and r["shared_cores"] == mode]
+            for mode, k in dict.fromkeys((r["shared_cores"], r["envs_per_worker"]) for r in records):
+                rows = [
+                    r
+                    for r in records
+                    if (r["n_envs"], r["impl"], r["shared_cores"], r["envs_per_worker"]) == (n, impl, mode, k)
+                ]
+                if not rows:
+                    continue
                 pcts = [r["bound_pct"] for r in rows]
                 runs = " ".join(f"{p:5.1f}" for p in pcts)
-                lines.append(f"{n:>3} {impl:<12} {mode:<8} {runs:<44} {min(pcts):>6.1f}")
+                lines.append(f"{n:>3} {impl:<12} {mode:<8} {k:>8}  {runs:<44} {min(pcts):>6.1f}")
     lines += ["", "each run: steps/s, its 95 % interval (as % of the bound), steps back to back, bare step"]
     for r in records:
         lines.append(
-            f"  run {r['run']} N={r['n_envs']} {r['impl']:<12} {r['shared_cores']:<8} {r['steps_per_s']:7.1f}"
+            f"  run {r['run']} N={r['n_envs']} {r['impl']:<12} {r['shared_cores']:<8} x{r['envs_per_worker']}"
+            f" {r['steps_per_s']:7.1f}"
             f" steps/s of {r['bound_steps_per_s']:.0f}: {r['bound_pct']:5.1f} % ({_pct_interval(r)},"
             f" {r['tight_steps']} steps; bare {r['bare_ms']:.2f} ms){_cpu_line(r)}"
         )

@@ -46,6 +46,7 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Sequence
 from typing import Any
 
 from uniros_async.errors import ConfigError, WorkerError
@@ -308,33 +309,24 @@ class _WorkerHost:
             os.close(worker_fd)
 
     def start(self, spec: WorkerSpec, agent_node_id: str, timeout_s: float) -> dict[str, Any]:
-        """Start the worker; ``{"ok": True, "uri", "pid", "node_id", "node_ip"}`` or ``{"ok": False, "type",
-        "error"}`` (a bad request is answered, never raised)."""
+        """Start the worker (hosting ``spec``'s env and its ``mates``'); ``{"ok": True, "uris" (one per env, in
+        that order), "pid", "node_id", "node_ip"}`` or ``{"ok": False, "type", "error"}`` (a bad request is
+        answered, never raised)."""
         import ray
 
-        from uniros_async.runtime.envargs import check_env_args
         from uniros_async.runtime.launch import start_worker
 
         node_id = ray.get_runtime_context().get_node_id()
         node_ip = ray.util.get_node_ip_address()  # type: ignore[no-untyped-call]
         where = f"Ray node {node_id[:12]} ({node_ip}, host {socket.gethostname()})"
-        env_id = spec.env_id
-        if ":" in env_id:
-            module = env_id.partition(":")[0]
-            try:
-                found = importlib.util.find_spec(module) is not None
-            except (ImportError, ValueError):
-                found = False
-            if not found:
-                error = f"{where} cannot import module {module!r} ({env_id})"
-                return {"ok": False, "type": "ConfigError", "error": error}
-        if spec.registration is None:  # "module:Id", or an id the agent does not know: this node's registry judges
-            try:
-                check_env_args(env_id, spec.kwargs)
-            except ConfigError as exc:
-                return {"ok": False, "type": "ConfigError", "error": f"on {where}: {exc}"}
+        for hosted in (spec, *spec.mates):
+            refused = _refusal(hosted, where)
+            if refused is not None:
+                return refused
         listen = "shm://" if node_id == agent_node_id else f"tcp://{node_ip}:0"
-        spec = dataclasses.replace(spec, parent_pid=os.getpid(), listen_uri=listen)
+        here: dict[str, Any] = {"parent_pid": os.getpid(), "listen_uri": listen}
+        mates = tuple(dataclasses.replace(m, **here) for m in spec.mates)
+        spec = dataclasses.replace(spec, mates=mates, **here)
         proc, conn = start_worker(spec)
         self._proc = proc
         deadline = time.monotonic() + timeout_s
@@ -346,7 +338,7 @@ class _WorkerHost:
                     why = f"exited with code {proc.exitcode}" if proc.exitcode is not None else "did not start in time"
                     error = f"the worker {why} at start on {where} (its stderr is in the actor's log)"
                     return {"ok": False, "type": "WorkerError", "error": error}
-            uri = str(conn.recv())
+            uris = [str(conn.recv()) for _ in range(1 + len(spec.mates))]
         except EOFError:
             proc.join(1.0)
             error = f"the worker exited with code {proc.exitcode} at start on {where}"
@@ -354,7 +346,7 @@ class _WorkerHost:
         finally:
             conn.close()
         threading.Thread(target=self._watch_node, args=(proc,), name="uniros-node-watch", daemon=True).start()
-        return {"ok": True, "uri": uri, "pid": proc.pid, "node_id": node_id, "node_ip": node_ip}
+        return {"ok": True, "uris": uris, "pid": proc.pid, "node_id": node_id, "node_ip": node_ip}
 
     def wait_exit(self) -> dict[str, Any]:
         """Block until the worker exits: ``{"code": its exit code, "node_lost": why the node watch ended it, or
@@ -372,6 +364,28 @@ class _WorkerHost:
     def kill(self) -> None:
         if self._proc is not None:
             self._proc.kill()
+
+
+def _refusal(spec: WorkerSpec, where: str) -> dict[str, Any] | None:
+    """The answer to a start request whose env this node cannot make (its module missing, or the id or kwargs
+    judged by this node's registry), or None."""
+    env_id = spec.env_id
+    if ":" in env_id:
+        module = env_id.partition(":")[0]
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            return {"ok": False, "type": "ConfigError", "error": f"{where} cannot import module {module!r} ({env_id})"}
+    if spec.registration is None:  # "module:Id", or an id the agent does not know: this node's registry judges
+        from uniros_async.runtime.envargs import check_env_args
+
+        try:
+            check_env_args(env_id, spec.kwargs)
+        except ConfigError as exc:
+            return {"ok": False, "type": "ConfigError", "error": f"on {where}: {exc}"}
+    return None
 
 
 _HOST_CLASS: Any = None
@@ -396,6 +410,7 @@ class RayWorkerProcess:
         self.pid: int | None = None
         self.exitcode: int | None = None
         self.worker_uri = ""
+        self.worker_uris: list[str] = []  # one per env the worker hosts (the first is ``worker_uri``)
         self.node_id = ""
         self.node_ip = ""
         self.lost: str | None = None  # the node was lost (its raylet ended), or the actor ended without a report
@@ -410,8 +425,17 @@ class RayWorkerProcess:
     def is_alive(self) -> bool:
         return self.pid is not None and self.exitcode is None and self.lost is None
 
-    async def start(self, index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float) -> str:
-        """Have Ray place an actor, which starts the worker; returns the worker's URI.
+    async def start(
+        self,
+        index: int,
+        env_id: str,
+        kwargs: dict[str, Any],
+        timeout_s: float,
+        mates: Sequence[tuple[int, str, dict[str, Any]]] = (),
+    ) -> str:
+        """Have Ray place an actor, which starts the worker; returns the worker's URI. ``mates``: ``(index, env_id,
+        kwargs)`` of other envs the same worker process hosts (``make_vec(envs_per_worker=...)``); their URIs
+        follow in ``worker_uris``.
 
         Raises:
             ConfigError: the worker's node cannot import the env's module, or judged the id or kwargs (named).
@@ -421,7 +445,19 @@ class RayWorkerProcess:
         from uniros_async.runtime.envargs import registration
 
         p = self.placement
-        reg = registration(env_id) if ":" not in env_id else None  # ConfigError for an env defined in __main__
+
+        def spec_of(index: int, env_id: str, kwargs: dict[str, Any]) -> WorkerSpec:
+            return WorkerSpec(
+                index=index,
+                env_id=env_id,
+                kwargs=dict(kwargs),
+                accept_timeout_s=timeout_s,
+                auth_key=p.auth_key,
+                registration=registration(env_id) if ":" not in env_id else None,  # ConfigError: defined in __main__
+                agent_pid=os.getpid(),
+            )
+
+        spec = dataclasses.replace(spec_of(index, env_id, kwargs), mates=tuple(spec_of(*m) for m in mates))
         ray = connect(p.address)
         options: dict[str, Any] = {"num_cpus": p.num_cpus, "resources": dict(p.resources)}
         if p.node_id is not None:
@@ -429,15 +465,6 @@ class RayWorkerProcess:
 
             options["scheduling_strategy"] = NodeAffinitySchedulingStrategy(p.node_id, soft=False)
         self._actor = _host_class(ray).options(**options).remote()
-        spec = WorkerSpec(
-            index=index,
-            env_id=env_id,
-            kwargs=dict(kwargs),
-            accept_timeout_s=timeout_s,
-            auth_key=p.auth_key,
-            registration=reg,
-            agent_pid=os.getpid(),
-        )
         agent_node = ray.get_runtime_context().get_node_id()
         ref = self._actor.start.remote(spec, agent_node, timeout_s)
         try:
@@ -460,7 +487,8 @@ class RayWorkerProcess:
         self.pid = int(reply["pid"])
         self.node_id = str(reply["node_id"])
         self.node_ip = str(reply["node_ip"])
-        self.worker_uri = str(reply["uri"])
+        self.worker_uris = [str(u) for u in reply["uris"]]
+        self.worker_uri = self.worker_uris[0]
         self._exit = self._actor.wait_exit.remote().future()
         self._exit.add_done_callback(self._on_exit)
         return self.worker_uri

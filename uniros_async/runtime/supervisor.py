@@ -67,6 +67,8 @@ __all__ = ["Supervisor", "WorkerHandle"]
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
+Member = tuple[int, str, dict[str, Any], int]
+"""One env of a worker process: ``(index, env_id, kwargs, rt_rank)``."""
 _HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 _HANG_UP_REPORT_S = 0.5
 """How long the report of a hung-up worker may take (its connection's end, then its actor's report of the exit,
@@ -107,6 +109,13 @@ class WorkerHandle:
     try_send: Any = None  # the transport's try_send and receive_blocking where it has them (shm, tcp), else None
     receive_blocking: Any = None
     hangup_fd: int = -1  # a Ray-placed worker's tcp socket, watched for a hang-up while another reply is awaited
+    group: tuple[int, ...] = ()
+    """The indices of the envs its process hosts, in the order they listen (``make_vec(envs_per_worker=...)``):
+    stopped, restarted and pinned together."""
+
+    def __post_init__(self) -> None:
+        if not self.group:
+            self.group = (self.spec.index,)
 
     def check_idle(self) -> None:
         """Raise AlreadyPendingCallError if a reply is still outstanding (one request at a time per connection:
@@ -271,6 +280,8 @@ class Supervisor:
         close_timeout_s: bound on ``close`` per stage (ask, join, terminate).
         transport: ``"shm"`` (same machine, the default) or ``"tcp"`` (loopback), for local workers; a spec with
             a Ray placement in its ``worker`` keyword runs where Ray places it (runtime/ray_backend.py).
+        envs_per_worker: how many envs one worker process hosts (``worker_groups``): consecutive specs with the same
+            placement, each with its own connection, stepped on the process's one event loop.
     """
 
     def __init__(
@@ -281,14 +292,18 @@ class Supervisor:
         call_timeout_s: float = 60.0,
         close_timeout_s: float = 3.0,
         transport: str = "shm",
+        envs_per_worker: int = 1,
     ) -> None:
         if not specs:
             raise ConfigError("expected at least one env spec, got none")
+        if isinstance(envs_per_worker, bool) or not isinstance(envs_per_worker, int) or envs_per_worker < 1:
+            raise ConfigError(f"envs_per_worker must be an int >= 1, got {envs_per_worker!r}")
+        self.envs_per_worker = envs_per_worker
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
         # The local workers' interpreters start now and import while the env arguments are checked here; none is
         # given its spec before every check passed (see launch.py).
-        spares = _start_interpreters(specs)
+        spares = _start_interpreters(specs, envs_per_worker)
         try:
             for env_id, kwargs in specs:
                 check_env_args(env_id, kwargs)
@@ -325,10 +340,11 @@ class Supervisor:
         deadline = time.monotonic() + timeout_s
         split = [split_placement(kwargs) for _, kwargs in specs]
         check_placements([p for p, _ in split if isinstance(p, RayPlacement)])  # before anything starts
-        for index, ((env_id, _), (placement, env_kwargs)) in enumerate(zip(specs, split, strict=True)):
+        placements = [p for p, _ in split]
+        for group in worker_groups(placements, self.envs_per_worker):
             # the first worker the highest real-time priority: the order in which a step's requests are sent
-            rank = min(len(specs) - 1 - index, MAX_LOOP_RANK)
-            self.workers.append(self._new_handle(index, env_id, env_kwargs, placement, timeout_s, rank))
+            members = [(i, specs[i][0], split[i][1], min(len(specs) - 1 - i, MAX_LOOP_RANK)) for i in group]
+            self.workers += self._new_group(members, placements[group[0]], timeout_s)
         uris = self._launch(self.workers, deadline)
         remaining = max(0.1, deadline - time.monotonic())
         self.call(self._connect_all(self.workers, uris, remaining), remaining + 1.0)
@@ -342,93 +358,111 @@ class Supervisor:
         else:
             self._reply_rank = list(range(n))
 
-    def _new_handle(
-        self,
-        index: int,
-        env_id: str,
-        kwargs: dict[str, Any],
-        placement: RayPlacement | None,
-        timeout_s: float,
-        rt_rank: int = 0,
-    ) -> WorkerHandle:
-        """A local worker, started now, or a Ray-placed one, to be started by ``_launch``."""
+    def _new_group(self, members: list[Member], placement: RayPlacement | None, timeout_s: float) -> list[WorkerHandle]:
+        """The handles of one worker process hosting ``members`` (``(index, env_id, kwargs, rt_rank)``): local,
+        started now, or Ray-placed, to be started by ``_launch``."""
         if placement is None:
-            return self._spawn(index, env_id, kwargs, timeout_s, self.listen_uri, rt_rank)
-        spec = WorkerSpec(index=index, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s)
-        return WorkerHandle(spec=spec, process=RayWorkerProcess(placement.keyed(self._ray_key)))
+            return self._spawn(members, timeout_s, self.listen_uri)
+        process = RayWorkerProcess(placement.keyed(self._ray_key))
+        group = tuple(i for i, *_ in members)
+        return [
+            WorkerHandle(
+                spec=WorkerSpec(index=i, env_id=env_id, kwargs=dict(kwargs), accept_timeout_s=timeout_s),
+                process=process,
+                group=group,
+            )
+            for i, env_id, kwargs, _ in members
+        ]
 
     def _launch(self, workers: list[WorkerHandle], deadline: float) -> list[str]:
         """Ask the Ray actors of the Ray-placed ``workers`` to start them (in parallel, while the local ones start),
         then read the local ones' URIs; the workers' URIs in order."""
-        remote = [w for w in workers if w.remote is not None]
+        remote = [w for w in workers if w.remote is not None and w.index == w.group[0]]  # one start per process
+        by_index = {w.index: w for w in workers}
         if remote:
             remaining = max(0.1, deadline - time.monotonic())
 
+            async def start_one(w: WorkerHandle) -> str:
+                mates = [(v.index, v.spec.env_id, v.spec.kwargs) for v in (by_index[i] for i in w.group[1:])]
+                return await w.remote.start(w.index, w.spec.env_id, w.spec.kwargs, remaining, mates=mates)  # type: ignore[union-attr]
+
             async def start_all() -> None:
-                results = await asyncio.gather(
-                    *(w.remote.start(w.index, w.spec.env_id, w.spec.kwargs, remaining) for w in remote),  # type: ignore[union-attr]
-                    return_exceptions=True,
-                )
+                results = await asyncio.gather(*(start_one(w) for w in remote), return_exceptions=True)
                 for r in results:
                     if isinstance(r, BaseException):
                         raise r
 
             self.call(start_all(), remaining + 2.0)
-        return [w.remote.worker_uri if w.remote is not None else self._wait_uri(w, deadline) for w in workers]
+        return [
+            w.remote.worker_uris[w.group.index(w.index)] if w.remote is not None else self._wait_uri(w, deadline)
+            for w in workers
+        ]
 
-    def _spawn(
-        self, index: int, env_id: str, kwargs: dict[str, Any], timeout_s: float, listen_uri: str, rt_rank: int = 0
-    ) -> WorkerHandle:
+    def _spawn(self, members: list[Member], timeout_s: float, listen_uri: str) -> list[WorkerHandle]:
+        """Start a local worker process for ``members`` (``(index, env_id, kwargs, rt_rank)``; the first one's
+        spec carries the others as ``mates``): their handles, sharing the process and its start-up pipe."""
         # a fresh interpreter (nothing of this process's __main__ is imported): one started at __init__, if any
         spare = self._spares.pop(0) if self._spares else None
-        spec = WorkerSpec(
-            index=index,
-            env_id=env_id,
-            kwargs=dict(kwargs),
-            parent_pid=os.getpid(),
-            accept_timeout_s=timeout_s,
-            listen_uri=listen_uri,
-            rt_rank=rt_rank,
-            registration=registration(env_id),
-            environ={**(spare[0].environ_changes() if spare is not None else {}), **found_libraries()},
-        )
+        environ = {**(spare[0].environ_changes() if spare is not None else {}), **found_libraries()}
+        specs = [
+            WorkerSpec(
+                index=index,
+                env_id=env_id,
+                kwargs=dict(kwargs),
+                parent_pid=os.getpid(),
+                accept_timeout_s=timeout_s,
+                listen_uri=listen_uri,
+                rt_rank=rt_rank,
+                registration=registration(env_id),
+                environ=environ,
+            )
+            for index, env_id, kwargs, rt_rank in members
+        ]
+        lead = dataclasses.replace(specs[0], mates=tuple(specs[1:]))
         if spare is None:
-            proc, conn = start_worker(spec)
+            proc, conn = start_worker(lead)
         else:
             proc, conn = spare
             try:
-                proc.send_spec(spec)
+                proc.send_spec(lead)
             except BaseException:
                 conn.close()
                 proc.discard()
                 raise
-        return WorkerHandle(spec=spec, process=proc, conn=conn)
+        group = tuple(spec.index for spec in specs)
+        return [WorkerHandle(spec=spec, process=proc, conn=conn, group=group) for spec in specs]
 
     def restart(self, index: int, timeout_s: float = 60.0) -> WorkerHandle:
-        """Stop worker ``index`` (whatever its state) and start a new one with the same spec.
+        """Stop worker ``index`` (whatever its state) and start a new one with the same spec; the other envs of
+        its process (``group``) are stopped and started with it.
 
-        The new worker's env is built but not padded or reset; that is the caller's business.
+        The new workers' envs are built but not padded or reset; that is the caller's business.
 
         Raises:
             WorkerError: the new worker failed to start (it is stopped again).
         """
         old = self.workers[index]
-        self._discard(old)
+        olds = [self.workers[i] for i in old.group]
+        for w in olds:
+            self._discard(w)
         old_remote = old.remote
         deadline = time.monotonic() + timeout_s
+        members = [(w.index, w.spec.env_id, w.spec.kwargs, w.spec.rt_rank) for w in olds]
         if old_remote is None:
-            new = self._spawn(index, old.spec.env_id, old.spec.kwargs, timeout_s, old.spec.listen_uri, old.spec.rt_rank)
+            news = self._spawn(members, timeout_s, old.spec.listen_uri)
         else:  # through Ray, with the same placement
-            new = self._new_handle(index, old.spec.env_id, old.spec.kwargs, old_remote.placement, timeout_s)
-        self.workers[index] = new
+            news = self._new_group(members, old_remote.placement, timeout_s)
+        for w in news:
+            self.workers[w.index] = w
         try:
-            uris = self._launch([new], deadline)
+            uris = self._launch(news, deadline)
             remaining = max(0.1, deadline - time.monotonic())
-            self.call(self._connect_all([new], uris, remaining), remaining + 1.0)
+            self.call(self._connect_all(news, uris, remaining), remaining + 1.0)
             self._note_hangup_fds()
         except BaseException as exc:
-            new.broken = "restart failed"
-            self._discard(new)
+            for w in news:
+                w.broken = "restart failed"
+                self._discard(w)
             if old_remote is not None and isinstance(exc, WorkerError | ConfigError):
                 raise WorkerError(
                     index,
@@ -436,7 +470,7 @@ class Supervisor:
                     remote_traceback=getattr(exc, "remote_traceback", ""),
                 ) from exc
             raise
-        return new
+        return self.workers[index]
 
     def _discard(self, w: WorkerHandle) -> None:
         """Close ``w``'s connection and stop its process, whatever its state (bounded)."""
@@ -468,7 +502,8 @@ class Supervisor:
             raise WorkerError(
                 w.index, f"{w.spec.env_id}: the worker exited with code {w.process.exitcode} at start; {hint}"
             ) from None
-        w.conn.close()
+        if w.index == w.group[-1]:  # the process's last URI (its envs' come in ``group`` order)
+            w.conn.close()
         return str(uri)
 
     @staticmethod
@@ -481,12 +516,14 @@ class Supervisor:
         return remote.node_id or f"worker {w.index}"
 
     def _core_share(self, w: WorkerHandle) -> list[Any]:
-        """``[slot, count, mode]`` for worker ``w``'s ``spaces`` request: its rank among the workers of this vector
-        env on its machine, how many they are, and ``worker.shared_cores_mode`` (the worker pins itself to core
-        ``slot`` modulo its cores when they outnumber them: ``_Server._share_cores``)."""
+        """``[slot, count, mode]`` for worker ``w``'s ``spaces`` request: the rank of its process among the worker
+        processes of this vector env on its machine, how many envs they host, and ``worker.shared_cores_mode``
+        (the process pins itself to core ``slot`` modulo its cores when the envs outnumber them:
+        ``_Server._share_cores``)."""
         machine = self._machine(w)
-        mates = [v.index for v in self.workers if self._machine(v) == machine]
-        return [mates.index(w.index), len(mates), shared_cores_mode()]
+        here = [v for v in self.workers if self._machine(v) == machine]
+        processes = [v.index for v in here if v.index == v.group[0]]
+        return [processes.index(w.group[0]), len(here), shared_cores_mode()]
 
     async def _connect_all(self, workers: list[WorkerHandle], uris: list[str], timeout_s: float) -> None:
         from uniros_async.transports.base import TransportOptions, connect
@@ -843,7 +880,12 @@ class Supervisor:
                 acked = self._drive(_bounded(self._close_all(t), t + 2.0), t + 2.0, finish_orphans=False)
             except Exception:  # noqa: BLE001 - shutting down whatever state they are in
                 logger.warning("asking the workers to close failed", exc_info=True)
-        remote = [(w.remote, ok) for w, ok in zip(self.workers, acked, strict=True) if w.remote is not None]
+        asked: dict[int, tuple[RayWorkerProcess, bool]] = {}  # one stop per process, asked if all its envs closed
+        for w, ok in zip(self.workers, acked, strict=True):
+            if w.remote is not None:
+                r = w.remote
+                asked[id(r)] = (r, ok and asked.get(id(r), (r, True))[1])
+        remote = list(asked.values())
         if remote and not self._loop.is_closed():  # their actors join, terminate and kill them (bounded)
 
             async def stop_remote() -> None:
@@ -955,21 +997,38 @@ def _hung_up(watched: list[tuple[int, int]]) -> tuple[int | None, set[int]]:
     return None, replied
 
 
+def worker_groups(placements: Sequence[RayPlacement | None], envs_per_worker: int) -> list[list[int]]:
+    """The spec indices each worker process hosts: runs of consecutive specs with the same placement (here, or the
+    same Ray resources, node, CPUs and cluster), at most ``envs_per_worker`` each."""
+
+    def where(p: RayPlacement | None) -> Any:
+        return None if p is None else (sorted(p.resources.items()), p.node_id, p.num_cpus, p.address)
+
+    groups: list[list[int]] = []
+    for i, p in enumerate(placements):
+        if groups and len(groups[-1]) < envs_per_worker and where(placements[groups[-1][0]]) == where(p):
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return groups
+
+
 def _start_interpreters(
-    specs: Sequence[tuple[str, dict[str, Any]]],
+    specs: Sequence[tuple[str, dict[str, Any]]], envs_per_worker: int = 1
 ) -> list[tuple[WorkerProcess, multiprocessing.connection.Connection]]:
-    """One interpreter for each spec whose worker runs here (``launch.start_interpreter``); none if any spec's
-    placement is malformed or its env id unknown (``check_env_args`` then reports it, before any process starts).
-    A ``"module:Id"`` counts as known: its module is imported by the check."""
+    """One interpreter for each worker process that runs here (``launch.start_interpreter``; ``worker_groups``);
+    none if any spec's placement is malformed or its env id unknown (``check_env_args`` then reports it, before any
+    process starts). A ``"module:Id"`` counts as known: its module is imported by the check."""
     from uniros_async.tasks.registry import register_envs
 
     register_envs()
     if not all(isinstance(env_id, str) and (":" in env_id or env_id in gym.registry) for env_id, _ in specs):
         return []
     try:
-        local = sum(split_placement(kwargs)[0] is None for _, kwargs in specs)
+        placements = [split_placement(kwargs)[0] for _, kwargs in specs]
     except ConfigError:
         return []
+    local = sum(placements[g[0]] is None for g in worker_groups(placements, envs_per_worker))
     spares: list[tuple[WorkerProcess, multiprocessing.connection.Connection]] = []
     try:
         for _ in range(local):

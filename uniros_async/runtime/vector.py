@@ -395,20 +395,26 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             if isinstance(r, WorkerError):
                 if not self.restart_on_failure or self._sup.workers[i].broken is None:
                     raise r
-                result[i] = self._restart(i, r)
+                for j, returns in self._restart(i, r).items():
+                    result[j] = returns
         return result
 
-    def _restart(self, index: int, error: WorkerError) -> list[Any]:
-        """Replace a dead worker, reset its env; its episode ends as truncated."""
+    def _restart(self, index: int, error: WorkerError) -> dict[int, list[Any]]:
+        """Replace a dead worker and the other envs of its process, reset their envs; their episodes end as
+        truncated. The returns of each, by index."""
         logger.warning("restarting worker %d after: %s", index, error)
-        w = self._sup.restart(index, self._start_timeout_s)
-        if self._pad_msg is not None:
-            self._sup.call(w.request(self._pad_msg, self._sup.call_timeout_s))
-        obs, info = self._sup.call(w.request({"op": "reset"}, self._sup.call_timeout_s))
-        self.restarts[index] += 1
-        self.pids[index] = w.process.pid
-        info = {**info, "worker_restarted": True, "worker_error": str(error)}
-        return [obs, 0.0, False, True, info]
+        self._sup.restart(index, self._start_timeout_s)
+        out: dict[int, list[Any]] = {}
+        for j in self._sup.workers[index].group:
+            w = self._sup.workers[j]
+            if self._pad_msg is not None:
+                self._sup.call(w.request(self._pad_msg, self._sup.call_timeout_s))
+            obs, info = self._sup.call(w.request({"op": "reset"}, self._sup.call_timeout_s))
+            self.restarts[j] += 1
+            self.pids[j] = w.process.pid
+            why = str(error) if j == index else f"its worker process, shared with env {index}, was restarted: {error}"
+            out[j] = [obs, 0.0, False, True, {**info, "worker_restarted": True, "worker_error": why}]
+        return out
 
     def _drop_pending(self) -> None:
         fut, self._pending = self._pending, None
@@ -765,6 +771,7 @@ def make_vec(
     transport: str = "shm",
     autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     backend: str = "local",
+    envs_per_worker: int = 1,
     **common_kwargs: Any,
 ) -> UnirosVectorEnv:
     """A gymnasium VectorEnv over one worker process per spec.
@@ -790,6 +797,13 @@ def make_vec(
         backend: where the workers run: ``"local"`` (here, the default) or ``"ray"`` (each placed by Ray's scheduler
             on a node of the connected cluster, runtime/ray_backend.py; a spec's ``{"worker": {"ray": {"resources":
             {"rx200_arm": 1}}}}`` or ``node_id`` pins it, ``"worker": None`` keeps it here).
+        envs_per_worker: how many envs one worker process hosts (consecutive specs with the same placement), each
+            with its own connection, all stepped on the process's one event loop. More than one where accelerated
+            envs outnumber the cores (one process per core: the envs of a process share its caches, where a core
+            switching between processes pays ~10 % more per step). A real-time env (wall clock) needs a process
+            of its own (its loop's ticks would wait for the others' steps): one in a shared process fails to
+            start with a WorkerError that says so. A process that dies takes its envs with it: the first is
+            reported, or all are restarted together (each step truncated, ``info["worker_restarted"]``).
         **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
 
     Raises:
@@ -802,7 +816,13 @@ def make_vec(
     """
     norm = [(env_id, {**common_kwargs, **kw}) for env_id, kw in _normalize_specs(specs)]
     norm = apply_backend(norm, backend)
-    sup = Supervisor(norm, start_timeout_s=start_timeout_s, call_timeout_s=call_timeout_s, transport=transport)
+    sup = Supervisor(
+        norm,
+        start_timeout_s=start_timeout_s,
+        call_timeout_s=call_timeout_s,
+        transport=transport,
+        envs_per_worker=envs_per_worker,
+    )
     try:
         return UnirosVectorEnv(
             sup,

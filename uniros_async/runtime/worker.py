@@ -1,10 +1,13 @@
-"""The env worker process: one environment, served to the agent side over the project's own transports.
+"""The env worker process: one environment (or several), served to the agent side over the project's own transports.
 
 A worker is started with one frozen ``WorkerSpec``: by the supervisor as ``python -m uniros_async.runtime``
 (``launch.start_worker``, ``__main__.py``), and the same way by a Ray actor on the node Ray placed it on
 (``ray_backend.py``). It listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through
 the start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then
-answers requests until told to close or until the supervisor goes away.
+answers requests until told to close or until the supervisor goes away. A spec with ``mates``
+(``make_vec(envs_per_worker=...)``) makes the process do the same for each of them too, every env with its own
+listener and connection, all served on the one event loop: where accelerated envs outnumber the cores, one
+process per core keeps a core's caches for its envs instead of switching between processes at every step.
 
 One event loop per worker (docs/architecture.md): a uniros env is made inside ``envs.runtime.deferred_start()`` and
 started on the worker's own loop (``await env.astart()``), so its bus, servo sim and env loop run beside the
@@ -111,6 +114,8 @@ class WorkerSpec:
         environ: environment variables set in the worker before it builds its env: those the agent set after the
             worker's interpreter started (``WorkerProcess.environ_changes``), and what the agent's imports found
             already, so that the worker's imports need not search again (``launch.found_libraries``).
+        mates: the other envs this process hosts (``make_vec(envs_per_worker=...)``), each with its own listener,
+            connection and index; ``worker_main`` serves them all on its one event loop.
     """
 
     index: int
@@ -125,6 +130,7 @@ class WorkerSpec:
     registration: dict[str, Any] | None = None
     agent_pid: int = 0
     environ: dict[str, str] = dataclasses.field(default_factory=dict)
+    mates: tuple[WorkerSpec, ...] = ()
 
 
 # ---------------------------------------------------------------- the worker
@@ -258,31 +264,58 @@ async def areset_through(env: Any, seed: int | None, options: dict[str, Any] | N
 
 
 async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connection) -> None:
-    """Listen, hand the URI over ``conn``, accept the supervisor, build the env, serve until closed."""
-    from uniros_async.transports.base import listen
+    """Listen (once per env this process hosts: ``spec`` and its ``mates``), hand the URIs over ``conn`` in that
+    order, then accept, build and serve each env on this event loop until every one is closed."""
+    from uniros_async.transports.base import TransportOptions, listen
 
     loop = asyncio.get_running_loop()
     task = cancel_on_signals(signal.SIGTERM)
     _start_watchdog(spec, loop, task)
-    from uniros_async.transports.base import TransportOptions
+    hosted = (spec, *spec.mates)
+    listeners: list[Any] = []
+    try:
+        for s in hosted:
+            listeners.append(await listen(s.listen_uri, TransportOptions(auth_key=s.auth_key)))
+            conn.send(listeners[-1].uri)
+        builds = asyncio.Lock()  # one env built at a time: the threads each build starts are told apart
+        async with asyncio.TaskGroup() as tg:
+            for s, listener in zip(hosted, listeners, strict=True):
+                tg.create_task(_host(s, listener, builds, shared_loop=len(hosted) > 1))
+    finally:
+        for listener in listeners:
+            await listener.aclose()
 
-    listener = await listen(spec.listen_uri, TransportOptions(auth_key=spec.auth_key))
+
+async def _host(spec: WorkerSpec, listener: Any, builds: asyncio.Lock, *, shared_loop: bool) -> None:
+    """Accept the supervisor on ``listener``, build ``spec``'s env and serve it until it is closed or the
+    supervisor goes away. ``shared_loop``: other envs are served on this loop too; no poll for the next request
+    then (it would hold the loop that steps them)."""
     transport = None
     server = _Server(spec)
     try:
-        conn.send(listener.uri)
         async with asyncio.timeout(spec.accept_timeout_s):
             transport = await listener.accept()
         await listener.aclose()
         from uniros_async.priority import thread_ids
 
-        before = thread_ids()
-        await server.build()
-        server.raise_loop_priority(thread_ids() - before)
+        async with builds:
+            before = thread_ids()
+            await server.build()
+            if shared_loop and server.realtime and server.build_error is None:
+                from uniros_async.errors import ConfigError
+
+                why = ConfigError(
+                    f"{spec.env_id} runs on the wall clock (a real-time env loop), which needs a worker process of its"
+                    " own: make_vec(envs_per_worker=1); the steps of the other envs on its event loop would hold its"
+                    " ticks"
+                )
+                server.build_error = error_reply(why, f"could not host {spec.env_id} with other envs")
+            else:
+                server.raise_loop_priority(thread_ids() - before)
         if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
             # for the next request would save, and the poll would hold the loop (up to 50 us)
-            transport.spin_ns = 0 if server.realtime else turn_spin_ns(transport)
+            transport.spin_ns = 0 if server.realtime or shared_loop else turn_spin_ns(transport)
         if hasattr(transport, "on_shared_core") and not server.realtime:
             transport.on_shared_core = _move_off_core
             if hasattr(transport, "peer_pid") and _on_loopback(transport):  # tcp: TcpTransport._peer_here
@@ -294,7 +327,6 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
         await server.aclose()
         if transport is not None:
             await transport.aclose()
-        await listener.aclose()
 
 
 TURN_SPIN_NS = 200_000
