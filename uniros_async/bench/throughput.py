@@ -41,7 +41,10 @@ Ray-placed workers to the rx200 rows (``bench/_ray_rows.py``).
 
 Rows of ``CROWDED_N`` (4) or more sub-envs step back to back until the 95 % interval of their steps/s is within
 ``CI_GOAL`` (+-5 %) and print it, with their % of the physics bound and the CPU time per env step of the local
-workers and of the agent's process (read from /proc: a figure that does not depend on how busy the host is).
+workers and of the agent's process (read from /proc: a figure that does not depend on how busy the host is). They
+step in chunks of ``TIGHT_CHUNK``, each followed by ``BOUND_BLOCK`` steps of the bare env, and their bound is from
+those bare steps (``bound_bare_ms``): timed in the same seconds as the rate it bounds, where this host's speed
+drifts by several % from one second to the next.
 ``--repeat R`` (``main_repeat``) measures only those rows of ``make_vec`` (and of Ray-placed workers with
 ``--backend ray``), R runs each with new workers, and prints each run's % of the bound; ``--shared-cores`` adds a
 row per ``UNIROS_SHARED_CORES`` mode (``worker.shared_cores_mode``) in the same runs.
@@ -320,25 +323,16 @@ def _run(
             bare_t += b[1:]
             vec_t += v[1:]
         # local workers: their CPU time here (each process once: envs_per_worker envs share one)
-        pids = list(dict.fromkeys(getattr(venv, "pids", ()))) if impl == "uniros" else []
-        cpu0 = [_cpu_s(p) for p in pids], time.process_time()
-        host0, t0 = cpu_times(), time.perf_counter()
-        tight_t = _tight(step, batch, steps + 1, steps + 1, n, crowded)  # throughput: back to back
-        host1, wall_s = cpu_times(), time.perf_counter() - t0
-        cpu1 = [_cpu_s(p) for p in pids], time.process_time()
+        meter = _Meter(list(dict.fromkeys(getattr(venv, "pids", ()))) if impl == "uniros" else [])
+        # throughput: back to back (crowded rows: in chunks, the bound's bare steps timed between them)
+        tight_t, tight_bare = _tight(step, batch, steps + 1, steps + 1, n, meter, bare if crowded else None, actions)
     finally:
         venv.close()
     record = _record(env_id, impl, n, tight_t, vec_t, bare_t)
     record["envs_per_worker"] = envs_per_worker
-    workers_s = [b - a for a, b in zip(cpu0[0], cpu1[0], strict=True) if a is not None and b is not None]
-    if pids and len(workers_s) == len(pids):  # CPU time per env step, whatever else the host runs meanwhile
-        record["worker_cpu_ms"] = round(sum(workers_s) / (n * len(tight_t)) * 1e3, 3)
-        record["agent_cpu_ms"] = round((cpu1[1] - cpu0[1]) / (n * len(tight_t)) * 1e3, 3)
-        if host0 is not None and host1 is not None:  # what the cores did meanwhile: our processes, idle, others
-            cores = os.cpu_count() or 1
-            ticks = [b - a for a, b in zip(host0, host1, strict=True)]
-            record["cores_ours_pct"] = round(100 * (sum(workers_s) + cpu1[1] - cpu0[1]) / (wall_s * cores), 1)
-            record["cores_idle_pct"] = round(100 * (ticks[3] + ticks[4]) / max(sum(ticks), 1), 1)
+    meter.fill(record, n)
+    if tight_bare:
+        record["bound_bare_ms"] = round(float(np.median(tight_bare)) * 1e3, 3)
     if crowded:
         lo, hi = _sps_ci(tight_t, n)
         record["steps_per_s_ci"] = None if np.isnan(lo) else [round(lo, 1), round(hi, 1)]
@@ -449,17 +443,98 @@ def _sps_halfwidth(per_step: list[float], n: int) -> float:
     return max(hi - sps, sps - lo) / sps
 
 
-def _tight(step: Callable[[Any], Any], batch: list[Any], k0: int, steps: int, n: int, until_ci: bool) -> list[float]:
-    """The back-to-back phase of a row from step ``k0``: ``steps`` steps, and with ``until_ci`` more in chunks of
-    ``TIGHT_CHUNK`` until the steps/s interval is within ``CI_GOAL`` (at most ``MAX_TIGHT_STEPS`` in all, or as many
-    as ``batch`` holds from ``k0``)."""
-    times = _timed_block(step, batch, range(k0, k0 + steps))
+class _Meter:
+    """CPU time of a row's local worker processes and of this process, and what the host's cores did, summed over
+    the stretches of the back-to-back phase in which the vector env steps (``start`` / ``stop``): figures that do not
+    depend on how busy the host is."""
+
+    def __init__(self, pids: list[int | None]) -> None:
+        self.pids = pids
+        self.steps = 0
+        self.workers_s = 0.0
+        self.agent_s = 0.0
+        self.wall_s = 0.0
+        self.ticks: list[int] | None = [0] * 8
+        self.readable = bool(pids)
+        self._start: tuple[list[float | None], float, list[int] | None, float] | None = None
+
+    def start(self) -> None:
+        if self.readable:
+            self._start = [_cpu_s(p) for p in self.pids], time.process_time(), cpu_times(), time.perf_counter()
+
+    def stop(self, steps: int) -> None:
+        """The end of a stretch of ``steps`` vector steps (the workers' CPU is read after their trailing work)."""
+        if self._start is None:
+            return
+        workers0, agent0, host0, t0 = self._start
+        self._start = None
+        host1, wall_s, agent1 = cpu_times(), time.perf_counter() - t0, time.process_time()
+        time.sleep(TRAIL_S)  # the step's trailing servo tick is the workers' too
+        workers1 = [_cpu_s(p) for p in self.pids]
+        spent = [b - a for a, b in zip(workers0, workers1, strict=True) if a is not None and b is not None]
+        if len(spent) != len(self.pids):
+            self.readable = False
+            return
+        self.workers_s += sum(spent)
+        self.agent_s += agent1 - agent0
+        self.wall_s += wall_s
+        self.steps += steps
+        if host0 is None or host1 is None or self.ticks is None:
+            self.ticks = None
+        else:
+            self.ticks = [t + b - a for t, a, b in zip(self.ticks, host0, host1, strict=True)]
+
+    def fill(self, record: dict[str, Any], n: int) -> None:
+        """Add the CPU time per env step of the workers and of the agent, and the cores' shares, to ``record``."""
+        if not self.readable or not self.steps:
+            return
+        record["worker_cpu_ms"] = round(self.workers_s / (n * self.steps) * 1e3, 3)
+        record["agent_cpu_ms"] = round(self.agent_s / (n * self.steps) * 1e3, 3)
+        if self.ticks is not None:  # what the cores did meanwhile: our processes, idle, others
+            cores = os.cpu_count() or 1
+            record["cores_ours_pct"] = round(100 * (self.workers_s + self.agent_s) / (self.wall_s * cores), 1)
+            record["cores_idle_pct"] = round(100 * (self.ticks[3] + self.ticks[4]) / max(sum(self.ticks), 1), 1)
+
+
+BOUND_BLOCK = 16
+"""Steps of the bare env timed after each chunk of a crowded row's back-to-back phase (the first left out)."""
+
+
+def _tight(
+    step: Callable[[Any], Any],
+    batch: list[Any],
+    k0: int,
+    steps: int,
+    n: int,
+    meter: _Meter,
+    bare: Any = None,
+    actions: list[Any] | None = None,
+) -> tuple[list[float], list[float]]:
+    """The back-to-back phase of a row from step ``k0``: its vector step times, and the bare step times of the
+    bound. Without ``bare``: ``steps`` steps in one stretch. With ``bare`` (a row of ``CROWDED_N`` or more sub-envs):
+    chunks of ``TIGHT_CHUNK`` steps until there are ``steps`` and the steps/s interval is within ``CI_GOAL`` (at
+    most ``MAX_TIGHT_STEPS`` in all, or as many as ``batch`` holds from ``k0``), each followed by ``BOUND_BLOCK``
+    steps of the bare env with the chunk's first actions: the bound is timed in the same seconds as the rate it
+    bounds (this host's speed drifts by several % within a second). The first step of each chunk and block, which
+    starts on idle cores, is left out; the bare env steps on from where its last block left it."""
+    if bare is None or actions is None:
+        meter.start()
+        block = _timed_block(step, batch, range(k0, k0 + steps))
+        meter.stop(steps)
+        return block, []
+    times: list[float] = []
+    bare_t: list[float] = []
     last = min(len(batch), k0 + max(MAX_TIGHT_STEPS, steps))
-    k = k0 + steps
-    while until_ci and k < last and _sps_halfwidth(times, n) > CI_GOAL:
-        times += _timed_block(step, batch, range(k, min(k + TIGHT_CHUNK, last)))
+    k = k0
+    while k < last and (len(times) < steps or _sps_halfwidth(times, n) > CI_GOAL):
+        ks = range(k, min(k + TIGHT_CHUNK, last))
+        meter.start()
+        times += _timed_block(step, batch, ks)[1:]
+        meter.stop(len(ks))  # (and waits for the workers' trailing work, which must not overlap the bare block)
+        bare_t += _bare_block(bare, actions, range(k, k + BOUND_BLOCK))[1:]
+        _quiesce(bare)
         k += TIGHT_CHUNK
-    return times
+    return times, bare_t
 
 
 def _timed_block(step: Callable[[Any], Any], batch: list[Any], ks: range) -> list[float]:
@@ -567,7 +642,7 @@ def _measure(
 def _bound_pct(record: dict[str, Any], cores: int) -> None:
     """Add a row's physics bound (min(N, cores) / its own bare step) and its steps/s as a % of it (and of the
     interval's ends) to ``record``."""
-    bound = min(record["n_envs"], cores) / (record["bare_ms"] / 1e3)
+    bound = min(record["n_envs"], cores) / (record.get("bound_bare_ms", record["bare_ms"]) / 1e3)
     record["bound_steps_per_s"] = round(bound, 1)
     record["bound_pct"] = round(100 * record["steps_per_s"] / bound, 1)
     ci = record.get("steps_per_s_ci")
@@ -695,7 +770,7 @@ def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = p
             f"  run {r['run']} N={r['n_envs']} {r['impl']:<12} {r['shared_cores']:<8} x{r['envs_per_worker']}"
             f" {r['steps_per_s']:7.1f}"
             f" steps/s of {r['bound_steps_per_s']:.0f}: {r['bound_pct']:5.1f} % ({_pct_interval(r)},"
-            f" {r['tight_steps']} steps; bare {r['bare_ms']:.2f} ms){_cpu_line(r)}"
+            f" {r['tight_steps']} steps; bare {r.get('bound_bare_ms', r['bare_ms']):.2f} ms){_cpu_line(r)}"
         )
     report("\n".join(lines), records, config.json_path, log)
     return records
