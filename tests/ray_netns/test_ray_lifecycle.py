@@ -64,6 +64,35 @@ def test_restart_on_failure_restarts_through_ray_and_truncates_the_episode(clust
         venv.close()
 
 
+def test_a_killed_process_of_two_envs_is_restarted_through_ray_with_both(cluster: dict[str, Any]) -> None:
+    """``envs_per_worker=2``: the two arm-node envs share one process (one actor); it dies, and both are placed
+    again in one new process on the arm node, both steps truncated; the env elsewhere goes on."""
+    venv = make_vec([RX, (RX, ARM), (RX, ARM)], backend="ray", clock="sim", envs_per_worker=2, restart_on_failure=True)
+    try:
+        venv.reset(seed=0)
+        old = venv.pids[1]
+        assert old is not None and venv.pids[2] == old != venv.pids[0]
+        os.kill(old, signal.SIGKILL)
+        assert not wait_gone([old], 5.0)
+        restarted = None
+        for _ in range(3):
+            step = venv.step(np.zeros((3, 5), np.float32))
+            if step[4].get("_worker_restarted", np.zeros(3, bool)).any():
+                restarted = step
+                break
+        assert restarted is not None, "the dead process was not restarted"
+        _, rewards, terminated, truncated, info = restarted
+        assert list(info["_worker_restarted"]) == [False, True, True]
+        assert truncated[1:].all() and not terminated[1:].any() and (rewards[1:] == 0.0).all()
+        assert venv.restarts == [0, 1, 1] and venv.pids[1] == venv.pids[2] not in (None, old)
+        workers = venv._sup.workers
+        assert workers[1].process is workers[2].process and workers[1].process.node_id == cluster["arm_id"]
+        obs, *_ = venv.step(np.zeros((3, 5), np.float32))
+        assert np.isfinite(obs).all()
+    finally:
+        venv.close()
+
+
 def test_a_lost_node_is_reported_within_one_action_cycle(cluster: dict[str, Any]) -> None:
     """Two real-time envs (the wall clock, action cycle 0.8 s): one on the agent's node, one on a node that is lost
     while a step is in flight, 0.3 s into its cycle; the step raises the lost worker's WorkerError (its index and
