@@ -999,7 +999,8 @@ def _hung_up(watched: list[tuple[int, int]]) -> tuple[int | None, set[int]]:
 
 def worker_groups(placements: Sequence[RayPlacement | None], envs_per_worker: int) -> list[list[int]]:
     """The spec indices each worker process hosts: runs of consecutive specs with the same placement (here, or the
-    same Ray resources, node, CPUs and cluster), at most ``envs_per_worker`` each."""
+    same Ray resources, node, CPUs and cluster), at most ``envs_per_worker`` each. A Ray-placed process asks for
+    that placement once (its actor's resources and CPUs), however many envs it hosts."""
 
     def where(p: RayPlacement | None) -> Any:
         return None if p is None else (sorted(p.resources.items()), p.node_id, p.num_cpus, p.address)
