@@ -774,7 +774,7 @@ def make_vec(
     envs_per_worker: int = 1,
     **common_kwargs: Any,
 ) -> UnirosVectorEnv:
-    """A gymnasium VectorEnv over one worker process per spec.
+    """A gymnasium VectorEnv over one worker process per spec (or per ``envs_per_worker`` specs).
 
     Args:
         specs: env ids or ``(env_id, kwargs)`` pairs, e.g. ``["uniros/Rx200Reach-v0", ("uniros/Ned2Reach-v0",
@@ -800,7 +800,7 @@ def make_vec(
         envs_per_worker: how many envs one worker process hosts (consecutive specs with the same placement), each
             with its own connection, all stepped on the process's one event loop. More than one where accelerated
             envs outnumber the cores (one process per core: the envs of a process share its caches, where a core
-            switching between processes pays ~10 % more per step). A real-time env (wall clock) needs a process
+            switching between processes pays ~7 % more per step). A real-time env (wall clock) needs a process
             of its own (its loop's ticks would wait for the others' steps): one in a shared process fails to
             start with a WorkerError that says so. A process that dies takes its envs with it: the first is
             reported, or all are restarted together (each step truncated, ``info["worker_restarted"]``).
