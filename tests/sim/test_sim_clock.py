@@ -210,7 +210,7 @@ async def test_two_drivers_on_one_loop_settle_at_once_and_still_wait_for_runnabl
 
 async def test_two_envs_on_one_loop_step_as_they_would_alone() -> None:
     """Two attached rx200 envs on this loop (as in a worker hosting two): their steps return the same
-    observations as one env stepped alone, stepped one after the other or at once."""
+    observations as one env stepped alone, stepped at once (both sims' clocks driven on this loop together)."""
     import gymnasium as gym
 
     import uniros_async  # noqa: F401
