@@ -220,13 +220,14 @@ class SimClock(Clock):
         if self._driving:
             raise ConfigError("this SimClock already has a driver")
         loop = asyncio.get_running_loop()
+        settling = _settling(loop)
         self._changed = asyncio.Event()
         self._driving = True
         self._anchor()
         changed = self._changed
         try:
             while True:
-                await _settle(loop)
+                await _settle(loop, settling)
                 if self._paused:
                     changed.clear()
                     await changed.wait()
@@ -277,7 +278,12 @@ _SETTLING: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, list[int]] = wea
 """Per loop, how many drivers are in ``_settle`` now (each has one yield in the ready queue while another runs)."""
 
 
-async def _settle(loop: asyncio.AbstractEventLoop) -> None:
+def _settling(loop: asyncio.AbstractEventLoop) -> list[int]:
+    """``loop``'s count of drivers in ``_settle`` (``_SETTLING``), looked up once per driver."""
+    return _SETTLING.setdefault(loop, [0])
+
+
+async def _settle(loop: asyncio.AbstractEventLoop, settling: list[int]) -> None:
     """Yield until no other callback of ``loop`` is runnable (every task waits again), the yields of other drivers
     settling on the same loop aside: two sims driven on one loop (a worker process hosting two envs) each see the
     other's yield in the ready queue, and without that count neither would settle before its 10,000th yield.
@@ -289,7 +295,6 @@ async def _settle(loop: asyncio.AbstractEventLoop) -> None:
         for _ in range(16):
             await asyncio.sleep(0)
         return
-    settling = _SETTLING.setdefault(loop, [0])
     settling[0] += 1
     try:
         for _ in range(10_000):

@@ -188,7 +188,8 @@ async def test_two_drivers_on_one_loop_settle_at_once_and_still_wait_for_runnabl
 
     monkeypatch.setattr(sim_clock, "asyncio", types.SimpleNamespace(sleep=counting_sleep))
     loop = asyncio.get_running_loop()
-    await asyncio.gather(sim_clock._settle(loop), sim_clock._settle(loop))
+    settling = sim_clock._settling(loop)
+    await asyncio.gather(sim_clock._settle(loop, settling), sim_clock._settle(loop, settling))
     assert yields[0] <= 6
 
     done = asyncio.Event()
@@ -200,7 +201,7 @@ async def test_two_drivers_on_one_loop_settle_at_once_and_still_wait_for_runnabl
         done.set()
 
     async def settle() -> None:
-        await sim_clock._settle(loop)
+        await sim_clock._settle(loop, settling)
         settled_after_work.append(done.is_set())
 
     yields[0] = 0
