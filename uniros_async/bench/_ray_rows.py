@@ -179,8 +179,7 @@ class RayRows:
         elif impl in ("uniros-ray", "uniros-ray-local"):
             node = self.other_node if impl == "uniros-ray" else self.agent_node
             where = {"worker": {"ray": {"node_id": node, "num_cpus": 0}}}
-            per = envs_per_worker
-            venv = make_vec([(env_id, where)] * n, pad=pad, backend="ray", envs_per_worker=per, **kwargs)
+            venv = make_vec([(env_id, where)] * n, pad=pad, backend="ray", envs_per_worker=envs_per_worker, **kwargs)
         elif impl == "ray-actor":
             from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 

@@ -325,7 +325,7 @@ def _run(
         # local workers: their CPU time here (each process once: envs_per_worker envs share one)
         meter = _Meter(list(dict.fromkeys(getattr(venv, "pids", ()))) if impl == "uniros" else [])
         # throughput: back to back (crowded rows: in chunks, the bound's bare steps timed between them)
-        tight_t, tight_bare = _tight(step, batch, steps + 1, steps + 1, n, meter, bare if crowded else None, actions)
+        tight_t, tight_bare = _tight(step, batch, actions, steps + 1, steps + 1, n, meter, bare if crowded else None)
     finally:
         venv.close()
     record = _record(env_id, impl, n, tight_t, vec_t, bare_t)
@@ -503,12 +503,12 @@ BOUND_BLOCK = 16
 def _tight(
     step: Callable[[Any], Any],
     batch: list[Any],
+    actions: list[Any],
     k0: int,
     steps: int,
     n: int,
     meter: _Meter,
     bare: Any = None,
-    actions: list[Any] | None = None,
 ) -> tuple[list[float], list[float]]:
     """The back-to-back phase of a row from step ``k0``: its vector step times, and the bare step times of the
     bound. Without ``bare``: ``steps`` steps in one stretch. With ``bare`` (a row of ``CROWDED_N`` or more sub-envs):
@@ -517,7 +517,7 @@ def _tight(
     steps of the bare env with the chunk's first actions: the bound is timed in the same seconds as the rate it
     bounds (this host's speed drifts by several % within a second). The first step of each chunk and block, which
     starts on idle cores, is left out; the bare env steps on from where its last block left it."""
-    if bare is None or actions is None:
+    if bare is None:
         meter.start()
         block = _timed_block(step, batch, range(k0, k0 + steps))
         meter.stop(steps)
@@ -531,7 +531,7 @@ def _tight(
         meter.start()
         times += _timed_block(step, batch, ks)[1:]
         meter.stop(len(ks))  # (and waits for the workers' trailing work, which must not overlap the bare block)
-        bare_t += _bare_block(bare, actions, range(k, k + BOUND_BLOCK))[1:]
+        bare_t += _bare_block(bare, actions, range(k, min(k + BOUND_BLOCK, len(actions))))[1:]
         _quiesce(bare)
         k += TIGHT_CHUNK
     return times, bare_t

@@ -409,8 +409,7 @@ class RayWorkerProcess:
         self.placement = placement
         self.pid: int | None = None
         self.exitcode: int | None = None
-        self.worker_uri = ""
-        self.worker_uris: list[str] = []  # one per env the worker hosts (the first is ``worker_uri``)
+        self.worker_uris: list[str] = []  # one per env the worker hosts
         self.node_id = ""
         self.node_ip = ""
         self.lost: str | None = None  # the node was lost (its raylet ended), or the actor ended without a report
@@ -421,6 +420,11 @@ class RayWorkerProcess:
 
     def where(self) -> str:
         return f"pid {self.pid} on Ray node {self.node_id[:12]} ({self.node_ip})"
+
+    @property
+    def worker_uri(self) -> str:
+        """The URI of the worker's first env ("" before it started)."""
+        return self.worker_uris[0] if self.worker_uris else ""
 
     def is_alive(self) -> bool:
         return self.pid is not None and self.exitcode is None and self.lost is None
@@ -488,7 +492,6 @@ class RayWorkerProcess:
         self.node_id = str(reply["node_id"])
         self.node_ip = str(reply["node_ip"])
         self.worker_uris = [str(u) for u in reply["uris"]]
-        self.worker_uri = self.worker_uris[0]
         self._exit = self._actor.wait_exit.remote().future()
         self._exit.add_done_callback(self._on_exit)
         return self.worker_uri

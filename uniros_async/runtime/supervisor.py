@@ -378,12 +378,11 @@ class Supervisor:
         """Ask the Ray actors of the Ray-placed ``workers`` to start them (in parallel, while the local ones start),
         then read the local ones' URIs; the workers' URIs in order."""
         remote = [w for w in workers if w.remote is not None and w.index == w.group[0]]  # one start per process
-        by_index = {w.index: w for w in workers}
         if remote:
             remaining = max(0.1, deadline - time.monotonic())
 
             async def start_one(w: WorkerHandle) -> str:
-                mates = [(v.index, v.spec.env_id, v.spec.kwargs) for v in (by_index[i] for i in w.group[1:])]
+                mates = [(v.index, v.spec.env_id, v.spec.kwargs) for v in (self.workers[i] for i in w.group[1:])]
                 return await w.remote.start(w.index, w.spec.env_id, w.spec.kwargs, remaining, mates=mates)  # type: ignore[union-attr]
 
             async def start_all() -> None:
@@ -880,12 +879,11 @@ class Supervisor:
                 acked = self._drive(_bounded(self._close_all(t), t + 2.0), t + 2.0, finish_orphans=False)
             except Exception:  # noqa: BLE001 - shutting down whatever state they are in
                 logger.warning("asking the workers to close failed", exc_info=True)
-        asked: dict[int, tuple[RayWorkerProcess, bool]] = {}  # one stop per process, asked if all its envs closed
-        for w, ok in zip(self.workers, acked, strict=True):
-            if w.remote is not None:
-                r = w.remote
-                asked[id(r)] = (r, ok and asked.get(id(r), (r, True))[1])
-        remote = list(asked.values())
+        remote = [  # one stop per process, asked if every env of it closed
+            (w.remote, all(acked[i] for i in w.group))
+            for w in self.workers
+            if w.remote is not None and w.index == w.group[0]
+        ]
         if remote and not self._loop.is_closed():  # their actors join, terminate and kill them (bounded)
 
             async def stop_remote() -> None:
