@@ -29,15 +29,13 @@ import time
 
 import numpy as np
 
-ENV_ID = "uniros/Rx200Reach-v0"
-
 
 async def _step_envs(k: int, steps: int, cpu: int) -> float:
     """CPU seconds per env step of ``k`` envs stepped in turn on this loop, pinned to ``cpu``."""
     import gymnasium as gym
 
     import uniros_async  # noqa: F401  (registers the ids)
-    from uniros_async.bench.throughput import ENV_KW
+    from uniros_async.bench.throughput import ENV_ID, ENV_KW
     from uniros_async.envs.runtime import deferred_start
     from uniros_async.priority import freeze_heap
     from uniros_async.runtime.worker import areset_through, astep_through
