@@ -10,6 +10,7 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from uniros_async.bench import throughput
@@ -158,3 +159,27 @@ def test_per_worker_counts_envs_per_process() -> None:
     for bad in ("0", "two", "-1", ""):
         with pytest.raises(ConfigError, match="envs_per_worker: expected a count >= 1 or 'cores', got"):
             throughput.ThroughputBenchConfig(envs_per_worker=(bad,))
+
+
+def test_crowded_back_to_back_phase_takes_at_least_its_floor(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A crowded row steps MIN_TIGHT_STEPS even when --steps asks for fewer and its interval is tight already (a
+    constant step time here), and timed bare blocks follow each chunk; the cap still wins over the floor."""
+    import gymnasium as gym
+
+    bare = gym.make("CartPole-v1")
+    bare.reset(seed=0)
+    actions = [0, 1] * 600
+    batch = [np.array([a] * 4) for a in actions]
+
+    def run(floor: int, cap: int) -> tuple[list[float], list[float]]:
+        monkeypatch.setattr(throughput, "MIN_TIGHT_STEPS", floor)
+        monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", cap)
+        return throughput._tight(lambda a: None, batch, actions, 1, 6, 4, throughput._Meter([]), bare)
+
+    times, bare_t = run(200, 2000)
+    chunks = -(-200 // (throughput.TIGHT_CHUNK - 1))  # each chunk's first step is left out
+    assert len(times) == chunks * (throughput.TIGHT_CHUNK - 1)
+    assert len(bare_t) == chunks * (throughput.BOUND_BLOCK - 1)
+    times, _ = run(200, 60)
+    assert len(times) < 60
+    bare.close()
