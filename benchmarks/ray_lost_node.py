@@ -6,7 +6,9 @@ new node (over our tcp); steps twice, then, while the third step is in flight (0
 the other env's reply is still 0.5 s away), removes the node (``Cluster.remove_node(allow_graceful=False)``: its
 raylet and every process Ray started there are SIGKILLed) from another thread. It prints the time from the kill to
 the WorkerError the step raised (and checks that the error names the worker and its node), per trial and as a
-summary.
+summary, with how many of the errors say that the node is lost (the rest: the connection broke before the node's
+actor reported why). ``--load K`` keeps K busy-looping processes (ordinary priority) running through the trials:
+a host as loaded as a shared one at its busiest.
 
 Run it in a network namespace (Ray binds the host's interfaces otherwise)::
 
@@ -17,6 +19,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import threading
 import time
 from typing import Any
@@ -81,6 +85,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=10)
     ap.add_argument("--json", default=None, metavar="PATH")
+    ap.add_argument("--load", type=int, default=0, metavar="K", help="busy-looping processes meanwhile (default 0)")
     args = ap.parse_args()
     import ray
     from ray.cluster_utils import Cluster
@@ -90,6 +95,7 @@ def main() -> None:
         head_node_args={"num_cpus": 2, "include_dashboard": False, "object_store_memory": OBJECT_STORE_BYTES},
     )
     rows = []
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.load)]
     try:
         ray.init(address=cluster.address, log_to_driver=False)
         head_id = ray.get_runtime_context().get_node_id()
@@ -98,16 +104,22 @@ def main() -> None:
             rows.append(row)
             print(f"trial {k}: kill to WorkerError {row['kill_to_error_s'] * 1e3:.1f} ms: {row['error'][:160]}")
     finally:
+        for p in burners:
+            p.kill()
+            p.wait()
         ray.shutdown()
         cluster.shutdown()
     ms = np.array([r["kill_to_error_s"] * 1e3 for r in rows])
+    lost = sum("is lost" in r["error"] for r in rows)
     print(
         f"kill to WorkerError over {len(ms)} trials: median {np.median(ms):.1f} ms, min {ms.min():.1f}, "
-        f"max {ms.max():.1f} (the action cycle: {ACTION_CYCLE_S * 1e3:.0f} ms)"
+        f"max {ms.max():.1f} (the action cycle: {ACTION_CYCLE_S * 1e3:.0f} ms); the node named lost in {lost} of "
+        f"{len(rows)}, load {args.load}"
     )
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"action_cycle_s": ACTION_CYCLE_S, "kill_after_s": KILL_AFTER_S, "trials": rows}, f, indent=1)
+            summary = {"action_cycle_s": ACTION_CYCLE_S, "kill_after_s": KILL_AFTER_S, "load": args.load}
+            json.dump({**summary, "node_named_lost": lost, "trials": rows}, f, indent=1)
 
 
 if __name__ == "__main__":

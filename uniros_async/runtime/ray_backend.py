@@ -21,7 +21,8 @@ an ordinary one (``supervisor.WorkerHandle``); a step costs the transport's roun
 ``RayWorkerProcess`` stands for the worker process on the agent's side (``pid`` on its node, ``exitcode``,
 ``is_alive``), with the interface the supervisor uses for a worker it did not start itself: ``start``,
 ``lifeline_has_news`` (an attribute read: a completed ``wait_exit`` call of the actor, which returns the worker's
-exit code when it ends and fails when the actor or its node dies), ``poll_exit``, ``stop`` and ``aclose``.
+exit code when it ends, the node's loss when the actor sees its raylet end, and fails when the actor dies),
+``poll_exit``, ``stop`` and ``aclose``.
 
 Lifetime: a worker ends when its agent connection goes away (EOF, as for every worker), when its actor dies (the
 parent-pid watchdog, at once), and on ``stop``: terminate, then kill, through the actor; then the actor is
@@ -276,6 +277,7 @@ class _WorkerHost:
     def __init__(self) -> None:
         self._proc: Any = None
         self._node_lost: str | None = None  # set by the node watch when the raylet ended
+        self._lost_r, self._lost_w = os.pipe()  # the node watch's word to ``wait_exit`` that the node is lost
 
     def _watch_node(self, proc: Any) -> None:
         """Until the worker exits: if this node's raylet ends (the node is being lost), end the worker at once.
@@ -301,6 +303,7 @@ class _WorkerHost:
             if raylet_fd not in events or worker_fd in events:
                 return
             self._node_lost = f"its Ray node's raylet (pid {raylet}) ended: the node is lost"
+            os.write(self._lost_w, b"!")  # wait_exit's report leaves before the worker's connections close
             proc.terminate()
             if not select.select([worker_fd], [], [], _NODE_LOST_GRACE_S)[0]:
                 proc.kill()
@@ -349,10 +352,18 @@ class _WorkerHost:
         return {"ok": True, "uris": uris, "pid": proc.pid, "node_id": node_id, "node_ip": node_ip}
 
     def wait_exit(self) -> dict[str, Any]:
-        """Block until the worker exits: ``{"code": its exit code, "node_lost": why the node watch ended it, or
-        None}``."""
+        """Block until the worker exits, or the node watch finds the node lost: ``{"code": its exit code (None
+        when the node is lost before it exited), "node_lost": why the node watch ended it, or None}``.
+
+        A lost node is reported as soon as the watch sees it, before the worker it ends closes its connections:
+        the agent, woken by that close, waits only ``_DEATH_REPORT_WAIT_S`` for this report, and a worker that
+        closes its env first (SIGTERM) could take longer than that on a loaded node."""
         if self._proc is None:
             return {"code": None, "node_lost": None}
+        with contextlib.suppress(OSError, ValueError):  # no pidfd: join below
+            select.select([self._proc.sentinel, self._lost_r], [], [])
+        if self._node_lost is not None and self._proc.exitcode is None:
+            return {"code": None, "node_lost": self._node_lost}
         self._proc.join(None)
         code = int(self._proc.exitcode) if self._proc.exitcode is not None else None
         return {"code": code, "node_lost": self._node_lost}
