@@ -37,6 +37,7 @@ checked against the cluster's nodes before any worker starts, and the workers of
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import contextlib
 import dataclasses
@@ -514,18 +515,26 @@ class Supervisor:
             return ""
         return remote.node_id or f"worker {w.index}"
 
-    def _core_share(self, w: WorkerHandle) -> list[Any]:
-        """``[slot, count, mode]`` for worker ``w``'s ``spaces`` request: the rank of its process among the worker
-        processes of this vector env on its machine, how many envs they host, and ``worker.shared_cores_mode``
-        (the process pins itself to core ``slot`` modulo its cores when the envs outnumber them:
-        ``_Server._share_cores``)."""
-        machine = self._machine(w)
-        here = [v for v in self.workers if self._machine(v) == machine]
-        processes = [v.index for v in here if v.index == v.group[0]]
-        return [processes.index(w.group[0]), len(here), shared_cores_mode()]
+    def _core_shares(self) -> dict[int, list[Any]]:
+        """``[slot, count, mode]`` per worker index, for its ``spaces`` request: the rank of its process among the
+        worker processes of this vector env on its machine, how many envs they host, and
+        ``worker.shared_cores_mode`` (the process pins itself to core ``slot`` modulo its cores when the envs
+        outnumber them: ``_Server._share_cores``)."""
+        mode = shared_cores_mode()
+        machine = {w.index: self._machine(w) for w in self.workers}
+        envs = collections.Counter(machine.values())
+        processes: collections.Counter[str] = collections.Counter()
+        slot: dict[int, int] = {}  # by the index of a process's first env
+        for w in self.workers:
+            if w.index == w.group[0]:
+                slot[w.index] = processes[machine[w.index]]
+                processes[machine[w.index]] += 1
+        return {w.index: [slot[w.group[0]], envs[machine[w.index]], mode] for w in self.workers}
 
     async def _connect_all(self, workers: list[WorkerHandle], uris: list[str], timeout_s: float) -> None:
         from uniros_async.transports.base import TransportOptions, connect
+
+        shares = self._core_shares()
 
         async def one(w: WorkerHandle, uri: str) -> None:
             key = w.remote.placement.auth_key if w.remote is not None else None
@@ -533,7 +542,7 @@ class Supervisor:
                 w.transport = await connect(uri, TransportOptions(connect_timeout_s=timeout_s, auth_key=key))
             except (TransportError, OSError, TimeoutError) as exc:
                 raise WorkerError(w.index, f"{w.spec.env_id}: could not connect to the worker at {uri}: {exc}") from exc
-            share = self._core_share(w)
+            share = shares[w.index]
             spaces = {"op": "spaces", "tag_infos": self.tag_infos, "share": share}
             w.info = await w.request(spaces, timeout_s)
             if hasattr(w.transport, "spin_ns") and not w.info.get("realtime"):  # shm, tcp: see REPLY_SPIN_NS
