@@ -691,7 +691,7 @@ class Supervisor:
             return set(range(sent)), None, None
         workers = self.workers
         rank = self._reply_rank
-        order = sorted(range(sent), key=rank.__getitem__) if rank and rank[0] else range(sent)
+        order = range(sent - 1, -1, -1) if rank and rank[0] else range(sent)  # _reply_rank: reversed, or in order
         k = 0
         unexpected: Exception | None = None
         watched = self._hangup_fds if self.fail_fast and sent > 1 else ()
