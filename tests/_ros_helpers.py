@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.bench.ros1_peers import kill_process, wait_for_line
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Header, JointCommand, JointState
 from uniros_async.errors import RobotError
 from uniros_async.robots import get_robot_spec
-from uniros_async.testing.ros1 import kill_process, wait_for_line
 from uniros_async.testing.tls import TlsFiles
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "docs/results/checkpoints/rx200_reach_dense_td3_uniros"

@@ -16,6 +16,13 @@ the ids other tests sweep at collection stay the built-in ones)."""
 if str(EXTENSION_DIR) not in sys.path:
     sys.path.append(str(EXTENSION_DIR))
 
+TESTS_DIR = Path(__file__).resolve().parent
+"""Holds ``rig``, the suite's own test rig. Processes the tests start run its modules as ``python -m rig.<module>``
+(inside network namespaces too), so tests/ goes on their ``PYTHONPATH``."""
+_pythonpath = os.environ.get("PYTHONPATH", "")
+if str(TESTS_DIR) not in _pythonpath.split(os.pathsep):
+    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(TESTS_DIR), _pythonpath) if p)
+
 
 @pytest.fixture(scope="session", autouse=True)
 def _sb3_logs_in_the_sessions_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:

@@ -28,7 +28,7 @@ COMMAND_PACKAGES = {
     "python3": "python3-rospy",  # the system python3 that runs the rospy peers (/usr/bin/python3)
 }
 # Started through a helper that resolves the path at run time, so the scan below cannot see the literal name.
-CALLED_THROUGH_HELPERS = {"rosmaster": "uniros_async.testing.ros1.rosmaster_bin", "python3": "ros1 peers"}
+CALLED_THROUGH_HELPERS = {"rosmaster": "uniros_async.bench.ros1_peers.rosmaster_bin", "python3": "ros1 peers"}
 # Programs every Debian machine and this Python environment have: the essential set and our own console script.
 ALWAYS_THERE = {"uniros", "sh", "bash", "true", "sleep", "kill"}
 
@@ -37,8 +37,9 @@ _ARGV_CALLS = {"run", "Popen", "check_output", "check_call", "create_subprocess_
 
 
 def _sources() -> Iterator[Path]:
-    yield from sorted((ROOT / "tests").rglob("*.py"))
-    yield from sorted((ROOT / "uniros_async" / "testing").rglob("*.py"))
+    yield from sorted((ROOT / "tests").rglob("*.py"))  # the tests and their rig (tests/rig)
+    yield from sorted((ROOT / "uniros_async" / "testing").rglob("*.py"))  # the helpers users call too
+    yield from sorted((ROOT / "uniros_async" / "bench").glob("ros*_peers.py"))  # the ROS peers tests share
 
 
 def _strings(nodes: list[ast.expr]) -> list[str | None]:
@@ -83,7 +84,7 @@ def called_programs() -> dict[str, set[str]]:
 def ci_packages() -> set[str]:
     text = (ROOT / ".ci" / "run").read_text()
     match = re.search(r'^system_pkgs="([^"]*)"', text, flags=re.M)
-    assert match, ".ci/run has no system_pkgs=\"...\" list of the Debian packages it installs"
+    assert match, '.ci/run has no system_pkgs="..." list of the Debian packages it installs'
     return set(match.group(1).split())
 
 

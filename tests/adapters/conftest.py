@@ -1,6 +1,6 @@
 """Fixtures for the ROS 1 adapter tests: a real rosmaster per test and rospy peers run by the system Python.
 
-Helpers live in ``uniros_async.testing.ros1`` (``requires_ros1``, ``ros_env``, ``start_rospy``, ``rospy_process``,
+Helpers live in ``uniros_async.bench.ros1_peers`` (``requires_ros1``, ``ros_env``, ``start_rospy``, ``rospy_process``,
 ``wait_for_line``); tests import them from there. A fixture here skips, naming what to install, when ROS 1 is missing.
 """
 
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from uniros_async.testing.ros1 import open_rosmaster, ros1_missing, rospy_process
-from uniros_async.testing.ros2 import skip_or_fail
+from uniros_async.bench.ros1_peers import open_rosmaster, ros1_missing, rospy_process
+from uniros_async.bench.ros2_peers import skip_or_fail
 
 PEER_SCRIPT = Path(__file__).with_name("ros1_peer.py")
 

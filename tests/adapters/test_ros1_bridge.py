@@ -25,11 +25,11 @@ import pytest
 from _reach import distances_toward_goal
 from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
+from uniros_async.bench.ros1_peers import kill_process, rospy_process, wait_for_line
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots import get_robot_spec
-from uniros_async.testing.ros1 import kill_process, rospy_process, wait_for_line
 from uniros_async.testing.tls import write_test_certs
 
 FAKE_ARM = Path(__file__).with_name("ros1_fake_arm.py")

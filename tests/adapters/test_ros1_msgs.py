@@ -23,8 +23,8 @@ from uniros_async.adapters.ros1.msgs import (
     Ros1Message,
     RosHeader,
 )
+from uniros_async.bench.ros1_peers import ros1_missing, ros1_python, ros_env
 from uniros_async.errors import CodecError
-from uniros_async.testing.ros1 import ros1_missing, ros1_python, ros_env
 
 NS = 1_000_000_000
 

@@ -32,14 +32,14 @@ from uniros_async.adapters.ros1 import (
     open_ros1_node,
 )
 from uniros_async.adapters.ros1._xmlrpc import XmlRpcCallError, call
-from uniros_async.errors import RobotError
-from uniros_async.testing.ros1 import (
+from uniros_async.bench.ros1_peers import (
     kill_process,
     open_rosmaster_process,
     requires_ros1,
     rospy_process,
     wait_for_line,
 )
+from uniros_async.errors import RobotError
 
 PEER = Path(__file__).with_name("ros1_peer.py")
 PeerFactory = Callable[..., subprocess.Popen[str]]

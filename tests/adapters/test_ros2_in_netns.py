@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from uniros_async.testing.ros2 import netns_command, netns_missing, ros2_missing, skip_or_fail
+from uniros_async.bench.ros2_peers import netns_command, netns_missing, ros2_missing, skip_or_fail
 
 SUITE = Path(__file__).resolve().parents[1] / "ros2"
 

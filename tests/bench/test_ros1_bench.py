@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
+from uniros_async.bench.ros1_peers import ros1_missing
+from uniros_async.bench.ros2_peers import skip_or_fail
 from uniros_async.errors import ConfigError
-from uniros_async.testing.ros1 import ros1_missing
-from uniros_async.testing.ros2 import skip_or_fail
 
 
 @pytest.fixture(autouse=True)

@@ -7,10 +7,10 @@ import os
 
 import numpy as np
 import pytest
+from rig.bus_peers import BusPeer, check_talker
 
 from uniros_async.bus import open_domain, open_node, reliable
 from uniros_async.bus.messages import Blob, Header, JointState
-from uniros_async.testing.bus_peers import BusPeer, check_talker
 
 pytestmark = pytest.mark.slow
 

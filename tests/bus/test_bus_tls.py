@@ -9,11 +9,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from rig.bus_peers import BusPeer, check_talker
 
 from uniros_async.bus import Domain, open_domain, open_node
 from uniros_async.bus.messages import Data
 from uniros_async.errors import AuthenticationError, ConfigError, DomainError
-from uniros_async.testing.bus_peers import BusPeer, check_talker
 from uniros_async.testing.tls import TlsFiles, write_test_certs
 from uniros_async.transports.base import TransportOptions, listen
 

@@ -1,5 +1,5 @@
 """What the fault tests share about their processes: the served arms, the ROS master and the agent, each started in
-its namespace of a pair (``uniros_async.testing.netfault``) and stopped together, and their figures reported.
+its namespace of a pair (``rig.netfault``) and stopped together, and their figures reported.
 
 Every ``start_*`` puts the process it starts into ``peers`` (from ``stopping()``) before it waits for anything, so
 a start that fails still leaves nothing running.
@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rig.netfault import EventPeer, NetnsPair
 
-from uniros_async.testing.netfault import EventPeer, NetnsPair
-from uniros_async.testing.ros1 import ros1_missing, ros_env, rosmaster_bin
+from uniros_async.bench.ros1_peers import ros1_missing, ros_env, rosmaster_bin
 
 ROBOT_TIMEOUT_S = 0.5
 COMMAND_TIMEOUT_S = 0.5
@@ -99,7 +99,7 @@ def start_agent(
 ) -> EventPeer:
     """The agent in the env's namespace (``netfault drive``: the rx200 reach env on ``robot``, ``ROBOT_TIMEOUT_S``,
     ``ACTION_CYCLE_S``), its events being read."""
-    argv = [sys.executable, "-m", "uniros_async.testing.netfault", "drive", "--robot", robot,
+    argv = [sys.executable, "-m", "rig.netfault", "drive", "--robot", robot,
             "--robot-timeout", str(ROBOT_TIMEOUT_S), "--action-cycle", str(ACTION_CYCLE_S)]  # fmt: skip
     if ros_host is not None:
         argv += ["--ros-host", ros_host]

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from uniros_async.testing.netfault import EventPeer, NetnsPair, fault_figures
+from rig.netfault import EventPeer, NetnsPair, fault_figures
 
 from ._arm import report, uncaught
 

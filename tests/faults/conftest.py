@@ -4,8 +4,7 @@
 from __future__ import annotations
 
 import pytest
-
-from uniros_async.testing.netfault import netfault_missing
+from rig.netfault import netfault_missing
 
 from ._arm import skip_or_fail
 

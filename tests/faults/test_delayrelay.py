@@ -1,4 +1,4 @@
-"""The tests' delaying relay (``uniros_async.testing.delayrelay``) on loopback: it delays, keeps the order, passes
+"""The tests' delaying relay (``rig.delayrelay``) on loopback: it delays, keeps the order, passes
 the end on, and stops reading a sender while its buffer for a receiver that does not read is full."""
 
 from __future__ import annotations
@@ -7,8 +7,7 @@ import asyncio
 import time
 
 import pytest
-
-from uniros_async.testing.delayrelay import DelayRelay
+from rig.delayrelay import DelayRelay
 
 
 async def _echo_sink(received: list[tuple[int, bytes]], started: asyncio.Event) -> tuple[asyncio.Server, int]:

@@ -1,6 +1,6 @@
 """Faults on the link to a ROS 1 arm: a real rosmaster and our sim as the arm's ROS 1 driver (``uniros robot serve
 --ros1-master``) in one network namespace, the agent with the ROS 1 bridge in its env (``robot="ros1://..."``) in
-another, joined by a veth pair (``uniros_async.testing.netfault``). Measured as in test_tcp_arm_faults.py.
+another, joined by a veth pair (``rig.netfault``). Measured as in test_tcp_arm_faults.py.
 
 ROS 1 cannot authenticate peers, so the driver and the bridge are allowed beyond loopback (``--insecure``,
 ``ros1={"insecure": True}``): only the two namespaces the test creates can reach them.
@@ -16,8 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
-from uniros_async.testing.netfault import open_netns_pair
+from rig.netfault import open_netns_pair
 
 from ._arm import (
     COMMAND_TIMEOUT_S,

@@ -8,7 +8,7 @@ connection, and TCP delivers it when the link heals. The bridge resets such a co
 In the arm's namespace: a real ``rosmaster``, our sim as the rx200's ROS 1 driver (``uniros robot serve
 --ros1-master``, which publishes the joint states the bridge needs) and a real rospy subscriber to the driver's
 command topic that prints when each command arrives (``ros1_command_recorder.py``). In the env's namespace: the
-bridge, commanded at 10 Hz without pause by ``python -m uniros_async.testing.netfault commands``, each command
+bridge, commanded at 10 Hz without pause by ``python -m rig.netfault commands``, each command
 recognisable by its waist position. Both print ``time.monotonic_ns()``, one clock across the namespaces.
 
 Each test cuts the link (nftables drop) for ``FAULT_S`` while the commander goes on, heals it, waits until commands
@@ -29,9 +29,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rig.netfault import EventPeer, NetnsPair, open_netns_pair
 
-from uniros_async.testing.netfault import EventPeer, NetnsPair, open_netns_pair
-from uniros_async.testing.ros1 import ros1_python
+from uniros_async.bench.ros1_peers import ros1_python
 
 from ._arm import ROBOT_TIMEOUT_S, START_S, report, require_ros1, start_ros1_driver, start_rosmaster, stopping
 
@@ -118,7 +118,7 @@ def test_partition_delivers_no_stale_command(arm: Arm, guarded: bool) -> None:
             [
                 sys.executable,
                 "-m",
-                "uniros_async.testing.netfault",
+                "rig.netfault",
                 "commands",
                 "--master",
                 arm.master_uri,

@@ -1,6 +1,6 @@
 """Delay and jitter on the link to a served arm (``uniros robot serve`` over tcp), from the tests' own delaying relay.
 
-This kernel has no netem (CONFIG_NET_SCH_NETEM is off), so the delay is ``uniros_async.testing.delayrelay``: a tcp
+This kernel has no netem (CONFIG_NET_SCH_NETEM is off), so the delay is ``rig.delayrelay``: a tcp
 relay in the arm's namespace that nftables sends every connection across the veth link to, either way
 (``NetnsPair.delay_through``); it holds each chunk for the delay, give or take the jitter, keeping the order, with a
 bounded buffer. Every byte between the env and the arm passes it once, so the delay is one way, each way.
@@ -31,8 +31,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
-
-from uniros_async.testing.netfault import EventPeer, open_netns_pair
+from rig.netfault import EventPeer, open_netns_pair
 
 from ._arm import ROBOT_TIMEOUT_S, auth_env, report, start_agent, start_tcp_arm, stopping, uncaught
 from ._faults import CODE_PATH_S, RECOVER_S, Link
@@ -70,7 +69,7 @@ def delayed(request: pytest.FixtureRequest, netfault_ready: None) -> Iterator[De
     delay_s, jitter_s = request.param
     env = auth_env()
     with open_netns_pair() as pair, stopping() as peers:
-        argv = [sys.executable, "-m", "uniros_async.testing.delayrelay", "--port", str(RELAY_PORT), "--delay",
+        argv = [sys.executable, "-m", "rig.delayrelay", "--port", str(RELAY_PORT), "--delay",
                 str(delay_s), "--jitter", str(jitter_s), "--mark", str(RELAY_MARK), "--control"]  # fmt: skip
         relay = EventPeer(pair.popen("arm", argv, stdin=subprocess.PIPE))
         peers.append(relay)

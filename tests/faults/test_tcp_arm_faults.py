@@ -1,5 +1,5 @@
 """Faults on the link to a served arm (``uniros robot serve`` over tcp), the arm and the agent each in a network
-namespace of their own joined by a veth pair (``uniros_async.testing.netfault``).
+namespace of their own joined by a veth pair (``rig.netfault``).
 
 One arm and one agent run for the whole module; each test injects one fault for ``FAULT_S``, clears it, and
 measures from both sides' event lines (one ``time.monotonic_ns()`` clock across the namespaces):
@@ -19,8 +19,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-
-from uniros_async.testing.netfault import open_netns_pair
+from rig.netfault import open_netns_pair
 
 from ._arm import COMMAND_TIMEOUT_S, PERIOD_S, ROBOT_TIMEOUT_S, START_S, auth_env, start_agent, start_tcp_arm, stopping
 from ._faults import FAULTS, Link, run_fault

@@ -1,11 +1,10 @@
 """Every parser of outside bytes gets a sample of generated inputs on every run (the 100,000-input runs are
-``python -m uniros_async.testing.fuzz --parser all --count 100000``; their table is in docs/reliability.md)."""
+``python -m rig.fuzz --parser all --count 100000``; their table is in docs/reliability.md)."""
 
 from __future__ import annotations
 
 import pytest
-
-from uniros_async.testing import fuzz
+from rig import fuzz
 
 SAMPLE = 1500
 

@@ -19,7 +19,7 @@ import pytest
 from tests.hostile import _attacks, _served
 from uniros_async.adapters.ros1 import msgs, open_ros1_node
 from uniros_async.adapters.ros1._xmlrpc import call_ros
-from uniros_async.testing.ros1 import open_rosmaster, ros1_missing
+from uniros_async.bench.ros1_peers import open_rosmaster, ros1_missing
 
 pytestmark = pytest.mark.slow
 

@@ -2,11 +2,11 @@
 
 DDS discovers peers by multicast, so these tests run only inside a network namespace of their own, where nothing
 else can hear them: ``tests/adapters/test_ros2_in_netns.py`` runs each file of this folder there
-(``testing.ros2.netns_command``: ``unshare --net --mount``, loopback up with multicast on, a /dev/shm of its own)
+(``ros2_peers.netns_command``: ``unshare --net --mount``, loopback up with multicast on, a /dev/shm of its own)
 and fails with its output when anything here fails. Run directly, outside such a namespace, nothing here is
 collected. To run them by hand (as root): ``python -m pytest tests/adapters/test_ros2_in_netns.py``.
 
-The rclpy peers (Jazzy wheels from PyPI) live in their own venv (``uniros_async.testing.ros2``); without it every
+The rclpy peers (Jazzy wheels from PyPI) live in their own venv (``uniros_async.bench.ros2_peers``); without it every
 test here skips saying how to make it, or fails under ``UNIROS_REQUIRE_ROS=1``.
 """
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from uniros_async.testing.ros2 import in_netns, rclpy_process, ros2_missing, skip_or_fail, wait_for_line
+from uniros_async.bench.ros2_peers import in_netns, rclpy_process, ros2_missing, skip_or_fail, wait_for_line
 
 HERE = Path(__file__).parent
 PEER = HERE / "rclpy_peer.py"

@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 from _ros_helpers import check_cli_bridge, check_mixed_vec, command_line, joint_command, moved_commands, robot_error
 
+from uniros_async.bench.ros2_peers import kill_process
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
 from uniros_async.errors import RobotError
 from uniros_async.robots import get_robot_spec
-from uniros_async.testing.ros2 import kill_process
 from uniros_async.testing.tls import write_test_certs
 
 FPC = "forward_position_controller"

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from _ros_helpers import check_bridge_drives_the_mirror, policy_successes
 
-from uniros_async.testing.ros2 import kill_process, wait_for_line
+from uniros_async.bench.ros2_peers import kill_process, wait_for_line
 
 
 @pytest.mark.parametrize(

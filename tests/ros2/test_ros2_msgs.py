@@ -1,6 +1,6 @@
 """ROS 2 messages (adapters/ros2/msgs.py) against rclpy's own: the same bytes and the same fields, both ways.
 
-rclpy (Jazzy, from the rclpy venv of ``uniros_async.testing.ros2``) runs in its own process as a codec
+rclpy (Jazzy, from the rclpy venv of ``uniros_async.bench.ros2_peers``) runs in its own process as a codec
 (``rclpy_peer.py codec``): it reads our CDR and serializes its own, with no network. It runs in the namespace with
 the other ROS 2 tests all the same: rclpy's bundled lttng-ust leaves files in /dev/shm, which go with the namespace.
 The names, URIs and settings checks below need no peer at all.
@@ -30,7 +30,7 @@ pytest.importorskip("rosbags", reason="pip install -e '.[ros2]'")
 
 @pytest.fixture(scope="module")
 def codecs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, subprocess.Popen[str]]]:
-    from uniros_async.testing.ros2 import kill_process, ros2_missing, skip_or_fail, start_rclpy, wait_for_line
+    from uniros_async.bench.ros2_peers import kill_process, ros2_missing, skip_or_fail, start_rclpy, wait_for_line
 
     reason = ros2_missing()
     if reason is not None:
@@ -53,7 +53,7 @@ def codecs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, subpr
 
 
 def _ask(proc: subprocess.Popen[str], line: str) -> dict[str, Any]:
-    from uniros_async.testing.ros2 import wait_for_line
+    from uniros_async.bench.ros2_peers import wait_for_line
 
     assert proc.stdin is not None
     proc.stdin.write(line + "\n")

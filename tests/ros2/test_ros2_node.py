@@ -21,8 +21,8 @@ from _ros_helpers import plain_fields
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from uniros_async.bench.ros2_peers import wait_for_line
 from uniros_async.errors import RobotError
-from uniros_async.testing.ros2 import wait_for_line
 
 JS = "sensor_msgs/msg/JointState"
 

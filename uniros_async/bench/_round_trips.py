@@ -90,7 +90,7 @@ async def our_block(
 
 def _peer_block(proc: subprocess.Popen[str], peer: str, n: int, timeout_s: float) -> Blocks:
     """``n`` timed round trips of the peer's client process (``go N``, one JSON line back)."""
-    from uniros_async.testing.ros1 import wait_for_line
+    from uniros_async.bench.ros1_peers import wait_for_line
 
     assert proc.stdin is not None
     proc.stdin.write(f"go {n}\n")
@@ -142,7 +142,7 @@ def open_peers(
 
     Both are killed when the block ends.
     """
-    from uniros_async.testing.ros1 import kill_process, wait_for_line
+    from uniros_async.bench.ros1_peers import kill_process, wait_for_line
 
     procs: list[subprocess.Popen[str]] = []
     try:

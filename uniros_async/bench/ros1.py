@@ -67,7 +67,7 @@ def main(config: Ros1BenchConfig, log: Callable[[str], None] = print) -> list[di
     Raises:
         ConfigError: ROS 1 is not installed (the message names the packages).
     """
-    from uniros_async.testing.ros1 import open_rosmaster, ros1_missing, ros1_python, ros_env
+    from uniros_async.bench.ros1_peers import open_rosmaster, ros1_missing, ros1_python, ros_env
 
     reason = ros1_missing()
     if reason is not None:

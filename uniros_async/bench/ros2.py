@@ -2,7 +2,7 @@
 
 What the ROS 2 bridge (``adapters/ros2_bridge.py``) pays per message is a DDS hop of our own participant
 (``adapters/ros2``: cyclonedds + rosbags, in an asyncio loop). This bench puts a number on it beside rclpy's. An
-rclpy echo node (Jazzy, Fast DDS, from the rclpy venv of ``uniros_async.testing.ros2``) republishes
+rclpy echo node (Jazzy, Fast DDS, from the rclpy venv of ``uniros_async.bench.ros2_peers``) republishes
 ``/uniros_ping`` on ``/uniros_pong`` and ``/rclpy_ping`` on ``/rclpy_pong``. Two clients then time round trips of
 a ``sensor_msgs/msg/JointState`` of the rx200's 8 joints, one at a time (send, wait for the echo, send the next):
 
@@ -18,7 +18,7 @@ ratio of the medians. The turns, the table and the peer's loop are shared with `
 (``_round_trips``, ``_peer_loop``).
 
 DDS discovers by multicast: run as root, the bench re-runs itself in a network namespace of its own (loopback only,
-``testing.ros2.netns_command``) unless ``netns=False``; otherwise it uses discovery on this host only.
+``ros2_peers.netns_command``) unless ``netns=False``; otherwise it uses discovery on this host only.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ async def _run(cfg: Ros2BenchConfig, client: subprocess.Popen[str]) -> dict[str,
 
 def _in_netns(config: Ros2BenchConfig) -> list[dict[str, Any]] | None:
     """Re-run this bench in a network namespace of its own; its records, or None when none can be made here."""
-    from uniros_async.testing.ros2 import in_netns, netns_command, netns_missing
+    from uniros_async.bench.ros2_peers import in_netns, netns_command, netns_missing
 
     if not config.netns or in_netns() or netns_missing() is not None:
         return None
@@ -111,7 +111,7 @@ def main(config: Ros2BenchConfig, log: Callable[[str], None] = print) -> list[di
     Raises:
         ConfigError: the rclpy venv or our ROS 2 dependencies are missing (the message says what to install).
     """
-    from uniros_async.testing.ros2 import in_netns, rclpy_env, ros2_missing, ros2_python
+    from uniros_async.bench.ros2_peers import in_netns, rclpy_env, ros2_missing, ros2_python
 
     reason = ros2_missing()
     if reason is not None:

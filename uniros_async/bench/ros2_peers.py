@@ -2,7 +2,7 @@
 
 rclpy never enters our interpreter. ``ros2_venv()`` is a virtual environment with the ``ros-jazzy-*`` wheels
 (``ROS2_PEER_PACKAGES``; ``$UNIROS_ROS2_VENV``, default ``~/.cache/uniros/ros2-venv``), made by
-``install_ros2_venv()`` or ``python -m uniros_async.testing.ros2 --install``. Its scripts run with ``rclpy_env()``
+``install_ros2_venv()`` or ``python -m uniros_async.bench.ros2_peers --install``. Its scripts run with ``rclpy_env()``
 (``LD_LIBRARY_PATH=<venv>/lib``, Fast DDS as the rmw, no PYTHONPATH of ours).
 
 DDS discovers peers by multicast, so everything on DDS here runs in a network namespace of its own
@@ -29,7 +29,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from uniros_async.testing.ros1 import kill_process, wait_for_line
+from uniros_async.bench.ros1_peers import kill_process, wait_for_line
 
 __all__ = [
     "ROS2_PEER_PACKAGES",
@@ -76,7 +76,7 @@ def ros2_python() -> Path:
 def _install_hint() -> str:
     return (
         f"python3.11 -m venv {ros2_venv()} && {ros2_venv()}/bin/pip install {' '.join(ROS2_PEER_PACKAGES)} "
-        f"(or: python -m uniros_async.testing.ros2 --install)"
+        f"(or: python -m uniros_async.bench.ros2_peers --install)"
     )
 
 
@@ -250,9 +250,9 @@ def install_ros2_venv(path: str | os.PathLike[str] | None = None, *, python: str
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m uniros_async.testing.ros2 --install [--venv PATH]``: make the rclpy venv; ``--check``: say
+    """``python -m uniros_async.bench.ros2_peers --install [--venv PATH]``: make the rclpy venv; ``--check``: say
     whether the peers can run (exit 1 if not)."""
-    parser = argparse.ArgumentParser(prog="python -m uniros_async.testing.ros2")
+    parser = argparse.ArgumentParser(prog="python -m uniros_async.bench.ros2_peers")
     parser.add_argument("--install", action="store_true", help="make the rclpy venv (ROS2_PEER_PACKAGES from PyPI)")
     parser.add_argument("--check", action="store_true", help="exit 1, saying why, when the peers cannot run")
     parser.add_argument(

@@ -14,16 +14,16 @@ namespaces (and so the link) when the block ends, also on failure. Processes run
 
 A frozen peer is ``os.kill(pid, SIGSTOP)`` / ``SIGCONT`` of the arm's process. This kernel has no ``netem``
 (CONFIG_NET_SCH_NETEM is off), so delay and jitter come from the tests' own delaying relay
-(``testing.delayrelay``): ``delay_through(port, mark)`` redirects every tcp connection across the link to it.
+(``rig.delayrelay``): ``delay_through(port, mark)`` redirects every tcp connection across the link to it.
 
-``python -m uniros_async.testing.netfault drive --robot tcp://HOST:PORT ...`` is the agent side: it makes a reach
+``python -m rig.netfault drive --robot tcp://HOST:PORT ...`` is the agent side: it makes a reach
 env on that arm and steps it forever, resetting after every episode end and every RobotError, and prints each
 event as a JSON line with its ``time.monotonic_ns()`` (one clock for every namespace of the machine): ``reset`` and
 ``step`` (with the age of the joint state they returned on, by its stamp and as the env estimates it, the link's
 round trip the env measured, and at an episode's end why, from ``info``), ``robot_error`` (the message) and
 ``error`` (anything else: an uncaught exception, with its traceback).
 
-``python -m uniros_async.testing.netfault commands --master URI --ros-host IP`` is a bare commander on a ROS 1 arm:
+``python -m rig.netfault commands --master URI --ros-host IP`` is a bare commander on a ROS 1 arm:
 the ROS 1 bridge (``adapters.ros1_bridge``) and, on its bus, a publisher of ``JointCommand`` at the hardware rate
 that never stops (no env and its own staleness check in front of the bridge). Command ``seq`` moves the waist to
 ``command_position(seq)``, so whoever receives the driver's messages can tell which command each was; it prints
@@ -151,7 +151,7 @@ class NetnsPair:
 
     def delay_through(self, relay_port: int, mark: int) -> None:
         """Redirect every tcp connection across the link, whichever side opens it, to the delaying relay listening
-        on ``relay_port`` in the arm's namespace (``testing.delayrelay``; this kernel has no netem), which connects
+        on ``relay_port`` in the arm's namespace (``rig.delayrelay``; this kernel has no netem), which connects
         on to each connection's original destination with ``SO_MARK`` ``mark``, left alone here. Only
         connections opened after this are redirected (nftables' nat acts on a connection's first packet)."""
         script = [
@@ -519,8 +519,8 @@ def commands(robot: str, *, master_uri: str, ros_host: str, max_command_age_s: f
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m uniros_async.testing.netfault drive ...``."""
-    parser = argparse.ArgumentParser(prog="python -m uniros_async.testing.netfault")
+    """``python -m rig.netfault drive ...``."""
+    parser = argparse.ArgumentParser(prog="python -m rig.netfault")
     sub = parser.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("drive", help="step a reach env on an arm, printing events as JSON lines")
     d.add_argument("--robot", required=True, help="tcp://HOST:PORT or ros1://HOST:PORT")

@@ -1,4 +1,4 @@
-"""Fuzz every parser of bytes from outside: ``python -m uniros_async.testing.fuzz --parser all --count 100000``.
+"""Fuzz every parser of bytes from outside: ``python -m rig.fuzz --parser all --count 100000``.
 
 Each parser gets generated inputs, mutated from valid seeds (bit flips, byte changes, inserted, deleted and repeated
 runs, truncations, extreme length fields, splices of two seeds) with some purely random ones, and each input is
@@ -588,7 +588,7 @@ def format_table(results: Sequence[FuzzCounts]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; returns 1 if any parser crashed or hung."""
-    ap = argparse.ArgumentParser(prog="python -m uniros_async.testing.fuzz", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m rig.fuzz", description=__doc__.split("\n")[0])
     ap.add_argument("--parser", nargs="+", default=["all"], help=f"all, or some of: {', '.join(PARSERS)}")
     ap.add_argument("--count", type=int, default=10_000, help="inputs per parser (default %(default)s)")
     ap.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")

@@ -13,7 +13,7 @@ relay reads each connection's original destination (``SO_ORIGINAL_DST``) and con
 connections marked (``SO_MARK``) so that they are not redirected again. So each byte that crosses the link passes
 the relay once, whichever side opened the connection::
 
-    python -m uniros_async.testing.delayrelay --port 7100 --delay 0.2 --jitter 0.02 --mark 1   # until SIGTERM
+    python -m rig.delayrelay --port 7100 --delay 0.2 --jitter 0.02 --mark 1   # until SIGTERM
 
 It prints ``ready`` once listening, and on SIGTERM the chunk counts and the largest delay it applied as JSON. With
 ``--control`` it reads lines ``delay SECONDS JITTER`` on stdin and holds every chunk read from then on that long
@@ -232,8 +232,8 @@ def _read_control(relay: DelayRelay) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m uniros_async.testing.delayrelay``: see the module docstring."""
-    parser = argparse.ArgumentParser(prog="python -m uniros_async.testing.delayrelay")
+    """``python -m rig.delayrelay``: see the module docstring."""
+    parser = argparse.ArgumentParser(prog="python -m rig.delayrelay")
     parser.add_argument("--host", default="0.0.0.0", help="listen address (default %(default)s)")  # noqa: S104
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--delay", type=float, required=True, help="seconds each chunk is held")
