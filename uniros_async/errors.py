@@ -17,6 +17,7 @@ The tree (as httpx/_exceptions.py draws its own)::
     ├── SimulationError                      MuJoCo diverged (dm_control PhysicsError)
     ├── RobotError                           a robot stopped publishing or refused a command
     └── WorkerError                          an env worker failed; .index, .remote_traceback
+        └── StepTimeoutError (also TimeoutError)  a worker did not answer a request in time; names it, op, timeout
 
 Timeouts are asyncio's own ``TimeoutError`` (what ``asyncio.timeout`` raises), so callers catch one type.
 """
@@ -34,6 +35,7 @@ __all__ = [
     "RobotError",
     "ServiceError",
     "SimulationError",
+    "StepTimeoutError",
     "TransportBrokenError",
     "TransportClosedError",
     "TransportError",
@@ -114,3 +116,8 @@ class WorkerError(UnirosError):
         super().__init__(f"worker {index}: {message}")
         self.index = index
         self.remote_traceback = remote_traceback
+
+
+class StepTimeoutError(WorkerError, TimeoutError):
+    """An env worker did not answer a request (a step, a reset, ...) within its timeout; the message names the
+    worker's index, the operation and the timeout. A TimeoutError too, so ``except TimeoutError`` catches it."""
