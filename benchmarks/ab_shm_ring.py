@@ -9,7 +9,7 @@ in an order shuffled every round (seeded), after a 1 ms pause, as `uniros bench 
 code above the transport and the moment are the same for both vector envs, so the difference is the ring ends'.
 
 Prints, per vector env, the median us per step, its overhead over the bare step (the median of the block medians'
-differences, paired by round) with a 95 % interval (`bench.stats.median_ci`), and the median per-round saving of
+differences, paired by round) with a 95 % interval (`uniros_async.stats.median_ci`), and the median per-round saving of
 the compiled ring. Recorded in docs/performance.md.
 """
 
@@ -25,8 +25,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from uniros_async.bench.stats import median_ci
 from uniros_async.runtime import make_vec
+from uniros_async.stats import median_ci
 from uniros_async.transports._shm_ring import PURE_PYTHON_ENV, compiled_ring_end
 
 STEPS = 500

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from uniros_async.bench.stats import median_ci
+from uniros_async.stats import median_ci
 
 
 @pytest.mark.parametrize(("n", "ranks"), [(6, (1, 6)), (10, (2, 9)), (29, (9, 21)), (100, (40, 61))])
@@ -35,7 +35,7 @@ def test_median_ci_holds_the_median_at_least_as_often_as_it_says() -> None:
 def test_real_time_threads_of_other_processes_are_counted_and_a_run_s_own_left_out() -> None:
     """A process in SCHED_RR that spins is listed with the CPU it used, but not when it is in the excluded tree;
     ordinary processes never are."""
-    from uniros_async.bench.stats import real_time_elsewhere, real_time_threads
+    from uniros_async.bench.common import real_time_elsewhere, real_time_threads
 
     if os.geteuid() != 0:
         pytest.skip("SCHED_RR needs root or CAP_SYS_NICE; this machine's CI runs as root")

@@ -19,8 +19,9 @@ import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
 from typing import Any
 
-from uniros_async.bench.stats import progress_counter, report, summary
+from uniros_async.bench.common import progress_counter, report
 from uniros_async.errors import ConfigError
+from uniros_async.stats import summary
 
 __all__ = ["Blocks", "RoundTripBenchConfig", "open_peers", "our_block", "print_table", "records_of", "take_turns"]
 

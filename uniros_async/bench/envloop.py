@@ -18,8 +18,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from uniros_async.bench.common import report
 from uniros_async.bench.looptiming import ScriptedReachAgent, Series, format_table, loop_metrics, to_records
-from uniros_async.bench.stats import report
 from uniros_async.errors import ConfigError
 
 __all__ = ["EnvLoopBenchConfig", "main"]

@@ -68,6 +68,7 @@ from typing import Any
 import numpy as np
 
 from uniros_async.bench._environ import environ_set
+from uniros_async.bench.common import cpu_times, real_time_elsewhere, real_time_threads, report, steal_percent
 from uniros_async.bench.looptiming import (
     ARM_OF_ENV_ID,
     ScriptedReachAgent,
@@ -77,7 +78,6 @@ from uniros_async.bench.looptiming import (
     since,
     to_records,
 )
-from uniros_async.bench.stats import cpu_times, real_time_elsewhere, real_time_threads, report, steal_percent
 from uniros_async.errors import ConfigError
 from uniros_async.priority import cores_kept_awake, gil_switch_interval, real_time_thread, reap
 
@@ -618,7 +618,7 @@ def format_load_table(series: Sequence[Series]) -> str:
     """Per load, class and env: actuator cycle median, p99 and max, action cycle median and IQR (ms), and whether
     the real-time class met the goal under load (p99 within ``LOAD_P99_GOAL_MS`` and max within
     ``LOAD_MAX_GOAL_MS`` of the period)."""
-    from uniros_async.bench.stats import summary
+    from uniros_async.stats import summary
 
     head = (
         f"{'env':<20} {'learner, load, class':<24} {'act. med':>9} {'act. p99':>9} {'act. max':>9} "

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from uniros_async.bench.stats import report
+from uniros_async.bench.common import report
 
 __all__ = ["SimClockBenchConfig", "main"]
 

@@ -72,10 +72,11 @@ import numpy as np
 
 from uniros_async.bench._environ import environ_set
 from uniros_async.bench._ray_rows import RAY_IMPLS, RayRows, overhead_lines
+from uniros_async.bench.common import cpu_times, progress_counter, report, steal_percent
 from uniros_async.bench.envs import DICT_ID, IMAGE_ID
-from uniros_async.bench.stats import cpu_times, median_ci, progress_counter, report, steal_percent
 from uniros_async.errors import ConfigError
 from uniros_async.runtime.worker import SHARED_CORES_MODES
+from uniros_async.stats import median_ci
 from uniros_async.transports._shm_ring import describe_ring_end
 
 __all__ = ["IMPLS", "ThroughputBenchConfig", "main"]

@@ -14,9 +14,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from uniros_async.bench.stats import report, summary
+from uniros_async.bench.common import report
 from uniros_async.bus import open_domain, open_node
 from uniros_async.errors import ConfigError
+from uniros_async.stats import summary
 
 __all__ = ["TimerBenchConfig", "main"]
 

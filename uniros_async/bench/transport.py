@@ -24,8 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from uniros_async.bench import _peers
-from uniros_async.bench.stats import progress_counter, report, summary
+from uniros_async.bench.common import progress_counter, report
 from uniros_async.errors import ConfigError
+from uniros_async.stats import summary
 
 __all__ = ["PAYLOADS", "TransportBenchConfig", "format_table", "main"]
 

@@ -9,7 +9,7 @@ four arms give four transitions per 0.8 s cycle, all into the one replay buffer 
 ``ConcurrentVecEnv`` is the SB3 VecEnv wrapper the learner steps. It tags every info with its env's label
 (``info["task"]``, ``info["task_index"]``), records when the agent received each step's returns and which steps
 ended an episode, and on ``timing_window()`` reads every env's timing records from its worker (cleared after the
-read) and turns them into the action-cycle statistics of ``uniros bench latency`` (``bench.looptiming``): the
+read) and turns them into the action-cycle statistics of ``uniros bench latency`` (``stats.loop_metrics``): the
 period between the agent's actions reaching each env loop, periods spanning a reset left out. The evaluation
 (``evaluate.evaluate_vec_policy``) steps the same envs, all four at once, between two training windows; with
 ``eval.alongside`` a second ConcurrentVecEnv of the same envs is evaluated on a thread while training goes on.
@@ -98,7 +98,7 @@ class ConcurrentVecEnv(VecEnvWrapper):
         Call it between steps (after a step's returns, before the next actions): the next window then starts with
         the next step, whose period from this one is in neither window.
         """
-        from uniros_async.bench.looptiming import loop_metrics
+        from uniros_async.stats import loop_metrics
 
         snaps = self.venv.env_method("timing_snapshot", clear=True)
         out: dict[str, dict[str, list[float]]] = {}

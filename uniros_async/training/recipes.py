@@ -552,7 +552,7 @@ class _Run:
         """Close the concurrent envs' timing window: one timing.csv row per env and metric."""
         if self.concurrent is None or self.timing_log is None:
             return {}
-        from uniros_async.bench.stats import summary
+        from uniros_async.stats import summary
 
         window = self.concurrent.timing_window()
         wall = round(self.wall_s(), 1)
@@ -576,7 +576,7 @@ class _Run:
     def progress_line(self, step: int, window: dict[str, dict[str, list[float]]]) -> str:
         """One line: steps, wall time, env steps per hour, success per env (last 50 training episodes), action
         cycle per env (this window's median and IQR)."""
-        from uniros_async.bench.stats import summary
+        from uniros_async.stats import summary
 
         wall = self.wall_s()
         per_h = step / wall * 3600 if wall > 0 else 0.0
@@ -616,7 +616,7 @@ class _Run:
 
 def _timing_summaries(venv: ConcurrentVecEnv) -> dict[str, dict[str, dict[str, float | None]]]:
     """Every env's timing samples so far (``ConcurrentVecEnv.samples``) as summaries (median, IQR, p99, ... in ms)."""
-    from uniros_async.bench.stats import summary
+    from uniros_async.stats import summary
 
     return {
         label: {metric: {k: _num(v) for k, v in summary(samples).items()} for metric, samples in metrics.items()}

@@ -1,71 +1,23 @@
-"""Order statistics for benchmark samples (medians and percentiles, never means of latencies); the report; a
-progress counter; what else on the host competed with a run (hypervisor steal, other processes' real-time
-threads)."""
+"""What every ``uniros bench`` shares: the report, a progress counter, and what else on the host competed with a
+run (hypervisor steal, other processes' real-time threads). The statistics are ``uniros_async.stats``."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 __all__ = [
     "cpu_times",
-    "median_ci",
     "progress_counter",
     "real_time_elsewhere",
     "real_time_threads",
     "report",
     "steal_percent",
-    "summary",
 ]
-
-
-def summary(samples: Sequence[float]) -> dict[str, float]:
-    """p50, p90, p99, IQR, min, max and count of ``samples`` (NaN when empty)."""
-    if len(samples) == 0:
-        nan = float("nan")
-        return {"p50": nan, "p90": nan, "p99": nan, "iqr": nan, "min": nan, "max": nan, "count": 0}
-    a = np.asarray(samples, dtype=np.float64)
-    p25, p50, p75, p90, p99 = np.percentile(a, [25, 50, 75, 90, 99])
-    return {
-        "p50": float(p50),
-        "p90": float(p90),
-        "p99": float(p99),
-        "iqr": float(p75 - p25),
-        "min": float(a.min()),
-        "max": float(a.max()),
-        "count": int(a.size),
-    }
-
-
-def median_ci(samples: Sequence[float] | np.ndarray, level: float = 0.95) -> tuple[float, float]:
-    """A distribution-free confidence interval of the median of ``samples``: the order statistics of ranks ``l`` and
-    ``n + 1 - l``, ``l`` the largest rank with P(Binomial(n, 1/2) < l) <= (1 - level) / 2, so the interval holds the
-    true median with probability >= ``level``. It assumes independent samples; steps timed back to back share the
-    moment's load, so read it as the least the figure is uncertain by. (NaN, NaN) when ``samples`` are too few for
-    any such pair of ranks (fewer than 6 at 95 %).
-    """
-    n = len(samples)
-    tail = (1.0 - level) / 2
-    total = 2**n
-    rank = 0  # l
-    term = 1  # comb(n, rank), updated in place: exact integers, one multiplication a rank
-    outcomes = 0  # of the 2**n, how many have at most ``rank`` successes: P(X < rank + 1) * 2**n
-    while rank < n // 2:
-        outcomes += term
-        if outcomes / total > tail:
-            break
-        term = term * (n - rank) // (rank + 1)
-        rank += 1
-    if rank == 0:
-        return float("nan"), float("nan")
-    a = np.sort(np.asarray(samples, dtype=np.float64))
-    return float(a[rank - 1]), float(a[n - rank])
 
 
 def report(table: str, records: list[dict[str, Any]], json_path: str | None, log: Callable[[str], None]) -> None:
