@@ -29,14 +29,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import difflib
-import importlib
 import re
 from collections.abc import AsyncIterator, Callable
 from contextlib import AbstractAsyncContextManager
 from typing import TYPE_CHECKING, Any
 
 from uniros_async.errors import ConfigError
+from uniros_async.registry import Registry, load_entry_point
 
 if TYPE_CHECKING:
     from uniros_async.clock import Clock
@@ -103,20 +102,6 @@ ConfigCheck = Callable[[str, "EnvConfig"], None]
 """A placement's own check of an env config (its URI, its settings); raises ConfigError."""
 
 
-def _load(entry_point: str, what: str) -> Any:
-    module_name, sep, attribute = entry_point.partition(":")
-    if not sep or not module_name or not attribute:
-        raise ConfigError(f"{what}: expected an entry point 'module:attribute', got {entry_point!r}")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise ConfigError(f"{what}: cannot import {module_name!r} ({exc})") from exc
-    try:
-        return getattr(module, attribute)
-    except AttributeError:
-        raise ConfigError(f"{what}: module {module_name!r} has no {attribute!r}") from None
-
-
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class PlacementSpec:
     """One registered placement.
@@ -156,7 +141,7 @@ class PlacementSpec:
         """
         factory = self.entry_point
         if isinstance(factory, str):
-            factory = _load(factory, f"placement {self.name!r}")
+            factory = load_entry_point(factory, f"placement {self.name!r}")
         if not callable(factory):
             what = type(factory).__name__
             raise ConfigError(f"placement {self.name!r}: {self.entry_point!r} is {what}, not callable")
@@ -172,7 +157,7 @@ class PlacementSpec:
         if check is None:
             return
         if isinstance(check, str):
-            check = _load(check, f"placement {self.name!r} check")
+            check = load_entry_point(check, f"placement {self.name!r} check")
         check(config.robot, config)
 
     def open(self, request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
@@ -180,7 +165,9 @@ class PlacementSpec:
         return self.factory()(request)
 
 
-_PLACEMENTS: dict[str, PlacementSpec] = {}
+_PLACEMENTS = Registry[PlacementSpec](
+    "placement", note="a URI scheme takes the rest of the URI; register_placement adds one"
+)
 
 
 def _key(robot: str) -> str:
@@ -243,18 +230,12 @@ def register_placement(
         check=check,
         description=description,
     )
-    old = _PLACEMENTS.get(name)
-    if old == spec:
-        return old
-    if old is not None and not override:
-        raise ConfigError(f"placement {name!r} is already registered ({old.entry_point!r}); pass override=True")
-    _PLACEMENTS[name] = spec
-    return spec
+    return _PLACEMENTS.register(name, spec, override=override)  # type: ignore[return-value]  # no entry points
 
 
 def placement_names() -> list[str]:
     """The registered placements, sorted: names and schemes (``"tcp://"``)."""
-    return sorted(_PLACEMENTS)
+    return list(_PLACEMENTS.names())
 
 
 def placement_spec(robot: str) -> PlacementSpec:
@@ -269,16 +250,9 @@ def placement_spec(robot: str) -> PlacementSpec:
     if not isinstance(robot, str):
         raise ConfigError(f"robot: expected a placement name or URI string, got {type(robot).__name__} {robot!r}")
     key = _key(robot)
-    try:
-        return _PLACEMENTS[key]
-    except KeyError:
-        pass
-    close = difflib.get_close_matches(key, _PLACEMENTS, n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    raise ConfigError(
-        f"robot={robot!r}: no placement {key!r} is registered{hint}; registered: {placement_names()} (a URI scheme "
-        "takes the rest of the URI; register_placement adds one)"
-    )
+    if key not in _PLACEMENTS:
+        raise _PLACEMENTS.unknown(key, message=f"robot={robot!r}: no placement {key!r} is registered")
+    return _PLACEMENTS.get(key)
 
 
 def open_placement(robot: str, request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:

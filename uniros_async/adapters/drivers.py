@@ -23,12 +23,12 @@ at import, next to its robot::
 from __future__ import annotations
 
 import dataclasses
-import difflib
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
 
 from uniros_async.errors import ConfigError
+from uniros_async.registry import Registry
 
 __all__ = [
     "ROS_VERSIONS",
@@ -75,8 +75,13 @@ class RosDriverDefaults:
         }
 
 
-_DRIVERS: dict[tuple[str, str, str], RosDriverDefaults] = {}
+# "ros/robot/driver" -> its defaults (a robot's name has no "/": it is a topic namespace)
+_DRIVERS = Registry[RosDriverDefaults]("ROS driver", describe=str)
 _DEFAULT: dict[tuple[str, str], str] = {}  # (ros, robot) -> its default driver
+
+
+def _key(ros: str, robot: str, driver: str) -> str:
+    return f"{ros}/{robot}/{driver}"
 
 
 def _check_ros(ros: str) -> None:
@@ -122,6 +127,8 @@ def register_ros_driver(
     for what, value in (("robot", robot), ("driver", driver)):
         if not isinstance(value, str) or not value:
             raise ConfigError(f"register_ros_driver: {what} must be a non-empty string, got {value!r}")
+    if "/" in robot:
+        raise ConfigError(f"register_ros_driver: robot must be a robot's name (no '/'), got {robot!r}")
     for what, topic in (("joint_states", joint_states), ("command", command)):
         if not isinstance(topic, str) or not topic.startswith("/") or len(topic) < 2:
             raise ConfigError(f"register_ros_driver: {what} must be an absolute topic like /a/b, got {topic!r}")
@@ -136,21 +143,17 @@ def register_ros_driver(
         command_type=command_type,
         settings=MappingProxyType(dict(settings or {})),
     )
-    key = (ros, robot, driver)
-    old = _DRIVERS.get(key)
-    if old is not None and old != entry and not override:
-        raise ConfigError(f"{ros} driver {driver!r} of {robot!r} is already registered ({old}); pass override=True")
-    if old != entry:
-        _DRIVERS[key] = entry
+    registered = _DRIVERS.register(_key(ros, robot, driver), entry, override=override)
     if default or (ros, robot) not in _DEFAULT:
         _DEFAULT[ros, robot] = driver
-    return _DRIVERS[key]
+    return registered  # type: ignore[return-value]  # no entry points
 
 
 def ros_drivers(ros: str, robot: str | None = None) -> list[RosDriverDefaults]:
     """The drivers registered for ``ros`` (and ``robot``, when given), sorted by robot and driver."""
     _check_ros(ros)
-    return [d for k, d in sorted(_DRIVERS.items()) if k[0] == ros and (robot is None or k[1] == robot)]
+    found = [d for d in _DRIVERS.entries.values() if isinstance(d, RosDriverDefaults) and d.ros == ros]
+    return sorted((d for d in found if robot is None or d.robot == robot), key=lambda d: (d.robot, d.driver))
 
 
 def ros_driver_defaults(ros: str, robot: str, driver: str | None = None) -> RosDriverDefaults | None:
@@ -168,16 +171,14 @@ def ros_driver_defaults(ros: str, robot: str, driver: str | None = None) -> RosD
     """
     _check_ros(ros)
     if driver is None:
-        name = _DEFAULT.get((ros, robot))
-        return None if name is None else _DRIVERS[ros, robot, name]
-    try:
-        return _DRIVERS[ros, robot, driver]
-    except KeyError:
-        pass
-    known = [d.driver for d in ros_drivers(ros, robot)]
-    close = difflib.get_close_matches(driver, known, n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    raise ConfigError(f"no {ros} driver {driver!r} is registered for {robot!r}{hint}; registered: {known}")
+        driver = _DEFAULT.get((ros, robot))
+        if driver is None:
+            return None
+    key = _key(ros, robot, driver)
+    if key not in _DRIVERS:
+        known = [d.driver for d in ros_drivers(ros, robot)]
+        raise _DRIVERS.unknown(driver, message=f"no {ros} driver {driver!r} is registered for {robot!r}", among=known)
+    return _DRIVERS.get(key)
 
 
 def _register_builtins() -> None:

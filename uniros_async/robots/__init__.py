@@ -14,20 +14,34 @@ first, so a CLI or another process finds the arm by that name alone.
 
 from __future__ import annotations
 
-import difflib
 import importlib
 from typing import Any
 
 from uniros_async.errors import ConfigError
+from uniros_async.registry import Registry
 from uniros_async.robots.spec import RobotSpec, ServoProfile
 
 __all__ = ["ROBOT_NAMES", "RobotSpec", "ServoProfile", "get_robot_spec", "register_robot", "robot_names"]
 
+
+def _check_spec(name: str, spec: object) -> RobotSpec:
+    if not isinstance(spec, RobotSpec):
+        raise ConfigError(f"robot {name!r}: its entry point is a {type(spec).__name__}, not a RobotSpec")
+    if spec.name != name:
+        raise ConfigError(f"robot {name!r}: its entry point is the spec of {spec.name!r}")
+    return spec
+
+
+def _describe(entry: RobotSpec | str) -> str:
+    return repr(entry) if isinstance(entry, str) else f"a RobotSpec with model {entry.mjcf_path}"
+
+
 # name -> the spec, or "module:attribute" naming it (imported on first use, so importing this package stays cheap)
-_REGISTRY: dict[str, RobotSpec | str] = {
-    "rx200": "uniros_async.robots.rx200.config:RX200",
-    "ned2": "uniros_async.robots.ned2.config:NED2",
-}
+_ROBOTS = Registry[RobotSpec](
+    "robot", entry_points="attribute", check=_check_spec, describe=_describe, note="register_robot adds one"
+)
+_ROBOTS.register("rx200", "uniros_async.robots.rx200.config:RX200")
+_ROBOTS.register("ned2", "uniros_async.robots.ned2.config:NED2")
 
 
 def register_robot(spec: RobotSpec | str, *, name: str | None = None, override: bool = False) -> None:
@@ -51,8 +65,7 @@ def register_robot(spec: RobotSpec | str, *, name: str | None = None, override: 
             raise ConfigError(f"register_robot: name={name!r} differs from the spec's name {spec.name!r}")
         name = spec.name
     elif isinstance(spec, str):
-        module, sep, attribute = spec.partition(":")
-        if not (sep and module and attribute):
+        if ":" not in spec:
             raise ConfigError(f"register_robot: expected a RobotSpec or 'module:attribute', got {spec!r}")
         if name is None:
             raise ConfigError(f"register_robot({spec!r}): an entry point needs name=, the robot's name")
@@ -60,45 +73,12 @@ def register_robot(spec: RobotSpec | str, *, name: str | None = None, override: 
         raise ConfigError(f"register_robot: expected a RobotSpec or 'module:attribute', got {type(spec).__name__}")
     if not name or ":" in name or "/" in name or name != name.strip():
         raise ConfigError(f"register_robot: the name must be a plain word (a topic namespace), got {name!r}")
-    old = _REGISTRY.get(name)
-    if old is not None and old != spec and not override:
-        known = _resolve(name, old)
-        if known is not None and known == _resolve(name, spec):
-            return  # the entry point and the spec are the same robot
-        raise ConfigError(f"robot {name!r} is already registered ({_describe(old)}); pass override=True to replace it")
-    _REGISTRY[name] = spec
+    _ROBOTS.register(name, spec, override=override)
 
 
 def robot_names() -> tuple[str, ...]:
     """The registered robots' names, sorted (built-in and user-registered, as of this call)."""
-    return tuple(sorted(_REGISTRY))
-
-
-def _describe(entry: RobotSpec | str) -> str:
-    return entry if isinstance(entry, str) else f"a RobotSpec with model {entry.mjcf_path}"
-
-
-def _resolve(name: str, entry: RobotSpec | str) -> RobotSpec | None:
-    """The spec of a registry entry, or None when it cannot be loaded (then it equals nothing)."""
-    if isinstance(entry, RobotSpec):
-        return entry
-    try:
-        return _load(name, entry)
-    except ConfigError:
-        return None
-
-
-def _load(name: str, target: str) -> RobotSpec:
-    module_name, _, attribute = target.partition(":")
-    try:
-        spec = getattr(importlib.import_module(module_name), attribute)
-    except (ImportError, AttributeError) as exc:
-        raise ConfigError(f"robot {name!r}: cannot load {target!r} ({exc})") from exc
-    if not isinstance(spec, RobotSpec):
-        raise ConfigError(f"robot {name!r}: {target} is {type(spec).__name__}, not a RobotSpec")
-    if spec.name != name:
-        raise ConfigError(f"robot {name!r}: {target} is the spec of {spec.name!r}")
-    return spec
+    return _ROBOTS.names()
 
 
 def get_robot_spec(name: str) -> RobotSpec:
@@ -125,19 +105,7 @@ def get_robot_spec(name: str) -> RobotSpec:
             raise ConfigError(
                 f"robot '{module}:{name}': cannot import {module!r}, which should register it: {exc}"
             ) from exc
-    try:
-        target = _REGISTRY[name]
-    except KeyError:
-        close = difflib.get_close_matches(name, _REGISTRY, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ConfigError(
-            f"unknown robot {name!r}{hint}; registered: {list(robot_names())} (register_robot adds one)"
-        ) from None
-    if isinstance(target, RobotSpec):
-        return target
-    spec = _load(name, target)
-    _REGISTRY[name] = spec
-    return spec
+    return _ROBOTS.get(name)
 
 
 def __getattr__(name: str) -> Any:

@@ -23,13 +23,13 @@ is given as ``"my_pkg:my_pkg/MyarmReach-v0"`` (gymnasium imports ``my_pkg`` firs
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from types import MappingProxyType
 from typing import Any
 
 from uniros_async.errors import ConfigError
+from uniros_async.registry import Registry, split_entry_point
 from uniros_async.robots import get_robot_spec, robot_names
 
 __all__ = [
@@ -64,11 +64,38 @@ class TaskSpec:
     max_episode_steps: int | None = MAX_EPISODE_STEPS
 
 
-_TASKS: dict[str, TaskSpec] = {}
-_ENV_IDS: dict[str, tuple[str, str]] = {}
-_ID_KWARGS: dict[str, dict[str, Any]] = {}
+@dataclasses.dataclass(frozen=True)
+class _EnvId:
+    robot: str
+    task: str
+    kwargs: Mapping[str, Any]
 
-ENV_IDS: Mapping[str, tuple[str, str]] = MappingProxyType(_ENV_IDS)
+
+class _EnvIds(Mapping[str, tuple[str, str]]):
+    """The env id registry read as ``id -> (robot, task)``."""
+
+    def __getitem__(self, env_id: str) -> tuple[str, str]:
+        entry = _ENV_IDS.entries[env_id]
+        assert isinstance(entry, _EnvId)  # the registry takes no entry points
+        return entry.robot, entry.task
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(_ENV_IDS.entries)
+
+    def __len__(self) -> int:
+        return len(_ENV_IDS)
+
+
+_TASKS = Registry[TaskSpec]("task", note="register_task adds one")
+
+
+def _describe_id(entry: _EnvId | str) -> str:
+    return f"for {(entry.robot, entry.task)}" if isinstance(entry, _EnvId) else entry
+
+
+_ENV_IDS = Registry[_EnvId]("env id", describe=_describe_id, overridable=False)
+
+ENV_IDS: Mapping[str, tuple[str, str]] = _EnvIds()
 """Every id registered through this module (built-in and user-registered), as ``id -> (robot, task)``."""
 
 _NAME = re.compile(r"[A-Z][A-Za-z0-9]*")
@@ -101,9 +128,12 @@ def register_task(
     """
     if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise ConfigError(f"register_task: the name must be CamelCase like 'Push', got {name!r}")
-    module, sep, attribute = entry_point.partition(":") if isinstance(entry_point, str) else ("", "", "")
-    if not (sep and module and attribute):
-        raise ConfigError(f"register_task({name!r}): expected an entry point 'module:Class', got {entry_point!r}")
+    try:
+        split_entry_point(entry_point, "")
+    except ConfigError:
+        raise ConfigError(
+            f"register_task({name!r}): expected an entry point 'module:Class', got {entry_point!r}"
+        ) from None
     if max_episode_steps is not None and not (isinstance(max_episode_steps, int) and max_episode_steps > 0):
         raise ConfigError(f"register_task({name!r}): max_episode_steps must be a positive int or None")
     spec = TaskSpec(
@@ -112,18 +142,12 @@ def register_task(
         kwargs=MappingProxyType(dict(kwargs or {})),
         max_episode_steps=max_episode_steps,
     )
-    old = _TASKS.get(name)
-    if old == spec:
-        return old
-    if old is not None and not override:
-        raise ConfigError(f"task {name!r} is already registered ({old.entry_point}); pass override=True to replace it")
-    _TASKS[name] = spec
-    return spec
+    return _TASKS.register(name, spec, override=override)  # type: ignore[return-value]  # no entry points
 
 
 def task_names() -> tuple[str, ...]:
     """The registered tasks' names, sorted."""
-    return tuple(sorted(_TASKS))
+    return _TASKS.names()
 
 
 def task_spec(name: str) -> TaskSpec:
@@ -132,13 +156,7 @@ def task_spec(name: str) -> TaskSpec:
     Raises:
         ConfigError: none is; the message lists the registered tasks and the closest one.
     """
-    try:
-        return _TASKS[name]
-    except (KeyError, TypeError):
-        pass
-    close = difflib.get_close_matches(str(name), _TASKS, n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    raise ConfigError(f"unknown task {name!r}{hint}; registered: {list(task_names())} (register_task adds one)")
+    return _TASKS.get(name)
 
 
 def env_id_of(robot: str, task: str, namespace: str = "uniros") -> str:
@@ -183,10 +201,10 @@ def register_env_id(
     env_id = env_id or env_id_of(robot, task)
     own = {"arm": robot, **spec.kwargs, **(kwargs or {})}
     steps = spec.max_episode_steps if max_episode_steps is None else max_episode_steps
+    entry = _EnvId(robot, task, own)
     if env_id in _ENV_IDS:
-        if _ENV_IDS[env_id] == (robot, task) and _ID_KWARGS[env_id] == own:
-            return env_id
-        raise ConfigError(f"env id {env_id!r} is already registered for {_ENV_IDS[env_id]}")
+        _ENV_IDS.register(env_id, entry)  # a no-op for the same id, else ConfigError naming the one registered
+        return env_id
     from gymnasium.envs.registration import register, registry
 
     if env_id in _ENV_IDS:  # registered meanwhile: importing gymnasium just now registered the ids that ship
@@ -200,8 +218,7 @@ def register_env_id(
         kwargs=own,
         disable_env_checker=True,  # step() validates actions itself; the tests run the full checkers
     )
-    _ENV_IDS[env_id] = (robot, task)
-    _ID_KWARGS[env_id] = own
+    _ENV_IDS.register(env_id, entry)
     return env_id
 
 

@@ -20,7 +20,6 @@ import contextlib
 import ctypes
 import dataclasses
 import enum
-import importlib
 import os
 import time
 from collections.abc import AsyncIterator, Sequence
@@ -29,6 +28,7 @@ from typing import Any, ClassVar, Self
 from urllib.parse import urlsplit
 
 from uniros_async.errors import ConfigError, FrameTooLargeError
+from uniros_async.registry import Registry
 
 __all__ = [
     "Buffer",
@@ -285,19 +285,26 @@ def frame_nbytes(frame: Buffer | Sequence[Buffer]) -> int:
     return sum(memoryview(part).nbytes for part in frame)
 
 
-# scheme -> "module:ListenFn:ConnectFn"; imported on first use so `memory://` users never import shm or tcp code.
-_SCHEMES: dict[str, str] = {
-    "memory": "uniros_async.transports.memory",
-    "shm": "uniros_async.transports.shm",
-    "tcp": "uniros_async.transports.tcp",
-    "tls": "uniros_async.transports.tls",
-}
+# scheme -> the module of its transport, imported on first use so `memory://` users never import shm or tcp code
+_SCHEMES = Registry[Any](
+    "transport scheme",
+    entry_points="module",
+    describe=lambda entry: repr(getattr(entry, "__name__", entry)),
+    note="register_scheme adds one",
+)
+for _scheme in ("memory", "shm", "tcp", "tls"):
+    _SCHEMES.register(_scheme, f"uniros_async.transports.{_scheme}")
 
 
-def register_scheme(scheme: str, module: str) -> None:
+def register_scheme(scheme: str, module: str, *, override: bool = False) -> None:
     """Make ``scheme://`` URIs use ``module``, which must define ``async listen(uri, options)`` and
-    ``async connect(uri, options)`` (see docs/howto/add-a-transport.md)."""
-    _SCHEMES[scheme] = module
+    ``async connect(uri, options)`` (see docs/howto/add-a-transport.md). Registering the same module again is a
+    no-op.
+
+    Raises:
+        ConfigError: a malformed module name, or ``scheme`` is taken by another module and ``override`` is False.
+    """
+    _SCHEMES.register(scheme, module, override=override)
 
 
 def split_uri(uri: str) -> tuple[str, str]:
@@ -308,17 +315,17 @@ def split_uri(uri: str) -> tuple[str, str]:
     """
     if "://" not in uri:
         raise ConfigError(
-            f"transport URI {uri!r} has no scheme; expected one of {sorted(_SCHEMES)}, e.g. tcp://127.0.0.1:0"
+            f"transport URI {uri!r} has no scheme; expected one of {list(_SCHEMES.names())}, e.g. tcp://127.0.0.1:0"
         )
     scheme = urlsplit(uri).scheme
     if scheme not in _SCHEMES:
-        raise ConfigError(f"unknown transport scheme {scheme!r} in {uri!r}; known: {sorted(_SCHEMES)}")
+        raise _SCHEMES.unknown(scheme, message=f"unknown transport scheme {scheme!r} in {uri!r}")
     return scheme, uri.split("://", 1)[1]
 
 
 def _module(uri: str) -> object:
     scheme, _ = split_uri(uri)
-    return importlib.import_module(_SCHEMES[scheme])
+    return _SCHEMES.get(scheme)
 
 
 async def listen(uri: str, options: TransportOptions | None = None) -> Listener:
