@@ -91,14 +91,18 @@ def test_a_malformed_placement_name_is_refused(name: str) -> None:
         register_placement(name, _open_nowhere)
 
 
-def test_envs_import_no_adapter() -> None:
-    """The env layer knows the placement registry, never an adapter: ros1:// is registered by entry point."""
+def test_envs_import_no_adapter_and_no_sim() -> None:
+    """The env layer knows the placement registry, never an adapter or the sim: ros1:// and sim are registered by
+    entry point, and the sim's factories load when a sim placement is opened."""
     code = (
         "import sys, uniros_async.envs.robot, uniros_async.envs.config\n"
         "from uniros_async.envs.config import EnvConfig\n"
+        "from uniros_async.placements import placement_spec\n"
         "EnvConfig(robot='sim'); EnvConfig(robot='tcp://127.0.0.1:7000')\n"
-        "bad = [m for m in sys.modules if m.startswith('uniros_async.adapters')]\n"
+        "bad = [m for m in sys.modules if m.startswith(('uniros_async.adapters', 'uniros_async.sim.'))]\n"
         "assert not bad, bad\n"
+        "from uniros_async.sim.placement import open_sim\n"
+        "assert placement_spec('sim').factory() is open_sim\n"
         "print('ok')\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)

@@ -7,9 +7,11 @@ config, its clock) it returns an async context manager that starts, or connects 
 ``ArmLink``, the domain the env's node joins and the transport it uses there. The env then reaches the arm only
 through its topics and services, whatever the placement.
 
-Like gymnasium's ``register``, one dict holds every placement behind ``register_placement``; entry points are
-``"module:function"`` strings, imported only when a placement is opened, so ``uniros_async.envs`` never imports
-an adapter (``ros1://`` is registered here by name, its code lives in ``uniros_async.adapters.ros1_bridge``).
+Like gymnasium's ``register``, one registry (a ``uniros_async.registry.Registry``) holds every placement behind
+``register_placement``; entry points are ``"module:function"`` strings, imported only when a placement is opened,
+so neither this module nor ``uniros_async.envs`` imports a sim or an adapter: ``sim``, ``sim-process`` and
+``emulated-real`` are registered here by name and built in ``uniros_async.sim.placement``, ``ros1://`` in
+``uniros_async.adapters.ros1_bridge``.
 A package of your own registers its placements at import::
 
     import contextlib
@@ -265,58 +267,7 @@ def open_placement(robot: str, request: PlacementRequest) -> AbstractAsyncContex
     return placement_spec(robot).open(request)
 
 
-# ------------------------------------------------------------------------------------------------ built-ins
-
-
-@contextlib.asynccontextmanager
-async def _open_in_process_sim(request: PlacementRequest, *, emulated: bool) -> AsyncIterator[ArmLink]:
-    """The servo sim (``emulated``: the emulated real arm's model) in the env's process, on its clock, over memory."""
-    from uniros_async.bus import open_domain
-    from uniros_async.sim.emulated import EmulationConfig
-    from uniros_async.sim.node import open_servo_sim
-
-    emulation = EmulationConfig(seed=request.config.emulation_seed) if emulated else None
-    async with (
-        open_domain("memory://") as domain,
-        open_servo_sim(request.robot, domain=domain, clock=request.clock, emulation=emulation),
-    ):
-        yield ArmLink(domain=domain)
-
-
-@contextlib.asynccontextmanager
-async def _open_sim_process(request: PlacementRequest, *, emulated: bool) -> AsyncIterator[ArmLink]:
-    """The servo sim in a child process of a tcp domain this env opens; the emulated arm is reached over tcp only,
-    as a physical arm on the network would be, the nominal sim over shm."""
-    from uniros_async.bus import open_domain
-    from uniros_async.sim.emulated import EmulationConfig
-    from uniros_async.sim.serve import open_servo_sim_process
-
-    transport = "tcp" if emulated else "auto"
-    emulation = EmulationConfig(seed=request.config.emulation_seed) if emulated else None
-    async with (
-        open_domain("tcp://127.0.0.1:0") as domain,
-        # the spec itself, not its name: the child then finds a robot registered by user code too
-        open_servo_sim_process(request.robot, domain=domain, emulation=emulation, transport=transport) as process,
-    ):
-        yield ArmLink(domain=domain, transport=transport, process=process)
-
-
-def open_sim(request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
-    """``robot="sim"``: the nominal servo sim in the env's process (memory transport, the env's clock)."""
-    return _open_in_process_sim(request, emulated=False)
-
-
-def open_sim_process(request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
-    """``robot="sim-process"``: the nominal servo sim in its own process (shm)."""
-    return _open_sim_process(request, emulated=False)
-
-
-def open_emulated_real(request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
-    """``robot="emulated-real"``: the emulated real arm as a tcp service in its own process; with ``clock="sim"``
-    the same emulation model (perturbed dynamics, sensor noise, latencies) in sim time in the env's process."""
-    if request.config.clock == "sim":
-        return _open_in_process_sim(request, emulated=True)
-    return _open_sim_process(request, emulated=True)
+# ------------------------------------------------------------------------- built-ins (the sim ones: sim/placement.py)
 
 
 @contextlib.asynccontextmanager
@@ -359,10 +310,10 @@ def check_tls(robot: str, config: EnvConfig) -> None:
 
 
 def _register_builtins() -> None:
-    here = __name__
+    here, sim = __name__, "uniros_async.sim.placement"
     register_placement(
         "sim",
-        f"{here}:open_sim",
+        f"{sim}:open_sim",
         can_teleport=True,
         sim_clock=True,
         stamps_on_env_clock=True,
@@ -370,11 +321,11 @@ def _register_builtins() -> None:
         description="the servo sim in the env's process",
     )
     register_placement(
-        "sim-process", f"{here}:open_sim_process", can_teleport=True, description="the servo sim in its own process"
+        "sim-process", f"{sim}:open_sim_process", can_teleport=True, description="the servo sim in its own process"
     )
     register_placement(
         "emulated-real",
-        f"{here}:open_emulated_real",
+        f"{sim}:open_emulated_real",
         sim_clock=True,
         description="the emulated real arm over tcp (in sim time in the env's process with clock='sim')",
     )
