@@ -29,7 +29,7 @@ from uniros_async.robots import get_robot_spec
 from uniros_async.testing.tls import TlsFiles
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "docs/results/checkpoints/rx200_reach_dense_td3_uniros"
-"""The dense reach policy of docs/results.md, trained in accelerated sim."""
+"""The dense reach policy of docs/results.md, trained in accelerated sim (its weights: training/weights.py)."""
 
 
 def joint_command(q: list[float], duration_s: float = 0.0) -> JointCommand:
@@ -170,9 +170,9 @@ def policy_successes(serve: list[str], ready: str, robot: str, *, episodes: int 
     rx200 --emulate-real SERVE`` serves (once it printed ``ready``), reached by ``robot``; its successes in
     ``episodes`` episodes of at most 30 steps."""
     import gymnasium as gym
-    from stable_baselines3 import TD3
 
     import uniros_async  # noqa: F401
+    from uniros_async.training.weights import load_policy
 
     proc = subprocess.Popen(
         [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--emulate-real", *serve],
@@ -182,14 +182,14 @@ def policy_successes(serve: list[str], ready: str, robot: str, *, episodes: int 
     )
     try:
         assert wait_for_line(proc, ready.split("=")[0] + "=", timeout_s=60.0) == ready
-        model = TD3.load(CHECKPOINT / "model.zip", device="cpu")
+        policy = load_policy(CHECKPOINT)
         env = gym.make("uniros/Rx200Reach-v0", robot=robot, reward_type="dense", action_mode="delta")
         successes = 0
         try:
             for episode in range(episodes):
                 obs, _ = env.reset(seed=episode)
                 for _ in range(30):
-                    action, _ = model.predict(obs, deterministic=True)
+                    action = policy(obs)
                     obs, _, terminated, truncated, info = env.step(action)
                     if terminated or truncated:
                         break

@@ -268,7 +268,7 @@ def clean_partial(run_dir: str | Path) -> None:
 
 
 def find_checkpoint(path: str | Path) -> Path:
-    """Resolve a run directory, a checkpoint directory, or a ``model.zip`` to a checkpoint directory.
+    """Resolve a run directory, a checkpoint directory, a weights directory or a ``model.zip`` to its directory.
 
     Raises:
         CheckpointError: nothing usable there (what was looked for is named).
@@ -276,8 +276,8 @@ def find_checkpoint(path: str | Path) -> Path:
     p = Path(path)
     if p.is_file() and p.name == MODEL_FILE:
         p = p.parent
-    if p.is_dir() and _complete(p):
-        return p
+    if p.is_dir() and (_complete(p) or ((p / "policy.npz").is_file() and (p / META_FILE).is_file())):
+        return p  # a checkpoint, or the policy weights of one (weights.py)
     if p.is_dir():
         found = latest_checkpoint(p)
         if found is not None:

@@ -35,6 +35,8 @@ from uniros_async.training.checkpoint import (
     read_meta,
 )
 from uniros_async.training.multitask import TaskIdObservation, build_env, space_sizes
+from uniros_async.training.weights import is_weights_dir
+from uniros_async.training.weights import load_policy as load_weights
 
 __all__ = [
     "EvalResult",
@@ -259,7 +261,8 @@ def training_kwargs(meta: CheckpointMeta, env_id: str, label: str | None = None)
 
 
 def load_policy(checkpoint: str | Path) -> tuple[Any, CheckpointMeta, Path]:
-    """Load a checkpoint's model for prediction only (a one-row replay buffer, no env attached).
+    """Load a checkpoint's model for prediction only (a one-row replay buffer, no env attached), or a weights
+    directory's policy (weights.py).
 
     A checkpoint trained with ``normalize_obs`` gets its observation statistics attached, frozen (the model's
     ``get_vec_normalize_env()``): ``evaluate_policy`` normalises with them; call ``model.predict`` yourself with
@@ -276,6 +279,8 @@ def load_policy(checkpoint: str | Path) -> tuple[Any, CheckpointMeta, Path]:
 
     ckpt = find_checkpoint(checkpoint)
     meta = read_meta(ckpt)
+    if is_weights_dir(ckpt):
+        return load_weights(ckpt), meta, ckpt  # normalises its observations itself
     cls = _algo_class(meta.algo)
     # predict needs no replay buffer: a one-row plain one avoids allocating 1e6 rows (and HER's need of an env)
     custom: dict[str, Any] = {
@@ -359,4 +364,5 @@ def evaluate_checkpoint(
         )
     finally:
         env.close()
-    return dataclasses.replace(result, env_kwargs=kwargs)
+    # a weights policy normalises inside itself: meta.json says whether it does
+    return dataclasses.replace(result, env_kwargs=kwargs, normalized_obs=result.normalized_obs or meta.normalize_obs)
