@@ -16,6 +16,11 @@ The tree (as httpx/_exceptions.py draws its own)::
     │   └── ServiceError                     a service call failed on the server side; .remote_traceback
     ├── SimulationError                      MuJoCo diverged (dm_control PhysicsError)
     ├── RobotError                           a robot stopped publishing or refused a command
+    │   └── DxlError                         a Dynamixel bus transaction failed; .servo_id when one servo did
+    │       ├── DxlCrcError                  a packet's CRC did not match (counted and retried within the tick)
+    │       ├── DxlStatusError               a servo answered with an error byte; .error
+    │       ├── DxlTimeoutError (also TimeoutError)  a servo did not answer within the packet's timeout
+    │       └── DxlPortError                 the serial port could not be opened or failed; __cause__ holds the OSError
     └── WorkerError                          an env worker failed; .index, .remote_traceback
         └── StepTimeoutError (also TimeoutError)  a worker did not answer a request in time; names it, op, timeout
 
@@ -30,6 +35,11 @@ __all__ = [
     "CodecError",
     "ConfigError",
     "DomainError",
+    "DxlCrcError",
+    "DxlError",
+    "DxlPortError",
+    "DxlStatusError",
+    "DxlTimeoutError",
     "FrameTooLargeError",
     "NameConflictError",
     "RobotError",
@@ -102,6 +112,34 @@ class SimulationError(UnirosError):
 
 class RobotError(UnirosError):
     """A robot stopped publishing, or refused a command."""
+
+
+class DxlError(RobotError):
+    """A Dynamixel bus transaction failed; ``servo_id`` names the servo when one did (``None`` otherwise)."""
+
+    def __init__(self, message: str, *, servo_id: int | None = None) -> None:
+        super().__init__(message)
+        self.servo_id = servo_id
+
+
+class DxlCrcError(DxlError):
+    """A Dynamixel packet's CRC did not match its bytes."""
+
+
+class DxlStatusError(DxlError):
+    """A servo answered with a non-zero error byte; ``error`` holds it."""
+
+    def __init__(self, message: str, *, servo_id: int | None = None, error: int = 0) -> None:
+        super().__init__(message, servo_id=servo_id)
+        self.error = error
+
+
+class DxlTimeoutError(DxlError, TimeoutError):
+    """A servo did not answer within its packet's timeout (derived from the baud rate and the packet length)."""
+
+
+class DxlPortError(DxlError):
+    """The serial port of a Dynamixel bus could not be opened, or failed; ``__cause__`` holds the OSError."""
 
 
 class WorkerError(UnirosError):

@@ -19,6 +19,7 @@ The parsers, and what each run feeds them:
     tcpros-header   adapters/ros1/_tcpros.py read_header from a stream (length prefix, then fields)
     xmlrpc          an HTTP request read as the ROS 1 node's XML-RPC server reads it, then dispatched
     ros1-msgs       adapters/ros1/msgs.py deserialize of every ROS 1 message type
+    dxl             hardware/dxl/protocol.py's PacketParser on a stream in random chunks, and fast sync read answers
 
 The command prints a table of counts per parser and exits 1 if any crash or hang was found (listing the first
 inputs of each). ``run(parser, count, seed)`` is the same from Python (the test suite runs a small sample).
@@ -451,6 +452,40 @@ def _ros1_rejects() -> tuple[type[BaseException], ...]:
     return (CodecError,)
 
 
+def _dxl_seeds() -> list[bytes]:
+    from uniros_async.hardware.dxl import protocol as p
+
+    return [
+        p.encode_status(1, 0, bytes((0x06, 0x04, 0x26))),
+        p.encode_status(2, 0x80, bytes(range(10))),
+        p.encode_status(3, 0, b"\xff\xff\xfd\x00\xff\xff\xfd"),
+        p.encode_instruction(p.BROADCAST_ID, p.Instruction.SYNC_READ, p.sync_read_params(126, 10, [1, 2, 3])),
+        p.encode_fast_sync_read_status([(1, 0, bytes(10)), (2, 0x80, b"\xff" * 10), (3, 1, bytes(range(10)))]),
+        b"\x00\xff" + p.encode_status(4, 0, bytes(4)) + p.encode_status(5, 0, bytes(4)),
+    ]
+
+
+def _dxl_check(data: bytes, rng: random.Random) -> None:
+    from uniros_async.hardware.dxl import protocol as p
+
+    parser = p.PacketParser(raise_on_crc=rng.random() < 0.5)
+    i = 0
+    while i < len(data):
+        n = rng.randint(1, 64)
+        for pkt in parser.feed(data[i : i + n]):
+            assert p.crc16(pkt.raw[:-2]) == pkt.raw[-2] | (pkt.raw[-1] << 8)
+            if pkt.is_status and pkt.servo_id == p.BROADCAST_ID:
+                p.parse_fast_sync_read(pkt, rng.choice((4, 10)))
+        i += n
+    assert parser.buffered <= len(data)
+
+
+def _dxl_rejects() -> tuple[type[BaseException], ...]:
+    from uniros_async.errors import CodecError, DxlCrcError
+
+    return (CodecError, DxlCrcError)
+
+
 PARSERS: dict[str, _Target] = {
     "tcp-handshake": _Target(_tcp_handshake_seeds, _tcp_rejects, check=_tcp_handshake_check),
     "tcp-frames": _Target(_tcp_frames_seeds, _tcp_rejects, acheck=_tcp_frames_check),
@@ -460,6 +495,7 @@ PARSERS: dict[str, _Target] = {
     "tcpros-header": _Target(_tcpros_seeds, _tcpros_rejects, acheck=_tcpros_check),
     "xmlrpc": _Target(_xmlrpc_seeds, _xmlrpc_rejects, acheck=_xmlrpc_check),
     "ros1-msgs": _Target(_ros1_seeds, _ros1_rejects, check=_ros1_check),
+    "dxl": _Target(_dxl_seeds, _dxl_rejects, check=_dxl_check),
 }
 
 
