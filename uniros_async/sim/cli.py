@@ -172,6 +172,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
     view.add_argument("robot", help=ROBOT_HELP)
+    from uniros_async.hardware.dxl import vbus_cli
+
+    vbus_cli.add_parser(actions)
     return robot
 
 
@@ -186,6 +189,10 @@ def run(args: argparse.Namespace) -> int:
         return _serve(args)
     if action == "bridge":
         return _bridge(args)
+    if action == "vbus":
+        from uniros_async.hardware.dxl import vbus_cli
+
+        return vbus_cli.run(args)
     if action == "render":
         from uniros_async.sim.render import render_png
 

@@ -1,0 +1,599 @@
+"""VirtualBus: the Dynamixel servos of an arm answered from its MuJoCo servo sim.
+
+Each servo of a ``ServoMap`` gets a register memory laid out by its model's control table (EEPROM and RAM,
+filled with the model's defaults and the map's EEPROM settings), with the servo's access rules: read-only
+registers refuse writes, the EEPROM area refuses writes while Torque_Enable is 1, a Goal_Position outside the
+position limits is refused with a data limit error. ``handle(packet)`` applies one instruction packet to every
+servo it addresses and returns the status packets they send, in the order the real bus sends them; servos whose
+Secondary_ID is the packet's ID obey it and never answer (the rx200's shoulder shadow).
+
+The arm itself is a ``ServoSim`` stepped on the wall clock (``advance(now_s)``, 10 ms steps):
+
+- Goal_Position of the arm's servos drives the sim's servo targets, with the servos' profile (time-based:
+  Profile_Velocity is the move time in ms); a servo with its torque off holds where it is (its gearbox holds
+  the joint; the sim does not let it fall). The gripper in PWM mode opens for a positive Goal_PWM and closes for a
+  negative one; in position mode its Goal_Position is the horn angle.
+- Present_Position, Present_Velocity and Present_Current (Present_Load on the XL430) are the sim's, quantized to
+  the registers' units; a shadow reports its primary's ticks (its reverse drive mode mirrors its mounting).
+- The Bus Watchdog (address 98, 20 ms units): a servo whose torque is on and that receives no instruction for
+  longer than its watchdog stops and holds (Goal_Position := Present_Position), sets Bus_Watchdog to -1 and
+  refuses goal writes until Bus_Watchdog is written 0, as the X series do.
+
+Faults are set per servo (``ServoFaults``): corrupted status CRCs, dropped status packets, a silent servo, and
+Hardware_Error_Status bits (the alert bit in every status; torque off where the Shutdown register says).
+
+The pty, timing and command channel around it are ``vbus_pty.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from uniros_async.bus.messages import Header, JointCommand
+from uniros_async.errors import ConfigError
+from uniros_async.hardware.dxl.control_table import MODELS, ControlTable, Register, rad_to_ticks, ticks_to_rad
+from uniros_async.hardware.dxl.protocol import (
+    ALERT_BIT,
+    BROADCAST_ID,
+    Instruction,
+    Packet,
+    encode_fast_sync_read_status,
+    encode_status,
+)
+from uniros_async.hardware.dxl.servo_map import DRIVE_MODE_TIME_PROFILE, OPERATING_MODES, ServoConfig, ServoMap
+from uniros_async.robots import get_robot_spec
+from uniros_async.sim.emulated import EmulationConfig, add_sensor_noise
+from uniros_async.sim.node import build_sim
+from uniros_async.sim.servo import ServoSimConfig
+
+__all__ = ["ServoFaults", "VirtualBus", "VirtualServo"]
+
+logger = logging.getLogger(__name__)
+
+ERR_RESULT_FAIL = 0x01
+ERR_INSTRUCTION = 0x02
+ERR_DATA_RANGE = 0x04
+ERR_DATA_LENGTH = 0x05
+ERR_DATA_LIMIT = 0x06
+ERR_ACCESS = 0x07
+
+SIM_STEP_S = 0.01
+"""The sim's step on the wall clock (5 physics steps of 2 ms)."""
+VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * math.pi / 60.0
+"""Present_Velocity's unit, 0.229 rpm, in rad/s."""
+CURRENT_UNIT_A = 0.00269
+"""Present_Current's unit on the XM430, 2.69 mA."""
+TORQUE_CONSTANT_NM_A = {"XM430-W350": 4.1 / 2.3, "XL430-W250": 1.4 / 1.3, "XL330-M288": 0.52 / 1.47}
+"""Stall torque over stall current at 12 V (11.1 V for the XL430, 5 V for the XL330), ROBOTIS e-manual."""
+STALL_TORQUE_NM = {"XM430-W350": 4.1, "XL430-W250": 1.4, "XL330-M288": 0.52}
+_CRANK_R, _CRANK_L = 0.014, 0.024  # the rx200 gripper's horn radius and arm length (rx200.yaml)
+_FINGER_RANGE = (0.015, 0.037)
+FIRMWARE_VERSION = 46
+"""What the virtual servos report as Firmware_Version."""
+_GOAL_NAMES = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")
+
+
+def _horn_to_finger(theta: float) -> float:
+    """The finger's distance from the centre line for a gripper horn angle (the crank-slider law of rx200.xml)."""
+    d = _CRANK_R * math.sin(theta) + math.sqrt(_CRANK_L**2 - (_CRANK_R * math.cos(theta)) ** 2)
+    return min(max(d, _FINGER_RANGE[0]), _FINGER_RANGE[1])
+
+
+@dataclasses.dataclass
+class ServoFaults:
+    """Faults a test sets on one servo.
+
+    Attributes:
+        corrupt_crc: the next this many status packets carry a wrong CRC (-1: every one).
+        drop_status: the next this many status packets are not sent (-1: none is).
+        silent: the servo neither obeys nor answers anything.
+    """
+
+    corrupt_crc: int = 0
+    drop_status: int = 0
+    silent: bool = False
+
+    def take(self, what: str) -> bool:
+        """Whether the next status packet gets fault ``what`` (``"corrupt_crc"`` or ``"drop_status"``)."""
+        n = getattr(self, what)
+        if n == 0:
+            return False
+        if n > 0:
+            setattr(self, what, n - 1)
+        return True
+
+
+class VirtualServo:
+    """One servo's register memory and access rules.
+
+    Args:
+        config: its entry in the servo map.
+        table: its model's control table.
+        preset: EEPROM values set at power-up (register names to values), as left by an earlier configuration.
+    """
+
+    def __init__(self, config: ServoConfig, table: ControlTable, preset: dict[str, int]) -> None:
+        self.config = config
+        self.table = table
+        self.registers = tuple(table.registers.values())
+        self.mem = bytearray(max(r.address + r.size for r in self.registers))
+        for reg in self.registers:
+            if reg.default is not None:
+                self._store(reg, reg.default)
+        self.put("model_number", table.model_number)
+        self.put("firmware_version", FIRMWARE_VERSION)
+        self.put("id", config.id)
+        self.put("present_input_voltage", 120)
+        self.put("present_temperature", 30)
+        for name, value in preset.items():
+            self.put(name, value)
+        self.faults = ServoFaults()
+        self.last_instruction_s: float | None = None
+        self.watchdog_tripped = False
+        self.pending_write: tuple[int, bytes] | None = None
+
+    # ---- raw access
+
+    def _store(self, reg: Register, value: int) -> None:
+        self.mem[reg.address : reg.address + reg.size] = int(value).to_bytes(reg.size, "little", signed=value < 0)
+
+    def get(self, name: str) -> int:
+        """A register's value (signed where the register is)."""
+        reg = self.table.register(name)
+        raw = self.mem[reg.address : reg.address + reg.size]
+        return int.from_bytes(raw, "little", signed=reg.signed)
+
+    def put(self, name: str, value: int) -> None:
+        """Set a register, bypassing the access rules (the servo's own updates)."""
+        self._store(self.table.register(name), value)
+
+    @property
+    def id(self) -> int:
+        return self.mem[self.table.register("id").address]
+
+    @property
+    def secondary_id(self) -> int | None:
+        """The Secondary_ID register, or None when it is off (above 252)."""
+        value = self.get("secondary_id")
+        return None if value > 252 else value
+
+    @property
+    def torque_on(self) -> bool:
+        return self.get("torque_enable") == 1
+
+    @property
+    def hardware_error(self) -> int:
+        return self.get("hardware_error_status")
+
+    @property
+    def error_byte(self) -> int:
+        """The error byte of a status packet without an instruction error: the alert bit when in hardware error."""
+        return ALERT_BIT if self.hardware_error else 0
+
+    def watchdog_s(self) -> float:
+        """The Bus Watchdog time in seconds (0: off, or tripped)."""
+        value = self.get("bus_watchdog")
+        return value * 0.020 if value > 0 else 0.0
+
+    # ---- instructions
+
+    def read(self, address: int, length: int) -> tuple[int, bytes]:
+        """READ: the error number and the bytes (empty on error)."""
+        if length <= 0 or address < 0 or address + length > len(self.mem):
+            return ERR_DATA_RANGE, b""
+        return 0, bytes(self.mem[address : address + length])
+
+    def check_write(self, address: int, data: bytes) -> int:
+        """The error number a WRITE of ``data`` at ``address`` gets (0: allowed)."""
+        end = address + len(data)
+        if not data or address < 0 or end > len(self.mem):
+            return ERR_DATA_RANGE
+        for reg in self.registers:
+            if reg.address >= end or reg.address + reg.size <= address:
+                continue
+            if reg.address < address or reg.address + reg.size > end:
+                return ERR_DATA_LENGTH  # a register written in part
+            if not reg.writable:
+                return ERR_ACCESS
+            if reg.area == "EEPROM" and self.torque_on:
+                return ERR_ACCESS
+            if self.watchdog_tripped and reg.name in _GOAL_NAMES:
+                return ERR_ACCESS
+            raw = data[reg.address - address : reg.address - address + reg.size]
+            value = reg.decode(raw)
+            if (reg.min is not None and value < reg.min) or (reg.max is not None and value > reg.max):
+                return ERR_DATA_LIMIT
+            if reg.name == "goal_position" and self.get("operating_mode") == OPERATING_MODES["position"]:
+                if not self.get("min_position_limit") <= value <= self.get("max_position_limit"):
+                    return ERR_DATA_LIMIT
+        return 0
+
+    def write(self, address: int, data: bytes) -> tuple[int, set[str]]:
+        """WRITE: the error number and the names of the registers written."""
+        error = self.check_write(address, data)
+        if error:
+            return error, set()
+        end = address + len(data)
+        written = {r.name for r in self.registers if address <= r.address and r.address + r.size <= end}
+        before_torque = self.torque_on
+        self.mem[address:end] = data
+        if "bus_watchdog" in written and self.get("bus_watchdog") == 0:
+            self.watchdog_tripped = False
+        if "torque_enable" in written and self.torque_on and not before_torque:
+            if self.hardware_error:  # a servo in hardware error keeps its torque off until rebooted
+                self.put("torque_enable", 0)
+                return ERR_RESULT_FAIL, written
+        return 0, written
+
+    def reboot(self, ram_defaults: dict[str, int]) -> None:
+        """REBOOT: hardware error cleared, torque off, RAM back to its defaults (Goal_Position := present)."""
+        present = self.get("present_position")
+        for name, value in ram_defaults.items():
+            self.put(name, value)
+        self.put("hardware_error_status", 0)
+        self.put("goal_position", present)
+        self.watchdog_tripped = False
+
+
+class VirtualBus:
+    """The servos of ``servos`` (a ServoMap) on one bus, answered from the arm's ServoSim.
+
+    Args:
+        servos: the arm's servo map.
+        emulation: make the sim the emulated real arm (perturbed dynamics, sensor noise); None: the nominal sim.
+        on_event: called with one line for every notable event (watchdog trips, hardware errors).
+
+    Raises:
+        ConfigError: the map names a model without a control table, or a robot that is not registered.
+    """
+
+    def __init__(
+        self,
+        servos: ServoMap,
+        *,
+        emulation: EmulationConfig | None = None,
+        on_event: Callable[[str], None] | None = None,
+    ) -> None:
+        self.map = servos
+        self.robot = get_robot_spec(servos.robot)
+        self.emulation = emulation
+        self.on_event = on_event or (lambda line: None)
+        config = ServoSimConfig(control_period_s=SIM_STEP_S, command_timeout_s=None, target_update_steps=5)
+        self.sim, _ = build_sim(self.robot, config, emulation)
+        self._rng = np.random.default_rng(None if emulation is None else emulation.seed + 2)
+        self.servos: dict[int, VirtualServo] = {}
+        self._ram_defaults: dict[int, dict[str, int]] = {}
+        for s in servos.servos:
+            table = MODELS[s.model]
+            preset = dict(servos.eeprom(s))
+            # the profile bit and the operating mode are the host's to set at start-up
+            preset["drive_mode"] = s.drive_mode
+            preset["operating_mode"] = OPERATING_MODES["position"]
+            servo = VirtualServo(s, table, preset)
+            self.servos[s.id] = servo
+            self._ram_defaults[s.id] = {
+                r.name: r.default
+                for r in table.registers.values()
+                if r.area == "RAM" and r.writable and r.default is not None
+            }
+        names = self.robot.joint_state_names
+        self._arm = list(self.robot.arm_joint_names)
+        self._index = {name: i for i, name in enumerate(names)}
+        self._gripper_finger: float | None = None
+        self._hold = np.asarray(self.sim.target, dtype=np.float64)
+        self._goal_dirty = False
+        self._t0_s: float | None = None
+        self._steps = 0
+        self.instructions = 0
+        self._update_present()
+        for servo in self.servos.values():
+            servo.put("goal_position", servo.get("present_position"))
+
+    # ------------------------------------------------------------------------------------------ packets
+
+    def addressed(self, servo_id: int) -> list[VirtualServo]:
+        """The servos that obey an instruction to ``servo_id``: that servo, and those with it as Secondary_ID."""
+        return [
+            s
+            for s in self.servos.values()
+            if not s.faults.silent and (s.id == servo_id or s.secondary_id == servo_id or servo_id == BROADCAST_ID)
+        ]
+
+    def _answering(self, servo_id: int) -> VirtualServo | None:
+        servo = self.servos.get(servo_id)
+        return None if servo is None or servo.faults.silent else servo
+
+    def handle(self, packet: Packet, now_s: float) -> list[tuple[int, bytes]]:
+        """Apply one instruction packet; return the status packets as ``(answering id, bytes)``, in bus order.
+
+        Status packets are returned before the ``ServoFaults`` of their servo apply (``finish_status`` does).
+        """
+        if packet.is_status:
+            return []
+        self.instructions += 1
+        inst, pid, params = packet.instruction, packet.servo_id, packet.params
+        out: list[tuple[int, bytes]] = []
+        if inst in (Instruction.SYNC_READ, Instruction.SYNC_WRITE, Instruction.FAST_SYNC_READ):
+            ids = self._sync_ids(inst, params)
+            touched = [
+                s for s in self.servos.values() if not s.faults.silent and (s.id in ids or s.secondary_id in ids)
+            ]
+        elif inst in (Instruction.BULK_READ, Instruction.BULK_WRITE):
+            ids = self._bulk_ids(inst, params)
+            touched = [
+                s for s in self.servos.values() if not s.faults.silent and (s.id in ids or s.secondary_id in ids)
+            ]
+        else:
+            touched = self.addressed(pid)
+        for s in touched:
+            s.last_instruction_s = now_s
+        answer = pid != BROADCAST_ID
+        if inst == Instruction.PING:
+            for s in touched:
+                if s.id == pid or (pid == BROADCAST_ID and s.secondary_id is None):
+                    info = s.get("model_number").to_bytes(2, "little") + bytes((s.get("firmware_version"),))
+                    out.append((s.id, encode_status(s.id, s.error_byte, info)))
+        elif inst == Instruction.READ:
+            if len(params) != 4:
+                out += self._errors(touched, pid, ERR_DATA_LENGTH) if answer else []
+            else:
+                address, length = _u16(params, 0), _u16(params, 2)
+                servo = self._answering(pid)
+                if servo is not None:
+                    err, data = servo.read(address, length)
+                    out.append((pid, encode_status(pid, err | servo.error_byte, data)))
+        elif inst in (Instruction.WRITE, Instruction.REG_WRITE):
+            if len(params) < 3:
+                out += self._errors(touched, pid, ERR_DATA_LENGTH) if answer else []
+            else:
+                address, data = _u16(params, 0), params[2:]
+                for s in touched:
+                    if inst == Instruction.REG_WRITE:
+                        err = s.check_write(address, data)
+                        if not err:
+                            s.pending_write = (address, data)
+                    else:
+                        err = self._write(s, address, data)
+                    if answer and s.id == pid:
+                        out.append((s.id, encode_status(s.id, err | s.error_byte)))
+        elif inst == Instruction.ACTION:
+            for s in touched:
+                if s.pending_write is not None:
+                    self._write(s, *s.pending_write)
+                    s.pending_write = None
+                if answer and s.id == pid:
+                    out.append((s.id, encode_status(s.id, s.error_byte)))
+        elif inst == Instruction.REBOOT:
+            for s in touched:
+                s.reboot(self._ram_defaults[s.config.id])
+                self._goal_dirty = True
+                self.on_event(f"reboot id={s.id}")
+                if answer and s.id == pid:
+                    out.append((s.id, encode_status(s.id, 0)))
+        elif inst == Instruction.SYNC_WRITE:
+            self._sync_write(params, touched)
+        elif inst == Instruction.BULK_WRITE:
+            self._bulk_write(params, touched)
+        elif inst == Instruction.SYNC_READ:
+            address, length = _u16(params, 0), _u16(params, 2)
+            for servo_id in params[4:]:
+                servo = self._answering(servo_id)
+                if servo is not None:
+                    err, data = servo.read(address, length)
+                    out.append((servo_id, encode_status(servo_id, err | servo.error_byte, data)))
+        elif inst == Instruction.FAST_SYNC_READ:
+            address, length = _u16(params, 0), _u16(params, 2)
+            slots = []
+            for servo_id in params[4:]:
+                servo = self._answering(servo_id)
+                if servo is None:
+                    break  # the chain of slots ends at the first servo that does not answer
+                err, data = servo.read(address, length)
+                slots.append((servo_id, err | servo.error_byte, data if not err else bytes(length)))
+            if slots:
+                out.append((slots[0][0], encode_fast_sync_read_status(slots)))
+        elif inst == Instruction.BULK_READ:
+            for k in range(0, len(params) - 4, 5):
+                servo_id, address, length = params[k], _u16(params, k + 1), _u16(params, k + 3)
+                servo = self._answering(servo_id)
+                if servo is not None:
+                    err, data = servo.read(address, length)
+                    out.append((servo_id, encode_status(servo_id, err | servo.error_byte, data)))
+        else:
+            if answer:
+                out += self._errors(touched, pid, ERR_INSTRUCTION)
+        return out
+
+    def finish_status(self, servo_id: int, status: bytes) -> bytes | None:
+        """Apply the servo's status faults to one status packet: None when it is dropped."""
+        servo = self.servos.get(servo_id)
+        if servo is None:
+            return status
+        if servo.faults.take("drop_status"):
+            return None
+        if servo.faults.take("corrupt_crc"):
+            return status[:-1] + bytes((status[-1] ^ 0x5A,))
+        return status
+
+    def _errors(self, touched: list[VirtualServo], pid: int, err: int) -> list[tuple[int, bytes]]:
+        return [(s.id, encode_status(s.id, err | s.error_byte)) for s in touched if s.id == pid]
+
+    @staticmethod
+    def _sync_ids(inst: int, params: bytes) -> set[int]:
+        if inst in (Instruction.SYNC_READ, Instruction.FAST_SYNC_READ):
+            return set(params[4:])
+        length = _u16(params, 2) if len(params) >= 4 else 0
+        return {params[k] for k in range(4, len(params), length + 1)} if length else set()
+
+    @staticmethod
+    def _bulk_ids(inst: int, params: bytes) -> set[int]:
+        ids: set[int] = set()
+        k = 0
+        while k + 5 <= len(params):
+            ids.add(params[k])
+            k += 5 if inst == Instruction.BULK_READ else 5 + _u16(params, k + 3)
+        return ids
+
+    def _sync_write(self, params: bytes, touched: list[VirtualServo]) -> None:
+        if len(params) < 4:
+            return
+        address, length = _u16(params, 0), _u16(params, 2)
+        for k in range(4, len(params) - length, length + 1):
+            target, data = params[k], params[k + 1 : k + 1 + length]
+            for s in touched:
+                if s.id == target or s.secondary_id == target:
+                    self._write(s, address, data)
+
+    def _bulk_write(self, params: bytes, touched: list[VirtualServo]) -> None:
+        k = 0
+        while k + 5 <= len(params):
+            target, address, length = params[k], _u16(params, k + 1), _u16(params, k + 3)
+            data = params[k + 5 : k + 5 + length]
+            for s in touched:
+                if s.id == target or s.secondary_id == target:
+                    self._write(s, address, data)
+            k += 5 + length
+
+    def _write(self, servo: VirtualServo, address: int, data: bytes) -> int:
+        err, written = servo.write(address, data)
+        if written & {"goal_position", "goal_pwm", "torque_enable", "operating_mode", "profile_velocity"}:
+            self._goal_dirty = True
+        if "torque_enable" in written and servo.torque_on:
+            # torque on: hold where the servo's goal is (the host sets it to the present position first)
+            self._goal_dirty = True
+        return err
+
+    # ------------------------------------------------------------------------------------------ faults
+
+    def set_hardware_error(self, servo_id: int, bits: int) -> None:
+        """Set Hardware_Error_Status bits of a servo (0 clears them); torque goes off where Shutdown says.
+
+        Raises:
+            ConfigError: no such servo, or bits that are not a byte.
+        """
+        servo = self.servos.get(servo_id)
+        if servo is None:
+            raise ConfigError(f"no servo ID {servo_id} on this bus; IDs: {sorted(self.servos)}")
+        if not 0 <= bits <= 0xFF:
+            raise ConfigError(f"hardware error bits: expected 0..255, got {bits}")
+        servo.put("hardware_error_status", bits)
+        if bits & servo.get("shutdown"):
+            servo.put("torque_enable", 0)
+            self._goal_dirty = True
+        self.on_event(f"hardware_error id={servo_id} bits=0x{bits:02x}")
+
+    # ------------------------------------------------------------------------------------------ the sim
+
+    def _command(self) -> JointCommand:
+        q = self.sim.qpos
+        target = self.sim.target
+        goals = []
+        for i, joint in enumerate(self._arm):
+            servo = self.servos[self.map.primary(joint).id]
+            if not servo.torque_on or servo.watchdog_tripped:
+                goals.append(float(target[i]) if servo.torque_on else float(q[i]))
+            else:
+                goals.append(ticks_to_rad(servo.get("goal_position") - servo.get("homing_offset")))
+        lo, hi = self.sim.lower, self.sim.upper
+        position = list(np.clip(goals, lo, hi))
+        arm = self.servos[self.map.primary(self._arm[0]).id]
+        duration_s = 0.0
+        if arm.get("drive_mode") & DRIVE_MODE_TIME_PROFILE and arm.get("profile_velocity") > 0:
+            duration_s = arm.get("profile_velocity") / 1000.0
+        gripper = self._gripper_goal()
+        if gripper is not None:
+            position.append(gripper)
+        return JointCommand(
+            header=Header(stamp_ns=self.sim.time_ns), position=np.asarray(position), duration_s=duration_s
+        )
+
+    def _gripper_goal(self) -> float | None:
+        if self.robot.gripper_actuator is None or len(self.map.groups) < 2:
+            return None
+        joint = self.map.groups[1].joints[0]
+        servo = self.servos[self.map.primary(joint).id]
+        if joint not in self._index:
+            return None
+        if self._gripper_finger is None:
+            self._gripper_finger = _horn_to_finger(float(self.sim.data.qpos[self.sim._qadr[self._index[joint]]]))
+        if not servo.torque_on or servo.watchdog_tripped:
+            return self._gripper_finger
+        mode = servo.get("operating_mode")
+        if mode == OPERATING_MODES["pwm"]:
+            pwm = servo.get("goal_pwm")
+            if pwm != 0:
+                self._gripper_finger = _FINGER_RANGE[1] if pwm > 0 else _FINGER_RANGE[0]
+        elif mode in (OPERATING_MODES["position"], OPERATING_MODES["extended_position"]):
+            self._gripper_finger = _horn_to_finger(
+                ticks_to_rad(servo.get("goal_position") - servo.get("homing_offset"))
+            )
+        return self._gripper_finger
+
+    def advance(self, now_s: float) -> None:
+        """Step the sim to the wall-clock time ``now_s``, apply new goals, trip watchdogs, update Present_*."""
+        if self._t0_s is None:
+            self._t0_s = now_s
+        self._check_watchdogs(now_s)
+        due = int((now_s - self._t0_s) / SIM_STEP_S)
+        if due - self._steps > 10:  # more than 100 ms behind (a stalled process): skip, do not race
+            self._steps = due - 1
+        while self._steps < due:
+            cmd = self._command() if self._goal_dirty else None
+            self._goal_dirty = False
+            self.sim.tick(cmd)
+            self._steps += 1
+        self._update_present()
+
+    def next_due_s(self) -> float:
+        """When the sim's next step is due (wall clock), for the server's wait."""
+        t0 = self._t0_s if self._t0_s is not None else 0.0
+        return t0 + (self._steps + 1) * SIM_STEP_S
+
+    def _check_watchdogs(self, now_s: float) -> None:
+        for s in self.servos.values():
+            limit = s.watchdog_s()
+            if not limit or not s.torque_on or s.watchdog_tripped or s.last_instruction_s is None:
+                continue
+            silent = now_s - s.last_instruction_s
+            if silent > limit:
+                s.watchdog_tripped = True
+                s.put("bus_watchdog", -1)
+                s.put("goal_position", s.get("present_position"))
+                self._goal_dirty = True
+                self.on_event(f"watchdog id={s.id} silent_ms={silent * 1e3:.1f} t={now_s:.6f}")
+
+    def _update_present(self) -> None:
+        state = self.sim.joint_state()
+        if self.emulation is not None and (self.emulation.position_noise_std or self.emulation.velocity_noise_std):
+            state = add_sensor_noise(state, self.emulation, self._rng)
+        pos, vel, eff = state.position, state.velocity, state.effort
+        self._hold = np.asarray(self.sim.qpos)
+        tick_ms = int(self.sim.time_ns // 1_000_000) % 32768
+        for s in self.servos.values():
+            joint = s.config.joint
+            i = self._index.get(joint)
+            if i is None:
+                continue
+            q, v, tau = float(pos[i]), float(vel[i]), float(eff[i])
+            if s.config.is_shadow or any(o.config.secondary_id == s.config.id for o in self.servos.values()):
+                tau /= 2.0  # the pair shares the joint's torque
+            s.put("present_position", rad_to_ticks(q) + s.get("homing_offset"))
+            s.put("present_velocity", round(v / VELOCITY_UNIT_RAD_S))
+            model = s.config.model
+            if "present_current" in s.table:
+                s.put("present_current", round(tau / TORQUE_CONSTANT_NM_A.get(model, 1.0) / CURRENT_UNIT_A))
+            elif "present_load" in s.table:
+                s.put("present_load", round(tau / STALL_TORQUE_NM.get(model, 1.0) * 1000.0))
+            s.put("moving", int(abs(v) > 0.02))
+            s.put("realtime_tick", tick_ms)
+            if i < len(self._arm):
+                s.put("position_trajectory", rad_to_ticks(float(self.sim.target[i])) + s.get("homing_offset"))
+
+
+def _u16(data: bytes, at: int) -> int:
+    return data[at] | (data[at + 1] << 8)
