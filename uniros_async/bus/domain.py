@@ -8,7 +8,11 @@ in-process delivery is keyed by that id.
 
 The registry only brokers: it tells subscribers where publishers listen and clients where services are. Data
 never passes through it. When a node's connection to the registry drops (the node's process exited or died),
-everything that node registered is removed and subscribers are told, so a crashed robot leaves no ghosts.
+everything that node registered is removed and subscribers are told, so a crashed robot leaves no ghosts. A node
+whose connection broke while it lives connects again and registers everything it holds (``registry_client``); the
+registry knows it by the incarnation id it registered with, so its new connection takes over what the old one,
+not yet noticed as dead, still holds. A registry restarted at the same URI (same process or a new one) gets the
+graph back that way from its nodes, parameters included.
 
 Registry protocol (msgpack maps over any Transport): requests ``{"op", "id", ...}``, replies ``{"id", "ok",
 "result" | "error", "kind"}``, and notifications without an id (``{"op": "publishers", "topic", "publishers"}``).
@@ -64,6 +68,7 @@ class Domain:
         self.domain_id = uuid.uuid4().hex
         self._participants: dict[int, _Participant] = {}
         self._nodes: dict[str, _Participant] = {}
+        self._incarnations: dict[str, str] = {}  # node -> the id it registered with (a rejoin brings the same)
         self._topics: dict[str, _Topic] = {}
         self._services: dict[str, tuple[_Participant, dict[str, Any]]] = {}
         self.params: dict[str, Any] = dict(params or {})
@@ -140,12 +145,29 @@ class Domain:
         return {"domain_id": self.domain_id}
 
     def _op_register_node(self, p: _Participant, req: dict[str, Any]) -> Any:
-        name = req["name"]
-        if name in self._nodes:
-            raise _RequestError("name_conflict", f"a node named {name!r} already exists in this domain")
+        name, incarnation = req["name"], req.get("incarnation")
+        old = self._nodes.get(name)
+        if old is not None and old is not p:
+            if incarnation is None or self._incarnations.get(name) != incarnation:
+                raise _RequestError("name_conflict", f"a node named {name!r} already exists in this domain")
+            self._take_over(old, p, name)  # the same node rejoining over a new connection
         self._nodes[name] = p
+        if isinstance(incarnation, str):
+            self._incarnations[name] = incarnation
         p.nodes.add(name)
         return None
+
+    def _take_over(self, old: _Participant, p: _Participant, node: str) -> None:
+        """Move what ``node`` registered over its old connection ``old`` to its new one ``p``."""
+        old.nodes.discard(node)
+        for t in self._topics.values():
+            if t.publishers.get(node) is old:
+                t.publishers[node] = p
+            if t.subscribers.get(node) is old:
+                t.subscribers[node] = p
+        for sname, (sp, info) in list(self._services.items()):
+            if sp is old and info["node"] == node:
+                self._services[sname] = (p, {**info, **p.info})
 
     def _op_unregister_node(self, p: _Participant, req: dict[str, Any]) -> Any:
         self._drop_node(p, req["name"])
@@ -192,7 +214,8 @@ class Domain:
         name = req["name"]
         if name in self._services:
             owner = self._services[name][1]["node"]
-            raise _RequestError("name_conflict", f"service {name!r} is already provided by {owner}")
+            if owner != req["node"] or self._nodes.get(owner) is not p:  # else: its node advertises it again
+                raise _RequestError("name_conflict", f"service {name!r} is already provided by {owner}")
         self._services[name] = (
             p,
             {"name": name, "node": req["node"], "req": req["req"], "resp": req["resp"], **p.info},
@@ -265,6 +288,7 @@ class Domain:
     def _drop_node(self, p: _Participant, node: str) -> None:
         if self._nodes.get(node) is p:
             del self._nodes[node]
+            self._incarnations.pop(node, None)
         p.nodes.discard(node)
         for name, t in self._topics.items():
             if t.publishers.get(node) is p:

@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import uuid
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -41,7 +42,7 @@ from uniros_async.bus._local import (
     PROCESS_TOKEN,
     TRANSPORT_CHOICES,
 )
-from uniros_async.bus.domain import Domain
+from uniros_async.bus.domain import Domain, _flatten
 from uniros_async.bus.pubsub import Publisher, Subscription
 from uniros_async.bus.qos import QoS, latest
 from uniros_async.bus.registry_client import _RegistryClient
@@ -53,6 +54,7 @@ from uniros_async.errors import (
     CodecError,
     ConfigError,
     DomainError,
+    NameConflictError,
     TransportBrokenError,
     TransportClosedError,
     TransportError,
@@ -107,6 +109,8 @@ class Node:
         self._clients: list[ServiceClient[Any, Any]] = []
         self.rejected_connections = 0
         self._log = LogThrottle(logger)  # peers choose how many bad connections they make: one warning a second
+        self._incarnation = uuid.uuid4().hex  # tells the registry that a rejoin is this node, not another of its name
+        self._params: dict[str, Any] = {}  # the parameters this node set (flat), set again in a restarted registry
 
     @property
     def _allows_memory(self) -> bool:
@@ -206,8 +210,12 @@ class Node:
         """
         topic = self.resolve(topic)
         pub = Publisher(self, msg_type, topic, qos or latest())
-        await self._registry.request("advertise", topic=topic, type=msg_type.__name__, node=self.name)
-        self._publishers.append(pub)
+        self._publishers.append(pub)  # listed first: a rejoin meanwhile advertises it too
+        try:
+            await self._registry.request("advertise", topic=topic, type=msg_type.__name__, node=self.name)
+        except BaseException:
+            self._publishers.remove(pub)
+            raise
         _LOCAL_PUBS[(self.domain_id, topic)].append(pub)
         return pub
 
@@ -237,8 +245,12 @@ class Node:
         if zero_copy and callback is None:
             raise ConfigError("zero_copy=True needs a callback: the message is only valid during it")
         sub = Subscription(self, msg_type, topic, qos or latest(), callback, zero_copy)
-        publishers = await self._registry.request("subscribe", topic=topic, type=msg_type.__name__, node=self.name)
-        self._subscriptions.append(sub)
+        self._subscriptions.append(sub)  # listed first: a rejoin meanwhile subscribes it too
+        try:
+            publishers = await self._registry.request("subscribe", topic=topic, type=msg_type.__name__, node=self.name)
+        except BaseException:
+            self._subscriptions.remove(sub)
+            raise
         if self._allows_memory:
             _LOCAL_SUBS[(self.domain_id, topic)].append(sub)
         if callback is not None and not zero_copy:
@@ -266,10 +278,16 @@ class Node:
         """
         name = self.resolve(name)
         svc = Service(self, req_type, resp_type, name, handler)
-        await self._registry.request(
-            "advertise_service", name=name, node=self.name, req=req_type.__name__, resp=resp_type.__name__
-        )
-        self._services[name] = svc
+        if name in self._services:
+            raise NameConflictError(f"service {name!r} is already provided by {self.name}")
+        self._services[name] = svc  # listed first: a rejoin meanwhile advertises it too
+        try:
+            await self._registry.request(
+                "advertise_service", name=name, node=self.name, req=req_type.__name__, resp=resp_type.__name__
+            )
+        except BaseException:
+            del self._services[name]
+            raise
         _LOCAL_SERVICES[(self.domain_id, name)] = svc
         return svc
 
@@ -296,11 +314,24 @@ class Node:
 
     async def set_parameter(self, name: str, value: Any) -> None:
         """Set ``name`` (a mapping value sets every key below it)."""
-        await self._registry.request("param_set", name=self.resolve(name), value=value)
+        await self._set_param(self.resolve(name), value)
+
+    async def _set_param(self, name: str, value: Any) -> int:
+        n = int(await self._registry.request("param_set", name=name, value=value))
+        self._forget_params(name)
+        self._params.update(_flatten(name, value))
+        return n
+
+    def _forget_params(self, name: str) -> None:
+        prefix = name.rstrip("/") + "/"
+        for k in [k for k in self._params if k == name or k.startswith(prefix)]:
+            del self._params[k]
 
     async def delete_parameter(self, name: str) -> int:
         """Delete ``name`` and everything below it; returns how many keys went."""
-        return int(await self._registry.request("param_delete", name=self.resolve(name)))
+        n = int(await self._registry.request("param_delete", name=self.resolve(name)))
+        self._forget_params(self.resolve(name))
+        return n
 
     async def list_parameters(self, prefix: str = "/") -> list[str]:
         return list(await self._registry.request("param_list", prefix=self.resolve(prefix)))
@@ -325,8 +356,62 @@ class Node:
         base = self.resolve(namespace) if namespace else (self.namespace or "/")
         n = 0
         for k, v in data.items():
-            n += int(await self._registry.request("param_set", name=_join(base, str(k)), value=v))
+            n += await self._set_param(_join(base, str(k)), v)
         return n
+
+    # ---- rejoining
+
+    async def _hello(self) -> dict[str, Any]:
+        return dict(
+            await self._registry.request(
+                "hello",
+                token=PROCESS_TOKEN,
+                host=HOST_ID,
+                pid=os.getpid(),
+                endpoints={k: lst.uri for k, lst in self._listeners.items()},
+            )
+        )
+
+    async def _register_all(self) -> None:
+        """Register with a registry reached again everything this node holds: the node, its publishers, services
+        and subscriptions (whose readers reconnect at once to the publishers named), and, in a registry that was
+        restarted (a new domain id), the parameters this node set."""
+        reg = self._registry
+        hello = await self._hello()
+        restarted = hello["domain_id"] != self.domain_id
+        if restarted:
+            self._rekey(hello["domain_id"])
+        await reg.request("register_node", name=self.name, incarnation=self._incarnation)
+        for pub in list(self._publishers):
+            await reg.request("advertise", topic=pub.topic, type=pub.msg_type.__name__, node=self.name)
+        for name, svc in list(self._services.items()):
+            await reg.request(
+                "advertise_service", name=name, node=self.name, req=svc.req_type.__name__, resp=svc.resp_type.__name__
+            )
+        for sub in list(self._subscriptions):
+            pubs = await reg.request("subscribe", topic=sub.topic, type=sub.msg_type.__name__, node=self.name)
+            sub._update_publishers(pubs, restart=True)
+        if restarted:
+            for name, value in list(self._params.items()):
+                await reg.request("param_set", name=name, value=value)
+
+    def _rekey(self, domain_id: str) -> None:
+        """Move this node's entries in the in-process delivery tables to a restarted registry's domain id (every
+        node of this process in that domain moves as it rejoins; a node joining afterwards gets the new id)."""
+        old, self.domain_id = self.domain_id, domain_id
+        for pub in self._publishers:
+            with contextlib.suppress(ValueError):
+                _LOCAL_PUBS[(old, pub.topic)].remove(pub)
+            _LOCAL_PUBS[(domain_id, pub.topic)].append(pub)
+            pub._local = _LOCAL_SUBS[(domain_id, pub.topic)]
+        for sub in self._subscriptions:
+            if sub in _LOCAL_SUBS.get((old, sub.topic), ()):
+                _LOCAL_SUBS[(old, sub.topic)].remove(sub)
+                _LOCAL_SUBS[(domain_id, sub.topic)].append(sub)
+        for name, svc in self._services.items():
+            if _LOCAL_SERVICES.get((old, name)) is svc:
+                del _LOCAL_SERVICES[(old, name)]
+            _LOCAL_SERVICES[(domain_id, name)] = svc
 
     # ---- introspection
 
@@ -433,7 +518,9 @@ async def open_node(
                 raise DomainError(f"cannot reach the domain at {uri}: {exc}{hint}") from exc
             except (TimeoutError, OSError, TransportError) as exc:
                 raise DomainError(f"cannot reach the domain at {uri}: {exc}") from exc
-            node._registry = _RegistryClient(conn, registry_timeout_s, node._on_notify)
+            node._registry = _RegistryClient(
+                conn, registry_timeout_s, node._on_notify, uri=uri, options=options, on_rejoin=node._register_all
+            )
             node._start(node._registry.run(), name=f"{node.name} registry")
             if network is None:  # an in-process domain: peers can only be in this process
                 node._listeners["memory"] = await listen("memory://", options)
@@ -446,22 +533,18 @@ async def open_node(
                     logger.info("shared memory unavailable (%s); %s uses tcp only", exc, node.name)
             for lst in node._listeners.values():
                 node._start(node._accept_loop(lst), name=f"{node.name} accept {lst.uri}")
-            hello = await node._registry.request(
-                "hello",
-                token=PROCESS_TOKEN,
-                host=HOST_ID,
-                pid=os.getpid(),
-                endpoints={k: lst.uri for k, lst in node._listeners.items()},
-            )
+            hello = await node._hello()
             node.domain_id = hello["domain_id"]
             node.domain_uri = uri
-            await node._registry.request("register_node", name=node.name)
+            await node._registry.request("register_node", name=node.name, incarnation=node._incarnation)
             yield node
         finally:
             await _close_node(node)
 
 
 async def _close_node(node: Node) -> None:
+    if node._registry is not None:
+        node._registry.closing = True
     for timer in node._timers:
         timer.cancel()
     for sub in list(node._subscriptions):

@@ -255,7 +255,10 @@ class Subscription(Generic[M]):
 
     # ---- remote publishers
 
-    def _update_publishers(self, publishers: list[dict[str, Any]]) -> None:
+    def _update_publishers(self, publishers: list[dict[str, Any]], *, restart: bool = False) -> None:
+        """Read from exactly ``publishers`` (the registry's list). ``restart``: the registry was reached again, so
+        the link may be back: a reader still waiting to reconnect (backed off, or in an attempt whose SYN was lost)
+        starts again at once."""
         wanted = {}
         for info in publishers:
             if info["token"] == PROCESS_TOKEN and self.node._allows_memory:
@@ -265,6 +268,8 @@ class Subscription(Generic[M]):
             if key not in wanted:
                 self._readers.pop(key).cancel()
         for key, info in wanted.items():
+            if restart and key in self._readers and key not in self._connected:
+                self._readers.pop(key).cancel()
             if key not in self._readers or self._readers[key].done():
                 self._readers[key] = self.node._start(self._read_from(key, info), name=f"sub {self.topic} <- {key}")
 

@@ -1,13 +1,23 @@
-"""A node's connection to its domain registry: requests with ids, and pushed notifications."""
+"""A node's connection to its domain registry: requests with ids, pushed notifications, and rejoining.
+
+When the connection breaks (the registry's process died or was restarted, the link was cut past the keepalive, the
+registry's port blocked), the client connects again to the same URI, retrying with capped backoff
+(``REJOIN_FIRST_S`` doubling to ``REJOIN_MAX_S``, each attempt bounded by ``REJOIN_ATTEMPT_S``) for as long as the node
+lives, and then calls ``on_rejoin``: the node registers everything it holds again (``Node._register_all``). Requests
+made while the connection is down fail at once with ``DomainError``; data between nodes does not pass through the
+registry and keeps flowing where its own connections hold.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import logging
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Awaitable, Callable
+from typing import Any
 
+from uniros_async.backoff import Backoff
 from uniros_async.bus import codec
 from uniros_async.errors import (
     CodecError,
@@ -17,28 +27,77 @@ from uniros_async.errors import (
     TransportClosedError,
     TransportError,
 )
-from uniros_async.transports.base import Transport
+from uniros_async.transports.base import Transport, TransportOptions, connect
 
 logger = logging.getLogger(__name__)
 
-M = TypeVar("M")
-Req = TypeVar("Req")
-Resp = TypeVar("Resp")
+REJOIN_FIRST_S = 0.05
+"""First wait between attempts to reach a lost registry again."""
+REJOIN_MAX_S = 0.25
+"""Longest wait between those attempts (a registry that answers again is rejoined within about this, plus one
+attempt)."""
+REJOIN_ATTEMPT_S = 1.0
+"""Bound on one attempt (connect and handshake): a SYN lost in a cut link is sent afresh by the next attempt, not
+after the kernel's backed-off retransmission (up to seconds later). The node's first connection uses the full
+``connect_timeout_s``."""
 
 
 class _RegistryClient:
-    """This node's connection to its domain registry: requests with ids, and pushed notifications."""
+    """This node's connection to its domain registry: requests with ids, pushed notifications, and rejoining.
 
-    def __init__(self, conn: Transport, timeout_s: float, on_notify: Callable[[dict[str, Any]], None]) -> None:
+    Args:
+        conn: the connection, already made.
+        timeout_s: bound on every request.
+        on_notify: called with every notification (a message without an id).
+        uri: the registry's URI, to connect to again when the connection breaks; None: no rejoining.
+        options: transport options for those connections.
+        on_rejoin: awaited after each new connection, to register again; a ``DomainError`` from it drops the
+            connection and the client tries again.
+    """
+
+    def __init__(
+        self,
+        conn: Transport,
+        timeout_s: float,
+        on_notify: Callable[[dict[str, Any]], None],
+        *,
+        uri: str | None = None,
+        options: TransportOptions | None = None,
+        on_rejoin: Callable[[], Awaitable[None]] | None = None,
+    ) -> None:
         self._conn = conn
         self._timeout_s = timeout_s
         self._ids = itertools.count(1)
         self._waiting: dict[int, asyncio.Future[Any]] = {}
         self._on_notify = on_notify
         self._lock = asyncio.Lock()
+        self._uri = uri
+        self._options = options
+        self._on_rejoin = on_rejoin
         self.closed = False
+        """The connection is down (for good once the node closes, else until rejoined)."""
+        self.closing = False
+        """The node is leaving: a broken connection is not made again."""
+        self.rejoins = 0
+        """How many times the registry was reached again after the connection broke."""
+        self.rejoined = asyncio.Event()
+        """Set after each rejoin completes (the node registered everything again); cleared when the connection
+        breaks."""
 
     async def run(self) -> None:
+        """Read replies and notifications; when the connection breaks, connect again and rejoin (until closed)."""
+        while True:
+            async with asyncio.TaskGroup() as tg:
+                if self.rejoins and self._on_rejoin is not None:
+                    tg.create_task(self._rejoin())
+                await self._read()
+            if self.closing or self._uri is None:
+                return
+            self._conn = await self._reconnect(self._uri)
+            self.closed = False
+            self.rejoins += 1
+
+    async def _read(self) -> None:
         try:
             while True:
                 msg = codec.decode_plain(await self._conn.receive())
@@ -51,16 +110,44 @@ class _RegistryClient:
                     fut.set_result(msg)
         except (TransportBrokenError, TransportClosedError, CodecError) as exc:
             self.closed = True
+            self.rejoined.clear()
             for fut in self._waiting.values():
                 if not fut.done():
                     fut.set_exception(DomainError(f"lost the connection to the domain registry: {exc}"))
             self._waiting.clear()
-            if not isinstance(exc, TransportClosedError):
-                logger.error("lost the connection to the domain registry at %s: %s", self._conn.peer, exc)
+            await self._conn.aclose()
+            if not self.closing:
+                again = "; connecting again" if self._uri is not None else ""
+                logger.error("lost the connection to the domain registry at %s: %s%s", self._conn.peer, exc, again)
+
+    async def _reconnect(self, uri: str) -> Transport:
+        """Connect to ``uri`` again, with capped backoff, until it answers (cancelled when the node closes)."""
+        options = self._options or TransportOptions()
+        attempt = dataclasses.replace(options, connect_timeout_s=min(options.connect_timeout_s, REJOIN_ATTEMPT_S))
+        backoff = Backoff(first_s=REJOIN_FIRST_S, max_s=REJOIN_MAX_S)
+        while True:
+            try:
+                return await connect(uri, attempt)
+            except (TimeoutError, OSError, TransportError) as exc:
+                logger.debug("domain registry at %s not back yet: %s", uri, exc)
+            await backoff.sleep()
+
+    async def _rejoin(self) -> None:
+        assert self._on_rejoin is not None
+        try:
+            await self._on_rejoin()
+        except (DomainError, NameConflictError) as exc:
+            # the registry refused or the connection broke again: drop it, and the next connection tries again
+            logger.warning("rejoining the domain at %s failed (%s); trying again", self._uri, exc)
+            await asyncio.sleep(REJOIN_MAX_S)
+            await self._conn.aclose()
+            return
+        self.rejoined.set()
+        logger.warning("rejoined the domain at %s", self._uri)
 
     async def request(self, op: str, **kw: Any) -> Any:
         if self.closed:
-            raise DomainError("the connection to the domain registry is closed")
+            raise DomainError("the connection to the domain registry is down (the node is connecting again)")
         rid = next(self._ids)
         fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._waiting[rid] = fut
