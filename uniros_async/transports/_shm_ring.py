@@ -32,7 +32,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from uniros_async.transports import base as _base
+from uniros_async.transports._spin import now_ns, spin_yield, this_cpu
 
 __all__ = [
     "CPU_HINT_NS",
@@ -136,9 +136,9 @@ class RingViews:
 _fence_lock = threading.Lock()
 fence_acquire = _fence_lock.acquire
 fence_release = _fence_lock.release
-_now_ns = _base.spin_clock_ns  # time.perf_counter_ns: CLOCK_MONOTONIC on Linux, the compiled RingEnd's clock
-_yield = _base.spin_yield
-_this_cpu = _base.this_cpu
+_now_ns = now_ns  # time.perf_counter_ns: CLOCK_MONOTONIC on Linux, the compiled RingEnd's clock
+_yield = spin_yield
+_this_cpu = this_cpu
 _eventfd_write = os.eventfd_write
 
 

@@ -21,7 +21,6 @@ import ctypes
 import dataclasses
 import enum
 import os
-import time
 from collections.abc import AsyncIterator, Sequence
 from types import TracebackType
 from typing import Any, ClassVar, Self
@@ -49,18 +48,6 @@ Buffer = bytes | bytearray | memoryview
 """What ``send`` takes: one buffer, or a sequence of buffers sent as one frame without joining them first."""
 
 DEFAULT_MAX_FRAME_BYTES = 64 * 1024 * 1024
-
-# The polling rule shm and tcp share (their ``spin_ns``): a receive that polls and finds nothing costs one credit;
-# without credit a connection sleeps at once until a wait turns out shorter than its window plus SPIN_WAKEUP_NS
-# (a poll would have caught that frame); after a large send the window grows, up to SPIN_EXTRA_NS.
-SPIN_CREDIT = 4
-SPIN_WAKEUP_NS = 50_000
-SPIN_EXTRA_NS = 150_000
-spin_clock_ns = time.perf_counter_ns
-"""The clock a spin reads its window on."""
-spin_yield = getattr(os, "sched_yield", lambda: None)
-"""What a spin does between two polls: lets whatever waits for this core run now (if the scheduler agrees: under
-EEVDF a yield often returns at once, which is why a spin first asks where the peer is, ``this_cpu``)."""
 
 
 def _cpu_getter() -> Any:

@@ -32,26 +32,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import logging
 import mmap
 import os
-import secrets
 import select
 import socket
 import struct
 from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any
 
-from uniros_async.backoff import Backoff
 from uniros_async.errors import (
-    ConfigError,
     FrameTooLargeError,
     TransportBrokenError,
     TransportClosedError,
 )
 from uniros_async.transports import _shm_handshake
-from uniros_async.transports import base as _base
 from uniros_async.transports._shm_ring import (
     R_CPU,
     R_POS,
@@ -64,40 +59,30 @@ from uniros_async.transports._shm_ring import (
 )
 from uniros_async.transports._shm_ring import fence_acquire as _fence_acquire
 from uniros_async.transports._shm_ring import fence_release as _fence_release
+from uniros_async.transports._shm_slow import Partial, ShmSlowPaths, as_parts
+from uniros_async.transports._shm_socket import ShmListener, open_shm_connection, open_shm_listener
+from uniros_async.transports._spin import SHARED_CORE_NS, SpinCredit, now_ns, this_cpu, window_ns
 from uniros_async.transports.base import (
     Buffer,
     Delivery,
-    Listener,
     Transport,
     TransportOptions,
     TransportStats,
-    split_uri,
 )
 
 __all__ = ["ShmListener", "ShmTransport", "connect", "listen"]
 
 logger = logging.getLogger(__name__)
 
-_ADDRESS_PREFIX = "\0uniros-shm-"
-_MAX_NAME_BYTES = 100  # sun_path holds 108 bytes, the prefix included
 
-# Before sleeping, receive() polls the ring for up to spin_ns, yielding the CPU between polls: in a request/reply
-# exchange the answer usually comes sooner than a sleeping process wakes up (20-46 us for an idle core of a 2-core
-# VM), and while both ends keep polling neither core halts (10 us round trips instead of 60-80 us). After sending
-# a large frame the window grows by the time the peer needs to read it (up to _SPIN_EXTRA_NS). A spin that
-# finds nothing costs credit; without credit no spin is tried until a sleep turns out to have been short enough that
-# a spin would have caught it. So an idle receiver spins once, then sleeps; a slow peer stops the spinning at once.
-_now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
-_this_cpu = _base.this_cpu
-_SHARED_CORE_NS = 50_000  # a poll that lasts longer looks where the peer runs (_peer_here): once, ~0.3 us
+# The poll before a sleep (the rule of ``_spin``): module globals, which a poll reads every time.
+_now_ns = now_ns
+_this_cpu = this_cpu
 _NEVER_NS = (1 << 63) - 1  # a look_at_ns for RingEnd.poll that never comes
-_SPIN_CREDIT = _base.SPIN_CREDIT
-_WAKEUP_NS = _base.SPIN_WAKEUP_NS
-_SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS
 _HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 
 
-class ShmTransport(Transport):
+class ShmTransport(Transport, ShmSlowPaths):
     """One end of a ``shm://`` connection (made by ``connect`` or ``ShmListener.accept``).
 
     Costs on the 2-core VMs of docs/performance.md: one copy per send (a 900 KiB image: 45 us when the ring's pages are
@@ -143,10 +128,9 @@ class ShmTransport(Transport):
         self._tx_ticket = 0
         self._rx_waiter: asyncio.Future[None] | None = None
         self._poller: select.poll | None = None  # receive_blocking's, made on first use
-        self._spin_credit = _SPIN_CREDIT if self.spin_ns > 0 else 0
         self._tx_waiter: asyncio.Future[None] | None = None
         self._loaned = False  # a loan() block is writing the next frame in place
-        self._rx_partial: _Partial | None = None
+        self._rx_partial: Partial | None = None
         self._tx_stream: asyncio.Task[None] | None = None
         self._peer_gone = False
         self._broken: str | None = None
@@ -158,9 +142,8 @@ class ShmTransport(Transport):
         except OSError:
             pid = 0
         self._peer_desc = f"shm://{name} (pid {pid})"
-        self._spin_allowed = self.spin_ns > 0 and pid != os.getpid()
-        if not self._spin_allowed:
-            self._spin_credit = 0  # the writer is in this process, likely on this very event loop: spinning can't help
+        # the writer in this process is likely on this very event loop: spinning cannot help
+        self._credit = SpinCredit(allowed=self.spin_ns > 0 and pid != os.getpid())
         self._loop.add_reader(self._doorbell, self._on_doorbell)
         self._loop.add_reader(sock.fileno(), self._on_socket)
 
@@ -211,102 +194,27 @@ class ShmTransport(Transport):
                 raise TransportBrokenError(f"peer {self.peer} closed {what}")
             else:
                 window_ns = self._window_ns()
-                if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
+                if self._credit.credit > 0 and self.spin_ns and self._spin(window_ns):
                     continue  # (polled here, not in _wait_readable: a coroutine less per frame that a poll catches)
                 await self._wait_readable(window_ns)
-
-    def _take(self, avail: int) -> memoryview | None:
-        """Consume what ``avail`` bytes allow: a whole frame (returned), a skip record or a streamed chunk (None)."""
-        cap = self._cap
-        ring = self._ring
-        rpos = ring.rpos
-        if avail > cap or avail < 0:
-            raise self._fail(f"ring from {self.peer} holds {avail} bytes, more than its capacity {cap}")
-        if self._rx_partial is not None:
-            return self._take_chunk(avail)
-        off = rpos % cap
-        n = self._rx.data_q[off >> 3]
-        if n & SKIP:
-            if n != SKIP or avail < cap - off:
-                raise self._fail(f"bad skip record from {self.peer}")
-            ring.rpos = rpos + cap - off
-            return None
-        if n > self._max_frame:
-            self.stats.rejected += 1
-            raise self._fail(f"peer {self.peer} announced a frame of {n} bytes, over max_frame_bytes={self._max_frame}")
-        padded = (n + 7) & ~7
-        if 8 + padded > cap:  # streamed: collect the chunks in a buffer of our own
-            self._rx_partial = _Partial(n, padded)
-            ring.rx_fast = False
-            ring.rpos = rpos + 8
-            ring.release_rx()
-            return None
-        if avail < 8 + padded:
-            raise self._fail(f"truncated record from {self.peer}: {avail} bytes of {8 + padded}")
-        start = off + 8
-        if start == cap:
-            start = 0
-        end = start + n
-        ring.rpos = rpos + 8 + padded
-        ring.frames_received += 1
-        ring.bytes_received += n
-        if end <= cap:
-            return self._rx.data_ro[start:end]  # zero-copy; released at the next receive()
-        buf = bytearray(n)
-        first = cap - start
-        data = self._rx.data
-        buf[:first] = data[start:]
-        buf[first:] = data[: n - first]
-        ring.release_rx()
-        return memoryview(buf).toreadonly()
-
-    def _take_chunk(self, avail: int) -> memoryview | None:
-        part = self._rx_partial
-        assert part is not None
-        ring = self._ring
-        take = min(avail, part.padded - part.got)
-        lo, hi = part.got, min(part.got + take, part.n)
-        if hi > lo:  # the rest of the chunk is padding
-            cap = self._cap
-            data = self._rx.data
-            dst = part.view
-            pos = ring.rpos % cap
-            first = min(hi - lo, cap - pos)
-            dst[lo : lo + first] = data[pos : pos + first]
-            if first < hi - lo:
-                dst[lo + first : hi] = data[: hi - lo - first]
-        part.got += take
-        ring.rpos += take
-        ring.release_rx()
-        if part.got < part.padded:
-            return None
-        self._rx_partial = None
-        ring.rx_fast = self._broken is None and not self._closed
-        ring.frames_received += 1
-        ring.bytes_received += part.n
-        return part.view.toreadonly()
 
     def _window_ns(self) -> int:
         """How long to poll for the next frame: ``spin_ns``, plus, after a large send, the time the peer needs to
         read it (~0.1 ns per byte across cores) before it can answer."""
         ring = self._ring
-        window_ns = self.spin_ns + min(ring.sent_since_wait // 10, _SPIN_EXTRA_NS)
+        window = window_ns(self.spin_ns, ring.sent_since_wait // 10)
         ring.sent_since_wait = 0
-        return window_ns
+        return window
 
     def _peer_here(self) -> bool:
         """Whether the peer, when it last looked, ran on the CPU this end polls on (and say where this end runs).
 
-        A poll only pays while the peer runs on another core. When both ends share one (a woken worker is often
-        placed on its waker's core, more so in a VM whose other vCPU halted and looks busy to the scheduler), a
-        poll holds up the very peer it waits for: under EEVDF a ``sched_yield`` seldom hands the core over, and a
-        step took 300-400 us instead of 60 until the scheduler moved one of them, some milliseconds later. So the
-        two ends of a connection publish where they wait (``R_CPU``), and an end that finds the peer on its own
-        core sleeps at once: a shared core then costs two context switches per exchange, not a scheduler slice.
-        An end looks only once a poll has lasted ``_SHARED_CORE_NS`` (a quick exchange never pays for the look),
-        and says where it runs when it looks and, at most once a millisecond, when it sends: a hint (a process
-        seldom changes cores), which also covers an end that never polls long (its replies are there before it
-        looks, because the peer preempted it on the shared core).
+        The two ends of a connection publish where they wait (``R_CPU``), and an end that finds the peer on its own
+        core stops polling (``_spin`` says why): a shared core then costs two context switches per exchange, not a
+        scheduler slice. An end looks only once a poll has lasted ``SHARED_CORE_NS`` (a quick exchange never pays
+        for the look), and says where it runs when it looks and, at most once a millisecond, when it sends: a hint
+        (a process seldom changes cores), which also covers an end that never polls long (its replies are there
+        before it looks, because the peer preempted it on the shared core).
         """
         cpu = _this_cpu() + 1
         self._rx_ctl[R_CPU] = cpu
@@ -321,24 +229,23 @@ class ShmTransport(Transport):
 
     def _spin(self, window_ns: int) -> bool:
         """Poll for data past our read position for up to ``window_ns``, yielding the CPU between polls
-        (``RingEnd.poll``); True if it came. Looks where the peer runs once the poll has lasted ``_SHARED_CORE_NS``
-        (``_peer_here``) and gives up at once if it shares this core. Keeps the spin credit (see ``_SPIN_CREDIT``)."""
+        (``RingEnd.poll``); True if it came. Looks where the peer runs once the poll has lasted ``SHARED_CORE_NS``
+        (``_peer_here``) and gives up at once if it shares this core. Keeps the spin credit (``_spin.SpinCredit``)."""
         start = _now_ns()
         deadline = start + window_ns
-        got = self._ring.poll(deadline, start + _SHARED_CORE_NS)
+        got = self._ring.poll(deadline, start + SHARED_CORE_NS)
         if got == 2:  # a poll this long: is the peer waiting for this very core?
             if self._peer_here():
                 return False
             got = self._ring.poll(deadline, _NEVER_NS)
         if got == 1:
-            self._spin_credit = _SPIN_CREDIT
+            self._credit.hit()
             return True
-        self._spin_credit -= 1
+        self._credit.miss()
         return False
 
     def _slept(self, t0: int, window_ns: int) -> None:
-        if self._spin_credit == 0 and self._spin_allowed and self.spin_ns and _now_ns() - t0 < window_ns + _WAKEUP_NS:
-            self._spin_credit = 1  # a short spin would have caught this one: try spinning again
+        self._credit.waited(t0, window_ns)
 
     async def _wait_readable(self, window_ns: int) -> None:
         """Sleep until the peer publishes more than we have read (or hangs up, or we close); ``window_ns``: how long
@@ -387,7 +294,7 @@ class ShmTransport(Transport):
             return ring.take_ready()
         deadline = _now_ns() + int(timeout_s * 1e9)
         window_ns = self._window_ns()
-        if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
+        if self._credit.credit > 0 and self.spin_ns and self._spin(window_ns):
             return ring.take_ready()
         if not ring.rx_fast:  # closed (or broken) while it polled
             return None
@@ -446,7 +353,7 @@ class ShmTransport(Transport):
             one, parts = frame, ()
             n = len(frame)
         else:
-            one, parts = None, _as_parts(frame)
+            one, parts = None, as_parts(frame)
             n = sum(len(p) for p in parts)
         ring = self._ring
         if one is not None and ring.try_send(one):  # the usual case: room, a healthy end, a frame that fits
@@ -581,54 +488,6 @@ class ShmTransport(Transport):
         if self._closed:
             raise TransportClosedError(f"transport to {self.peer} was closed")
 
-    async def _send_streamed(self, parts: Sequence[Buffer], n: int) -> None:
-        out = _Outgoing([p if type(p) is memoryview else memoryview(p) for p in parts if len(p)], n)
-        try:
-            await self._stream(out)
-        except asyncio.CancelledError:
-            if out.header_sent and out.left:
-                # A half-sent frame would poison the stream: finish it from a copy (the caller may reuse its
-                # buffers once we return), in a task that aclose() cancels.
-                out.detach()
-                self._tx_stream = self._loop.create_task(self._stream(out), name=f"{self.peer} stream rest")
-                self._ring.tx_fast = False
-                self._tx_stream.add_done_callback(_retrieve)
-            raise
-
-    async def _stream(self, out: _Outgoing) -> None:
-        cap = self._cap
-        ctl = self._tx.ctl
-        data = self._tx.data
-        ring = self._ring
-        while out.left:
-            free = cap - (ring.wpos - ctl[R_POS])
-            need = 8 if not out.header_sent else min(cap // 4, out.left)
-            if free < need:
-                if self._peer_gone:
-                    raise TransportBrokenError(f"peer {self.peer} closed the connection")
-                await self._wait_writable(need)
-                continue
-            wpos = ring.wpos
-            if not out.header_sent:
-                self._tx.data_q[(wpos % cap) >> 3] = out.n
-                wpos += 8
-                free -= 8
-                out.header_sent = True
-            k = min(free, out.left)
-            out.copy_into(data, wpos % cap, k)
-            ring.publish(wpos + k)
-        ring.sent_since_wait += out.n
-        ring.frames_sent += 1
-        ring.bytes_sent += out.n
-
-    async def _join_stream(self) -> None:
-        """Wait for a streamed frame whose send was cancelled to be finished in the background."""
-        task = self._tx_stream
-        assert task is not None
-        await asyncio.wait({task})  # not cancelled with us: the frame must be finished before the next one
-        self._tx_stream = None  # its error, if any, left state (peer gone, closed) that send() reports
-        self._ring.tx_fast = not (self._closed or self._broken is not None or self._peer_gone)
-
     # --------------------------------------------------------------------------------------- events and closing
 
     def _on_doorbell(self) -> None:
@@ -713,173 +572,7 @@ class _RingStats(TransportStats):
     bytes_received = property(lambda self: self._ring.bytes_received)
 
 
-class _Partial:
-    """A streamed frame being received."""
-
-    __slots__ = ("got", "n", "padded", "view")
-
-    def __init__(self, n: int, padded: int) -> None:
-        self.n = n
-        self.padded = padded
-        self.got = 0
-        self.view = memoryview(bytearray(n))
-
-
-class _Outgoing:
-    """A streamed frame being sent: the parts still to copy, then padding."""
-
-    __slots__ = ("header_sent", "left", "n", "parts")
-
-    def __init__(self, parts: list[memoryview], n: int) -> None:
-        self.parts = parts
-        self.n = n
-        self.left = (n + 7) & ~7  # payload and padding still to publish
-        self.header_sent = False
-
-    def copy_into(self, data: memoryview, pos: int, k: int) -> None:
-        cap = len(data)
-        self.left -= k
-        while k:
-            if pos == cap:
-                pos = 0
-            room = min(k, cap - pos)
-            if self.parts:
-                src = self.parts[0]
-                take = min(room, len(src))
-                data[pos : pos + take] = src[:take]
-                if take == len(src):
-                    self.parts.pop(0)
-                else:
-                    self.parts[0] = src[take:]
-            else:
-                take = room  # padding: whatever the ring holds
-            pos += take
-            k -= take
-
-    def detach(self) -> None:
-        """Copy what is left, so the caller's buffers are no longer needed."""
-        self.parts = [memoryview(b"".join(self.parts))] if self.parts else []
-
-
-def _as_parts(frame: Buffer | Sequence[Buffer]) -> Sequence[Buffer]:
-    """Buffers that memoryview slice assignment accepts (1-D, unsigned bytes), whatever the caller passed."""
-    if isinstance(frame, bytes | bytearray):
-        return (frame,)
-    if isinstance(frame, memoryview):
-        return (_flat(frame),)
-    return [_flat(memoryview(p)) for p in frame]
-
-
-def _flat(view: memoryview) -> memoryview:
-    if view.format == "B" and view.ndim == 1:
-        return view
-    if view.c_contiguous:
-        return view.cast("B")
-    return memoryview(view.tobytes())
-
-
-def _retrieve(task: asyncio.Task[None]) -> None:
-    if not task.cancelled():
-        task.exception()  # consumed here; send() reports the state it left
-
-
-# ------------------------------------------------------------------------------------------------ listener
-
-
-class ShmListener(Listener):
-    """Accepts ``shm://NAME`` connections on an abstract Unix socket; handshakes run in the background."""
-
-    def __init__(self, name: str, sock: socket.socket, options: TransportOptions) -> None:
-        self._name = name
-        self._sock = sock
-        self._options = options
-        self._ready: asyncio.Queue[ShmTransport | None] = asyncio.Queue()
-        self._rejected = 0
-        self._closed = False
-        self._serving = asyncio.get_running_loop().create_task(self._serve(), name=f"shm://{name} listener")
-
-    @property
-    def uri(self) -> str:
-        return f"shm://{self._name}"
-
-    @property
-    def rejected(self) -> int:
-        return self._rejected
-
-    async def accept(self) -> Transport:
-        if self._closed:
-            raise TransportClosedError(f"listener {self.uri} is closed")
-        t = await self._ready.get()
-        if t is None:
-            self._ready.put_nowait(None)  # for the next waiter
-            raise TransportClosedError(f"listener {self.uri} is closed")
-        return t
-
-    async def aclose(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._serving.cancel()
-        await asyncio.wait({self._serving})
-        self._sock.close()
-        while not self._ready.empty():
-            t = self._ready.get_nowait()
-            if t is not None:
-                await t.aclose()  # never accepted: its peer sees a closed connection
-        self._ready.put_nowait(None)
-
-    async def _serve(self) -> None:
-        loop = asyncio.get_running_loop()
-        async with asyncio.TaskGroup() as tg:
-            while True:
-                try:
-                    conn, _ = await loop.sock_accept(self._sock)
-                except OSError as exc:  # e.g. EMFILE: keep serving once descriptors free up
-                    logger.warning("accept on %s failed: %s", self.uri, exc)
-                    await asyncio.sleep(0.1)
-                    continue
-                conn.setblocking(False)
-                tg.create_task(self._admit(conn))
-
-    async def _admit(self, conn: socket.socket) -> None:
-        """Handshake with one peer; never raises (a failure is counted and the peer dropped)."""
-        try:
-            async with asyncio.timeout(self._options.connect_timeout_s):
-                setup = await _shm_handshake.admit(conn, self._options)
-            t = _open_transport(self._name, conn, setup, self._options)
-        except asyncio.CancelledError:
-            conn.close()
-            raise
-        except Exception as exc:  # whatever a peer sends must not stop the listener
-            self._rejected += 1
-            logger.info("%s rejected a peer: %s", self.uri, exc)
-            conn.close()
-            return
-        self._ready.put_nowait(t)
-
-
-def _open_transport(
-    name: str, sock: socket.socket, setup: _shm_handshake.Setup, options: TransportOptions
-) -> ShmTransport:
-    try:
-        return ShmTransport(name=name, sock=sock, setup=setup, options=options)
-    except BaseException:
-        os.close(setup.doorbell_fd)
-        os.close(setup.peer_doorbell_fd)
-        setup.mm.close()
-        raise
-
-
 # --------------------------------------------------------------------------------------------- entry points
-
-
-def _name(uri: str) -> str:
-    scheme, name = split_uri(uri)
-    if scheme != "shm":
-        raise ConfigError(f"expected an shm:// URI, got {uri!r}")
-    if "\0" in name or len(name.encode()) > _MAX_NAME_BYTES:
-        raise ConfigError(f"shm name {name!r} must be at most {_MAX_NAME_BYTES} bytes without NUL")
-    return name
 
 
 async def listen(uri: str, options: TransportOptions) -> ShmListener:
@@ -888,18 +581,7 @@ async def listen(uri: str, options: TransportOptions) -> ShmListener:
     Raises:
         ConfigError: NAME is already listening on this machine (in this network namespace), or is invalid.
     """
-    name = _name(uri) or f"{os.getpid()}-{secrets.token_hex(6)}"
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    try:
-        sock.bind(_ADDRESS_PREFIX + name)
-        sock.listen(socket.SOMAXCONN)
-        sock.setblocking(False)
-    except OSError as exc:
-        sock.close()
-        if exc.errno == errno.EADDRINUSE:
-            raise ConfigError(f"shm://{name} is already listening on this machine") from exc
-        raise
-    return ShmListener(name, sock, options)
+    return await open_shm_listener(uri, options, ShmTransport)
 
 
 async def connect(uri: str, options: TransportOptions) -> ShmTransport:
@@ -911,30 +593,4 @@ async def connect(uri: str, options: TransportOptions) -> ShmTransport:
         AuthenticationError: the listener refused our key, or failed to prove its own.
         TransportBrokenError: the listener broke the handshake; ``__cause__`` holds the OSError if any.
     """
-    name = _name(uri)
-    if not name:
-        raise ConfigError(f"connect needs a name: shm://NAME, got {uri!r}")
-    loop = asyncio.get_running_loop()
-    backoff = Backoff(first_s=0.001, max_s=0.1)
-    async with asyncio.timeout(options.connect_timeout_s):
-        while True:
-            sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-            sock.setblocking(False)
-            try:
-                await loop.sock_connect(sock, _ADDRESS_PREFIX + name)
-                break
-            except (ConnectionRefusedError, FileNotFoundError, BlockingIOError):
-                sock.close()
-            except BaseException:
-                sock.close()
-                raise
-            await backoff.sleep()
-        try:
-            setup = await _shm_handshake.join(sock, name, options)
-            return _open_transport(name, sock, setup, options)
-        except OSError as exc:
-            sock.close()
-            raise TransportBrokenError(f"handshake with shm://{name} failed: {exc}") from exc
-        except BaseException:
-            sock.close()
-            raise
+    return await open_shm_connection(uri, options, ShmTransport)

@@ -4,12 +4,8 @@ Wire format: after the handshake (``_tcp_handshake``: HELLO both ways, then with
 both ways), each frame is ``length(u32, little-endian) payload(length bytes)``. Each side announces its
 ``max_frame_bytes`` in its HELLO, so ``send`` refuses (FrameTooLargeError) what the peer would refuse.
 
-Receiving: an asyncio.BufferedProtocol reads straight into the connection's stream buffer; frames under 16 KiB are
-copied out of it (cheaper than any bookkeeping), larger ones are read straight into a buffer of their own from a
-per-connection pool, so an image is copied once (kernel to that buffer) and ``receive`` returns a view of it. A pool
-buffer is reused only once no view of it is alive any more (a caller's, or an event loop still sending it back), so
-even views kept past the next ``receive`` stay intact. Complete frames queue in the connection; reading pauses while
-more than 8 MiB are queued unread.
+Receiving: ``_tcp_receive`` (the stream buffer, large frames in buffers of their own, and the poll of the socket
+while an answer is due, under the rule of ``_spin`` that ``ShmTransport`` shares).
 
 Sending: a small frame is joined with its header into one bytes object and written at once; a small frame sent
 within 20 us of the previous write starts a burst, whose frames go out in one write at the end of the loop iteration
@@ -19,17 +15,8 @@ mutable buffer instead of copying it (uvloop, Python >= 3.12), ``send`` returns 
 so callers may reuse their buffers as soon as ``send`` returns, as with every transport. ``send`` waits while more
 than 1 MiB is unsent (pause_writing/resume_writing), so memory stays bounded.
 
-Polling: when this end sent a frame since it last received one (it may be waiting for an answer), ``receive`` reads
-the socket itself (``os.readv`` into the same buffers the loop's reader would use) for up to ``spin_ns`` before it
-sleeps in the event loop, yielding the CPU between reads, under the spin credit of ``ShmTransport``: a miss costs
-credit, and a connection without credit sleeps at once until a wait shows a spin would have caught the frame. A
-receiver that only listens never polls (reading each frame as it lands cost a stream 40 % of its small-frame
-rate). A frame sent after a ``receive`` that waited is a reply and goes out at once, never into a burst: a reply
-corked to the end of the loop iteration cost the echo ~30 us per round trip.
-
-Why the poll: each wake-up of a halted core costs 10-25 us on the project's 2-core machines, more than the rest of a
-small round trip; reading the socket itself (not turning the event loop, which also takes the CPU a peer on the
-same core needs) keeps the receiving core awake just long enough. Figures: docs/performance.md.
+A frame sent after a ``receive`` that waited is a reply and goes out at once, never into a burst: corked to the end
+of the loop iteration it would wait for that loop iteration before it leaves.
 
 Limits, for peers that are not trusted (docs/security.md), kept by the listener (``_tcp_listener``): it holds at
 most ``max_connections`` connections and ``max_handshakes`` unfinished handshakes (a new one evicts the oldest once
@@ -37,10 +24,9 @@ that waited 1 s, else it is reset and ``connect`` retries), each of which must f
 ``handshake_timeout_s``. The stream buffer is anonymous memory, resident only where data has landed, so an idle
 connection costs a few KiB; refusals are counted in ``rejected`` and logged at most once a second.
 
-Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, and ``receive_blocking``
-reads the socket in the caller's thread (the poll's reads, then ``poll(2)``), for a caller in the loop's thread while
-the loop is not running (the supervisor between calls). Whatever they cannot do they leave to ``send`` and
-``receive``, having taken nothing.
+Outside the loop: ``try_send`` writes a small frame at once when nothing waits before it, for a caller in the
+loop's thread while the loop is not running (the supervisor between calls; ``receive_blocking`` is its receiving
+counterpart). Whatever it cannot do it leaves to ``send``, having sent nothing.
 
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it (the
 bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``, 5 ms
@@ -55,27 +41,21 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
-import mmap
 import os
-import select
 import socket
-import ssl
 import struct
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import cast
 
-from uniros_async._log_throttle import LogThrottle
-from uniros_async.backoff import Backoff
 from uniros_async.errors import (
     AuthenticationError,
-    ConfigError,
     FrameTooLargeError,
     TransportBrokenError,
     TransportClosedError,
 )
-from uniros_async.transports import base as _base
+from uniros_async.transports._tcp_connect import open_connection
 from uniros_async.transports._tcp_handshake import (
     FLAG_AUTH,
     HELLO,
@@ -84,7 +64,8 @@ from uniros_async.transports._tcp_handshake import (
     PROTOCOL_VERSION,
     TcpHandshake,
 )
-from uniros_async.transports._tcp_listener import TcpListener, format_uri, open_listener, parse_host_port
+from uniros_async.transports._tcp_listener import TcpListener, format_uri, open_listener
+from uniros_async.transports._tcp_receive import _DEAD, _FRAMES, _HANDSHAKE, TcpReceiving
 from uniros_async.transports.base import Buffer, Delivery, Transport, TransportOptions
 from uniros_async.transports.exposure import is_loopback
 
@@ -105,21 +86,12 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_HEADER = struct.Struct("<I")
-_pack_header = _HEADER.pack
-_unpack_header = _HEADER.unpack_from
+_pack_header = struct.Struct("<I").pack
 _WIRE_MAX_FRAME = 2**32 - 1  # what a u32 length prefix can announce
 
-_STREAM_BYTES = 256 * 1024  # receive buffer of each connection: anonymous memory, only touched pages are resident
-_READ_BYTES = 64 * 1024  # at most this much per read into the stream buffer (bounds the copy of a large frame's start)
-_SMALL_FRAME_BYTES = 16 * 1024  # smaller frames are copied out of the stream buffer; larger get their own buffer
 _JOIN_MAX_BYTES = 16 * 1024  # smaller frames are sent as one joined bytes object
 _CORK_MAX_BYTES = 64 * 1024  # coalesced small frames are written once they reach this size
 _BURST_S = 20e-6  # a small frame sent this soon after the previous write starts a coalesced burst
-_POOL_BUFFERS = 16  # large-frame buffers kept for reuse per connection (at most _POOL_BYTES in all)
-_POOL_BYTES = 16 * 1024 * 1024
-_RX_HIGH_BYTES = 8 * 1024 * 1024  # pause reading while more than this is queued unread
-_RX_LOW_BYTES = 2 * 1024 * 1024  # resume below this
 _TX_HIGH_BYTES = 1024 * 1024  # send() waits while the event loop holds more than this unsent
 _TX_LOW_BYTES = 256 * 1024
 KEEPALIVE_IDLE_S = 2
@@ -129,7 +101,6 @@ registry connection) otherwise never learns that its peer's socket is gone (a re
 peer host that restarted): the probe is answered with a reset, and the owner reconnects."""
 KEEPALIVE_INTERVAL_S = 1
 KEEPALIVE_PROBES = 3
-_HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 
 
 def set_keepalive(sock: socket.socket) -> None:
@@ -147,39 +118,9 @@ def set_keepalive(sock: socket.socket) -> None:
 
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
 
-# Before sleeping in the event loop, receive() reads the socket itself for up to spin_ns, yielding the CPU between
-# reads (ShmTransport's rule): in a request/reply exchange the answer usually comes sooner than a sleeping process
-# wakes up, and while both ends keep reading neither core halts. After a large send the window grows by 1 ns per
-# byte sent, up to _SPIN_EXTRA_NS (the answer to 64 KiB took ~70 us). A spin that finds nothing costs credit; without
-# credit no spin is tried until a wait turns out to have been short enough that a spin would have caught it. So an
-# idle receiver spins a few times, then sleeps; a slow peer (a 10 Hz arm's states) stops the spinning at once.
-_now_ns = _base.spin_clock_ns  # module globals: a spin reads them every poll
-_yield = _base.spin_yield
-_SPIN_CREDIT = _base.SPIN_CREDIT
-_WAKEUP_NS = _base.SPIN_WAKEUP_NS  # a wait this much longer than the window would have been caught by it
-_SPIN_EXTRA_NS = _base.SPIN_EXTRA_NS  # at most this much longer after a large send: 1 ns per byte sent
-_SHARED_CORE_NS = 50_000  # a poll that lasts this long (or half its window) looks where the peer runs (_peer_here)
-_LOOK_EVERY_NS = 1_000_000  # ... at most this often: a look reads /proc (~20 us)
-_this_cpu = _base.this_cpu
-
 # Python 3.11's selector transport copies what it cannot send at once; uvloop and 3.12+ keep a reference instead
 # (and only they send a list of buffers with one sendmsg; 3.11's writelines joins them first).
 _SELECTOR_COPIES = sys.version_info < (3, 12)
-
-_HANDSHAKE, _FRAMES, _DEAD = 0, 1, 2
-
-
-def _unexported(buf: bytearray) -> bool:
-    """True if no memoryview of ``buf`` is alive (CPython refuses to resize an exported bytearray).
-
-    Pool buffers are allocated one byte longer than their length, so this append/delete never reallocates.
-    """
-    try:
-        buf.append(0)
-    except BufferError:
-        return False
-    del buf[-1]
-    return True
 
 
 def _as_bytes_view(part: Buffer) -> memoryview:
@@ -189,10 +130,7 @@ def _as_bytes_view(part: Buffer) -> memoryview:
     return view
 
 
-_client_log = LogThrottle(logger)
-
-
-class TcpTransport(Transport, asyncio.BufferedProtocol):
+class TcpTransport(TcpReceiving, Transport):
     """One end of a TCP connection carrying length-prefixed frames.
 
     Made by ``connect`` or ``TcpListener.accept``; the asyncio protocol callbacks (``connection_made``,
@@ -202,20 +140,6 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
     delivery = Delivery.RELIABLE
     scheme = "tcp"
     _encrypted = False  # TlsTransport: True (the socket carries ciphertext; receive never reads it itself)
-    spin_ns: int = 50_000
-    """When ``receive`` may be waiting for an answer (this end sent a frame since it last received one), it reads
-    the socket itself for up to this long before it sleeps in the event loop, yielding the CPU between reads, while
-    spins keep finding frames (see ``_SPIN_CREDIT``). A receiver that only listens (a subscriber, the far end of a
-    stream) never polls: it sleeps and reads what piled up in one go. Set it on the class or on one transport; 0
-    always sleeps (a real-time worker's connections do: a SCHED_RR process that polls keeps lower-ranked ones from
-    their cores)."""
-
-    peer_pid: int | None = None
-    """The peer's process id when it runs on this host (a worker sets its agent's): a poll that lasts half its
-    window looks whether the peer runs on this core, and if so calls ``on_shared_core`` (``_peer_here``)."""
-    on_shared_core: Callable[[int], None] | None = None
-    """With ``peer_pid``: called with this core when the peer was found on it, to move this end elsewhere (a worker
-    moves itself, ``runtime.worker``), as ``ShmTransport.on_shared_core``."""
 
     def __init__(self, options: TransportOptions, *, listener: TcpListener | None = None, uri: str = "") -> None:
         Transport.__init__(self)
@@ -228,28 +152,7 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._recv_limit = min(options.max_frame_bytes, _WIRE_MAX_FRAME)
         self._send_limit = self._recv_limit
         self._send_limit_is_peers = False
-        # receive side
-        # An anonymous mapping, not a bytearray: a bytearray is zero-filled (all 256 KiB resident at once), while
-        # a mapping's pages become resident only when data lands in them. A connection that sees small frames
-        # (or only a handshake) keeps its reads in the first pages: ~4 KiB resident instead of 256 KiB.
-        self._rbuf = mmap.mmap(-1, _STREAM_BYTES)
-        self._rview = memoryview(self._rbuf)
-        self._rhead = self._rview[:_READ_BYTES]  # what get_buffer hands out when the stream buffer is empty
-        self._rpos = 0  # start of unparsed bytes
-        self._rend = 0  # end of received bytes
-        self._big: memoryview | None = None  # the large frame being read straight into its own buffer
-        self._big_got = 0
-        self._frames: collections.deque[bytes | memoryview] = collections.deque()
-        self._queued = 0  # bytes in _frames
-        self._reading_paused = False
-        self._rx_waiter: asyncio.Future[None] | None = None
-        self._lent: list[bytearray] = []  # large-frame buffers handed out by receive, maybe still in use
-        self._pool: list[bytearray] = []
-        self._fd = -1  # the socket's descriptor, for receive's own reads while it spins (-1: none, or lost)
-        self._spin_credit = _SPIN_CREDIT
-        self._next_look_ns = 0  # _peer_here: not before then
-        self._sent_since_receive = 0  # bytes: only a receive that may be waiting for an answer polls, and longer
-        # after a large send (the answer to 64 KiB took ~70 us here)
+        self._init_receiving()
         # send side
         self._write_paused = False
         self._drain_waiters: collections.deque[asyncio.Future[None]] = collections.deque()
@@ -390,59 +293,6 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         stats.frames_sent += 1
         stats.bytes_sent += n
 
-    async def receive(self) -> memoryview:
-        """Wait for the next frame; the view is valid until the next ``receive``. Cancelling leaves a frame
-        that arrived meanwhile queued for the next call.
-
-        Raises:
-            TransportClosedError: our own code closed this end.
-            TransportBrokenError: the peer closed the connection (after every complete frame it sent was
-                delivered), vanished, or broke the protocol.
-        """
-        frames = self._frames
-        if not frames:
-            window_ns = self._poll_for_answer()
-            t0 = _now_ns()
-            while not frames:
-                if not self._ok:
-                    self._raise_unusable("receive")
-                if self._rx_waiter is not None:
-                    raise RuntimeError(f"receive() on {self._peer} while another receive() is waiting")
-                fut = self._rx_waiter = self._loop.create_future()
-                try:
-                    await fut
-                finally:
-                    self._rx_waiter = None
-                self._waited(t0, window_ns)
-            # a frame that answers this wait is a reply, not part of a burst: it goes out at once
-            self._last_write_s = 0.0
-        if self._closed:
-            self._raise_unusable("receive")
-        return self._pop_frame()
-
-    def _pop_frame(self) -> memoryview:
-        """The next queued frame as ``receive`` returns it (there is one)."""
-        self._sent_since_receive = 0
-        frame = self._frames.popleft()
-        if isinstance(frame, bytes):
-            n = len(frame)
-            view = memoryview(frame)
-        else:
-            lent = self._lent
-            lent.append(cast(bytearray, frame.obj))
-            if len(lent) > _POOL_BUFFERS:
-                del lent[0]  # held for long by the caller: leave it to the garbage collector
-            n = frame.nbytes
-            view = frame
-        self._queued -= n
-        if self._reading_paused and self._queued <= _RX_LOW_BYTES and self._tr is not None:
-            self._reading_paused = False
-            self._tr.resume_reading()
-        stats = self.stats
-        stats.frames_received += 1
-        stats.bytes_received += n
-        return view
-
     def try_send(self, frame: bytes) -> bool:
         """Send a small ``frame`` at once, outside the event loop, when nothing waits before it (no burst corked,
         nothing unsent, writing not paused); True if the socket took it whole. False: nothing was sent, ``send``
@@ -465,68 +315,6 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
         self._last_write_s = time.perf_counter()
         self._count_sent(n)
         return True
-
-    def receive_blocking(self, timeout_s: float, watch: Sequence[int] = ()) -> memoryview | None:
-        """``receive`` in the calling thread while the event loop does not run (the agent's thread waiting for its
-        workers' replies): a frame already queued, or one read from the socket here (``_spin``'s reads, then
-        ``poll(2)`` on the socket for at most ``timeout_s``). Returns None when it cannot be had this way: nothing
-        came in time, something is unsent (only the loop sends it), reading is paused, the peer hung up or broke
-        the protocol, this end is closed, or one of the sockets in ``watch`` (other connections' descriptors) was
-        hung up or reset meanwhile (``poll(2)``'s POLLRDHUP, POLLHUP or POLLERR). Nothing was consumed then:
-        ``receive`` must be awaited (it delivers the frame or raises what is wrong)."""
-        tr = self._tr
-        if tr is None or self._closed or not self._ok or tr.get_write_buffer_size():
-            return None
-        frames = self._frames
-        if not frames:
-            fd = self._fd
-            if fd < 0:
-                return None
-            deadline = _now_ns() + int(timeout_s * 1e9)
-            window_ns = self._poll_for_answer()
-            t0 = _now_ns()
-            poller = None
-            while not frames:
-                left_ns = deadline - _now_ns()
-                if left_ns <= 0 or not self._ok or self._reading_paused or self._fd < 0:
-                    return None
-                if poller is None:
-                    poller = select.poll()
-                    poller.register(fd, select.POLLIN)
-                    for other in watch:
-                        poller.register(other, _HANG_UP)
-                ready = poller.poll(-(-left_ns // 1_000_000))
-                if not ready:
-                    continue
-                if watch and any(got != fd for got, _ in ready):
-                    return None  # another connection hung up: the caller's business first
-                try:
-                    n = os.readv(fd, (self.get_buffer(-1),))
-                except (BlockingIOError, InterruptedError):
-                    continue
-                except OSError:
-                    return None  # the loop's reader meets the error too
-                if n == 0:
-                    return None  # end of stream: the loop's reader sees it as well
-                self.buffer_updated(n)
-            self._waited(t0, window_ns)
-            self._last_write_s = 0.0  # a frame that answers this wait is a reply, as in receive
-        return self._pop_frame()
-
-    def _poll_for_answer(self) -> int:
-        """Before a wait: if this end sent since it last received (an answer may be due), poll the socket for up to
-        the window (``_spin``, under the spin credit); the window, 0 when none applies."""
-        if not (self.spin_ns and self._sent_since_receive):
-            return 0
-        window_ns = self.spin_ns + min(self._sent_since_receive, _SPIN_EXTRA_NS)
-        if self._spin_credit > 0:
-            self._spin(window_ns)
-        return window_ns
-
-    def _waited(self, t0: int, window_ns: int) -> None:
-        """After a wait that began at ``t0``: without credit, a wait a poll would have caught earns one back."""
-        if window_ns and self._spin_credit <= 0 and _now_ns() - t0 < window_ns + _WAKEUP_NS:
-            self._spin_credit = 1  # a spin would have caught this one: try spinning again
 
     async def aclose(self) -> None:
         """Close this end; idempotent. Frames already sent are flushed for up to 1 s, then the socket is
@@ -583,36 +371,6 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             self._hs_timer = self._loop.call_later(self._options.handshake_timeout_s, self._handshake_expired)
         tr.write(self._hs.hello())
 
-    def get_buffer(self, sizehint: int) -> memoryview:
-        if self._big is not None:
-            return self._big[self._big_got :]
-        end = self._rend
-        if not end:
-            return self._rhead
-        if len(self._rbuf) - end < _READ_BYTES:
-            # Move the unparsed tail (less than one small frame plus a header) to the front.
-            pos = self._rpos
-            self._rview[: end - pos] = self._rview[pos:end]
-            end = self._rend = end - pos
-            self._rpos = 0
-        return self._rview[end : end + _READ_BYTES]
-
-    def buffer_updated(self, nbytes: int) -> None:
-        big = self._big
-        if big is not None:
-            self._big_got += nbytes
-            if self._big_got == big.nbytes:
-                self._big = None
-                self._frames.append(big)
-                self._queued += big.nbytes
-                self._frames_arrived()
-            return
-        self._rend += nbytes
-        if self._state == _FRAMES:
-            self._parse_frames()
-        elif self._state == _HANDSHAKE:
-            self._handshake_data()
-
     def eof_received(self) -> bool:
         if self._state == _HANDSHAKE:
             self._hs_dropped = self._retryable_drop()
@@ -661,118 +419,6 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
 
     # ------------------------------------------------------------------------------------------ receiving
 
-    def _parse_frames(self) -> None:
-        buf, view, frames = self._rbuf, self._rview, self._frames
-        pos, end = self._rpos, self._rend
-        limit = self._recv_limit
-        queued = 0
-        while end - pos >= 4:
-            n = _unpack_header(buf, pos)[0]
-            start = pos + 4
-            if n < _SMALL_FRAME_BYTES and n <= limit:
-                pos = start + n
-                if pos > end:
-                    pos = start - 4
-                    break
-                frames.append(view[start:pos].tobytes())
-                queued += n
-            elif n > limit:
-                self._rpos = pos
-                self._reject(f"announced a frame of {n} bytes, over max_frame_bytes={limit}")
-                return
-            else:
-                big = self._take_buffer(n)
-                got = min(end - start, n)
-                big[:got] = view[start : start + got]
-                pos = start + got
-                if got < n:
-                    self._big = big
-                    self._big_got = got
-                    break
-                frames.append(big)
-                queued += n
-        if pos == end:
-            self._rpos = self._rend = 0
-        else:
-            self._rpos = pos
-        if queued or frames:
-            self._queued += queued
-            w = self._rx_waiter
-            if w is not None and not w.done():
-                w.set_result(None)
-            if self._queued > _RX_HIGH_BYTES and not self._reading_paused:
-                self._reading_paused = True
-                self._tr.pause_reading()  # type: ignore[union-attr]
-
-    def _frames_arrived(self) -> None:
-        w = self._rx_waiter
-        if w is not None and not w.done():
-            w.set_result(None)
-        if self._queued > _RX_HIGH_BYTES and not self._reading_paused and self._tr is not None:
-            self._reading_paused = True
-            self._tr.pause_reading()
-
-    def _spin(self, window_ns: int) -> None:
-        """Read the socket ourselves (the event loop's reader would do the same with the same buffers) until a
-        whole frame is queued or ``window_ns`` passed, yielding the CPU between reads. Anything unusual (end of
-        stream, an error, paused reading) is left to the event loop, which meets it on its next read. With a
-        ``peer_pid``, a spin that lasted half its window (at most ``_SHARED_CORE_NS``) looks once where the peer runs
-        (``_peer_here``)."""
-        fd = self._fd
-        if fd < 0 or not self._ok:
-            return
-        frames = self._frames
-        now = _now_ns()
-        deadline = now + window_ns
-        look_at = now + min(_SHARED_CORE_NS, window_ns // 2) if self.peer_pid else deadline
-        readv = os.readv
-        while not self._reading_paused:
-            try:
-                n = readv(fd, (self.get_buffer(-1),))
-            except (BlockingIOError, InterruptedError):
-                now = _now_ns()
-                if now > look_at:
-                    if now > deadline:
-                        self._spin_credit -= 1
-                        return
-                    look_at = deadline
-                    self._peer_here()
-                _yield()  # a peer (or anything else) waiting for this core runs now, not after the spin
-                continue
-            except OSError:
-                return
-            if n == 0:
-                return
-            self.buffer_updated(n)
-            if frames or not self._ok:
-                self._spin_credit = _SPIN_CREDIT
-                return
-
-    def _peer_here(self) -> None:
-        """If the peer process (``peer_pid``, on this host) last ran on the core this end polls on, have this end
-        moved elsewhere (``on_shared_core``). At most once per ``_LOOK_EVERY_NS``.
-
-        A poll only pays while the peer runs on another core. A socket wakes its reader with a sync wake-up, which
-        places a worker woken by its agent on the agent's core; the two then take turns on it (the worker's poll
-        holds the core the agent needs for its next request, the worker's wake-up preempts the agent) while the
-        other core does other work: a CartPole step over tcp on loopback took ~120-130 us so against ~30 us on two
-        cores, for the life of the pair (docs/performance.md). ``ShmTransport`` learns where its peer runs from
-        their shared page; tcp has none, so this end reads the peer's last core from /proc (~20 us).
-        """
-        now = _now_ns()
-        if now < self._next_look_ns or self.on_shared_core is None:
-            return
-        self._next_look_ns = now + _LOOK_EVERY_NS
-        cpu = _this_cpu()
-        try:
-            with open(f"/proc/{self.peer_pid}/stat", "rb") as f:
-                peer_cpu = int(f.read().rpartition(b")")[2].split()[36])
-        except (OSError, ValueError, IndexError):  # gone, or no /proc here: look no more
-            self.peer_pid = None
-            return
-        if cpu >= 0 and peer_cpu == cpu:
-            self.on_shared_core(cpu)
-
     def _retryable_drop(self) -> bool:
         """Whether a hang-up during the handshake may be a full listener (worth a retry). Under TLS a listener
         that refuses our certificate hangs up too, before its HELLO: only a drop after the HELLO (an eviction)
@@ -785,37 +431,6 @@ class TcpTransport(Transport, asyncio.BufferedProtocol):
             self._counted = False
             self._listener._open -= 1
         self._unmade_timer = None
-
-    def _take_buffer(self, n: int) -> memoryview:
-        """A buffer for a large frame: a pooled one that nobody holds any more, or a new one."""
-        pool = self._pool
-        if self._lent:
-            held: list[bytearray] = []
-            for buf in self._lent:
-                (pool if _unexported(buf) else held).append(buf)
-            self._lent = held
-            while len(pool) > _POOL_BUFFERS or sum(map(len, pool)) > _POOL_BYTES:
-                del pool[0]
-        for i, buf in enumerate(pool):
-            if n <= len(buf) <= 2 * n:
-                del pool[i]
-                return memoryview(buf)[:n]
-        buf = bytearray(n + 1)  # one spare byte of capacity: see _unexported
-        del buf[n:]
-        return memoryview(buf)[:n]
-
-    def _reject(self, reason: str) -> None:
-        """The peer broke the protocol after the handshake: count it and drop the connection."""
-        self.stats.rejected += 1
-        if self._listener is not None:
-            self._listener._count_rejection(self._peer, reason)
-        else:
-            _client_log.warning("tcp: dropping connection to %s: it %s", self._peer, reason)
-        self._state = _DEAD
-        self._big = None
-        self._set_error(f"peer {self._peer} {reason}; connection dropped")
-        if self._tr is not None:
-            self._tr.abort()
 
     # ------------------------------------------------------------------------------------------ handshake
 
@@ -977,57 +592,3 @@ async def connect(uri: str, options: TransportOptions) -> TcpTransport:
         TransportBrokenError: the peer is not a uniros listener (or speaks another version).
     """
     return await open_connection(uri, options, TcpTransport)
-
-
-async def open_connection(
-    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
-) -> TcpTransport:
-    """``connect`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.connect`` uses it)."""
-    host, port = parse_host_port(uri, "", cls.scheme)
-    if not host or not port:
-        raise ConfigError(f"connect needs {cls.scheme}://HOST:PORT with a nonzero port, got {uri!r}")
-    loop = asyncio.get_running_loop()
-    timeout_s = options.connect_timeout_s
-    deadline = loop.time() + timeout_s
-    backoff = Backoff(first_s=0.005, max_s=0.5)
-    last: Exception | None = None
-    while True:
-        try:
-            async with asyncio.timeout_at(deadline):
-                _, t = await loop.create_connection(
-                    lambda: cls(options, uri=uri),
-                    host,
-                    port,
-                    ssl=ssl_context,
-                    server_hostname=host if ssl_context is not None else None,
-                )
-        except TimeoutError:
-            raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {last})") from last
-        except ssl.SSLError as exc:  # a certificate refused: retrying cannot help
-            raise AuthenticationError(f"TLS handshake with {uri} failed: {exc}") from exc
-        except OSError as exc:  # refused while the listener starts, unreachable, ... : retry until the deadline
-            last = exc
-        else:
-            try:
-                async with asyncio.timeout_at(deadline):
-                    await asyncio.shield(t._ready)
-                return t
-            except TimeoutError as exc:
-                await t.aclose()
-                raise TimeoutError(
-                    f"{uri} accepted the connection but did not complete the handshake within {timeout_s} s"
-                ) from exc
-            except TransportBrokenError as exc:
-                await t.aclose()
-                if not t._hs_dropped:
-                    raise
-                # The listener hung up mid-handshake: it is at max_connections, or evicted us among too many
-                # unfinished handshakes (a burst of connections). Both pass: retry until the deadline.
-                last = exc
-            except BaseException:
-                await t.aclose()
-                raise
-        remaining = deadline - loop.time()
-        if remaining <= 0:
-            raise TimeoutError(f"could not connect to {uri} within {timeout_s} s (last error: {last})") from last
-        await backoff.sleep(limit_s=remaining)
