@@ -3,14 +3,34 @@
 The bus (``uniros_async.bus``: domains, nodes, topics, timers, services, parameters) runs over pluggable
 transports (``uniros_async.transports``: memory, shm, tcp); robots, environments and training build on it.
 Robots, placements (where an arm runs) and tasks are registries your own package adds to at import, without editing
-this one: ``register_robot``, ``register_placement``, ``register_task`` and ``register_env_id``.
+this one: ``register_robot``, ``register_placement``, ``register_task`` and ``register_env_id``. Every error
+raised on purpose is a ``UnirosError``, exported here; ``uniros_async.errors`` draws their tree.
 """
 
 from typing import TYPE_CHECKING, Any
 
 from uniros_async.errors import (
+    AuthenticationError,
+    BusError,
+    CheckpointError,
+    CodecError,
     ConfigError,
+    DomainError,
+    DxlCrcError,
+    DxlError,
+    DxlPortError,
+    DxlStatusError,
+    DxlTimeoutError,
+    EvaluationStopped,
+    FrameError,
+    FrameTooLargeError,
+    NameConflictError,
+    RenderError,
+    RobotError,
+    ServiceError,
     SimulationError,
+    StepTimeoutError,
+    TrainingInterrupted,
     TransportBrokenError,
     TransportClosedError,
     TransportError,
@@ -19,6 +39,7 @@ from uniros_async.errors import (
 )
 
 if TYPE_CHECKING:
+    from uniros_async.errors import InvalidActionsError
     from uniros_async.placements import register_placement
     from uniros_async.robots import register_robot
     from uniros_async.runtime import make, make_vec
@@ -27,8 +48,28 @@ if TYPE_CHECKING:
 __version__ = "0.1.0"
 
 __all__ = [
+    "AuthenticationError",
+    "BusError",
+    "CheckpointError",
+    "CodecError",
     "ConfigError",
+    "DomainError",
+    "DxlCrcError",
+    "DxlError",
+    "DxlPortError",
+    "DxlStatusError",
+    "DxlTimeoutError",
+    "EvaluationStopped",
+    "FrameError",
+    "FrameTooLargeError",
+    "InvalidActionsError",
+    "NameConflictError",
+    "RenderError",
+    "RobotError",
+    "ServiceError",
     "SimulationError",
+    "StepTimeoutError",
+    "TrainingInterrupted",
     "TransportBrokenError",
     "TransportClosedError",
     "TransportError",
@@ -60,6 +101,10 @@ _when_imported("gymnasium", _register_ids)
 def __getattr__(name: str) -> Any:
     # The registries and the runtime load only when asked for: a transport-only process or an env worker of a
     # gymnasium env imports none of them (each registry fills with the built-in entries when first imported).
+    if name == "InvalidActionsError":  # its base is gymnasium's InvalidAction: made when first asked for
+        from uniros_async import errors
+
+        return errors.InvalidActionsError
     if name in ("make", "make_vec"):
         from uniros_async import runtime
 

@@ -14,24 +14,42 @@ The tree (as httpx/_exceptions.py draws its own)::
     │   ├── DomainError                      the domain registry is unreachable or refused a request
     │   ├── NameConflictError                a node or service name is taken in the domain
     │   └── ServiceError                     a service call failed on the server side; .remote_traceback
+    ├── FrameError (also ValueError)         a camera frame's size or encoding differs from its topic's
     ├── SimulationError                      MuJoCo diverged (dm_control PhysicsError)
+    ├── RenderError                          no GL backend could render here; names what was tried
     ├── RobotError                           a robot stopped publishing or refused a command
     │   └── DxlError                         a Dynamixel bus transaction failed; .servo_id when one servo did
     │       ├── DxlCrcError                  a packet's CRC did not match (counted and retried within the tick)
     │       ├── DxlStatusError               a servo answered with an error byte; .error
     │       ├── DxlTimeoutError (also TimeoutError)  a servo did not answer within the packet's timeout
     │       └── DxlPortError                 the serial port could not be opened or failed; __cause__ holds the OSError
-    └── WorkerError                          an env worker failed; .index, .remote_traceback
-        └── StepTimeoutError (also TimeoutError)  a worker did not answer a request in time; names it, op, timeout
+    ├── WorkerError                          an env worker failed; .index, .remote_traceback
+    │   └── StepTimeoutError (also TimeoutError)  a worker did not answer a request in time; names it, op, timeout
+    ├── InvalidActionsError (also gymnasium's InvalidAction, ValueError)  not one action per sub-env
+    ├── CheckpointError                      a checkpoint is missing, incomplete, or does not fit its env
+    ├── TrainingInterrupted                  a run stopped (Ctrl-C, SIGTERM) early; .checkpoint, the newest intact one
+    └── EvaluationStopped                    an evaluation ended early by its stop event
+
+``InvalidActionsError`` is built on first use (``uniros_async.errors.InvalidActionsError`` imports gymnasium for its
+base), so importing this module never imports gymnasium.
 
 Timeouts are asyncio's own ``TimeoutError`` (what ``asyncio.timeout`` raises), so callers catch one type.
 """
 
 from __future__ import annotations
 
+import functools
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    import gymnasium
+
 __all__ = [
     "AuthenticationError",
     "BusError",
+    "CheckpointError",
     "CodecError",
     "ConfigError",
     "DomainError",
@@ -40,12 +58,17 @@ __all__ = [
     "DxlPortError",
     "DxlStatusError",
     "DxlTimeoutError",
+    "EvaluationStopped",
+    "FrameError",
     "FrameTooLargeError",
+    "InvalidActionsError",
     "NameConflictError",
+    "RenderError",
     "RobotError",
     "ServiceError",
     "SimulationError",
     "StepTimeoutError",
+    "TrainingInterrupted",
     "TransportBrokenError",
     "TransportClosedError",
     "TransportError",
@@ -106,8 +129,16 @@ class ServiceError(BusError):
         self.remote_traceback = remote_traceback
 
 
+class FrameError(UnirosError, ValueError):
+    """A frame whose size or encoding differs from its topic's (the message names both); nothing was published."""
+
+
 class SimulationError(UnirosError):
     """The physics simulation diverged (NaN/inf state or MuJoCo warnings of instability)."""
+
+
+class RenderError(UnirosError):
+    """No GL backend could render here (the message lists what was tried and what to install)."""
 
 
 class RobotError(UnirosError):
@@ -159,3 +190,49 @@ class WorkerError(UnirosError):
 class StepTimeoutError(WorkerError, TimeoutError):
     """An env worker did not answer a request (a step, a reset, ...) within its timeout; the message names the
     worker's index, the operation and the timeout. A TimeoutError too, so ``except TimeoutError`` catches it."""
+
+
+class CheckpointError(UnirosError):
+    """A checkpoint is missing, incomplete, or does not fit the env it is used with."""
+
+
+class TrainingInterrupted(UnirosError):
+    """The run was stopped (Ctrl-C, SIGTERM) before ``total_steps``; ``checkpoint`` is the newest intact one."""
+
+    def __init__(self, message: str, checkpoint: Path | None) -> None:
+        super().__init__(message)
+        self.checkpoint = checkpoint
+
+
+class EvaluationStopped(UnirosError):
+    """An evaluation ended early by its ``stop`` event (``evaluate_vec_policy``)."""
+
+
+if TYPE_CHECKING:
+
+    class InvalidActionsError(gymnasium.error.InvalidAction, UnirosError, ValueError):
+        """Actions that are not one per sub-env (a ValueError too, as gymnasium's vector envs raise)."""
+
+
+@functools.cache
+def _invalid_actions_error() -> type[Exception]:
+    from gymnasium.error import InvalidAction
+
+    cls = type(
+        "InvalidActionsError",
+        (InvalidAction, UnirosError, ValueError),
+        {
+            "__doc__": "Actions that are not one per sub-env (a ValueError too, as gymnasium's vector envs raise).",
+            "__module__": __name__,
+        },
+    )
+    globals()["InvalidActionsError"] = cls  # later lookups find the class itself
+    return cls
+
+
+def __getattr__(name: str) -> Any:
+    # InvalidActionsError derives from gymnasium's InvalidAction: it is made when first asked for, so that a
+    # process that never steps a vector env (a transport, a sim server) does not import gymnasium
+    if name == "InvalidActionsError":
+        return _invalid_actions_error()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

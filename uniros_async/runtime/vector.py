@@ -27,7 +27,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
-from uniros_async.errors import ConfigError, WorkerError
+from uniros_async.errors import ConfigError, InvalidActionsError, WorkerError
 from uniros_async.runtime.protocol import (
     PackedRequest,
     array_head,
@@ -486,10 +486,6 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
 
 
 _FLOAT64, _BOOL = np.dtype(np.float64), np.dtype(np.bool_)
-
-
-class InvalidActionsError(gym.error.InvalidAction, ValueError):
-    """Actions that are not one per sub-env (a ValueError too, as gymnasium's vector envs raise)."""
 
 
 def _bad_actions(expected: tuple[int, ...], got: tuple[int, ...]) -> None:

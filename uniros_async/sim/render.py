@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from uniros_async.errors import ConfigError, UnirosError
+from uniros_async.errors import ConfigError, RenderError
 from uniros_async.robots import RobotSpec, get_robot_spec
 
 __all__ = ["RenderError", "gl_backend", "render_png", "render_rgb", "view", "write_png"]
@@ -32,10 +32,6 @@ logger = logging.getLogger(__name__)
 
 GOAL_RGBA = (0.9, 0.1, 0.1, 0.9)
 EE_RGBA = (0.1, 0.8, 0.1, 0.9)
-
-
-class RenderError(UnirosError):
-    """No GL backend could render here (the message lists what was tried and what to install)."""
 
 
 _BACKEND: tuple[str, Any] | None = None

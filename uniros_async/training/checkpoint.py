@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from uniros_async.errors import ConfigError, UnirosError
+from uniros_async.errors import CheckpointError, ConfigError
 
 __all__ = [
     "CheckpointError",
@@ -56,10 +56,6 @@ BUFFER_FILE = "replay_buffer.pkl"
 META_FILE = "meta.json"
 OBS_STATS_FILE = "vec_normalize.pkl"
 LATEST_FILE = "latest"
-
-
-class CheckpointError(UnirosError):
-    """A checkpoint is missing, incomplete, or does not fit the env it is used with."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

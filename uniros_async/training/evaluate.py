@@ -23,7 +23,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from uniros_async.errors import ConfigError
+from uniros_async.errors import ConfigError, EvaluationStopped
 from uniros_async.training.checkpoint import (
     MODEL_FILE,
     CheckpointError,
@@ -139,10 +139,6 @@ def evaluate_policy(
         seed=seed,
         normalized_obs=stats is not None,
     )
-
-
-class EvaluationStopped(Exception):
-    """An evaluation ended early by its ``stop`` event (``evaluate_vec_policy``)."""
 
 
 def evaluate_vec_policy(

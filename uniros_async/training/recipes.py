@@ -54,7 +54,7 @@ import numpy as np
 import yaml
 
 from uniros_async.envs.config import EnvConfig
-from uniros_async.errors import ConfigError, UnirosError
+from uniros_async.errors import ConfigError, TrainingInterrupted, UnirosError
 from uniros_async.training.checkpoint import (
     CheckpointError,
     CheckpointMeta,
@@ -87,14 +87,6 @@ TIMING_WINDOW_STEPS = 250
 # how long closing waits for the evaluation thread of eval.alongside: it checks its stop event before every step,
 # and a step waits at most for its action cycle or the workers' step deadline
 _ALONGSIDE_JOIN_S = 60.0
-
-
-class TrainingInterrupted(UnirosError):
-    """The run was stopped (Ctrl-C, SIGTERM) before ``total_steps``; ``checkpoint`` is the newest intact one."""
-
-    def __init__(self, message: str, checkpoint: Path | None) -> None:
-        super().__init__(message)
-        self.checkpoint = checkpoint
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
