@@ -13,7 +13,7 @@ One `make_vec(["CartPole-v1"])` (one worker over shm) is stepped in alternating 
 
 The worker, the env, the transport and the moment are the same for both, so the difference per block is the agent
 code's own cost inside the loop, which this VM's hour-to-hour drift (about 1.5-2x) hides between separate runs.
-Prints the median us per step of each and the median difference per block pair. Recorded in docs/perf/history.md.
+Prints the median us per step of each and the median difference per block pair.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Two `make_vec(["CartPole-v1"])` (a training env and an evaluation env, say), ste
 BLOCKS blocks (100 by default). Prints, for each env, the median time of the step at each of the 20 positions of a
 block, then the median over the positions. The first steps of a block show what a worker that paused for the other
 env's block costs (a wake-up, and where the scheduler placed it); `uniros bench throughput` gives one figure for
-the same case in its third table. Recorded in docs/perf/history.md.
+the same case in its third table.
 """
 
 from __future__ import annotations

@@ -2,8 +2,7 @@
 
 Copies two 128 MB arrays back and forth at nice 19 for SECONDS, so that whatever core the real-time processes of
 `uniros bench latency` leave free streams through memory and shares the caches and memory bus with them (a proxy
-for a busier host; it takes no CPU time from SCHED_RR processes). Used for the "memory hog" runs in
-docs/perf/history.md:
+for a busier host; it takes no CPU time from SCHED_RR processes):
 
     python benchmarks/memory_hog.py 130 & uniros bench latency; wait
 """

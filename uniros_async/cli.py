@@ -184,6 +184,8 @@ def _build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds per case (default 60)")
     bs.add_argument("--episodes", type=int, default=3, help="reach episodes to time (default 3)")
     bs.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    brp = bench.add_parser("report", help="docs/performance.md's tables from benchmarks/results (write|check|record)")
+    brp.add_argument("report_args", nargs=argparse.REMAINDER, help="see: uniros bench report -- --help")
 
     topic = sub.add_parser("topic", help="topics of a domain").add_subparsers(dest="action", required=True)
     tl = topic.add_parser("list", help="topics with their types, publishers and subscribers")
@@ -368,6 +370,10 @@ def _run_node(args: argparse.Namespace) -> int:
 
 
 def _run_bench(args: argparse.Namespace) -> int:
+    if args.scenario == "report":
+        from uniros_async.bench import report
+
+        return report.main([a for a in args.report_args if a != "--"])
     if args.scenario == "transport":
         from uniros_async.bench import transport
 

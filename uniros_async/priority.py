@@ -36,7 +36,7 @@ The workers of one vector env get distinct priorities (``raise_loop_priority(ran
 actions wake every worker at once; with fewer cores than workers they then run one after the other, and at equal
 priority in whatever order the scheduler picks, so each env gets its action at a different point of each action
 cycle. Ranked, they run in a fixed order and each env's action arrives at the same point every cycle (for the four
-envs of ``uniros bench latency`` on 2 cores, docs/perf/history.md has the spread of when the action reached each
+envs of ``uniros bench latency`` on 2 cores, git's docs/perf/history.md has the spread of when the action reached each
 env loop, with and without ranks). The acting thread above them hands out all actions before the first woken
 worker can take its core.
 
@@ -336,7 +336,7 @@ def cores_kept_awake(cpus: set[int] | None = None) -> Iterator[list[int]]:
     What ``idle=poll`` (or cyclictest's hold on ``/dev/cpu_dma_latency``) does for real-time Linux, without a reboot
     or privileges. On a virtual machine a halted core is handed back to the host, and waking it again for a timer
     or a message costs the hypervisor's scheduling delay, seen as CPU steal and late ticks in the latency benchmark
-    (docs/perf/history.md has both, with and without pollers). Any ordinary or real-time thread preempts a poller
+    (git's docs/perf/history.md has both, with and without pollers). Any ordinary or real-time thread preempts a poller
     at once; the cost is power (the cores stay at 100 %) and, on SMT siblings, some of the sibling's throughput.
     The pollers die with this process (parent-death signal, and they check their parent), so none outlives even a
     SIGKILL.

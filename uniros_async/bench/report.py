@@ -5,10 +5,11 @@ A record is what a bench's ``--json`` wrote, wrapped with the run's facts by ``r
     {"command": "uniros bench timers --duration 60", "host": "2-core x86_64 VM, ...", "date": "2026-11-22 20:48 UTC",
      "rows": [...the bench's rows...]}
 
-In the doc, a table is fenced by two comments that name its record and the kind of table made from it::
+In the doc, a table is fenced by two comments that name its records, the kind of table made from their rows and,
+optionally, which rows (``KEY=VALUE``: a row's KEY is VALUE)::
 
     <!-- table: timers.json timers -->
-    ...generated: the host and date line, then the table...
+    ...generated: each record's date, host and command, then the table...
     <!-- end table -->
 
 ``render`` fills every fenced table from its record, ``stale`` lists the ones that differ from what is in the doc
@@ -44,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "performance.md"
 RESULTS = ROOT / "benchmarks" / "results"
 
-_FENCE = re.compile(r"<!-- table: (?P<file>\S+) (?P<kind>\S+) -->\n(?P<body>.*?)<!-- end table -->", re.DOTALL)
+_FENCE = re.compile(r"<!-- table: (?P<spec>[^\n]*?) -->\n(?P<body>.*?)<!-- end table -->", re.DOTALL)
 
 Row = dict[str, Any]
 
@@ -146,18 +147,25 @@ def _keys(rows: list[Row], *names: str) -> list[tuple[Any, ...]]:
     return list(seen)
 
 
+def _label(row: Row, key: str, rows: list[Row]) -> str:
+    """``row[key]``, and the record it came from when the rows come from several."""
+    many = len({r.get("_record") for r in rows}) > 1
+    return f"{row[key]} ({row['_record']})" if many else str(row[key])
+
+
 def _latency(rows: list[Row]) -> list[str]:
     """Per env and learner: actuator cycle, action cycle, observation age and action latency (ms)."""
     out = []
-    for env, learner in _keys(rows, "env", "learner"):
-        cells = [env, learner]
+    for rec, env, learner in _keys(rows, "_record", "env", "learner"):
+        part = [r for r in rows if r.get("_record") == rec]
+        cells = [env, _label({"learner": learner, "_record": rec}, "learner", rows)]
         for metric, fields in (
             ("actuator_cycle", ("median_ms", "iqr_ms", "max_ms")),
             ("action_cycle", ("median_ms", "iqr_ms")),
             ("observation_age", ("median_ms",)),
             ("action_latency", ("median_ms",)),
         ):
-            m = _metric(rows, env, learner, metric)
+            m = _metric(part, env, learner, metric)
             cells.append(" / ".join(_f(m[f], 3) if m and m["count"] else "-" for f in fields))
         out.append(cells)
     header = [
@@ -197,22 +205,6 @@ def _transport(rows: list[Row]) -> list[str]:
     return _table(header, out)
 
 
-def _transport_rows(rows: list[Row]) -> list[str]:
-    """Every row: payload, transport, round-trip p50 / p90 / p99 and one-way messages/s."""
-    out = [
-        [
-            r["payload"],
-            r["transport"],
-            _f(r["rtt_p50_us"]),
-            _f(r["rtt_p90_us"]),
-            _f(r["rtt_p99_us"]),
-            _f(r["throughput_msg_s"], 0),
-        ]
-        for r in rows
-    ]
-    return _table(["payload", "transport", "rtt p50 us", "p90 us", "p99 us", "msgs/s one way"], out, right_from=2)
-
-
 def _timers(rows: list[Row]) -> list[str]:
     """Fire-time error per timer and rate (ms)."""
     out = [
@@ -237,23 +229,16 @@ def _simclock(rows: list[Row]) -> list[str]:
 
 
 def _throughput(rows: list[Row]) -> list[str]:
-    """Per env, N and implementation: aggregate steps/s and the overhead over the bare step (us, median and 95 %
-    interval)."""
+    """Per env and N, a column per implementation: the overhead over the bare step (us, median) and the aggregate
+    steps/s."""
+    impls = [i for (i,) in _keys(rows, "impl")]
     out = []
-    for r in rows:
-        ci = r.get("overhead_ci_us")
-        ci_s = f" ({_f(ci[0])} .. {_f(ci[1])})" if ci else ""
-        turn = " in turn" if r.get("envs_in_turn") else ""
-        out.append(
-            [
-                r["env"].rsplit(":", 1)[-1],
-                f"{r['n_envs']}{turn}",
-                r["impl"],
-                _f(r["steps_per_s"]),
-                _f(r["overhead_us"]) + ci_s,
-            ]
-        )
-    return _table(["env", "N", "implementation", "steps/s", "overhead us"], out, right_from=3)
+    for env, n, turn in _keys(rows, "env", "n_envs", "envs_in_turn"):
+        by = {r["impl"]: r for r in rows if (r["env"], r["n_envs"], r.get("envs_in_turn")) == (env, n, turn)}
+        cells = [env.rsplit(":", 1)[-1], f"{n}{' in turn' if turn else ''}"]
+        cells += [f"{_f(by[i]['overhead_us'])} us, {_f(by[i]['steps_per_s'], 0)}/s" if i in by else "-" for i in impls]
+        out.append(cells)
+    return _table(["env", "N", *impls], out, right_from=2)
 
 
 def _throughput_repeat(rows: list[Row]) -> list[str]:
@@ -269,7 +254,8 @@ def _throughput_repeat(rows: list[Row]) -> list[str]:
 def _roundtrip(rows: list[Row]) -> list[str]:
     """Round trips per client (us)."""
     out = [
-        [r["client"], _f(r["p50_us"]), _f(r["p90_us"]), _f(r["p99_us"]), _f(r["count"]), _f(r["lost"])] for r in rows
+        [_label(r, "client", rows), _f(r["p50_us"]), _f(r["p90_us"]), _f(r["p99_us"]), _f(r["count"]), _f(r["lost"])]
+        for r in rows
     ]
     return _table(["client", "p50 us", "p90 us", "p99 us", "count", "lost"], out)
 
@@ -278,7 +264,6 @@ KINDS: dict[str, Callable[[list[Row]], list[str]]] = {
     "latency": _latency,
     "actuator_by_load": _actuator_by_load,
     "transport": _transport,
-    "transport_rows": _transport_rows,
     "timers": _timers,
     "simclock": _simclock,
     "throughput": _throughput,
@@ -288,34 +273,43 @@ KINDS: dict[str, Callable[[list[Row]], list[str]]] = {
 """Table kinds by name: each turns a record's rows into the lines of a markdown table."""
 
 
-def _block(rec: Record, file: str, kind: str) -> str:
+def _block(spec: str, results: Path) -> str:
+    """The generated text of one fence: ``FILE[+FILE...] KIND [KEY=VALUE ...]`` (the rows of every file, those
+    whose KEY is VALUE when filters are given, as one table of that kind)."""
+    words = spec.split()
+    if len(words) < 2:
+        raise ConfigError(f"table fence {spec!r}: expected 'FILE[+FILE...] KIND [KEY=VALUE ...]'")
+    files, kind, filters = words[0].split("+"), words[1], words[2:]
     if kind not in KINDS:
-        raise ConfigError(f"unknown table kind {kind!r} for {file}; expected one of {sorted(KINDS)}")
-    lines = [f"Run {rec.date} on {rec.host}: `{rec.command}` (`benchmarks/results/{file}`)", "", *KINDS[kind](rec.rows)]
-    return "\n".join(lines) + "\n"
+        raise ConfigError(f"unknown table kind {kind!r} in fence {spec!r}; expected one of {sorted(KINDS)}")
+    wanted = dict(f.split("=", 1) for f in filters if "=" in f)
+    lines, rows = [], []
+    for file in files:
+        rec = load_record(results / file)
+        lines.append(f"`{rec.command}`: {rec.date}, {rec.host} (`benchmarks/results/{file}`).")
+        stem = file.removesuffix(".json")
+        rows += [{**r, "_record": stem} for r in rec.rows if all(str(r.get(k)) == v for k, v in wanted.items())]
+    if not rows:
+        raise ConfigError(f"table fence {spec!r}: no row of {', '.join(files)} matches {wanted}")
+    return "\n".join([*lines, "", *KINDS[kind](rows)]) + "\n"
 
 
 def render(doc: str, results: Path = RESULTS) -> str:
-    """``doc`` with every fenced table regenerated from its record in ``results``.
+    """``doc`` with every fenced table regenerated from its records in ``results``.
 
     Raises:
-        ConfigError: a record is missing or malformed, or a fence names an unknown kind.
+        ConfigError: a record is missing or malformed, or a fence names an unknown kind or matches no row.
     """
 
     def fill(m: re.Match[str]) -> str:
-        block = _block(load_record(results / m["file"]), m["file"], m["kind"])
-        return f"<!-- table: {m['file']} {m['kind']} -->\n{block}<!-- end table -->"
+        return f"<!-- table: {m['spec']} -->\n{_block(m['spec'], results)}<!-- end table -->"
 
     return _FENCE.sub(fill, doc)
 
 
 def stale(doc: str, results: Path = RESULTS) -> list[str]:
-    """The records whose fenced table in ``doc`` differs from what ``render`` makes of them."""
-    return [
-        m["file"]
-        for m in _FENCE.finditer(doc)
-        if m["body"] != _block(load_record(results / m["file"]), m["file"], m["kind"])
-    ]
+    """The fences (their specs) whose table in ``doc`` differs from what ``render`` makes of their records."""
+    return [m["spec"] for m in _FENCE.finditer(doc) if m["body"] != _block(m["spec"], results)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -345,8 +339,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"uniros bench report: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"uniros bench report: cannot read or write {exc.filename}: {exc.strerror}", file=sys.stderr)
+        return 2
     for name in old:
-        print(f"{args.doc}: the table of {name} is not what its record gives (run: uniros bench report write)")
+        print(f"{args.doc}: the table '{name}' is not what its records give (run: uniros bench report write)")
     return 1 if old else 0
 
 

@@ -85,7 +85,7 @@ LOOP_PHASE_STEP_NS = 1_000_000
 highest-ranked last. On one instant, four workers on 2 cores ran in priority order anyway, and the later ones
 started whenever the others' variable work let them: the last reply, which the agent waits for, came 2.1 ms after
 the deadline with an IQR of 0.43 ms. Staggered, each runs alone and the last reply comes from the worker with the
-highest priority: IQR 0.1 ms (docs/perf/history.md). 1 ms is well above a worker's tick or return (0.2-0.4 ms when
+highest priority: IQR 0.1 ms (git's docs/perf/history.md). 1 ms is well above a worker's tick or return (0.2-0.4 ms when
 its caches are cold); the first member's returns wait up to ``(n - 1)`` ms longer for the agent."""
 
 
