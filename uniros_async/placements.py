@@ -350,6 +350,12 @@ def _register_builtins() -> None:
         check="uniros_async.adapters.ros2_bridge:check_ros2_placement",
         description="an arm whose driver is a ROS 2 node, through a bridge in the env's process",
     )
+    register_placement(
+        "dxl://",
+        "uniros_async.hardware.dxl.placement:open_dxl_placement",
+        check="uniros_async.hardware.dxl.placement:check_dxl_placement",
+        description="an arm of Dynamixel servos on its serial bus, driven from the env's process (no ROS)",
+    )
 
 
 _register_builtins()

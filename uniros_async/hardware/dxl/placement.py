@@ -1,0 +1,245 @@
+"""The ``dxl://`` placement: an env's arm on its Dynamixel bus, driven from the env's own process.
+
+    robot="dxl:///dev/ttyUSB0"                                  # the robot's servo map, at the map's baud rate
+    robot="dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=rest"
+
+The path is the serial device (a pty of ``uniros robot vbus`` too). The query may set ``baud`` (default: the
+map's), ``map`` (a registered servo map; default: the one named as the env's robot), ``rate`` (the bus loop in Hz;
+default the robot's hardware rate, raised to at least two ticks per Bus Watchdog window) and ``shutdown``
+(``hold``, the default, or ``rest``).
+
+The placement opens a memory domain in the env's process and runs ``DxlArmNode`` on it: a node in the robot's
+namespace that publishes ``joint_states`` and takes ``command`` as every other placement's arm does, and serves
+``hold`` and ``stats``. Its loop is one task: each tick one sync read (published as the joint state) and one sync
+write of the newest command's goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
+A ``RobotError`` of the arm (hardware error, a silent servo) ends the node's task: the env sees no fresh joint
+state and raises RobotError within its ``robot_timeout_s``; the error itself is logged and kept in ``stats``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+import urllib.parse
+from collections.abc import AsyncIterator
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from uniros_async.bus import open_domain, open_node
+from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
+from uniros_async.bus.qos import latest
+from uniros_async.errors import ConfigError, DxlCrcError, RobotError
+from uniros_async.placements import ArmLink, PlacementRequest
+
+if TYPE_CHECKING:
+    from uniros_async.bus.node import Node
+    from uniros_async.envs.config import EnvConfig
+    from uniros_async.hardware.dxl.arm import DxlArm
+
+__all__ = ["DxlArmNode", "DxlUri", "check_dxl_placement", "open_dxl_placement", "parse_dxl_uri"]
+
+logger = logging.getLogger(__name__)
+
+_KEYS = ("baud", "map", "rate", "shutdown")
+
+
+class DxlUri:
+    """A parsed ``dxl://`` URI (see the module docstring)."""
+
+    def __init__(self, path: str, baud: int | None, map_name: str | None, rate_hz: float | None, shutdown: str):
+        self.path, self.baud, self.map_name, self.rate_hz, self.shutdown = path, baud, map_name, rate_hz, shutdown
+
+
+def parse_dxl_uri(uri: str) -> DxlUri:
+    """Parse ``dxl:///dev/ttyX?baud=...&map=...&rate=...&shutdown=...``.
+
+    Raises:
+        ConfigError: no device path, an unknown key, or a value of the wrong kind.
+    """
+    form = "dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=hold"
+    parts = urllib.parse.urlsplit(uri)
+    if parts.scheme != "dxl" or parts.netloc or not parts.path.startswith("/"):
+        raise ConfigError(f"robot={uri!r}: expected a serial device path after dxl://, e.g. {form}")
+    query = urllib.parse.parse_qs(parts.query, keep_blank_values=True, strict_parsing=False)
+    unknown = sorted(set(query) - set(_KEYS))
+    if unknown:
+        raise ConfigError(f"robot={uri!r}: unknown query key(s) {unknown}; expected some of {list(_KEYS)}, e.g. {form}")
+    one = {k: v[-1] for k, v in query.items()}
+    try:
+        baud = int(one["baud"]) if "baud" in one else None
+        rate = float(one["rate"]) if "rate" in one else None
+    except ValueError:
+        raise ConfigError(f"robot={uri!r}: baud must be an integer and rate a number of Hz, e.g. {form}") from None
+    if baud is not None and baud <= 0 or rate is not None and not rate > 0:
+        raise ConfigError(f"robot={uri!r}: baud and rate must be > 0")
+    shutdown = one.get("shutdown", "hold")
+    if shutdown not in ("hold", "rest"):
+        raise ConfigError(f"robot={uri!r}: shutdown must be 'hold' or 'rest', got {shutdown!r}")
+    return DxlUri(parts.path, baud, one.get("map"), rate, shutdown)
+
+
+def check_dxl_placement(robot: str, config: EnvConfig) -> None:
+    """The placement's check of an env config: a well-formed URI naming a registered servo map.
+
+    Raises:
+        ConfigError: a malformed URI or an unknown servo map.
+    """
+    from uniros_async.hardware.dxl.servo_map import servo_map
+
+    parsed = parse_dxl_uri(robot)
+    if parsed.map_name is not None:
+        servo_map(parsed.map_name)
+
+
+class DxlArmNode:
+    """A DxlArm on the bus: publishes ``joint_states``, takes ``command``, serves ``hold`` and ``stats``.
+
+    Args:
+        node: the node (namespace ``/<robot>``).
+        arm: the started arm.
+        rate_hz: ticks per second.
+    """
+
+    def __init__(self, node: Node, arm: DxlArm, rate_hz: float) -> None:
+        self.node, self.arm, self.rate_hz = node, arm, rate_hz
+        self.ticks = 0
+        self.late_ticks = 0
+        self.error: str = ""
+        self.current_a: dict[str, float] = {}
+        self._seen = 0
+        self._cmd_echo: tuple[int, int] | None = None
+        self._goal: np.ndarray | None = None
+        self._gripper: float | None = None
+
+    async def serve(self) -> None:
+        """Create the topics and services, then tick until cancelled or until the arm fails (RobotError)."""
+        node = self.node
+        self.joint_states = await node.create_publisher(JointState, "joint_states", qos=latest())
+        self.commands = await node.create_subscription(JointCommand, "command", qos=latest())
+        await node.create_service(Empty, Trigger, "hold", self._srv_hold)
+        await node.create_service(Empty, Data, "stats", self._srv_stats)
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.rate_hz
+        next_t = loop.time()
+        try:
+            while True:
+                await self._tick()
+                next_t += period
+                delay = next_t - loop.time()
+                if delay < 0:
+                    self.late_ticks += 1
+                    next_t = loop.time()
+                await asyncio.sleep(max(0.0, delay))
+        except RobotError as exc:
+            self.error = str(exc)
+            logger.error("%s", exc)
+            raise
+
+    async def _tick(self) -> None:
+        try:
+            state = await self.arm.read_state(self.node.now_ns())
+        except DxlCrcError:
+            return  # retried within the call, counted; RobotError after max_crc_errors ticks in a row
+        self.current_a = state.current_a
+        js = state.joint_state
+        echo = self._cmd_echo
+        if echo is not None:
+            js = JointState(
+                header=js.header,
+                name=js.name,
+                position=js.position,
+                velocity=js.velocity,
+                effort=js.effort,
+                command_stamp_ns=echo[0],
+                command_age_ns=time.monotonic_ns() - echo[1],
+            )
+        self.joint_states.publish(js)
+        self.ticks += 1
+        sub = self.commands
+        if sub.received != self._seen:
+            self._seen = sub.received
+            cmd = sub.latest()
+            if cmd is not None:
+                self._cmd_echo = (cmd.header.stamp_ns, sub.latest_recv_ns)
+                pos = np.asarray(cmd.position, dtype=np.float64)
+                n = len(self.arm.arm_servos)
+                self._goal = pos[:n]
+                self._gripper = float(pos[n]) if pos.shape[0] > n else None
+        if self._goal is not None:
+            # one sync write a tick (the newest goals again when no new command came): the bus watchdog stays fed
+            await self.arm.write_goals(self._goal, self._gripper)
+
+    def _srv_hold(self, req: Empty) -> Trigger:
+        q = self.arm.last_q
+        if q is None:
+            return Trigger(success=False, message="no state read yet")
+        self._seen = self.commands.received  # commands sent before the hold are dropped
+        self._goal, self._gripper = q.copy(), None
+        return Trigger(success=True, message=f"holding at {np.round(q, 4).tolist()}")
+
+    def _srv_stats(self, req: Empty) -> Data:
+        bus = self.arm.bus.stats
+        value: dict[str, Any] = {
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "clamped": self.arm.clamped,
+            "transactions": bus.transactions,
+            "crc_errors": bus.crc_errors,
+            "timeouts": bus.timeouts,
+            "retries": bus.retries,
+            "current_a": self.current_a,
+            "error": self.error,
+        }
+        return Data(value=value)
+
+
+def _rate(uri: DxlUri, watchdog_ms: int, hardware_rate_hz: float) -> float:
+    floor = 2000.0 / watchdog_ms  # two ticks per watchdog window
+    if uri.rate_hz is not None:
+        if uri.rate_hz < floor:
+            raise ConfigError(
+                f"dxl rate={uri.rate_hz} Hz: the servos' bus watchdog is {watchdog_ms} ms, so the bus loop needs at "
+                f"least {floor:g} Hz (two ticks per watchdog window)"
+            )
+        return uri.rate_hz
+    return max(hardware_rate_hz, floor)
+
+
+@contextlib.asynccontextmanager
+async def open_dxl_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+    """``robot="dxl://..."``: the arm on its bus in the env's process (see the module docstring)."""
+    from uniros_async.bus.tasks import unwrap_task_group
+    from uniros_async.hardware.dxl.arm import DxlArm
+    from uniros_async.hardware.dxl.bus import open_dxl_bus
+    from uniros_async.hardware.dxl.servo_map import servo_map
+
+    uri = parse_dxl_uri(request.uri)
+    servos = servo_map(uri.map_name or request.robot.name)
+    if servos.robot != request.robot.name:
+        raise ConfigError(
+            f"robot={request.uri!r}: servo map {servos.name!r} drives {servos.robot!r}, not this env's "
+            f"{request.robot.name!r}"
+        )
+    rate = _rate(uri, servos.bus_watchdog_ms, request.robot.hardware_rate_hz)
+    return_delay_s = max(s.return_delay_time for s in servos.servos) * 2e-6
+    bus = await open_dxl_bus(uri.path, uri.baud or servos.baud, return_delay_s=return_delay_s)
+    async with bus:
+        arm = DxlArm(bus, servos, request.robot, shutdown=uri.shutdown)  # type: ignore[arg-type]
+        await arm.start()
+        try:
+            async with (
+                open_domain("memory://") as domain,
+                open_node("dxl_arm", domain=domain, namespace=f"/{request.robot.name}", clock=request.clock) as node,
+                unwrap_task_group() as tg,
+            ):
+                arm_node = DxlArmNode(node, arm, rate)
+                task = tg.create_task(arm_node.serve(), name=f"{request.robot.name} dxl bus")
+                try:
+                    yield ArmLink(domain=domain)
+                finally:
+                    task.cancel()
+        finally:
+            await arm.close()
