@@ -12,6 +12,7 @@ import json
 import os
 import secrets
 import signal
+import subprocess
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -27,6 +28,7 @@ COMMAND_TIMEOUT_S = 0.5
 PERIOD_S = 0.1  # rx200: 10 Hz
 ACTION_CYCLE_S = 0.2
 TCP_ARM_PORT = 7000
+REGISTRY_PORT = 7001
 MASTER_PORT = 11311
 START_S = 60.0
 """A bound against a hang: the agent's first step (or error), its env built and the arm reached."""
@@ -89,6 +91,35 @@ def start_tcp_arm(
     return _start_served(pair, peers, argv, f"export UNIROS_DOMAIN={uri}", env=env), uri
 
 
+def start_registry(pair: NetnsPair, peers: list[EventPeer], env: dict[str, str], uri: str) -> EventPeer:
+    """A domain registry alone in a process of the arm's namespace (``rig.domain_peer registry``), at ``uri``."""
+    argv = [sys.executable, "-m", "rig.domain_peer", "registry", "--uri", uri]
+    return _start_served(pair, peers, argv, "ready", env=env)
+
+
+def start_arm_in_domain(pair: NetnsPair, peers: list[EventPeer], env: dict[str, str], uri: str) -> EventPeer:
+    """The rx200's servo sim joined to the domain at ``uri`` (``rig.domain_peer arm``: watchdog ``COMMAND_TIMEOUT_S``,
+    commands older than ``ROBOT_TIMEOUT_S`` dropped, traced as ``start_tcp_arm``'s)."""
+    argv = [sys.executable, "-m", "rig.domain_peer", "arm", "--domain", uri, "--host", pair.arm_ip,
+            "--command-timeout", str(COMMAND_TIMEOUT_S), "--max-command-age", str(ROBOT_TIMEOUT_S)]  # fmt: skip
+    return _start_served(pair, peers, argv, f"export UNIROS_DOMAIN={uri}", env=env)
+
+
+def probe_domain(pair: NetnsPair, env: dict[str, str], uri: str, topic: str, service: str) -> dict[str, Any]:
+    """What a new process in the env's namespace sees of the domain at ``uri`` (``rig.domain_peer probe``): the
+    topics and their publishers, the services, and the first message of ``topic`` (seconds, or None)."""
+    argv = [sys.executable, "-m", "rig.domain_peer", "probe", "--domain", uri, "--topic", topic, "--service", service]
+    proc = pair.popen("env", argv, env=env)
+    try:
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, f"the probe failed ({proc.returncode}): {out}"
+    return dict(json.loads(out.strip().splitlines()[-1]))
+
+
 def start_agent(
     pair: NetnsPair,
     peers: list[EventPeer],
@@ -130,6 +161,21 @@ def start_ros1_driver(pair: NetnsPair, peers: list[EventPeer], master_uri: str, 
     argv = [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--ros1-master", master_uri,
             "--ros-host", pair.arm_ip, "--insecure", *extra]  # fmt: skip
     return _start_served(pair, peers, argv, f"export ROS_MASTER_URI={master_uri}")
+
+
+def shm_names() -> set[str]:
+    """The names in /dev/shm now (the bus's shared memory is anonymous, memfd: none of ours should ever appear)."""
+    return set(os.listdir("/dev/shm"))
+
+
+def assert_nothing_left(pair: NetnsPair, peers: list[EventPeer], shm_before: set[str]) -> None:
+    """After a rig is taken down: every process it started has ended, both namespaces are gone, and /dev/shm holds
+    no new name of ours (``uniros`` in it; other tests of the machine may add their own meanwhile)."""
+    assert all(p.proc.poll() is not None for p in peers), [p.proc.args for p in peers if p.proc.poll() is None]
+    listed = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True, timeout=10).stdout
+    assert pair.arm_ns not in listed and pair.env_ns not in listed, listed
+    left = {n for n in shm_names() - shm_before if "uniros" in n}
+    assert not left, left
 
 
 def uncaught(agent: EventPeer) -> list[dict[str, Any]]:

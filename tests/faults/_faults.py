@@ -1,4 +1,5 @@
-"""What the fault tests share: the faults, and one fault's run and measurement (see test_tcp_arm_faults.py)."""
+"""What the fault tests share: the faults, their durations, and one fault's run and measurement (see
+test_tcp_arm_faults.py)."""
 
 from __future__ import annotations
 
@@ -7,16 +8,23 @@ import os
 import signal
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from rig.netfault import EventPeer, NetnsPair, fault_figures
 
-from ._arm import report, uncaught
+from ._arm import probe_domain, report, uncaught
 
-FAULT_S = 2.0
-RECOVER_S = 15.0
-"""A bound against a hang, not a goal: how long the agent may take to step again after the fault is cleared."""
+DURATIONS_S = (0.5, 5.0, 30.0)
+"""How long each fault lasts: shorter than the robot timeout and a reset; past them; past every lease and keepalive
+(the tcp keepalive breaks an idle connection after about 5 s, the registry then forgets the node)."""
+NOTICE_FROM_S = 2.0
+"""A fault that cuts the states for at least this long must be noticed (a shorter one may heal, TCP retransmitting,
+before the newest state turns older than the robot timeout)."""
+RECOVER_S = 45.0
+"""A bound against a hang, not the goal: how long the test waits for the agent to step again after the fault."""
+RECOVER_GOAL_S = 2.0
+"""The goal: the agent's next good step within ``robot_timeout_s`` and this of the link's return."""
 CODE_PATH_S = 0.05
 """What the code between a check and its event line may take (no wait in it)."""
 STALL_S = 1.0
@@ -27,9 +35,17 @@ the arm's own ticks, exactly."""
 
 @dataclass
 class Link:
+    """One arm and one agent, and what a fault needs of them: ``domain`` (the arm's bus domain, for a new process to
+    look at after each fault; None for a ROS 1 arm), ``env`` (the processes' environment) and ``restart_registry``
+    (kills the domain's registry process and returns what starts it again at the same URI; None when the registry
+    lives in the arm's process)."""
+
     pair: NetnsPair
     arm: EventPeer
     agent: EventPeer
+    domain: str | None = None
+    env: dict[str, str] = field(default_factory=dict)
+    restart_registry: Callable[[], Callable[[], None]] | None = None
 
 
 def _freeze(link: Link) -> Callable[[], None]:
@@ -50,6 +66,27 @@ def _link_down(link: Link) -> Callable[[], None]:
     return link.pair.link_up
 
 
+def _drop_output(link: Link) -> Callable[[], None]:
+    link.pair.drop_output()
+    return link.pair.clear
+
+
+def _remove_address(link: Link) -> Callable[[], None]:
+    link.pair.remove_address()
+    return link.pair.restore_address
+
+
+def _block_registry_port(link: Link) -> Callable[[], None]:
+    assert link.domain is not None
+    link.pair.block_port(int(link.domain.rsplit(":", 1)[1]))
+    return link.pair.clear
+
+
+def _restart_registry(link: Link) -> Callable[[], None]:
+    assert link.restart_registry is not None, "this link's registry is in the arm's process"
+    return link.restart_registry()
+
+
 FAULTS: dict[str, tuple[Callable[[Link], Callable[[], None]], bool]] = {
     # name: (inject -> clear, whether the agent must notice)
     "partition": (_nft(NetnsPair.partition), True),
@@ -60,12 +97,18 @@ FAULTS: dict[str, tuple[Callable[[Link], Callable[[], None]], bool]] = {
     "starved link (tbf 8 kbit/s)": (_nft(lambda p: p.starve("8kbit")), False),
     "link down": (_link_down, True),
     "frozen arm (SIGSTOP)": (_freeze, True),
+    # the arm's connection to its own registry cut too
+    "arm output dropped": (_drop_output, True),
+    "arm address removed": (_remove_address, True),
+    "registry port blocked": (_block_registry_port, False),  # data does not pass through the registry
+    "registry restarted": (_restart_registry, False),
 }
 
 
 def run_fault(
     link: Link,
     name: str,
+    duration_s: float,
     *,
     robot: str,
     robot_timeout_s: float,
@@ -73,8 +116,9 @@ def run_fault(
     period_s: float,
     check_ages: bool = True,
 ) -> dict[str, Any]:
-    """Inject fault ``name`` for ``FAULT_S``, clear it, wait for the agent's recovery, check the goals; returns
-    the figures (``fault_figures``), also appended to ``$UNIROS_FAULT_REPORT`` when set."""
+    """Inject fault ``name`` for ``duration_s``, clear it, wait for the agent's recovery, check the goals (and, on a
+    bus arm, that a new process sees the arm's topics and gets its states); returns the figures (``fault_figures``,
+    with ``duration_s`` and the probe's), also appended to ``$UNIROS_FAULT_REPORT`` when set."""
     inject, must_notice = FAULTS[name]
     arm, agent = link.arm, link.agent
     agent.wait_for(time.monotonic_ns(), "step", RECOVER_S, "a step before the fault")
@@ -82,7 +126,7 @@ def run_fault(
     clear = inject(link)
     t_fault = time.monotonic_ns()
     try:
-        time.sleep(FAULT_S)  # the fault's duration: the thing under test runs meanwhile
+        time.sleep(duration_s)  # the fault's duration: the thing under test runs meanwhile
     finally:
         clear()
         t_clear = time.monotonic_ns()
@@ -99,7 +143,20 @@ def run_fault(
         robot_timeout_s=robot_timeout_s,
     )
     row["link"] = robot
+    row["duration_s"] = duration_s
+    if link.domain is not None:
+        seen = probe_domain(link.pair, link.env, link.domain, "/rx200/joint_states", "/rx200/reset")
+        row["new_process_sees_arm"] = seen["topics"].get("/rx200/joint_states") == ["/rx200/servo_sim"] and bool(
+            seen["services_listed"].get("/rx200/reset")
+        )
+        row["new_process_first_state_s"] = seen["first_message_s"]["/rx200/joint_states"]
     report(row)
+    assert link.arm.proc.poll() is None and link.agent.proc.poll() is None, "no process restarted: both still run"
+    # the goal: the next good step within the robot timeout and RECOVER_GOAL_S of the link's return
+    assert row["recovery_after_clear_s"] <= robot_timeout_s + RECOVER_GOAL_S, row
+    if link.domain is not None:
+        assert row["new_process_sees_arm"], seen
+        assert row["new_process_first_state_s"] is not None, seen
     errors = uncaught(agent)
     assert not errors, errors[0]["tb"]
     if check_ages:
@@ -107,7 +164,7 @@ def run_fault(
         # no step returned on a state older than the timeout, by its own stamp (the arm shares this clock)
         assert row["max_state_stamp_age_at_step_s"] <= robot_timeout_s + CODE_PATH_S, row
     assert any(e["ev"] == "cmd" and e["applied"] and e["t_ns"] <= t_fault for e in arm.events), "no command before"
-    if must_notice:
+    if must_notice and duration_s >= NOTICE_FROM_S:
         assert row["robot_errors"], f"{name}: the agent saw no RobotError"
         # the robot timeout after the last state (which came within a period before the fault), plus how late the
         # agent's own loop ran meanwhile (measured from its tick times: the host's scheduling, not the env's logic)

@@ -10,7 +10,11 @@ namespaces (and so the link) when the block ends, also on failure. Processes run
 - ``tcp_reset()``: nftables answers every tcp segment that arrives with a reset (``reject with tcp reset``);
 - ``starve(rate)``: a ``tbf`` qdisc on both ends limits the link to ``rate`` (e.g. ``"8kbit"``);
 - ``link_down()`` / ``link_up()``: the veth end goes down and up;
-- ``clear()``: removes the nftables table and the qdiscs.
+- ``drop_output()``: nftables drops every packet the arm's namespace sends, on every interface (loopback too: the
+  arm's own node loses its registry when both are in one process);
+- ``remove_address()`` / ``restore_address()``: the arm's address is deleted with ``ip addr del`` and added again;
+- ``block_port(port)``: nftables drops every tcp segment to ``port`` in the arm's namespace (its registry's);
+- ``clear()``: removes the nftables table and the qdiscs, and brings the link and the address back.
 
 A frozen peer is ``os.kill(pid, SIGSTOP)`` / ``SIGCONT`` of the arm's process. This kernel has no ``netem``
 (CONFIG_NET_SCH_NETEM is off), so delay and jitter come from the tests' own delaying relay
@@ -143,6 +147,23 @@ class NetnsPair:
             _run("ip", "netns", "exec", ns, "tc", "qdisc", "replace", "dev", dev, "root", "tbf", "rate", rate,
                  "burst", "1600", "latency", "200ms")  # fmt: skip
 
+    def drop_output(self) -> None:
+        """Drop every packet the arm's namespace sends, on every interface, loopback included."""
+        self._nft("counter", "drop")  # the input chain only counts (the rig always writes one)
+
+    def block_port(self, port: int) -> None:
+        """Drop every tcp segment to ``port`` in the arm's namespace, from the link and from loopback."""
+        self._nft(f"tcp dport {port} drop", None)
+
+    def remove_address(self) -> None:
+        _run("ip", "-n", self.arm_ns, "addr", "del", f"{self.arm_ip}/{PREFIX_LEN}", "dev", self.arm_dev)
+
+    def restore_address(self) -> None:
+        """Add the arm's address back (nothing when it is there)."""
+        shown = _run("ip", "-n", self.arm_ns, "-o", "addr", "show", "dev", self.arm_dev).stdout
+        if f" {self.arm_ip}/" not in shown:
+            _run("ip", "-n", self.arm_ns, "addr", "add", f"{self.arm_ip}/{PREFIX_LEN}", "dev", self.arm_dev)
+
     def link_down(self) -> None:
         _run("ip", "-n", self.arm_ns, "link", "set", self.arm_dev, "down")
 
@@ -179,6 +200,7 @@ class NetnsPair:
         for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
             _run("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", dev, "root", check=False)
         self.link_up()
+        self.restore_address()
 
 
 @contextlib.contextmanager
