@@ -78,8 +78,9 @@ async def test_a_target_marker_appears_in_the_scene_camera() -> None:
                 if img.header.stamp_ns > clock.now_ns() - 1 and _red(img.data) > 0:
                     break
         ys, xs = np.nonzero(_red_mask(img.data))
-        # the scene camera looks along +x from behind the arm, image right = world -y: a target at y < 0 is right
-        assert xs.mean() > 42
+        # the scene camera looks at (0.2, 0, 0) from y = +0.6 (image right = world -x, up = away from it): a target at
+        # x > 0.2 is left of the centre, at y < 0 above it
+        assert xs.mean() < 42 and ys.mean() < 42
         assert node.stats[0].render_ns  # rendered on the loop, in sim time
 
 

@@ -245,6 +245,8 @@ class SimCameraNode:
         self._failed: asyncio.Future[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch_task: asyncio.Task[None] | None = None
+        self._timers: list[Any] = []
+        self._inline_stopped = False
 
     def topic(self, index: int = 0) -> str:
         """The absolute topic of camera ``index``."""
@@ -270,7 +272,13 @@ class SimCameraNode:
         for i, cfg in enumerate(self.cameras):
             period_ns = round(1e9 / cfg.rate_hz)
             start = grid_after(node.now_ns(), period_ns)
-            node.create_timer(period_ns / 1e9, lambda i=i: self._on_tick(i), start_ns=start)
+            self._timers.append(node.create_timer(period_ns / 1e9, lambda i=i: self._on_tick(i), start_ns=start))
+
+    def stop(self) -> None:
+        """Stop rendering and publishing (a camera that stops: its subscribers' frames only age)."""
+        for timer in self._timers:
+            timer.cancel()
+        self._inline_stopped = True
 
     async def _watch(self) -> None:
         assert self._failed is not None
@@ -305,7 +313,7 @@ class SimCameraNode:
     def render_now(self, index: int) -> None:
         """Render camera ``index`` now, on the loop, and publish it (a node that renders in sim time; on a wall
         clock the next tick's frame comes from the render thread, and this does nothing)."""
-        if self._inline:
+        if self._inline and not self._inline_stopped:
             self._on_tick(index)
 
     def _publish(self, index: int, frame: np.ndarray, stamp_ns: int) -> None:

@@ -94,6 +94,22 @@ class EnvConfig(ConfigModel):
     ``max_command_age_s``, ``insecure``); unset: the defaults of the robot's ROS 1 driver (``adapters.drivers``), and
     ``max_command_age_s`` is ``robot_timeout_s``."""
 
+    obs_mode: Literal["state", "pixels", "pixels+state"] = "state"
+    """``"state"``: the task's vector; ``"pixels"``: a Dict with the camera's newest frame (``pixels``, uint8
+    height x width x 3); ``"pixels+state"``: both (``pixels``, ``state``). Frames: envs/pixels.py."""
+    image_size: tuple[Annotated[Int, Field(ge=8, le=1024)], Annotated[Int, Field(ge=8, le=1024)]] = (84, 84)
+    """The observation's frame size, (height, width) in pixels."""
+    camera: Str = "camera"
+    """The camera whose frames are observed: its topic ``/<arm>/<camera>/color/image_raw``; a sim arm has
+    ``camera`` (the scene camera) and ``wrist_camera``."""
+    camera_rate_hz: Annotated[Float, Field(gt=0, le=240)] | None = None
+    """The rate of the sim camera the env runs; unset: 30 Hz on a wall clock, the env loop's rate on a sim clock."""
+    camera_timeout_s: Float = Field(default=1.0, gt=0)
+    """A frame older than this sets ``info["frame_stale"]``; ``reset`` raises RobotError without a fresh one."""
+    sim_camera: Bool | None = None
+    """Render the camera from the sim (True) or only subscribe to its topic (False); unset: render it on the sim
+    placements (``sim``, ``sim-process``, ``emulated-real``)."""
+
     @pydantic.model_validator(mode="before")
     @classmethod
     def _default_clock(cls, data: Any) -> Any:

@@ -29,6 +29,10 @@ front of it: the box rx200 x 0.15-0.40, y -0.40-0.40, z 0.05-0.40 m (the rx200 r
 shoulder 0.06 m higher; 90 % of its draws are reachable, 97 % of the rx200's). ``goal_min`` / ``goal_max`` set a
 box of one's own.
 
+Observation modes (``obs_mode``, envs/pixels.py): ``"state"`` is the vector above; ``"pixels"`` a Dict with the
+camera's newest frame (``pixels``); ``"pixels+state"`` both (``pixels``, ``state``). The goal env takes
+``"state"`` only (HER relabels its vector goals).
+
 Rewards follow UniROS: sparse +1 on reaching (distance <= tolerance) else -1; dense +20 on reaching, else
 -2 x distance - 0.5, plus -2 when the action hits a joint limit and -5 when it could not be executed (unsafe).
 Reaching terminates the episode with ``info["is_success"] = True``, at the first env-loop tick that finds the EE
@@ -47,6 +51,7 @@ from pydantic import Field
 from uniros_async.bus.messages import JointState
 from uniros_async.config import ConfigModel, Float, Vec3, key_error
 from uniros_async.envs.base import GoalEnv
+from uniros_async.envs.pixels import PixelSource
 from uniros_async.envs.task import TaskEnv, parse_kwargs
 from uniros_async.errors import ConfigError
 
@@ -160,6 +165,12 @@ class ReachEnv(TaskEnv):
                 f"{self.goal_max.tolist()} (the {arm}'s {self.goal_space} box gives the one not set)"
             )
         super().__init__(arm, config)
+        self._pixels = PixelSource(config, self.robot_spec) if config.obs_mode != "state" else None
+        if self._pixels is not None and isinstance(self, GoalEnv):
+            raise ConfigError(
+                f"obs_mode={config.obs_mode!r}: the goal-conditioned env takes obs_mode='state' only (HER relabels "
+                "its vector goals); use the standard env for pixel observations"
+            )
         spec = self.robot_spec
         n = spec.n_arm_joints
         self._lower = np.asarray(spec.joint_lower_rad)
@@ -192,7 +203,30 @@ class ReachEnv(TaskEnv):
 
     def _make_observation_space(self) -> gym.Space[Any]:
         lo, hi = self._vector_bounds()
-        return gym.spaces.Box(lo, hi, dtype=np.float32)
+        state = gym.spaces.Box(lo, hi, dtype=np.float32)
+        return state if self._pixels is None else self._pixels.space(state)
+
+    # ---- the camera (obs_mode with pixels)
+
+    async def _join(self, domain: Any, transport: str, options: Any) -> None:
+        await super()._join(domain, transport, options)
+        if self._pixels is None:
+            return
+        try:
+            rate_hz = self._pixels.camera_rate_hz(self.env_loop_rate_hz)
+            await self._pixels.join(self._node, self._node_stack, domain, transport, options, self._clock, rate_hz)
+        except BaseException:
+            await self._node_stack.aclose()
+            raise
+
+    async def _areset(self, options: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+        obs, info = await super()._areset(options)
+        pixels = self._pixels
+        if pixels is None:
+            return obs, info
+        # a frame of the new episode (its target shown): rendered now in sim time, or the camera's next one
+        await pixels.fresh(self._clock.now_ns())
+        return pixels.observe(obs.get("state"), info), info
 
     # ---- hooks
 
@@ -264,7 +298,10 @@ class ReachEnv(TaskEnv):
         else:
             reward = 20.0 if success else float(-2.0 * d32 - 0.5)
             reward += -2.0 * limit_hit - 5.0 * not_executable
-        return self._observation(state, ee), reward, success, info
+        obs = self._observation(state, ee)
+        if self._pixels is not None:
+            obs = self._pixels.observe(obs, info)
+        return obs, reward, success, info
 
     def _observation(self, state: JointState, ee: np.ndarray) -> Any:
         return self._vector_obs(state, ee)

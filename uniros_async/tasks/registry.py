@@ -4,6 +4,7 @@ A task is an env class (a ``TaskEnv``, by ``"module:Class"`` entry point) with i
 env id is a task on a robot, registered with gymnasium. The ids that ship are the reach tasks on both arms::
 
     uniros/Rx200Reach-v0  uniros/Rx200ReachGoal-v0  uniros/Ned2Reach-v0  uniros/Ned2ReachGoal-v0
+    uniros/Rx200ReachPixels-v0 (the goal seen by the camera only)
 
 A package of your own registers its tasks and ids at import, without touching this module::
 
@@ -226,6 +227,7 @@ def _register_tasks() -> None:
     """The tasks that ship (no gymnasium import: a task is a name, an entry point and defaults)."""
     register_task("Reach", "uniros_async.tasks.reach:ReachEnv")
     register_task("ReachGoal", "uniros_async.tasks.reach:ReachGoalEnv")
+    register_task("ReachPixels", "uniros_async.tasks.reach_pixels:ReachPixelsEnv")
 
 
 def register_envs() -> None:
@@ -234,6 +236,7 @@ def register_envs() -> None:
     for robot in ("rx200", "ned2"):
         for task in ("Reach", "ReachGoal"):
             register_env_id(robot, task)
+    register_env_id("rx200", "ReachPixels")  # the target seen by the scene camera only (tasks/reach_pixels.py)
 
 
 _register_tasks()

@@ -1,0 +1,155 @@
+"""Pixel observations (obs_mode) and the pixel reach task, with real rendering of the arm's sim camera."""
+
+from __future__ import annotations
+
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+
+import uniros_async
+from uniros_async.errors import ConfigError, RobotError
+
+
+def _red_pixels(img: np.ndarray) -> int:
+    r, g, b = (img[..., k].astype(int) for k in range(3))
+    return int(((r > 150) & (g < 80) & (b < 80)).sum())
+
+
+@pytest.mark.slow
+def test_pixel_reach_passes_gymnasium_and_sb3_checkers() -> None:
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = gym.make("uniros/Rx200ReachPixels-v0", clock="sim")
+    try:
+        space = env.observation_space
+        assert isinstance(space, gym.spaces.Dict) and set(space.spaces) == {"pixels", "state"}
+        assert space["pixels"].shape == (84, 84, 3) and space["pixels"].dtype == np.uint8
+        assert space["state"].shape == (24,)  # the reach vector without the goal's direction and distance
+        gym_check_env(env.unwrapped, skip_render_check=True)
+        sb3_check_env(env.unwrapped, warn=False)
+        obs, info = env.reset(seed=3)
+        assert _red_pixels(obs["pixels"]) > 5  # the target is in the picture, and only there
+        assert info["frame_age_s"] == 0.0 and info["frame_stale"] is False
+        obs, _, _, _, info = env.step(env.action_space.sample())
+        assert 0 <= info["frame_age_s"] <= 0.1 and not info["frame_stale"]
+        assert obs["pixels"].shape == (84, 84, 3)
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+def test_pixel_reach_on_the_emulated_real_arm_over_tcp() -> None:
+    """The emulated real arm in its own process, in real time: the env renders its camera from the joint states
+    that arrive over tcp, in the camera's own thread."""
+    env = gym.make("uniros/Rx200ReachPixels-v0", robot="emulated-real", action_cycle_s=0.3)
+    try:
+        obs, info = env.reset(seed=3)
+        assert _red_pixels(obs["pixels"]) > 5 and not info["frame_stale"]
+        for _ in range(2):
+            obs, _, _, _, info = env.step(env.action_space.sample())
+        assert env.observation_space.contains(obs)
+        assert 0 <= info["frame_age_s"] < 0.2 and not info["frame_stale"]  # a 30 Hz camera, rendered beside the loop
+        stats = env.unwrapped._pixels.cameras.stats[0]
+        assert stats.frames > 10
+    finally:
+        env.close()
+
+
+def test_the_target_moves_in_the_image_with_the_goal() -> None:
+    env = gym.make("uniros/Rx200ReachPixels-v0", clock="sim", obs_mode="pixels")
+    try:
+        assert set(env.observation_space.spaces) == {"pixels"}
+        centres = []
+        for seed in range(6):
+            obs, _ = env.reset(seed=seed)
+            r, g, b = (obs["pixels"][..., k].astype(int) for k in range(3))
+            ys, xs = np.nonzero((r > 150) & (g < 80) & (b < 80))
+            assert len(xs) > 5, f"seed {seed}: no target in the frame"
+            centres.append((ys.mean(), env.unwrapped.goal[1]))
+        # the scene camera looks from y = +0.6 m: a target nearer to it (greater y) is lower in the picture
+        rows, ys_world = np.array(centres).T
+        assert np.corrcoef(rows, ys_world)[0, 1] > 0.8
+    finally:
+        env.close()
+
+
+def test_obs_mode_on_the_reach_task() -> None:
+    env = gym.make(
+        "uniros/Rx200Reach-v0", clock="sim", obs_mode="pixels+state", image_size=(48, 64), camera="wrist_camera"
+    )
+    try:
+        assert env.observation_space["pixels"].shape == (48, 64, 3)
+        assert env.observation_space["state"].shape == (28,)
+        obs, info = env.reset(seed=0)
+        assert obs["pixels"].shape == (48, 64, 3) and obs["pixels"].std() > 5
+        assert env.observation_space.contains(obs)
+        obs, *_, info = env.step(np.zeros(5, np.float32))
+        assert env.observation_space.contains(obs) and "frame_age_s" in info
+    finally:
+        env.close()
+
+
+def test_bad_obs_settings_are_named() -> None:
+    with pytest.raises(ConfigError, match="obs_mode"):
+        gym.make("uniros/Rx200Reach-v0", obs_mode="image")
+    with pytest.raises(ConfigError, match="image_size"):
+        gym.make("uniros/Rx200Reach-v0", obs_mode="pixels", image_size=(84,))
+    with pytest.raises(ConfigError, match="goal-conditioned env takes obs_mode='state'"):
+        gym.make("uniros/Rx200ReachGoal-v0", obs_mode="pixels")
+    with pytest.raises(ConfigError, match="seen only by the camera"):
+        gym.make("uniros/Rx200ReachPixels-v0", obs_mode="state")
+
+
+def test_no_camera_makes_reset_raise_robot_error_naming_the_topic() -> None:
+    env = gym.make("uniros/Rx200Reach-v0", clock="sim", obs_mode="pixels", sim_camera=False, camera_timeout_s=0.2)
+    try:
+        with pytest.raises(RobotError, match=r"no camera frame on /rx200/camera/color/image_raw .*none arrived"):
+            env.reset(seed=0)
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+def test_a_camera_that_stops_flags_stale_frames_after_its_timeout() -> None:
+    env = gym.make(
+        "uniros/Rx200ReachPixels-v0", clock="wall", action_cycle_s=0.2, camera_timeout_s=0.3, camera_rate_hz=15
+    )
+    try:
+        env.reset(seed=0)
+        *_, info = env.step(np.zeros(5, np.float32))
+        assert not info["frame_stale"] and info["frame_age_s"] < 0.3
+        cams = env.unwrapped._pixels.cameras
+        cams.stop()
+        t0 = time.monotonic()
+        stale_after = None
+        for _ in range(6):
+            *_, info = env.step(np.zeros(5, np.float32))
+            if info["frame_stale"]:
+                stale_after = time.monotonic() - t0
+                break
+        assert stale_after is not None and info["frame_age_s"] > 0.3
+        assert stale_after < 0.3 + 0.2 * 2 + 0.2  # within a step or so of the timeout
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("transport", "envs_per_worker"), [("shm", 1), ("tcp", 1), ("shm", 2)])
+def test_make_vec_with_pixel_observations(transport: str, envs_per_worker: int) -> None:
+    envs = uniros_async.make_vec(
+        ["uniros/Rx200ReachPixels-v0"] * 2, clock="sim", transport=transport, envs_per_worker=envs_per_worker
+    )
+    try:
+        obs, info = envs.reset(seed=[1, 2])
+        assert obs["pixels"].shape == (2, 84, 84, 3) and obs["pixels"].dtype == np.uint8
+        assert obs["state"].shape == (2, 24)
+        assert all(_red_pixels(obs["pixels"][i]) > 5 for i in range(2))
+        assert not np.array_equal(obs["pixels"][0], obs["pixels"][1])  # two goals, two pictures
+        for _ in range(3):
+            obs, reward, term, trunc, info = envs.step(envs.action_space.sample())
+        assert obs["pixels"].shape == (2, 84, 84, 3) and np.all(info["frame_age_s"] <= 0.1)
+    finally:
+        envs.close()
