@@ -1,0 +1,180 @@
+"""The arm on its bus (DxlArm) against the virtual servo bus: start-up, a tick, errors, clamping, shutdown."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from uniros_async.errors import ConfigError, DxlCrcError, RobotError
+from uniros_async.hardware.dxl.arm import DxlArm
+from uniros_async.hardware.dxl.bus import open_dxl_bus
+from uniros_async.hardware.dxl.control_table import rad_to_ticks
+from uniros_async.hardware.dxl.placement import parse_dxl_uri
+from uniros_async.hardware.dxl.servo_map import servo_map
+
+from ._vbus import Vbus, running_vbus, sdk_port
+
+pytestmark = pytest.mark.slow
+
+RX200 = servo_map("rx200")
+
+
+@pytest.fixture
+def vbus() -> Iterator[Vbus]:
+    with running_vbus() as bus:
+        yield bus
+
+
+def _present(path: str, ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7)) -> dict[int, tuple[int, int, int]]:
+    """(present position, goal position, torque enable) of each servo, read with dynamixel-sdk."""
+    with sdk_port(path) as (port, ph):
+        return {
+            i: (ph.read4ByteTxRx(port, i, 132)[0], ph.read4ByteTxRx(port, i, 116)[0], ph.read1ByteTxRx(port, i, 64)[0])
+            for i in ids
+        }
+
+
+async def test_start_holds_every_servo_where_it_is_then_ticks_and_holds_at_shutdown(vbus: Vbus) -> None:
+    await _sleep(0.5)  # the sim's arm settles under gravity first
+    before = _present(vbus.path)
+    assert all(torque == 0 for _, _, torque in before.values())
+    async with await open_dxl_bus(vbus.path) as bus:
+        arm = DxlArm(bus, RX200)
+        await arm.start()
+        n0 = bus.stats.transactions
+        state = await arm.read_state(0)
+        assert bus.stats.transactions == n0 + 1  # the whole arm's state in one transaction
+        q0 = state.joint_state.position[:5]
+        for servo, q in zip(arm.arm_servos, q0, strict=True):
+            assert abs(rad_to_ticks(float(q)) - before[servo.id][0]) <= 3, "an arm servo moved at start-up"
+        assert set(state.current_a) == {"shoulder", "elbow"}  # the XM430s sense current
+        goal = np.array([0.3, -0.2, 0.3, 0.2, -0.3])
+        for _ in range(40):
+            await arm.write_goals(goal)
+            state = await arm.read_state(0)
+            if np.max(np.abs(state.joint_state.position[:5] - goal)) < 0.02:
+                break
+            await _sleep(0.05)
+        assert np.max(np.abs(state.joint_state.position[:5] - goal)) < 0.02, state.joint_state.position
+        await arm.close()
+    after = _present(vbus.path)
+    for servo_id, (present, goal_ticks, torque) in after.items():
+        if servo_id != 7:
+            assert torque == 1, f"servo {servo_id}: torque dropped at shutdown"
+            assert abs(goal_ticks - present) <= 3, f"servo {servo_id}: not holding where it is"
+
+
+async def test_a_wrong_model_and_a_silent_servo_are_named(vbus: Vbus) -> None:
+    wrong = dataclasses.replace(
+        RX200,
+        servos=tuple(dataclasses.replace(s, model="XL430-W250") if s.id == 4 else s for s in RX200.servos),
+    )
+    async with await open_dxl_bus(vbus.path) as bus:
+        with pytest.raises(
+            RobotError, match=r"servo ID 4 \(elbow\) is model number 1020 \(XM430-W350\), expected 1060 \(XL430-W250\)"
+        ):
+            await DxlArm(bus, wrong).start()
+        assert vbus.send("silent 5") == "ok silent 5"
+        with pytest.raises(
+            RobotError, match=r"servo ID 5 \(wrist_angle\) does not answer.*baud rate \(1000000\).*power.*ID"
+        ):
+            await DxlArm(bus, RX200).start()
+    # nothing was moved or torqued by the refused start-ups
+    assert all(torque == 0 for _, _, torque in _present(vbus.path, (1, 2, 3, 4, 6, 7)).values())
+
+
+async def test_hardware_error_is_a_robot_error_naming_joint_id_and_bits_and_the_arm_holds(vbus: Vbus) -> None:
+    async with await open_dxl_bus(vbus.path) as bus:
+        arm = DxlArm(bus, RX200)
+        await arm.start()
+        await arm.write_goals(np.array([0.6, 0.0, 0.0, 0.0, 0.0]))  # the waist moves
+        await _sleep(0.3)
+        await arm.read_state(0)
+        assert vbus.send("error 4 0x20") == "ok error 4 0x20"
+        with pytest.raises(RobotError, match=r"joint 'elbow' \(servo ID 4\): overload \(0x20\).*the arm holds"):
+            await arm.read_state(0)
+    held = _present(vbus.path, (1,))[1]
+    assert abs(held[1] - held[0]) <= 3, "the waist's goal is not where it is: the arm does not hold"
+
+
+async def test_a_servo_that_stops_answering_and_bad_crcs(vbus: Vbus) -> None:
+    async with await open_dxl_bus(vbus.path) as bus:
+        arm = DxlArm(bus, RX200, max_crc_errors=2)
+        await arm.start()
+        await arm.read_state(0)
+        assert vbus.send("crc 2 1") == "ok crc 2 1"
+        await arm.read_state(0)  # one bad CRC: retried within the call
+        assert bus.stats.crc_errors >= 1
+        assert vbus.send("crc 2 -1") == "ok crc 2 -1"
+        with pytest.raises(DxlCrcError):
+            await arm.read_state(0)
+        with pytest.raises(RobotError, match=r"2 ticks in a row with bad status CRCs"):
+            await arm.read_state(0)
+        assert vbus.send("clear") == "ok clear"
+        await arm.read_state(0)
+        assert vbus.send("silent 6") == "ok silent 6"
+        with pytest.raises(RobotError, match=r"joint 'wrist_rotate' \(servo ID 6\) does not answer"):
+            await arm.read_state(0)
+
+
+async def test_goals_past_a_limit_are_clamped_in_ticks_and_said_once(
+    vbus: Vbus, caplog: pytest.LogCaptureFixture
+) -> None:
+    async with await open_dxl_bus(vbus.path) as bus:
+        arm = DxlArm(bus, RX200)
+        await arm.start()
+        with caplog.at_level(logging.WARNING, logger="uniros_async.hardware.dxl.arm"):
+            for _ in range(3):
+                await arm.write_goals(np.array([0.0, 0.0, 2.5, 0.0, 0.0]))  # elbow past its 3106 ticks
+        said = [r for r in caplog.records if "clamped" in r.getMessage()]
+        assert len(said) == 1 and "elbow" in said[0].getMessage()
+        assert arm.clamped == 3
+        await arm.close()
+        assert _present(vbus.path, (4,))[4][1] <= 3106
+
+
+async def test_shutdown_rest_moves_to_the_rest_pose_before_torque_off(vbus: Vbus) -> None:
+    async with await open_dxl_bus(vbus.path) as bus:
+        arm = DxlArm(bus, RX200, shutdown="rest")
+        await arm.start()
+        await arm.close(timeout_s=8.0)
+    rest = (0.0, -1.80, 1.55, 0.8, 0.0)  # rx200.yaml's sleep_positions
+    after = _present(vbus.path, (1, 2, 4, 5, 6))
+    for servo_id, q in zip((1, 2, 4, 5, 6), rest, strict=True):
+        present, _, torque = after[servo_id]
+        assert torque == 0
+        assert abs(present - rad_to_ticks(q)) <= 25, (servo_id, present, q)
+
+
+def test_dxl_uri_forms_and_errors() -> None:
+    uri = parse_dxl_uri("dxl:///dev/pts/4?baud=57600&map=rx200&rate=25&shutdown=rest")
+    assert (uri.path, uri.baud, uri.map_name, uri.rate_hz, uri.shutdown) == ("/dev/pts/4", 57600, "rx200", 25.0, "rest")
+    assert parse_dxl_uri("dxl:///dev/ttyUSB0").baud is None
+    with pytest.raises(ConfigError, match=r"unknown query key\(s\) \['speed'\]"):
+        parse_dxl_uri("dxl:///dev/ttyUSB0?speed=1")
+    with pytest.raises(ConfigError, match="expected a serial device path"):
+        parse_dxl_uri("dxl://host/dev/ttyUSB0")
+    with pytest.raises(ConfigError, match="shutdown must be 'hold' or 'rest'"):
+        parse_dxl_uri("dxl:///dev/ttyUSB0?shutdown=drop")
+
+
+def test_open_error_names_the_tty() -> None:
+    import asyncio
+
+    from uniros_async.errors import DxlPortError
+
+    async def main() -> None:
+        await open_dxl_bus("/dev/ttyNOPE9")
+
+    with pytest.raises(DxlPortError, match="/dev/ttyNOPE9"):
+        asyncio.run(main())
+
+
+async def _sleep(s: float) -> None:
+    import asyncio
+
+    await asyncio.sleep(s)
