@@ -5,6 +5,7 @@
     uniros node list                      nodes of a domain, as rosnode
     uniros param get|set|load|list        parameters of a domain, as rosparam
     uniros robot ...                      simulated and emulated arms (sim/cli.py)
+    uniros camera serve SOURCE            a V4L2/UVC device or a video file as a camera node (camera/cli.py)
     uniros train|eval|plot                TD3 / TD3+HER training, checkpoint evaluation, curves (training/cli.py)
 
 Every introspection command takes ``--domain URI`` or reads ``UNIROS_DOMAIN``. Errors print one line and exit 2;
@@ -231,6 +232,10 @@ def _build_parser() -> argparse.ArgumentParser:
     from uniros_async.sim import cli as robot_cli  # imports no MuJoCo until a robot command runs
 
     robot_cli.add_parser(sub)
+
+    from uniros_async.camera import cli as camera_cli  # imports no OpenCV until a camera command runs
+
+    camera_cli.add_parser(sub)
 
     from uniros_async.training import cli as training_cli  # imports no torch/SB3 until a training command runs
 
@@ -503,6 +508,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from uniros_async.sim import cli as robot_cli
 
             return int(robot_cli.run(args))
+        if args.command == "camera":
+            from uniros_async.camera import cli as camera_cli
+
+            return camera_cli.run(args)
     except KeyboardInterrupt:
         return 130
     except (UnirosError, KeyError, TimeoutError) as exc:
