@@ -181,6 +181,10 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     b2.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     b2.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
+    bd = bench.add_parser("dxl", help="a servo-bus tick (sync read + sync write): our client vs dynamixel-sdk on vbus")
+    bd.add_argument("--cycles", type=int, default=2000, help="ticks per row (default %(default)s)")
+    bd.add_argument("--baud", type=int, default=None, help="the virtual bus's baud rate (default: the servo map's)")
+    bd.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds per case (default 60)")
     bs.add_argument("--episodes", type=int, default=3, help="reach episodes to time (default 3)")
@@ -433,6 +437,10 @@ def _run_bench(args: argparse.Namespace) -> int:
                 progress=not args.no_progress,
             )
         )
+    elif args.scenario == "dxl":
+        from uniros_async.bench import dxl
+
+        dxl.main(dxl.DxlBenchConfig(cycles=args.cycles, baud=args.baud, json_path=args.json_path))
     elif args.scenario == "simclock":
         from uniros_async.bench import simclock
 

@@ -1,0 +1,41 @@
+"""``uniros bench dxl`` end to end on a short run: its rows, the wire floor's arithmetic, the loop lag, the codec."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from uniros_async.bench import dxl
+from uniros_async.cli import main as cli_main
+
+
+def test_wire_floor_counts_every_packet_byte() -> None:
+    # 5 servos: sync read 14 + 5 ids, 5 statuses of 11 + 10, sync write 14 + 5 x (id + 4): 163 bytes of 10 bits
+    assert dxl._floor_us(5, 1_000_000, 0.0) == pytest.approx(1630.0)
+    # 7 servos with a 0.5 ms return delay (the e-manual default, 250 x 2 us) each
+    assert dxl._floor_us(7, 1_000_000, 0.0005) == pytest.approx(2170.0 + 7 * 500.0)
+    assert dxl._floor_us(7, 57_600, 0.0) == pytest.approx(217 * 10 / 57_600 * 1e6)
+
+
+@pytest.mark.slow
+def test_bench_dxl_writes_its_rows(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "dxl.json"
+    assert cli_main(["bench", "dxl", "--cycles", "40", "--json", str(out)]) == 0
+    records = json.loads(out.read_text())
+    rows = [r for r in records if "p50_us" in r]
+    assert {(r["impl"], r["servos"]) for r in rows} == {
+        (impl, n) for impl in ("uniros", "dynamixel-sdk") for n in (5, 7)
+    }
+    for r in rows:
+        assert {"impl", "servos", "p50_us", "p99_us", "cpu_us", "floor_us"} <= set(r)
+        assert r["floor_us"] == pytest.approx(dxl._floor_us(r["servos"], 1_000_000, 0.0), abs=0.1)
+        # a cycle cannot beat the wire: the virtual bus sends each byte at the baud rate
+        assert r["p50_us"] > 0.9 * r["floor_us"], r
+        assert r["cpu_us"] > 0 and r["cycles"] == 40
+    (lag,) = [r for r in records if r.get("case", "").startswith("event loop")]
+    assert lag["ticks"] > 0 and lag["busy_max_us"] > 0
+    codec = [r for r in records if r.get("case") == "codec alone"]
+    assert {(r["impl"], r["servos"]) for r in codec} == {(i, n) for i in ("uniros", "dynamixel-sdk") for n in (5, 7)}
+    assert "p50/floor" in capsys.readouterr().out
