@@ -482,7 +482,7 @@ async def test_aclose_while_another_thread_waits_in_receive_blocking(ring_end: s
         assert isinstance(b, shm.ShmTransport)
         if where == "spinning":  # a 0.3 s poll (in one process an end does not spin unless told to)
             b.spin_ns = 300_000_000
-            b._credit.allowed, b._credit.credit = True, 4
+            b._spin_allowed, b._spin_credit = True, 4
         out: list[object] = []
 
         def wait() -> None:

@@ -411,7 +411,7 @@ async def test_spin_reads_the_socket_without_the_event_loop() -> None:
         await a.send(b"first")  # written to the socket at once, without a turn of the loop
         assert not b.has_news()
         b._spin(50_000_000)  # synchronous: the loop's reader cannot run meanwhile
-        assert b.has_news() and b._credit.credit == SPIN_CREDIT
+        assert b.has_news() and b._spin_credit == SPIN_CREDIT
         assert bytes(await b.receive()) == b"first"
         big = bytes(range(256)) * 160  # 40 KiB: a large frame, read into its own buffer
         await a.send(big)
@@ -427,22 +427,22 @@ async def test_spin_credit_stops_spinning_on_an_idle_connection_and_comes_back()
         for _ in range(3):  # only listening (nothing sent since the last receive): no poll, no credit spent
             with pytest.raises(TimeoutError):
                 await asyncio.wait_for(b.receive(), 0.005)
-        assert b._credit.credit == SPIN_CREDIT
+        assert b._spin_credit == SPIN_CREDIT
         for _ in range(SPIN_CREDIT):  # a request without an answer: every spin misses and costs credit
             await b.send(b"request")
             with pytest.raises(TimeoutError):
                 await asyncio.wait_for(b.receive(), 0.005)
-        assert b._credit.credit == 0
+        assert b._spin_credit == 0
         with pytest.raises(TimeoutError):  # no credit: no spin (the credit cannot go below 0)
             await asyncio.wait_for(b.receive(), 0.005)
-        assert b._credit.credit == 0
+        assert b._spin_credit == 0
         b.spin_ns = 1_000_000_000  # a window a wait on this loop is shorter than: a spin would have caught it
         await b.send(b"request")
         waiter = asyncio.ensure_future(b.receive())
         await asyncio.sleep(0)
         await a.send(b"soon")
         assert bytes(await waiter) == b"soon"
-        assert b._credit.credit == 1  # try spinning again
+        assert b._spin_credit == 1  # try spinning again
         b.spin_ns = 0
         await a.send(b"no spin")
         assert bytes(await b.receive()) == b"no spin"

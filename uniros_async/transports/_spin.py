@@ -9,7 +9,7 @@ ring's write position, the socket) for up to a window, yielding the CPU between 
 peer waiting for this core runs at once.
 
 The window is the transport's ``spin_ns`` plus, after a large send, the time the peer needs to read that frame
-before it can answer (``window_ns``, at most ``SPIN_EXTRA_NS`` more).
+before it can answer (at most ``SPIN_EXTRA_NS`` more).
 
 Credit (``SpinCredit``): a poll that finds nothing costs one credit; a connection without credit sleeps at once,
 until a wait turns out shorter than its window plus ``SPIN_WAKEUP_NS`` (a poll would have caught that frame), which
@@ -43,7 +43,6 @@ __all__ = [
     "peer_cpu",
     "spin_yield",
     "this_cpu",
-    "window_ns",
 ]
 
 SPIN_CREDIT = 4
@@ -64,35 +63,21 @@ spin_yield = getattr(os, "sched_yield", lambda: None)
 EEVDF a yield often returns at once, which is why a long poll looks where the peer is)."""
 
 
-def window_ns(spin_ns: int, extra_ns: int) -> int:
-    """How long to poll: ``spin_ns``, plus ``extra_ns`` (the peer's time to read what this end just sent) up to
-    ``SPIN_EXTRA_NS``."""
-    return spin_ns + min(extra_ns, SPIN_EXTRA_NS)
-
-
 class SpinCredit:
-    """One connection's credit for polling (module docstring). ``allowed`` False: never polls (both ends in one
-    process, where the peer likely runs on this very event loop and a poll cannot help)."""
+    """A connection's credit for polling (module docstring), as a base of the transport, so that its hot paths read
+    and write ``_spin_credit`` as a plain attribute: a poll that finds its frame sets it to ``SPIN_CREDIT``, one
+    that finds nothing takes one off, and ``_waited`` gives one back after a wait a poll would have caught.
+    ``_spin_allowed`` False: never polls (both ends in one process, where the peer likely runs on this very event
+    loop and a poll cannot help)."""
 
-    __slots__ = ("allowed", "credit")
+    _spin_credit: int = SPIN_CREDIT
+    _spin_allowed: bool = True
 
-    def __init__(self, *, allowed: bool = True) -> None:
-        self.allowed = allowed
-        self.credit = SPIN_CREDIT if allowed else 0
-
-    def hit(self) -> None:
-        """A poll found its frame: full credit."""
-        self.credit = SPIN_CREDIT
-
-    def miss(self) -> None:
-        """A poll found nothing within its window: one credit less."""
-        self.credit -= 1
-
-    def waited(self, t0_ns: int, window: int) -> None:
-        """After a wait that began at ``t0_ns`` (on ``now_ns``) following a window of ``window`` ns: without credit,
-        a wait a poll would have caught earns one back."""
-        if window and self.allowed and self.credit <= 0 and now_ns() - t0_ns < window + SPIN_WAKEUP_NS:
-            self.credit = 1
+    def _waited(self, t0_ns: int, window: int) -> None:
+        """After a wait that began at ``t0_ns`` (on ``now_ns``) following a poll window of ``window`` ns: without
+        credit, a wait a poll would have caught earns one back."""
+        if self._spin_credit <= 0 and window and self._spin_allowed and now_ns() - t0_ns < window + SPIN_WAKEUP_NS:
+            self._spin_credit = 1
 
 
 def peer_cpu(pid: int) -> int | None:

@@ -37,12 +37,13 @@ from uniros_async._log_throttle import LogThrottle
 from uniros_async.transports._spin import (
     LOOK_EVERY_NS,
     SHARED_CORE_NS,
+    SPIN_CREDIT,
+    SPIN_EXTRA_NS,
     SpinCredit,
     now_ns,
     peer_cpu,
     spin_yield,
     this_cpu,
-    window_ns,
 )
 
 if TYPE_CHECKING:
@@ -67,6 +68,8 @@ _HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its 
 _HANDSHAKE, _FRAMES, _DEAD = 0, 1, 2  # the connection's states (TcpTransport._state)
 
 _now_ns = now_ns  # module globals: a spin reads them every poll
+_SPIN_CREDIT = SPIN_CREDIT
+_SPIN_EXTRA_NS = SPIN_EXTRA_NS
 _yield = spin_yield
 _this_cpu = this_cpu
 
@@ -86,7 +89,7 @@ def _unexported(buf: bytearray) -> bool:
     return True
 
 
-class TcpReceiving(asyncio.BufferedProtocol):
+class TcpReceiving(SpinCredit, asyncio.BufferedProtocol):
     """The receive side of ``TcpTransport`` (its base): the asyncio protocol's reading callbacks, ``receive`` and
     ``receive_blocking``. The connection (handshake, sending, life cycle) is ``TcpTransport``'s."""
 
@@ -135,7 +138,7 @@ class TcpReceiving(asyncio.BufferedProtocol):
         self._lent: list[bytearray] = []  # large-frame buffers handed out by receive, maybe still in use
         self._pool: list[bytearray] = []
         self._fd = -1  # the socket's descriptor, for receive's own reads while it spins (-1: none, or lost)
-        self._credit = SpinCredit()
+        self._spin_credit = _SPIN_CREDIT
         self._next_look_ns = 0  # _peer_here: not before then
         self._sent_since_receive = 0  # bytes: only a receive that may be waiting for an answer polls
 
@@ -254,14 +257,10 @@ class TcpReceiving(asyncio.BufferedProtocol):
         the window (``_spin``, under the spin credit); the window, 0 when none applies."""
         if not (self.spin_ns and self._sent_since_receive):
             return 0
-        window = window_ns(self.spin_ns, self._sent_since_receive)  # 1 ns per byte sent
-        if self._credit.credit > 0:
-            self._spin(window)
-        return window
-
-    def _waited(self, t0: int, window_ns: int) -> None:
-        """After a wait that began at ``t0``: without credit, a wait a poll would have caught earns one back."""
-        self._credit.waited(t0, window_ns)
+        window_ns = self.spin_ns + min(self._sent_since_receive, _SPIN_EXTRA_NS)  # 1 ns per byte sent
+        if self._spin_credit > 0:
+            self._spin(window_ns)
+        return window_ns
 
     def get_buffer(self, sizehint: int) -> memoryview:
         if self._big is not None:
@@ -365,7 +364,7 @@ class TcpReceiving(asyncio.BufferedProtocol):
                 now = _now_ns()
                 if now > look_at:
                     if now > deadline:
-                        self._credit.miss()
+                        self._spin_credit -= 1
                         return
                     look_at = deadline
                     self._peer_here()
@@ -377,7 +376,7 @@ class TcpReceiving(asyncio.BufferedProtocol):
                 return
             self.buffer_updated(n)
             if frames or not self._ok:
-                self._credit.hit()
+                self._spin_credit = _SPIN_CREDIT
                 return
 
     def _peer_here(self) -> None:

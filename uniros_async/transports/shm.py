@@ -61,7 +61,7 @@ from uniros_async.transports._shm_ring import fence_acquire as _fence_acquire
 from uniros_async.transports._shm_ring import fence_release as _fence_release
 from uniros_async.transports._shm_slow import Partial, ShmSlowPaths, as_parts
 from uniros_async.transports._shm_socket import ShmListener, open_shm_connection, open_shm_listener
-from uniros_async.transports._spin import SHARED_CORE_NS, SpinCredit, now_ns, this_cpu, window_ns
+from uniros_async.transports._spin import SHARED_CORE_NS, SPIN_CREDIT, SPIN_EXTRA_NS, SpinCredit, now_ns, this_cpu
 from uniros_async.transports.base import (
     Buffer,
     Delivery,
@@ -77,12 +77,14 @@ logger = logging.getLogger(__name__)
 
 # The poll before a sleep (the rule of ``_spin``): module globals, which a poll reads every time.
 _now_ns = now_ns
+_SPIN_CREDIT = SPIN_CREDIT
+_SPIN_EXTRA_NS = SPIN_EXTRA_NS
 _this_cpu = this_cpu
 _NEVER_NS = (1 << 63) - 1  # a look_at_ns for RingEnd.poll that never comes
 _HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its end (POLLHUP, POLLERR: always reported)
 
 
-class ShmTransport(Transport, ShmSlowPaths):
+class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
     """One end of a ``shm://`` connection (made by ``connect`` or ``ShmListener.accept``).
 
     Costs on the 2-core VMs of docs/performance.md: one copy per send (a 900 KiB image: 45 us when the ring's pages are
@@ -143,7 +145,8 @@ class ShmTransport(Transport, ShmSlowPaths):
             pid = 0
         self._peer_desc = f"shm://{name} (pid {pid})"
         # the writer in this process is likely on this very event loop: spinning cannot help
-        self._credit = SpinCredit(allowed=self.spin_ns > 0 and pid != os.getpid())
+        self._spin_allowed = self.spin_ns > 0 and pid != os.getpid()
+        self._spin_credit = _SPIN_CREDIT if self._spin_allowed else 0
         self._loop.add_reader(self._doorbell, self._on_doorbell)
         self._loop.add_reader(sock.fileno(), self._on_socket)
 
@@ -194,7 +197,7 @@ class ShmTransport(Transport, ShmSlowPaths):
                 raise TransportBrokenError(f"peer {self.peer} closed {what}")
             else:
                 window_ns = self._window_ns()
-                if self._credit.credit > 0 and self.spin_ns and self._spin(window_ns):
+                if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
                     continue  # (polled here, not in _wait_readable: a coroutine less per frame that a poll catches)
                 await self._wait_readable(window_ns)
 
@@ -202,9 +205,9 @@ class ShmTransport(Transport, ShmSlowPaths):
         """How long to poll for the next frame: ``spin_ns``, plus, after a large send, the time the peer needs to
         read it (~0.1 ns per byte across cores) before it can answer."""
         ring = self._ring
-        window = window_ns(self.spin_ns, ring.sent_since_wait // 10)
+        window_ns = self.spin_ns + min(ring.sent_since_wait // 10, _SPIN_EXTRA_NS)
         ring.sent_since_wait = 0
-        return window
+        return window_ns
 
     def _peer_here(self) -> bool:
         """Whether the peer, when it last looked, ran on the CPU this end polls on (and say where this end runs).
@@ -239,17 +242,14 @@ class ShmTransport(Transport, ShmSlowPaths):
                 return False
             got = self._ring.poll(deadline, _NEVER_NS)
         if got == 1:
-            self._credit.hit()
+            self._spin_credit = _SPIN_CREDIT
             return True
-        self._credit.miss()
+        self._spin_credit -= 1
         return False
-
-    def _slept(self, t0: int, window_ns: int) -> None:
-        self._credit.waited(t0, window_ns)
 
     async def _wait_readable(self, window_ns: int) -> None:
         """Sleep until the peer publishes more than we have read (or hangs up, or we close); ``window_ns``: how long
-        the poll before it was (see ``_slept``)."""
+        the poll before it was (see ``_waited``)."""
         ctl = self._rx.ctl
         ticket = self._rx_ticket + 1
         ctl[R_TICKET] = ticket  # odd: "I am about to sleep; ring my doorbell"
@@ -263,7 +263,7 @@ class ShmTransport(Transport, ShmSlowPaths):
                     await fut
                 finally:
                     self._rx_waiter = None
-                self._slept(t0, window_ns)
+                self._waited(t0, window_ns)
         finally:
             self._rx_ticket = ticket + 1
             if not self._closed:
@@ -294,7 +294,7 @@ class ShmTransport(Transport, ShmSlowPaths):
             return ring.take_ready()
         deadline = _now_ns() + int(timeout_s * 1e9)
         window_ns = self._window_ns()
-        if self._credit.credit > 0 and self.spin_ns and self._spin(window_ns):
+        if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
             return ring.take_ready()
         if not ring.rx_fast:  # closed (or broken) while it polled
             return None
@@ -322,7 +322,7 @@ class ShmTransport(Transport, ShmSlowPaths):
                         os.eventfd_read(fd)
                     except BlockingIOError:
                         pass
-            self._slept(t0, window_ns)
+            self._waited(t0, window_ns)
         finally:
             self._rx_ticket = ticket + 1
             if not self._closed:
