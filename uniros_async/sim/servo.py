@@ -49,6 +49,7 @@ from numpy.typing import ArrayLike
 from uniros_async.bus.messages import Header, JointCommand, JointState
 from uniros_async.errors import ConfigError, SimulationError
 from uniros_async.robots import RobotSpec, get_robot_spec
+from uniros_async.sim.profiles import AccelLimited, Brake, Constant, Integrate, Profile, TimeSegment, VelocityLimited
 
 __all__ = ["MODES", "ServoSim", "ServoSimConfig", "ServoStats", "load_model"]
 
@@ -163,161 +164,6 @@ def load_model(robot: RobotSpec, physics_dt_s: float = 0.002) -> mujoco.MjModel:
     return model
 
 
-# ----------------------------------------------------------------------------------------------- target profiles
-# Each profile produces the servo targets of the arm joints for the next n physics substeps; ``None`` means
-# "constant", which lets a period run as one mj_step(nstep=n) call.
-
-
-class _Profile:
-    pos: np.ndarray  # the target at the end of the last substep produced
-    vel: np.ndarray
-
-    def advance(self, n: int, dt: float) -> np.ndarray | None:
-        raise NotImplementedError
-
-
-class _Constant(_Profile):
-    def __init__(self, pos: np.ndarray) -> None:
-        self.pos = pos.copy()
-        self.vel = np.zeros_like(pos)
-
-    def advance(self, n: int, dt: float) -> np.ndarray | None:
-        return None
-
-
-class _TimeSegment(_Profile):
-    """Synchronised trapezoid from p0 to goal in total_s with accel_s of acceleration (Dynamixel time-based)."""
-
-    def __init__(self, p0: np.ndarray, goal: np.ndarray, total_s: float, accel_s: float) -> None:
-        self.p0, self.goal = p0.copy(), goal.copy()
-        self.total_s, self.accel_s = total_s, accel_s
-        self.peak = (goal - p0) / (total_s - accel_s)  # cruise velocity
-        self.t = 0.0
-        self.pos, self.vel = p0.copy(), np.zeros_like(p0)
-        self.done = False
-
-    def _at(self, t: np.ndarray) -> np.ndarray:
-        T, Ta, v = self.total_s, self.accel_s, self.peak
-        t = np.clip(t, 0.0, T)[:, None]
-        if Ta > 0.0:
-            acc = 0.5 * v / Ta * t**2
-            cruise = v * (Ta / 2.0) + v * (t - Ta)
-            dec = (self.goal - self.p0) - 0.5 * v / Ta * (T - t) ** 2
-            s = np.where(t < Ta, acc, np.where(t <= T - Ta, cruise, dec))
-        else:
-            s = v * t
-        return cast(np.ndarray, self.p0 + s)
-
-    def advance(self, n: int, dt: float) -> np.ndarray | None:
-        if self.done:
-            return None
-        times = self.t + dt * np.arange(1, n + 1)
-        out = self._at(times)
-        prev = self.pos
-        self.t = float(times[-1])
-        self.pos = out[-1].copy()
-        self.vel = (out[-1] - (out[-2] if n > 1 else prev)) / dt
-        if self.t >= self.total_s:
-            self.pos, self.vel, self.done = self.goal.copy(), np.zeros_like(self.goal), True
-        return out
-
-
-class _VelocityLimited(_Profile):
-    """The target steps toward the goal at most at vmax per joint (no acceleration limit)."""
-
-    def __init__(self, p0: np.ndarray, goal: np.ndarray, vmax: np.ndarray) -> None:
-        self.p0, self.goal, self.vmax = p0.copy(), goal.copy(), vmax
-        self.t = 0.0
-        self.pos, self.vel = p0.copy(), np.zeros_like(p0)
-        self.done = bool(np.array_equal(p0, goal))
-
-    def advance(self, n: int, dt: float) -> np.ndarray | None:
-        if self.done:
-            return None
-        times = (self.t + dt * np.arange(1, n + 1))[:, None]
-        reach = self.vmax * times
-        out: np.ndarray = self.p0 + np.clip(self.goal - self.p0, -reach, reach)
-        prev = self.pos
-        self.t = float(times[-1, 0])
-        self.pos = out[-1].copy()
-        self.vel = (out[-1] - (out[-2] if n > 1 else prev)) / dt
-        if np.array_equal(self.pos, self.goal):
-            self.vel, self.done = np.zeros_like(self.goal), True
-        return out
-
-
-class _AccelLimited(_Profile):
-    """Online trapezoid: follow the goal within vmax and amax, starting from the current target velocity."""
-
-    def __init__(self, p: np.ndarray, v: np.ndarray, goal: np.ndarray, vmax: np.ndarray, amax: np.ndarray) -> None:
-        self.pos, self.vel, self.goal, self.vmax, self.amax = p.copy(), v.copy(), goal.copy(), vmax, amax
-        self.done = False
-
-    def advance(self, n: int, dt: float) -> np.ndarray | None:
-        if self.done:
-            return None
-        out = np.empty((n, self.pos.size))
-        p, v, goal, vmax, amax = self.pos, self.vel, self.goal, self.vmax, self.amax
-        for i in range(n):
-            e = goal - p
-            v_des = np.sign(e) * np.minimum(vmax, np.sqrt(2.0 * amax * np.abs(e)))
-            v = v + np.clip(v_des - v, -amax * dt, amax * dt)
-            p_new = p + v * dt
-            arrived = (goal - p_new) * e <= 0.0  # reached or crossed the goal during this substep
-            if arrived.any():
-                p_new = np.where(arrived, goal, p_new)
-                v = np.where(arrived, 0.0, v)
-            p = p_new
-            out[i] = p
-        self.pos, self.vel = p, v
-        if np.array_equal(p, goal) and not v.any():
-            self.done = True
-        return out
-
-
-class _Integrate(_Profile):
-    """Velocity mode: the target moves at the commanded velocity, clipped to the joint limits."""
-
-    def __init__(self, p0: np.ndarray, v: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> None:
-        self.p0, self.v, self.lower, self.upper = p0.copy(), v.copy(), lower, upper
-        self.t = 0.0
-        self.pos, self.vel = p0.copy(), v.copy()
-
-    def advance(self, n: int, dt: float) -> np.ndarray | None:
-        times = (self.t + dt * np.arange(1, n + 1))[:, None]
-        out: np.ndarray = np.clip(self.p0 + self.v * times, self.lower, self.upper)
-        self.t = float(times[-1, 0])
-        self.pos = out[-1].copy()
-        self.vel = np.where((self.pos <= self.lower) | (self.pos >= self.upper), 0.0, self.v)
-        return out
-
-
-class _Brake(_Profile):
-    """Stop: decelerate the target from its current velocity at ``decel`` and keep it where it stops."""
-
-    def __init__(self, p0: np.ndarray, v0: np.ndarray, decel: float, lower: np.ndarray, upper: np.ndarray) -> None:
-        self.p0, self.v0, self.decel, self.lower, self.upper = p0.copy(), v0.copy(), decel, lower, upper
-        self.t_stop = np.abs(v0) / decel
-        self.t = 0.0
-        self.pos, self.vel = p0.copy(), v0.copy()
-        self.done = not v0.any()
-
-    def advance(self, n: int, dt: float) -> np.ndarray | None:
-        if self.done:
-            return None
-        times = (self.t + dt * np.arange(1, n + 1))[:, None]
-        t = np.minimum(times, self.t_stop)
-        out: np.ndarray = np.clip(
-            self.p0 + self.v0 * t - 0.5 * np.sign(self.v0) * self.decel * t**2, self.lower, self.upper
-        )
-        self.t = float(times[-1, 0])
-        self.pos = out[-1].copy()
-        self.vel = np.where(self.t < self.t_stop, self.v0 - np.sign(self.v0) * self.decel * self.t, 0.0)
-        if self.t >= float(self.t_stop.max()):
-            self.vel, self.done = np.zeros_like(self.v0), True
-        return out
-
-
 # ----------------------------------------------------------------------------------------------- the sim
 
 
@@ -391,7 +237,7 @@ class ServoSim:
         self._warn_counts = np.zeros(len(_DIVERGENCE_WARNINGS), dtype=np.int64)
         self._steps = 0
         self._diverged: str | None = None
-        self._profile: _Profile = _Constant(self.initial_q)
+        self._profile: Profile = Constant(self.initial_q)
         self._goal = self.initial_q.copy()
         self._goal_duration_s = 0.0
         self._mode: str = cfg.mode
@@ -534,7 +380,7 @@ class ServoSim:
         self._last_cmd_ns = self.time_ns
         self._last_cmd_duration_ns = round(cmd.duration_s * 1e9)
         if vel is not None:
-            self._profile = _Integrate(self._profile.pos, vel, self.lower, self.upper)
+            self._profile = Integrate(self._profile.pos, vel, self.lower, self.upper)
             self._goal = np.where(vel > 0, self.upper, np.where(vel < 0, self.lower, self._profile.pos))
             return True
         self._set_goal(clipped, cmd.duration_s)
@@ -542,7 +388,7 @@ class ServoSim:
 
     def _set_goal(self, goal: np.ndarray, duration_s: float) -> None:
         same = np.array_equal(goal, self._goal) and duration_s == self._goal_duration_s
-        if same and not isinstance(self._profile, _Integrate | _Brake):
+        if same and not isinstance(self._profile, Integrate | Brake):
             return  # an action repeat: the running profile goes on
         self._goal, self._goal_duration_s = goal.copy(), duration_s
         p0, v0 = self._profile.pos, self._profile.vel
@@ -556,13 +402,13 @@ class ServoSim:
                 total_s = need
                 accel_s = min(accel_s, total_s / 2.0)
             if not dist.any():
-                self._profile = _Constant(goal)
+                self._profile = Constant(goal)
             else:
-                self._profile = _TimeSegment(p0, goal, total_s, accel_s)
+                self._profile = TimeSegment(p0, goal, total_s, accel_s)
         elif self._profile_kind == "velocity":
-            self._profile = _AccelLimited(p0, v0, goal, self._prof_vmax, self._prof_amax)
+            self._profile = AccelLimited(p0, v0, goal, self._prof_vmax, self._prof_amax)
         else:
-            self._profile = _VelocityLimited(p0, goal, self.vmax)
+            self._profile = VelocityLimited(p0, goal, self.vmax)
 
     def _reject(self, why: str) -> bool:
         self.stats.rejected += 1
@@ -581,7 +427,7 @@ class ServoSim:
         # Freeze the servo targets where they are now: the motion stops at once. (Re-targeting the measured
         # position instead would let gravity sag add up at every hold.)
         q = self._profile.pos.copy()
-        self._profile = _Constant(q)
+        self._profile = Constant(q)
         self._goal, self._goal_duration_s = q.copy(), 0.0
 
     def _step_period(self) -> None:
@@ -646,12 +492,12 @@ class ServoSim:
         if mode == "hold":
             self._hold_here()
         elif mode == "stop":
-            self._profile = _Brake(
+            self._profile = Brake(
                 self._profile.pos, self._profile.vel, self.config.stop_deceleration_rad_s2, self.lower, self.upper
             )
             self._goal = self._profile.pos.copy()
         elif mode != self._mode:  # position <-> velocity: start from where the servos are
-            self._profile = _Constant(self._profile.pos)
+            self._profile = Constant(self._profile.pos)
             self._goal = self._profile.pos.copy()
         self._mode = mode
         self._last_cmd_ns = None
@@ -697,7 +543,7 @@ class ServoSim:
         mujoco.mj_forward(m, d)
         self._warn_counts = d.warning.number[_WARN_IDX].copy()
         self._steps = 0
-        self._profile = _Constant(q_arr)
+        self._profile = Constant(q_arr)
         self._goal, self._goal_duration_s = q_arr.copy(), 0.0
         self._mode = self.config.mode
         self._last_cmd_ns = None
