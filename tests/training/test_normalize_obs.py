@@ -15,7 +15,7 @@ import pytest
 
 from uniros_async.errors import ConfigError
 from uniros_async.training import evaluate as evaluate_mod
-from uniros_async.training import recipes
+from uniros_async.training import recipes, run_state
 from uniros_async.training.checkpoint import CheckpointError, load_obs_stats, read_meta
 from uniros_async.training.config import config_to_dict, train_config_from_dict
 from uniros_async.training.evaluate import evaluate_checkpoint, load_policy
@@ -98,7 +98,7 @@ def test_her_run_saves_resumes_and_evaluates_with_the_obs_statistics(
     pairs: list[tuple[Any, Any]] = []
     eval_steps: list[tuple[int, int]] = []  # (step, index of its first pair)
     _spy_predict(monkeypatch, TD3, pairs)
-    build_eval_envs, run_eval = recipes.build_eval_envs, recipes._run_eval
+    build_eval_envs, run_eval = recipes.build_eval_envs, run_state.run_eval
 
     def recorded_eval_envs(*a: Any, **k: Any) -> Any:
         return [(label, env_id, _LastObs(env)) for label, env_id, env in build_eval_envs(*a, **k)]
@@ -108,7 +108,7 @@ def test_her_run_saves_resumes_and_evaluates_with_the_obs_statistics(
         return run_eval(model, step, *a, **k)
 
     monkeypatch.setattr(recipes, "build_eval_envs", recorded_eval_envs)
-    monkeypatch.setattr(recipes, "_run_eval", marked_run_eval)
+    monkeypatch.setattr(run_state, "run_eval", marked_run_eval)
     run = tmp_path / "her_norm"
     over = {
         "envs": [RX_GOAL],

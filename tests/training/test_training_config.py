@@ -271,7 +271,7 @@ def test_drop_observation_removes_entries() -> None:
 def test_async_learner_real_time_actor_follows_the_envs_clock(
     env_defaults: dict, setting: bool | None, expected: bool, tmp_path: Path
 ) -> None:
-    from uniros_async.training.recipes import EnvLayout, model_kwargs
+    from uniros_async.training.build import EnvLayout, model_kwargs
 
     data: dict = {"envs": [RX], "learner": "async", "env_defaults": env_defaults}
     if setting is not None:
