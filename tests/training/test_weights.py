@@ -17,6 +17,8 @@ import pytest
 from uniros_async.training.checkpoint import CheckpointError, CheckpointMeta, save_checkpoint
 from uniros_async.training.weights import OBS_STATS_FILE, WEIGHTS_FILE, export_weights, load_policy
 
+pytestmark = pytest.mark.slow  # SB3 and torch: the first import in a process takes seconds
+
 
 class _DictEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     """A goal-env-shaped observation (three keys, not in sorted order) and an action box of [-0.5, 2]."""
