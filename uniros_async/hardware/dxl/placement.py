@@ -12,8 +12,9 @@ The placement opens a memory domain in the env's process and runs ``DxlArmNode``
 namespace that publishes ``joint_states`` and takes ``command`` as every other placement's arm does, and serves
 ``hold`` and ``stats``. Its loop is one task: each tick one sync read (published as the joint state) and one sync
 write of the newest command's goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
-A ``RobotError`` of the arm (hardware error, a silent servo) ends the node's task: the env sees no fresh joint
-state and raises RobotError within its ``robot_timeout_s``; the error itself is logged and kept in ``stats``.
+A ``RobotError`` of the arm (hardware error, a silent servo: the bus's timeouts are milliseconds, well within the
+env's ``robot_timeout_s``) ends the node's task and, with it, the env's loop: the env's next call raises that
+RobotError, which names the joint, the servo's ID and what happened.
 """
 
 from __future__ import annotations
@@ -241,5 +242,11 @@ async def open_dxl_placement(request: PlacementRequest) -> AsyncIterator[ArmLink
                     yield ArmLink(domain=domain)
                 finally:
                     task.cancel()
+        except BaseExceptionGroup as group:
+            # the arm's own failure (a RobotError naming the joint and the servo) ends the env as itself
+            only = group.exceptions[0] if len(group.exceptions) == 1 else None
+            if isinstance(only, RobotError):
+                raise only from None
+            raise
         finally:
             await arm.close()
