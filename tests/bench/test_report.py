@@ -79,6 +79,7 @@ def test_every_record_is_cited_by_the_docs() -> None:
     assert uncited == [], f"records no doc cites: {uncited}"
 
 
+@pytest.mark.slow
 def test_cli_check_exits_0_on_the_committed_doc() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "uniros_async.cli", "bench", "report", "check"],
