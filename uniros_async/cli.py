@@ -185,6 +185,7 @@ def _build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--cycles", type=int, default=2000, help="ticks per row (default %(default)s)")
     bd.add_argument("--baud", type=int, default=None, help="the virtual bus's baud rate (default: the servo map's)")
     bd.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    bd.add_argument("--no-rt", action="store_true", help="leave the clients and the vbus in the ordinary class")
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds per case (default 60)")
     bs.add_argument("--episodes", type=int, default=3, help="reach episodes to time (default 3)")
@@ -440,7 +441,9 @@ def _run_bench(args: argparse.Namespace) -> int:
     elif args.scenario == "dxl":
         from uniros_async.bench import dxl
 
-        dxl.main(dxl.DxlBenchConfig(cycles=args.cycles, baud=args.baud, json_path=args.json_path))
+        dxl.main(
+            dxl.DxlBenchConfig(cycles=args.cycles, baud=args.baud, json_path=args.json_path, real_time=not args.no_rt)
+        )
     elif args.scenario == "simclock":
         from uniros_async.bench import simclock
 

@@ -19,10 +19,22 @@ def test_wire_floor_counts_every_packet_byte() -> None:
     assert dxl._floor_us(7, 57_600, 0.0) == pytest.approx(217 * 10 / 57_600 * 1e6)
 
 
+def test_real_time_class_is_given_back() -> None:
+    import os
+
+    before = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(os.PRIO_PROCESS, 0))
+    with dxl._real_time(True) as klass:
+        assert klass in ("SCHED_RR", "nice", "ordinary")
+        if klass == "SCHED_RR":
+            assert os.sched_getscheduler(0) & ~0x40000000 == os.SCHED_RR
+    after = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(os.PRIO_PROCESS, 0))
+    assert after == before
+
+
 @pytest.mark.slow
 def test_bench_dxl_writes_its_rows(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "dxl.json"
-    assert cli_main(["bench", "dxl", "--cycles", "40", "--json", str(out)]) == 0
+    assert cli_main(["bench", "dxl", "--cycles", "40", "--no-rt", "--json", str(out)]) == 0
     records = json.loads(out.read_text())
     rows = [r for r in records if "p50_us" in r]
     assert {(r["impl"], r["servos"]) for r in rows} == {

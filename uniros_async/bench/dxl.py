@@ -52,10 +52,13 @@ class DxlBenchConfig:
     baud: int | None = None
     """The vbus's baud rate (default: the map's)."""
     json_path: str | None = None
+    real_time: bool = True
+    """Run the virtual bus's thread and the bench's (both clients') in the real-time class the env loops and the
+    servo sims use (``priority.raise_loop_priority``), so other load on the host delays neither."""
 
 
 @contextlib.contextmanager
-def _vbus(servo_map: str, baud: int | None) -> Iterator[str]:
+def _vbus(servo_map: str, baud: int | None, rt: bool = False) -> Iterator[str]:
     argv = [sys.executable, "-m", "uniros_async.cli", "robot", "vbus", servo_map]
     if baud:
         argv += ["--baud", str(baud)]
@@ -65,6 +68,10 @@ def _vbus(servo_map: str, baud: int | None) -> Iterator[str]:
         path = proc.stdout.readline().strip()
         if not path.startswith("/dev/"):
             raise RuntimeError(f"uniros robot vbus printed {path!r} first: expected the pty's path")
+        if rt:
+            from uniros_async.priority import raise_loop_priority
+
+            raise_loop_priority(thread_id=proc.pid)  # its serving thread is its main thread
         yield path
     finally:
         if proc.poll() is None:
@@ -95,6 +102,24 @@ def _floor_us(n: int, baud: int, return_delay_s: float) -> float:
     tx += ib(BROADCAST_ID, Instruction.SYNC_WRITE, sync_write_params(GOAL_ADDRESS, 4, goals))
     rx = n * status_bytes(PRESENT_LENGTH)
     return (wire_time_s(tx + rx, baud) + n * return_delay_s) * 1e6
+
+
+@contextlib.contextmanager
+def _real_time(enabled: bool) -> Iterator[str]:
+    """This thread in the env loops' real-time class for the block (then back); yields the class it got."""
+    if not enabled or not hasattr(os, "sched_getscheduler"):
+        yield "ordinary"
+        return
+    from uniros_async.priority import raise_loop_priority
+
+    policy, param, nice = os.sched_getscheduler(0), os.sched_getparam(0), os.getpriority(os.PRIO_PROCESS, 0)
+    got = raise_loop_priority()
+    try:
+        yield {"rt": "SCHED_RR", "nice": "nice"}.get(got or "", "ordinary")
+    finally:
+        with contextlib.suppress(PermissionError):
+            os.sched_setscheduler(0, policy, param)
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
 
 
 # ------------------------------------------------------------------------------------------ the clients
@@ -295,7 +320,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     arm_ids = [servos.primary(j).id for j in servos.arm.joints]
     sets = {len(arm_ids): arm_ids, len(servos.ids): list(servos.ids)}
     records: list[dict[str, Any]] = []
-    with _vbus(config.servo_map, config.baud) as path:
+    with _vbus(config.servo_map, config.baud, config.real_time) as path, _real_time(config.real_time) as klass:
         ours, theirs = _Ours(path, baud, return_delay_s), _Sdk(path, baud)
         try:
             for n, ids in sets.items():
@@ -324,6 +349,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
                             "cycles": s["count"],
                             "failed_cycles": clients[impl].failures - failed[impl],
                             "baud": baud,
+                            "scheduling": klass,
                         }
                     )
             if ours.bus.stats.retries:
@@ -353,9 +379,11 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
         for impl, us in codec.items():
             records.append({"case": "codec alone", "impl": impl, "servos": n, "cpu_us": round(us, 1)})
 
+    rows = [r for r in records if "p50_us" in r]
     lines = [
         f"uniros bench dxl: sync read of {PRESENT_LENGTH} bytes + sync write of goal positions per tick, "
-        f"{config.servo_map} vbus at {baud} baud, host {os.uname().nodename}, {time.strftime('%Y-%m-%d %H:%M')}",
+        f"{config.servo_map} vbus at {baud} baud, host {os.uname().nodename} ({os.cpu_count()} cores), "
+        f"{time.strftime('%Y-%m-%d %H:%M %Z')}, clients and vbus {rows[0]['scheduling'] if rows else '?'}",
         f"{'impl':<14} {'servos':>6} {'p50 us':>9} {'p99 us':>9} {'cpu us':>8} {'floor us':>9} "
         f"{'p50/floor':>9} {'p99/floor':>9} {'failed':>6}",
     ]
