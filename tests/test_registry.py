@@ -22,7 +22,8 @@ def test_an_entry_point_is_imported_on_the_first_lookup_and_checked() -> None:
     reg = Registry[dict[str, int]]("table", entry_points="attribute", check=_only_dicts, note="register adds one")
     reg.register("t", f"{__name__}:CONSTANT")
     assert reg.entries["t"] == f"{__name__}:CONSTANT"  # nothing imported yet
-    assert reg.get("t") is CONSTANT and reg.entries["t"] is CONSTANT  # loaded once, kept
+    assert reg.get("t") is CONSTANT
+    assert reg.entries["t"] is CONSTANT  # type: ignore[comparison-overlap]  # loaded once, kept
     assert reg.register("t", f"{__name__}:CONSTANT") is CONSTANT  # the entry point of the same value: a no-op
     reg.register("bad", f"{__name__}:closest_name")
     with pytest.raises(ConfigError, match="bad: expected a dict, got function"):

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 from uniros_async.errors import (
     AuthenticationError,
     BusError,
+    CameraError,
     CheckpointError,
     CodecError,
     ConfigError,
@@ -50,6 +51,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AuthenticationError",
     "BusError",
+    "CameraError",
     "CheckpointError",
     "CodecError",
     "ConfigError",

@@ -14,6 +14,7 @@ The tree (as httpx/_exceptions.py draws its own)::
     │   ├── DomainError                      the domain registry is unreachable or refused a request
     │   ├── NameConflictError                a node or service name is taken in the domain
     │   └── ServiceError                     a service call failed on the server side; .remote_traceback
+    ├── CameraError                          a camera source cannot be opened or read; names it
     ├── FrameError (also ValueError)         a camera frame's size or encoding differs from its topic's
     ├── SimulationError                      MuJoCo diverged (dm_control PhysicsError)
     ├── RenderError                          no GL backend could render here; names what was tried
@@ -49,6 +50,7 @@ if TYPE_CHECKING:
 __all__ = [
     "AuthenticationError",
     "BusError",
+    "CameraError",
     "CheckpointError",
     "CodecError",
     "ConfigError",
@@ -127,6 +129,10 @@ class ServiceError(BusError):
     def __init__(self, message: str, *, remote_traceback: str = "") -> None:
         super().__init__(message)
         self.remote_traceback = remote_traceback
+
+
+class CameraError(UnirosError):
+    """A camera source that cannot be opened or read (the message names it)."""
 
 
 class FrameError(UnirosError, ValueError):

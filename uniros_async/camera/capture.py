@@ -28,7 +28,7 @@ import numpy as np
 from uniros_async.bus import open_node
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.camera.topic import FrameSpec, ImagePublisher, camera_topic
-from uniros_async.errors import ConfigError, UnirosError
+from uniros_async.errors import CameraError, ConfigError
 from uniros_async.transports.base import TransportOptions
 
 __all__ = ["CameraError", "CaptureCameraNode", "CaptureConfig", "open_capture_camera", "serve_camera"]
@@ -38,10 +38,6 @@ logger = logging.getLogger(__name__)
 DEFAULT_RATE_HZ = 30.0
 """The rate of a source that does not say its own (a device without a frame rate, a file without one)."""
 THREAD_JOIN_TIMEOUT_S = 5.0
-
-
-class CameraError(UnirosError):
-    """A camera source that cannot be opened or read (the message names it)."""
 
 
 @dataclass(frozen=True, kw_only=True)
