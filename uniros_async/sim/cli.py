@@ -172,9 +172,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
     view = actions.add_parser("view", help="interactive MuJoCo viewer (needs a display)")
     view.add_argument("robot", help=ROBOT_HELP)
-    from uniros_async.hardware.dxl import vbus_cli
+    from uniros_async.hardware.dxl import cli as dxl_cli
 
-    vbus_cli.add_parser(actions)
+    dxl_cli.add_parser(actions)
+    dxl_cli.add_serve_arguments(serve)
     return robot
 
 
@@ -190,9 +191,9 @@ def run(args: argparse.Namespace) -> int:
     if action == "bridge":
         return _bridge(args)
     if action == "vbus":
-        from uniros_async.hardware.dxl import vbus_cli
+        from uniros_async.hardware.dxl import cli as dxl_cli
 
-        return vbus_cli.run(args)
+        return dxl_cli.run(args)
     if action == "render":
         from uniros_async.sim.render import render_png
 
@@ -407,6 +408,10 @@ def _serve(args: argparse.Namespace) -> int:
 
     other = "--ros2" if args.ros2 is not None else "--ros1-master" if args.ros1_master is not None else None
     _check_tls_flags(args, other)
+    if args.dxl is not None:
+        from uniros_async.hardware.dxl import cli as dxl_cli
+
+        return _run_until_signal(dxl_cli.serve(args, auth_key=_auth_key(args), on_ready=_print_ready))
     if args.ros2 is not None:
         return _serve_ros2(args)
     if args.ros1_master is not None:

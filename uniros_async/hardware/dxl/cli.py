@@ -1,12 +1,17 @@
-"""The ``uniros robot vbus`` subcommand (sim/cli.py adds it); importing this module is cheap (no MuJoCo)."""
+"""The Dynamixel parts of ``uniros robot`` (sim/cli.py adds them); importing this module is cheap (no MuJoCo).
+
+uniros robot vbus rx200                        # a virtual servo bus on a pty; prints its path first
+uniros robot serve rx200 --dxl /dev/ttyUSB0    # the arm on its bus, served in a tcp (--tls: tls) domain
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable, Coroutine
 from typing import Any
 
-__all__ = ["add_parser", "run"]
+__all__ = ["add_parser", "add_serve_arguments", "run", "serve"]
 
 
 def add_parser(actions: Any) -> argparse.ArgumentParser:
@@ -36,3 +41,51 @@ def run(args: argparse.Namespace) -> int:
     servos = servo_map(args.servo_map)
     emulation = EmulationConfig(seed=args.seed) if args.emulate_real else None
     return serve_vbus(servos, baud=args.baud, emulation=emulation, control_fd=sys.stdin.fileno())
+
+
+def add_serve_arguments(serve: argparse.ArgumentParser) -> None:
+    """Add ``--dxl PATH`` and its options to ``uniros robot serve``."""
+    serve.add_argument(
+        "--dxl",
+        default=None,
+        metavar="PATH",
+        help="serve the real arm on its Dynamixel bus at PATH (/dev/ttyUSB0; a vbus pty) instead of a sim",
+    )
+    serve.add_argument("--dxl-map", default=None, help="with --dxl: the servo map (default: the robot's)")
+    serve.add_argument("--dxl-baud", type=int, default=None, help="with --dxl: the baud rate (default: the map's)")
+    serve.add_argument(
+        "--dxl-shutdown",
+        choices=("hold", "rest"),
+        default="hold",
+        help="with --dxl: at the end, hold where the arm is (torque on) or move to rest, then torque off",
+    )
+
+
+def serve(
+    args: argparse.Namespace, *, auth_key: bytes | None, on_ready: Callable[[str], Any]
+) -> Coroutine[Any, Any, None]:
+    """The coroutine that serves ``uniros robot serve ROBOT --dxl PATH`` until cancelled."""
+    from uniros_async.hardware.dxl.placement import serve_dxl_arm
+    from uniros_async.transports.base import TransportOptions, options_from_environ
+
+    options = TransportOptions(
+        bind_host=args.host,
+        auth_key=auth_key if auth_key is not None else options_from_environ().auth_key,
+        insecure=args.insecure,
+        tls_cert_file=args.tls_cert,
+        tls_key_file=args.tls_key,
+        tls_ca_file=args.tls_ca,
+    )
+    return serve_dxl_arm(
+        args.dxl,
+        args.robot,
+        host=args.host,
+        port=args.port,
+        tls=args.tls,
+        servo_map_name=args.dxl_map,
+        baud=args.dxl_baud,
+        shutdown=args.dxl_shutdown,
+        namespace=args.namespace,
+        options=options,
+        on_ready=on_ready,
+    )

@@ -21,10 +21,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import time
 import urllib.parse
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -34,13 +35,25 @@ from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Tri
 from uniros_async.bus.qos import latest
 from uniros_async.errors import ConfigError, DxlCrcError, RobotError
 from uniros_async.placements import ArmLink, PlacementRequest
+from uniros_async.transports.base import TransportOptions, options_from_environ
 
 if TYPE_CHECKING:
     from uniros_async.bus.node import Node
+    from uniros_async.clock import Clock
     from uniros_async.envs.config import EnvConfig
     from uniros_async.hardware.dxl.arm import DxlArm
+    from uniros_async.hardware.dxl.servo_map import ServoMap
+    from uniros_async.robots.spec import RobotSpec
 
-__all__ = ["DxlArmNode", "DxlUri", "check_dxl_placement", "open_dxl_placement", "parse_dxl_uri"]
+__all__ = [
+    "DxlArmNode",
+    "DxlUri",
+    "check_dxl_placement",
+    "open_dxl_arm",
+    "open_dxl_placement",
+    "parse_dxl_uri",
+    "serve_dxl_arm",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -210,43 +223,135 @@ def _rate(uri: DxlUri, watchdog_ms: int, hardware_rate_hz: float) -> float:
 
 
 @contextlib.asynccontextmanager
-async def open_dxl_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
-    """``robot="dxl://..."``: the arm on its bus in the env's process (see the module docstring)."""
+async def open_dxl_arm(
+    path: str,
+    robot: RobotSpec,
+    servos: ServoMap,
+    *,
+    domain: Any,
+    baud: int | None = None,
+    rate_hz: float | None = None,
+    shutdown: str = "hold",
+    clock: Clock | None = None,
+    namespace: str | None = None,
+    transport: str = "auto",
+    options: TransportOptions | None = None,
+) -> AsyncIterator[DxlArmNode]:
+    """Start the arm of ``servos`` on the bus at ``path`` and serve it as a node of ``domain`` for the block.
+
+    Raises:
+        ConfigError: a map of another robot, or a rate too low for the servos' bus watchdog.
+        DxlPortError: the port cannot be opened (for EACCES the message names the dialout group).
+        RobotError: the start-up failed (a silent servo, a wrong model, ...), or, at the block's end, the arm failed
+            while it was served.
+    """
     from uniros_async.bus.tasks import unwrap_task_group
     from uniros_async.hardware.dxl.arm import DxlArm
     from uniros_async.hardware.dxl.bus import open_dxl_bus
-    from uniros_async.hardware.dxl.servo_map import servo_map
 
-    uri = parse_dxl_uri(request.uri)
-    servos = servo_map(uri.map_name or request.robot.name)
-    if servos.robot != request.robot.name:
-        raise ConfigError(
-            f"robot={request.uri!r}: servo map {servos.name!r} drives {servos.robot!r}, not this env's "
-            f"{request.robot.name!r}"
-        )
-    rate = _rate(uri, servos.bus_watchdog_ms, request.robot.hardware_rate_hz)
+    if servos.robot != robot.name:
+        raise ConfigError(f"servo map {servos.name!r} drives {servos.robot!r}, not {robot.name!r}")
+    rate = _rate(DxlUri(path, baud, servos.name, rate_hz, shutdown), servos.bus_watchdog_ms, robot.hardware_rate_hz)
     return_delay_s = max(s.return_delay_time for s in servos.servos) * 2e-6
-    bus = await open_dxl_bus(uri.path, uri.baud or servos.baud, return_delay_s=return_delay_s)
+    bus = await open_dxl_bus(path, baud or servos.baud, return_delay_s=return_delay_s)
     async with bus:
-        arm = DxlArm(bus, servos, request.robot, shutdown=uri.shutdown)  # type: ignore[arg-type]
+        arm = DxlArm(bus, servos, robot, shutdown=shutdown)  # type: ignore[arg-type]
         await arm.start()
         try:
             async with (
-                open_domain("memory://") as domain,
-                open_node("dxl_arm", domain=domain, namespace=f"/{request.robot.name}", clock=request.clock) as node,
+                open_node(
+                    "dxl_arm",
+                    domain=domain,
+                    namespace=namespace or f"/{robot.name}",
+                    clock=clock,
+                    transport=transport,
+                    options=options,
+                ) as node,
                 unwrap_task_group() as tg,
             ):
                 arm_node = DxlArmNode(node, arm, rate)
-                task = tg.create_task(arm_node.serve(), name=f"{request.robot.name} dxl bus")
+                task = tg.create_task(arm_node.serve(), name=f"{robot.name} dxl bus")
                 try:
-                    yield ArmLink(domain=domain)
+                    yield arm_node
                 finally:
                     task.cancel()
         except BaseExceptionGroup as group:
-            # the arm's own failure (a RobotError naming the joint and the servo) ends the env as itself
+            # the arm's own failure (a RobotError naming the joint and the servo) comes out as itself
             only = group.exceptions[0] if len(group.exceptions) == 1 else None
             if isinstance(only, RobotError):
                 raise only from None
             raise
         finally:
             await arm.close()
+
+
+@contextlib.asynccontextmanager
+async def open_dxl_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+    """``robot="dxl://..."``: the arm on its bus in the env's process (see the module docstring)."""
+    from uniros_async.hardware.dxl.servo_map import servo_map
+
+    uri = parse_dxl_uri(request.uri)
+    servos = servo_map(uri.map_name or request.robot.name)
+    async with (
+        open_domain("memory://") as domain,
+        open_dxl_arm(
+            uri.path,
+            request.robot,
+            servos,
+            domain=domain,
+            baud=uri.baud,
+            rate_hz=uri.rate_hz,
+            shutdown=uri.shutdown,
+            clock=request.clock,
+        ),
+    ):
+        yield ArmLink(domain=domain)
+
+
+async def serve_dxl_arm(
+    path: str,
+    robot: str,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    tls: bool = False,
+    servo_map_name: str | None = None,
+    baud: int | None = None,
+    rate_hz: float | None = None,
+    shutdown: str = "hold",
+    namespace: str | None = None,
+    options: TransportOptions | None = None,
+    on_ready: Callable[[str], Any] | None = None,
+) -> None:
+    """``uniros robot serve ROBOT --dxl PATH``: the arm on its bus, served in an own tcp (or tls) domain on
+    ``host:port`` until cancelled, for envs elsewhere (``robot="tcp://HOST:PORT"``).
+
+    Raises:
+        ConfigError, DxlPortError, RobotError: as ``open_dxl_arm``.
+    """
+    from uniros_async.hardware.dxl.servo_map import servo_map
+    from uniros_async.robots import get_robot_spec
+
+    spec = get_robot_spec(robot)
+    servos = servo_map(servo_map_name or spec.name)
+    node_options = dataclasses.replace(options or options_from_environ(), bind_host=host)
+    scheme = "tls" if tls else "tcp"
+    async with (
+        open_domain(f"{scheme}://{host}:{port}", options=node_options) as domain,
+        open_dxl_arm(
+            path,
+            spec,
+            servos,
+            domain=domain,
+            baud=baud,
+            rate_hz=rate_hz,
+            shutdown=shutdown,
+            namespace=namespace,
+            transport=scheme,
+            options=node_options,
+        ),
+    ):
+        logger.info("serving %s on %s in %s", spec.name, path, domain.uri)
+        if on_ready is not None:
+            on_ready(domain.uri)
+        await asyncio.Event().wait()  # until cancelled
