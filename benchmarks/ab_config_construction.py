@@ -15,7 +15,7 @@ keyword arguments (``clock="sim"``, ``reward_type="sparse"``, ``action_cycle_s=0
 - ``step``: the median ``env.step`` time over 100 steps of one env (sim clock, 0.1 s action cycles), in us, to
   show that the step path does not touch validation.
 
-Prints each tree's medians over the rounds. Recorded in docs/performance.md.
+Prints each tree's medians over the rounds.
 """
 
 from __future__ import annotations

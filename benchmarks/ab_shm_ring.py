@@ -10,7 +10,7 @@ code above the transport and the moment are the same for both vector envs, so th
 
 Prints, per vector env, the median us per step, its overhead over the bare step (the median of the block medians'
 differences, paired by round) with a 95 % interval (`uniros_async.stats.median_ci`), and the median per-round saving of
-the compiled ring. Recorded in docs/performance.md.
+the compiled ring.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The CPU that the throughput bench's own Ray cluster takes while nothing runs on it, for docs/performance.md.
+"""The CPU that the throughput bench's own Ray cluster takes while nothing runs on it.
 
 Starts the cluster as ``uniros bench throughput --backend ray`` does without ``--ray-address`` (``RayRows.start``:
 a head and a second node), lets it settle for 5 s, then sums the CPU time (user + system, ``/proc/<pid>/stat``) of

@@ -1,4 +1,4 @@
-"""What a vector step of crowded workers costs beside the physics, for docs/performance.md ("More envs than cores").
+"""What a vector step of crowded workers costs beside the physics.
 
 A ``make_vec`` of N accelerated rx200 reach envs (the throughput bench's env and keywords) on this machine's cores,
 stepped back to back after a warm-up; printed per N: steps/s as a % of the physics bound (min(N, cores) / the bare

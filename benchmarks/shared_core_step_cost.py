@@ -1,4 +1,4 @@
-"""What an rx200 step costs when several envs share one core, for docs/performance.md ("More envs than cores").
+"""What an rx200 step costs when several envs share one core.
 
 Every case runs on one core (CPU affinity) and steps the throughput bench's env (accelerated rx200 reach, absolute
 joint targets) with seeded random actions, each env attached to an event loop as a worker runs it

@@ -2,7 +2,7 @@
 
 Times ``make_vec`` (workers started, envs built, spaces exchanged; no reset) of four "uniros/Rx200Reach-v0" envs
 (clock="sim") and of one "CartPole-v1", REPEATS times each (5 by default), each in a fresh process so no import is
-cached, and prints the medians. Recorded in docs/performance.md.
+cached, and prints the medians.
 
 ``--against TREE`` also times the checkout at ``TREE`` (a git worktree with its compiled ring end: ``python
 setup.py build_ext --inplace``), each process with ``PYTHONPATH`` set to its tree, in ABBA order (this tree, the

@@ -7,7 +7,7 @@ env and the supervisor), the worker's env around its step and, through wrapped f
 and after putting it in the ring (`_timeline_env.py`). Prints the median and quartiles of each piece. The wrappers
 cost a little themselves (~0.2 us each), so the pieces add up to a bit more than an unwrapped step; the bare step
 of the same env in this process is printed for the overhead. Not a benchmark of record: the tool to find out what
-to work on next. Recorded in docs/performance.md.
+to work on next.
 """
 
 from __future__ import annotations
