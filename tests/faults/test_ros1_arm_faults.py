@@ -1,6 +1,7 @@
 """Faults on the link to a ROS 1 arm: a real rosmaster and our sim as the arm's ROS 1 driver (``uniros robot serve
 --ros1-master``) in one network namespace, the agent with the ROS 1 bridge in its env (``robot="ros1://..."``) in
-another, joined by a veth pair (``rig.netfault``). Measured as in test_tcp_arm_faults.py.
+another, joined by a veth pair (``rig.netfault``). Each fault lasts each of ``DURATIONS_S``; measured as in
+test_tcp_arm_faults.py.
 
 ROS 1 cannot authenticate peers, so the driver and the bridge are allowed beyond loopback (``--insecure``,
 ``ros1={"insecure": True}``): only the two namespaces the test creates can reach them.
@@ -30,7 +31,7 @@ from ._arm import (
     start_rosmaster,
     stopping,
 )
-from ._faults import Link, run_fault
+from ._faults import DURATIONS_S, Link, run_fault
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("netfault_ready")]
 
@@ -49,11 +50,12 @@ def ros1_link(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) ->
         yield Link(pair, arm, agent)
 
 
-@pytest.mark.parametrize("name", ROS1_FAULTS)
-def test_ros1_fault(ros1_link: Link, name: str) -> None:
+@pytest.mark.parametrize(("name", "duration_s"), [(n, d) for n in ROS1_FAULTS for d in DURATIONS_S])
+def test_ros1_fault(ros1_link: Link, name: str, duration_s: float) -> None:
     run_fault(
         ros1_link,
         name,
+        duration_s,
         robot="ros1",
         robot_timeout_s=ROBOT_TIMEOUT_S,
         command_timeout_s=COMMAND_TIMEOUT_S,

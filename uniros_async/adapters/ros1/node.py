@@ -11,6 +11,12 @@ talk to them through this client::
 
 Every task of the node belongs to the TaskGroup held open by ``open_ros1_node``; leaving the block unregisters every
 topic from the master (bounded by ``timeout_s``), then closes the XML-RPC server and every TCPROS connection.
+
+A restarted master knows nothing of the graph. The node asks the master for its pid every ``MASTER_WATCH_S``; when
+the master answers again after it did not, or with another pid (a new rosmaster at the same URI), the node registers
+every publication and subscription again, and each subscription connects to the publishers the master names. rospy
+and roscpp register only at start, so a ROS 1 driver of theirs stays unknown to a restarted master until it is
+restarted too; ours come back by themselves.
 """
 
 from __future__ import annotations
@@ -47,6 +53,8 @@ M = TypeVar("M", bound=Ros1Message)
 DEFAULT_MASTER_URI = "http://127.0.0.1:11311/"
 _NAME = re.compile(r"^/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 _TOPIC = re.compile(r"^[~/]?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z0-9_]+)*$")
+MASTER_WATCH_S = 1.0
+"""How often the node checks that its master is the one it registered with (see the module docstring)."""
 
 
 class Ros1Node:
@@ -194,9 +202,43 @@ class Ros1Node:
             raise RobotError(f"ROS master at {self.master_uri} refused {method}{args[:2]}: {status}")
         return value
 
+    async def _watch_master(self, pid: Any) -> None:
+        """Register everything again with a master that answers after a silence, or with another pid."""
+        lost = False
+        while True:
+            await asyncio.sleep(MASTER_WATCH_S)
+            try:
+                _, _, now = await call_ros(
+                    self.master_uri, "getPid", self.name, timeout_s=min(self.timeout_s, MASTER_WATCH_S)
+                )
+            except (OSError, TimeoutError) as exc:
+                if not lost:
+                    logger.warning(
+                        "ROS master at %s does not answer (%r); registering again when it does", self.master_uri, exc
+                    )
+                lost = True
+                continue
+            if lost or now != pid:
+                try:
+                    await self._register_all()
+                except RobotError as exc:
+                    logger.warning("registering again with the ROS master at %s failed: %s", self.master_uri, exc)
+                    lost = True
+                    continue
+                logger.warning(
+                    "registered %s again with the ROS master at %s (pid %s)", self.name, self.master_uri, now
+                )
+                lost, pid = False, now
+
+    async def _register_all(self) -> None:
+        for topic, pub in list(self._publications.items()):
+            await self._master("registerPublisher", topic, pub.msg_type._type, self.uri)
+        for topic, sub in list(self._subscriptions.items()):
+            sub.update_publishers(await self._master("registerSubscriber", topic, sub.msg_type._type, self.uri))
+
     async def _start(self) -> None:
         try:
-            await call_ros(self.master_uri, "getPid", self.name, timeout_s=self.timeout_s)
+            _, _, pid = await call_ros(self.master_uri, "getPid", self.name, timeout_s=self.timeout_s)
         except (OSError, TimeoutError) as exc:
             raise RobotError(
                 f"cannot reach the ROS master at {self.master_uri} ({exc!r}): start roscore (or rosmaster --core) "
@@ -209,6 +251,7 @@ class Ros1Node:
         logger.info(
             "ROS 1 node %s at %s (TCPROS port %d), master %s", self.name, self.uri, self.tcpros_port, self.master_uri
         )
+        self._spawn(self._watch_master(pid), name=f"ros1 {self.name} master watch")
 
     async def _aclose(self) -> None:
         if self._closed:

@@ -122,8 +122,9 @@ class _Subscription:
             self.links[uri] = self.node._spawn(self._link(uri), name=f"ros1 sub {self.topic} <- {uri}")
 
     async def _link(self, uri: str) -> None:
-        # Like rospy: while the master lists the publisher, reconnect after failures with a growing delay.
-        backoff = Backoff(first_s=0.2, max_s=5.0)
+        # Like rospy: while the master lists the publisher, reconnect after failures with a growing delay (capped at
+        # 1 s, so a link that comes back after a long outage carries states again within about a second)
+        backoff = Backoff(first_s=0.2, max_s=1.0)
         while True:
             try:
                 if not await self._connect_and_read(uri):
