@@ -58,10 +58,14 @@ class Vbus:
 
 
 @contextlib.contextmanager
-def running_vbus(*extra: str) -> Iterator[Vbus]:
-    """``uniros robot vbus rx200 [extra]`` for the block; stopped by SIGINT at its end."""
-    argv = [sys.executable, "-m", "uniros_async.cli", "robot", "vbus", "rx200", *extra]
-    process = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+def running_vbus(*extra: str, servos: str = "rx200", pythonpath: str | None = None) -> Iterator[Vbus]:
+    """``uniros robot vbus SERVOS [extra]`` for the block (``pythonpath`` prepended to its $PYTHONPATH); stopped by
+    SIGINT at its end."""
+    argv = [sys.executable, "-m", "uniros_async.cli", "robot", "vbus", servos, *extra]
+    env = dict(os.environ)
+    if pythonpath is not None:
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (pythonpath, env.get("PYTHONPATH", "")) if p)
+    process = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1, env=env)
     assert process.stdout is not None
     path = process.stdout.readline().strip()
     if not path.startswith("/dev/"):
