@@ -90,7 +90,7 @@ class _LibcTimerFd:
 
     def __init__(self) -> None:
         # the symbols already loaded into this process, libc's among them: ctypes.util.find_library("c") would run
-        # ``ldconfig -p`` in a subprocess (~10 ms in every process that makes a clock)
+        # ``ldconfig -p`` in a subprocess (a process start, in every process that makes a clock)
         libc = ctypes.CDLL(None, use_errno=True)
         self._create = libc.timerfd_create
         self._create.argtypes = [ctypes.c_int, ctypes.c_int]
@@ -124,7 +124,7 @@ def _load_timerfd() -> _LibcTimerFd | None:
     try:
         return _LibcTimerFd()
     except (OSError, AttributeError):  # pragma: no cover - very old libc
-        logger.warning("timerfd unavailable; WallClock falls back to asyncio.sleep (about 1 ms late)")
+        logger.warning("timerfd unavailable; WallClock falls back to asyncio.sleep (late by the loop's resolution)")
         return None
 
 
@@ -134,10 +134,9 @@ class WallClock(Clock):
     One timerfd is kept per event loop and re-armed for each sleep; concurrent sleepers on the same loop each get
     their own (a pool), so a sleep costs one ``timerfd_settime`` and one wakeup, not an fd creation.
 
-    Waking a halted core costs 100-150 us on these machines (measured: timerfd alone gave a 127 us median error
-    at 200 Hz). So the timerfd is armed ``spin_lead_ns`` early and the last stretch is a bounded spin on
-    ``monotonic_ns``: median error ~3 us, p99 ~6 us (500 us lead; 300 us gave a 24 us median inside asyncio) for
-    ~0.5 ms of CPU per sleep (0.5 % at 10 Hz). The spin is bounded by
+    Waking a halted core takes longer than the error a loop may have (docs/performance.md has the figures). So the
+    timerfd is armed ``spin_lead_ns`` early and the last stretch is a bounded spin on ``monotonic_ns``, which
+    costs that lead's CPU per sleep. The spin is bounded by
     the lead and waits on nobody, so it cannot stall behind a descheduled peer. ``spin_lead_ns=0`` disables it,
     ``sleep_until(..., spin=False)`` skips it for one sleep: a spinning real-time process holds its core, and
     with more processes than cores the lower-priority ones wait for it.

@@ -3,7 +3,7 @@
 One ``tick(cmd)`` is one cycle of the robot's hardware loop (rx200 10 Hz, ned2 25 Hz), in the order of
 ros_control's ``read(); update(); write()``:
 
-1. physics steps one hardware period (``control_period_s / physics_dt_s`` substeps of 2 ms) under the servo
+1. physics steps one hardware period (``control_period_s / physics_dt_s`` substeps of ``physics_dt_s``) under the servo
    targets set at the previous tick, so the state returned by a tick is the state *at* that tick;
 2. the joint state (positions, velocities, efforts of ``RobotSpec.joint_state_names``) is read;
 3. the newest command is applied: there is no buffering, the caller passes the newest JointCommand it has (a
@@ -79,9 +79,9 @@ class ServoSimConfig:
         stop_deceleration_rad_s2: how hard ``"stop"`` brakes the servo targets.
         max_abs_qvel: a joint velocity above this (rad/s or m/s) is treated as divergence.
         initial_q_rad: arm pose at start and after ``reset()`` without a pose; None: ``RobotSpec.home_q_rad``.
-        target_update_steps: physics steps between servo target updates along a profile (5: every 10 ms,
-            i.e. a 100 Hz setpoint, far above the ~10 Hz bandwidth of the servos, and a third cheaper than
-            updating every step: a 10 Hz tick is mostly 50 MuJoCo steps). Must divide the steps per period.
+        target_update_steps: physics steps between servo target updates along a profile (5 at the default
+            ``physics_dt_s``: a 100 Hz setpoint, far above the servos' bandwidth, and cheaper than updating every
+            step, since a tick is mostly MuJoCo steps). Must divide the steps per period.
     """
 
     physics_dt_s: float = 0.002

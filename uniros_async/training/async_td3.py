@@ -1,9 +1,9 @@
 """Asynchronous TD3: gradient updates on a learner thread beside data collection (the paper's Figure 9 learner).
 
-SB3's TD3 alternates: collect ``train_freq`` steps, then run ``gradient_steps`` updates, so every update (~15 ms
-for 400-300 networks on one core) lands between an env step's return and the next step call and stretches the
-action cycle. ``AsyncTD3`` keeps TD3's update, hyperparameters and replay, and moves the updates to a learner
-thread that ``learn`` owns:
+SB3's TD3 alternates: collect ``train_freq`` steps, then run ``gradient_steps`` updates, so every update (a
+sizeable share of an action cycle for 400-300 networks on one core) lands between an env step's return and the
+next step call and stretches the action cycle. ``AsyncTD3`` keeps TD3's update, hyperparameters and replay, and
+moves the updates to a learner thread that ``learn`` owns:
 
 - **Actor** (the thread that calls ``learn``): SB3's step loop (callbacks, episode statistics, logging, storing
   transitions); its actions come from a policy *snapshot*, a separate copy of the actor network run under
@@ -20,9 +20,9 @@ thread that ``learn`` owns:
 - **GIL**: torch releases the GIL inside its kernels, but the Python between them competes with the actor and
   with any env loop or supervisor thread in this process. With ``yield_to_actor`` (the default) the learner starts
   an update only while the actor is inside ``env.step`` (waiting on the env's deadline), and only ``step_grace_s``
-  after it entered, once the action has been handed to the env. Measured on the real-time reach env in this
-  process (400-300 networks, two busy cores): starting at once spread that hand-over (step call to the action
-  reaching the env loop, part of the action cycle) to an IQR of 3.6 ms; starting 10 ms later kept it at 0.3 ms.
+  after it entered, once the action has been handed to the env: an update started at once competes for the GIL
+  with that hand-over (step call to the action reaching the env loop, part of the action cycle) and spreads it;
+  started ``step_grace_s`` later it finds the hand-over done.
   (A lower OS priority for the learner thread made the actor's compute worse: the thread gets descheduled while
   it holds the GIL.)
 
@@ -190,7 +190,7 @@ class AsyncTD3(TD3):
             one thread beside env loops: on 2 cores more stall them); None leaves torch's setting alone.
         real_time_actor: for envs on the wall clock: during ``learn`` the acting thread runs under SCHED_RR when
             permitted (``priority.real_time_thread``; the learner thread puts itself back to ordinary scheduling)
-            and the process's GIL switch interval drops to 0.5 ms (``priority.gil_switch_interval``), so a learner
+            and the process's GIL switch interval drops to ``priority.ACTOR_GIL_SWITCH_S``, so a learner
             update in progress delays the next action by at most that much. Keep False for accelerated (sim clock)
             training: there the actor computes flat out and must not starve other processes.
         action_l2: weight of the mean squared (normalised) action in the actor's loss, as in the HER paper

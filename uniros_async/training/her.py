@@ -2,7 +2,7 @@
 
 SB3's HerReplayBuffer computes the reward of every relabelled transition by asking the env:
 ``env.env_method("compute_reward", achieved, desired, infos, indices=[0])`` on each ``sample``. With envs in
-worker processes that is a round trip per gradient update, queued behind an 800 ms step; with AsyncTD3's learner
+worker processes that is a round trip per gradient update, queued behind the env's step; with AsyncTD3's learner
 thread it would also race the actor's step on the same worker connection. ``LocalGoalReward`` answers that call
 here with a pure function of the arguments and the env's reward settings, read once from each env at wrap time,
 and forwards everything else to the wrapped VecEnv.

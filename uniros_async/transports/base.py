@@ -62,7 +62,7 @@ def _cpu_getter() -> Any:
 
 
 this_cpu = _cpu_getter()
-"""The CPU this thread runs on now (glibc's sched_getcpu, ~0.3 us through ctypes), or -1 where unknown."""
+"""The CPU this thread runs on now (glibc's sched_getcpu through ctypes: no syscall), or -1 where unknown."""
 
 
 class Delivery(enum.Enum):

@@ -9,7 +9,7 @@ one doorbell per end. Nothing ever appears in /dev/shm, so nothing is left behin
 Moving a frame: the sender copies it into its ring (one copy, part by part for a multi-part frame), publishes the
 write position, then, after a memory barrier, rings the peer's doorbell only if the peer's ticket says it waits.
 The receiver reads without a syscall when data is there; otherwise it polls for at most ``ShmTransport.spin_ns``
-(50 us, yielding the CPU between polls, and only while such spins keep paying off), then sets its ticket, re-checks
+(yielding the CPU between polls, and only while such polls keep paying off: ``_spin``), then sets its ticket, re-checks
 (after a barrier: no lost wakeup) and awaits its doorbell, which is registered in the event loop (``loop.add_reader``).
 The same holds the other way for a sender that waits for space (backpressure). An idle end costs no CPU.
 A thread with nothing else to do can move frames without running the event loop: ``try_send`` writes when there
@@ -87,8 +87,8 @@ _HANG_UP = getattr(select, "POLLRDHUP", 0x2000)  # poll(2): the peer closed its 
 class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
     """One end of a ``shm://`` connection (made by ``connect`` or ``ShmListener.accept``).
 
-    Costs on the 2-core VMs of docs/performance.md: one copy per send (a 900 KiB image: 45 us when the ring's pages are
-    in cache), no syscall per frame while both ends are busy, one eventfd write when the reader sleeps.
+    Costs: one copy per send (cheapest when the ring's pages are in cache), no syscall per frame while both ends
+    are busy, one eventfd write when the reader sleeps (figures: docs/performance.md).
     """
 
     delivery = Delivery.RELIABLE

@@ -8,12 +8,12 @@ Receiving: ``_tcp_receive`` (the stream buffer, large frames in buffers of their
 while an answer is due, under the rule of ``_spin`` that ``ShmTransport`` shares).
 
 Sending: a small frame is joined with its header into one bytes object and written at once; a small frame sent
-within 20 us of the previous write starts a burst, whose frames go out in one write at the end of the loop iteration
-(one syscall for many frames; a lone request still leaves at once). Larger frames go out as header + parts without
-joining (``writelines``: one sendmsg on uvloop and Python >= 3.12). Where the event loop keeps a reference to a
-mutable buffer instead of copying it (uvloop, Python >= 3.12), ``send`` returns only once the socket took those bytes,
-so callers may reuse their buffers as soon as ``send`` returns, as with every transport. ``send`` waits while more
-than 1 MiB is unsent (pause_writing/resume_writing), so memory stays bounded.
+within ``_BURST_S`` of the previous write starts a burst, whose frames go out in one write at the end of the loop
+iteration (one syscall for many frames; a lone request still leaves at once). Larger frames go out as header + parts
+without joining (``writelines``: one sendmsg on uvloop and Python >= 3.12). Where the event loop keeps a reference
+to a mutable buffer instead of copying it (uvloop, Python >= 3.12), ``send`` returns only once the socket took those
+bytes, so callers may reuse their buffers as soon as ``send`` returns, as with every transport. ``send`` waits while
+more than 1 MiB is unsent (pause_writing/resume_writing), so memory stays bounded.
 
 A frame sent after a ``receive`` that waited is a reply and goes out at once, never into a burst: corked to the end
 of the loop iteration it would wait for that loop iteration before it leaves.
@@ -29,11 +29,11 @@ loop's thread while the loop is not running (the supervisor between calls; ``rec
 counterpart). Whatever it cannot do it leaves to ``send``, having sent nothing.
 
 Reconnection: a connection that breaks stays broken (TransportBrokenError on every later call). Whoever owns it (the
-bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``, 5 ms
-doubling to 500 ms) until ``connect_timeout_s``; frames that were in flight when the connection broke are lost, as
-on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to resubscribe and
-re-send. Every connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives still learns within
-seconds that its peer's socket is gone.
+bus) closes it and calls ``connect`` again, which retries with exponential backoff (``uniros_async.backoff``, from
+0.005 s doubling to 0.5 s) until ``connect_timeout_s``; frames that were in flight when the connection broke are
+lost, as on any TCP link. There is deliberately no reconnecting wrapper here: only the owner knows what to
+resubscribe and re-send. Every connection has TCP keepalive (``KEEPALIVE_IDLE_S``), so an end that only receives
+still learns within seconds that its peer's socket is gone.
 """
 
 from __future__ import annotations
@@ -582,7 +582,7 @@ async def connect(uri: str, options: TransportOptions) -> TcpTransport:
 
     Refused connections (a listener still starting), and connections the listener drops during the handshake (it
     is at ``max_connections``, or evicted us among more than ``max_handshakes`` at once), are retried with backoff
-    from 5 ms doubling to 500 ms, until ``options.connect_timeout_s`` has passed since the call, handshake included.
+    from 0.005 s doubling to 0.5 s, until ``options.connect_timeout_s`` has passed since the call, handshake included.
     Cancelling leaves nothing open.
 
     Raises:
