@@ -377,3 +377,31 @@ def test_a_users_model_registers_and_clashes_are_refused() -> None:
         with pytest.raises(ConfigError, match="clashes with XM430-W350"):
             ct.register_model(ct.ControlTable("OTHER", 1020, {}, None))
     assert "MY-SERVO" not in ct.MODELS
+
+
+def test_docs_list_every_register_as_the_tables_hold_it() -> None:
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "dynamixel.md").read_text()
+    for table in (ct.XL430_W250, ct.XM430_W350, ct.XL330_M288):
+        section = doc.split(f"### {table.name} (model number {table.model_number})")[1].split("\n\n", 2)[1]
+        rows = {}
+        for line in section.splitlines()[2:]:
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[cells[2]] = cells
+        expected = {name: reg for name, reg in table.registers.items() if not name.startswith("indirect_")}
+        assert set(rows) == set(expected), table.name
+        for name, reg in expected.items():
+            address, size, _, access, area, unit, rng, default = rows[name]
+            lo_hi = "" if reg.min is None and reg.max is None else f"{reg.min} .. {reg.max}"
+            assert (int(address), int(size), access, area, unit, rng) == (
+                reg.address,
+                reg.size,
+                reg.access,
+                reg.area,
+                reg.unit,
+                lo_hi,
+            ), f"{table.name} {name}"
+            assert default == ("" if reg.default is None else str(reg.default)), f"{table.name} {name}"
+    assert re.search(r"XM430-W350.*2\.69 mA", doc)

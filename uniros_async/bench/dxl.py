@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import gc
 import os
 import signal
 import subprocess
@@ -313,6 +314,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     """Run the benchmark; returns its JSON records (rows, the loop lag, the codec alone)."""
     from uniros_async.hardware.dxl.control_table import RETURN_DELAY_UNIT_S
     from uniros_async.hardware.dxl.servo_map import servo_map
+    from uniros_async.priority import freeze_heap
 
     servos = servo_map(config.servo_map)
     baud = config.baud or servos.baud
@@ -322,6 +324,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     records: list[dict[str, Any]] = []
     with _vbus(config.servo_map, config.baud, config.real_time) as path, _real_time(config.real_time) as klass:
         ours, theirs = _Ours(path, baud, return_delay_s), _Sdk(path, baud)
+        freeze_heap()  # as loop processes do once started: full collections walk only what the ticks make
         try:
             for n, ids in sets.items():
                 # warm-up: the vbus's sim, both clients' first packets
@@ -374,6 +377,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
         finally:
             ours.close()
             theirs.close()
+            gc.unfreeze()
     for n in sets:
         codec = _codec_cpu_us(n, 2000)
         for impl, us in codec.items():

@@ -223,14 +223,9 @@ class DxlBus:
             waiter.set_result(None)
 
     def _drain_input(self) -> None:
-        with contextlib.suppress(OSError):
+        """Drop what arrived outside a transaction (late answers, noise): the kernel's buffer and the parser's."""
+        with contextlib.suppress(OSError, termios.error):
             termios.tcflush(self._fd, termios.TCIFLUSH)
-        while True:
-            try:
-                if not os.read(self._fd, 65536):
-                    break
-            except OSError:
-                break
         self._parser.clear()
 
     async def _write(self, data: bytes) -> None:
@@ -272,7 +267,8 @@ class DxlBus:
                 if attempt:
                     self.stats.retries += 1
                 packet = make(missing)
-                self._drain_input()
+                if missing:
+                    self._drain_input()
                 self._rx = []
                 self._need = len(missing)
                 self._crc_base = self._parser.crc_errors
