@@ -186,6 +186,10 @@ def _build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--baud", type=int, default=None, help="the virtual bus's baud rate (default: the servo map's)")
     bd.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bd.add_argument("--no-rt", action="store_true", help="leave the clients and the vbus in the ordinary class")
+    bc = bench.add_parser("cameras", help="the main job's four real-time envs with and without a 30 Hz camera each")
+    bc.add_argument("--duration", type=float, default=60.0, help="wall seconds per row (default 60)")
+    bc.add_argument("--sizes", nargs="+", default=["none", "84x84"], help="WxH per row, or none (default none 84x84)")
+    bc.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds per case (default 60)")
     bs.add_argument("--episodes", type=int, default=3, help="reach episodes to time (default 3)")
@@ -444,6 +448,11 @@ def _run_bench(args: argparse.Namespace) -> int:
         dxl.main(
             dxl.DxlBenchConfig(cycles=args.cycles, baud=args.baud, json_path=args.json_path, real_time=not args.no_rt)
         )
+    elif args.scenario == "cameras":
+        from uniros_async.bench import cameras
+
+        sizes = cameras.parse_sizes(args.sizes)
+        cameras.main(cameras.CameraBenchConfig(duration_s=args.duration, sizes=sizes, json_path=args.json_path))
     elif args.scenario == "simclock":
         from uniros_async.bench import simclock
 

@@ -73,8 +73,14 @@ class SimCameraConfig:
     rate_hz: float = 30.0
     name: str = ""
     """The topic's camera name (``<ns>/<name>/color/image_raw``); empty: ``CAMERA_TOPIC_NAMES`` or the MJCF name."""
+    phase_s: float = 0.0
+    """The camera ticks this long after the points of the clock's grid of its period. An env that runs its camera
+    puts the renders just after its own loop's ticks, so that a frame never renders at the instant a servo or env
+    tick is due (the 30 Hz grid holds every point of a 10 Hz loop's)."""
 
     def __post_init__(self) -> None:
+        if not 0 <= self.phase_s < 1:
+            raise ConfigError(f"camera {self.camera!r}: phase_s expected >= 0 and < 1, got {self.phase_s}")
         if not 0 < self.rate_hz <= 240:
             raise ConfigError(f"camera {self.camera!r}: rate_hz expected > 0 and <= 240, got {self.rate_hz}")
         FrameSpec(width=self.width, height=self.height)
@@ -271,7 +277,7 @@ class SimCameraNode:
         self._watch_task = tg.create_task(self._watch(), name="camera render thread watch")
         for i, cfg in enumerate(self.cameras):
             period_ns = round(1e9 / cfg.rate_hz)
-            start = grid_after(node.now_ns(), period_ns)
+            start = grid_after(node.now_ns(), period_ns, round(cfg.phase_s * 1e9) % period_ns)
             self._timers.append(node.create_timer(period_ns / 1e9, lambda i=i: self._on_tick(i), start_ns=start))
 
     def stop(self) -> None:

@@ -32,11 +32,13 @@ if TYPE_CHECKING:
     from uniros_async.camera.sim import SimCameraNode
     from uniros_async.envs.config import EnvConfig
 
-__all__ = ["OBS_MODES", "SIM_CAMERA_PLACEMENTS", "PixelSource", "pixel_space"]
+__all__ = ["CAMERA_AFTER_TICK_NS", "OBS_MODES", "SIM_CAMERA_PLACEMENTS", "PixelSource", "pixel_space"]
 
 OBS_MODES = ("state", "pixels", "pixels+state")
 SIM_CAMERA_PLACEMENTS = ("sim", "sim-process", "emulated-real")
 """Placements whose arm is simulated: the env renders its cameras (``sim_camera`` unset)."""
+CAMERA_AFTER_TICK_NS = 1_000_000
+"""A sim camera the env runs ticks this long after the env loop's ticks (its phase on the clock's grid)."""
 MJCF_CAMERAS = {"camera": "scene", "wrist_camera": "wrist"}
 """The MJCF camera behind each sim camera topic name."""
 
@@ -87,21 +89,34 @@ class PixelSource:
         options: Any,
         clock: Any,
         rate_hz: float,
+        phase_s: float = 0.0,
     ) -> None:
-        """Subscribe to the camera topic on ``node`` and, for a sim arm, run its camera in ``stack``."""
+        """Subscribe to the camera topic on ``node`` and, for a sim arm, run its camera in ``stack``, ticking
+        ``phase_s`` after its grid (``SimCameraConfig.phase_s``)."""
         self._clock = clock
         if self.sim_camera:
             from uniros_async.camera.sim import SimCameraConfig, open_sim_cameras
 
             name = self.config.camera
             h, w = self.image_size
-            cam = SimCameraConfig(camera=MJCF_CAMERAS.get(name, name), name=name, width=w, height=h, rate_hz=rate_hz)
+            cam = SimCameraConfig(
+                camera=MJCF_CAMERAS.get(name, name), name=name, width=w, height=h, rate_hz=rate_hz, phase_s=phase_s
+            )
             self.cameras = await stack.enter_async_context(
                 open_sim_cameras(
                     self.robot, domain=domain, cameras=[cam], clock=clock, transport=transport, options=options
                 )
             )
         self._sub = await node.create_subscription(Image, self.topic, qos=latest())
+
+    def stats(self) -> dict[str, Any] | None:
+        """The sim camera's counters: ``frames`` published, ticks ``skipped`` (renderer busy), ``render_median_ms``;
+        None without a sim camera."""
+        if self.cameras is None:
+            return None
+        st = self.cameras.stats[0]
+        median = float(np.median(st.render_ns)) / 1e6 if st.render_ns else float("nan")
+        return {"frames": st.frames, "skipped": st.skipped, "render_median_ms": median}
 
     def show(self, marker: Marker) -> None:
         """Put ``marker`` in this env's sim camera's picture at once (the task also publishes it on ``markers_in``)."""
