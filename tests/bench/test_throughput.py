@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from uniros_async.bench import throughput
+from uniros_async.bench import _stepmeter, throughput
 from uniros_async.errors import ConfigError
 
 pytestmark = pytest.mark.slow
@@ -76,11 +77,25 @@ def test_quick_refuses_env_counts_it_would_all_drop() -> None:
         throughput.main(throughput.ThroughputBenchConfig(n_envs=(8,), quick=True, progress=False))
 
 
-def test_the_uniros_rows_can_run_over_tcp() -> None:
-    lines: list[str] = []
-    records = throughput.main(throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, transport="tcp"), log=lines.append)
-    assert "make_vec's workers over tcp" in "\n".join(lines)
-    assert all(r["steps_per_s"] > 0 for r in records if r["impl"] == "uniros")
+def test_the_uniros_rows_can_run_over_tcp(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``transport="tcp"`` the uniros rows' steps travel over tcp connections: the agent's ends of them send
+    the actions of every step (a spy on the real transport's count of sent frames)."""
+    from uniros_async.transports.tcp import TcpTransport
+
+    sent: list[int] = []
+    count_sent = TcpTransport._count_sent
+
+    def spy(self: TcpTransport, n: int) -> None:
+        sent.append(n)
+        count_sent(self, n)
+
+    monkeypatch.setattr(TcpTransport, "_count_sent", spy)
+    config = throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, transport="tcp", progress=False)
+    records = throughput.main(config, log=lambda _: None)
+    uniros = [r for r in records if r["impl"] == "uniros"]
+    assert uniros and all(r["steps_per_s"] > 0 for r in uniros)
+    # the rx200, CartPole, in-turn, Dict and image rows: at least 5 steps each over tcp
+    assert len(sent) >= 5 * len(uniros), f"{len(sent)} frames over tcp for {len(uniros)} uniros rows"
 
 
 def test_the_rx200_hint_shows_only_when_the_n1_interval_is_wide() -> None:
@@ -93,7 +108,7 @@ def test_the_rx200_hint_shows_only_when_the_n1_interval_is_wide() -> None:
 
 
 def test_repeat_runs_the_crowded_rows_run_by_run_with_their_intervals(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", 30)  # the interval's goal would take hundreds of steps
+    monkeypatch.setattr(_stepmeter, "MAX_TIGHT_STEPS", 30)  # the interval's goal would take hundreds of steps
     lines: list[str] = []
     config = throughput.ThroughputBenchConfig(
         n_envs=(1, 4), steps=5, repeat=2, shared_cores=("pin", "off"), progress=False
@@ -120,9 +135,34 @@ def test_repeat_runs_the_crowded_rows_run_by_run_with_their_intervals(monkeypatc
         assert r["cores_ours_pct"] > 0 and 0 <= r["cores_idle_pct"] <= 100  # and what the cores did meanwhile
     text = "\n".join(lines)
     assert "% of the physics bound, run by run" in text and "host: 1-min load average" in text
-    assert "  4 uniros       pin  " in text and "  4 uniros       off  " in text
-    assert "run 2 N=4 uniros       off" in text and "CPU per env step: workers" in text
-    assert "; the cores: ours " in text and " other processes " in text
+    # the summary table shows each row's runs (as the records have them) and their minimum
+    for mode in ("pin", "off"):
+        rows = [r for r in records if r["shared_cores"] == mode]
+        pcts = [r["bound_pct"] for r in rows]
+        per_proc = rows[0]["envs_per_worker"]
+        assert _summary_row(text, 4, mode, per_proc) == [*(round(p, 1) for p in pcts), round(min(pcts), 1)]
+    # and one line per run with its steps/s and % of the bound, as recorded
+    for r in records:
+        sps, pct = _run_line(text, r["run"], 4, r["shared_cores"], r["envs_per_worker"])
+        assert sps == pytest.approx(r["steps_per_s"], abs=0.05) and pct == pytest.approx(r["bound_pct"], abs=0.05)
+    assert "CPU per env step: workers" in text and "; the cores: ours " in text and " other processes " in text
+
+
+def _summary_row(text: str, n: int, mode: str, per_proc: int) -> list[float]:
+    """The figures of the summary table's row for N = ``n``, uniros, ``mode`` and ``per_proc`` envs per process."""
+    rows = [
+        line.split()[4:] for line in text.splitlines() if line.split()[:4] == [str(n), "uniros", mode, str(per_proc)]
+    ]
+    assert len(rows) == 1, f"no single summary row for N={n} {mode} x{per_proc} in:\n{text}"
+    return [float(x) for x in rows[0]]
+
+
+def _run_line(text: str, run: int, n: int, mode: str, per_proc: int) -> tuple[float, float]:
+    """Steps/s and % of the bound on the line of run ``run`` of that row."""
+    pattern = rf"run {run} N={n} uniros\s+{mode}\s+x{per_proc}\s+([\d.]+) steps/s of \d+:\s+([\d.]+) %"
+    found = re.findall(pattern, text)
+    assert len(found) == 1, f"no single line for run {run} N={n} {mode} x{per_proc} in:\n{text}"
+    return float(found[0][0]), float(found[0][1])
 
 
 @pytest.mark.parametrize(
@@ -139,7 +179,7 @@ def test_bad_repeat_configs_are_refused(kw: dict[str, object], what: str) -> Non
 
 
 def test_repeat_rows_with_envs_grouped_one_process_per_core(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", 30)
+    monkeypatch.setattr(_stepmeter, "MAX_TIGHT_STEPS", 30)
     lines: list[str] = []
     config = throughput.ThroughputBenchConfig(
         n_envs=(4,), steps=5, repeat=1, envs_per_worker=("cores",), progress=False
@@ -148,7 +188,8 @@ def test_repeat_rows_with_envs_grouped_one_process_per_core(monkeypatch: pytest.
     cores = os.cpu_count() or 1
     assert record["envs_per_worker"] == throughput.per_worker("cores", 4, cores)
     assert record["worker_cpu_ms"] > 0  # the processes' CPU time, each process counted once
-    assert f"run 1 N=4 uniros       pin      x{record['envs_per_worker']}" in "\n".join(lines)
+    sps, pct = _run_line("\n".join(lines), 1, 4, "pin", record["envs_per_worker"])
+    assert sps == pytest.approx(record["steps_per_s"], abs=0.05) and pct == pytest.approx(record["bound_pct"], abs=0.05)
 
 
 def test_per_worker_counts_envs_per_process() -> None:
@@ -172,14 +213,14 @@ def test_crowded_back_to_back_phase_takes_at_least_its_floor(monkeypatch: pytest
     batch = [np.array([a] * 4) for a in actions]
 
     def run(floor: int, cap: int) -> tuple[list[float], list[float]]:
-        monkeypatch.setattr(throughput, "MIN_TIGHT_STEPS", floor)
-        monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", cap)
-        return throughput._tight(lambda a: None, batch, actions, 1, 6, 4, throughput._Meter([]), bare)
+        monkeypatch.setattr(_stepmeter, "MIN_TIGHT_STEPS", floor)
+        monkeypatch.setattr(_stepmeter, "MAX_TIGHT_STEPS", cap)
+        return _stepmeter.tight(lambda a: None, batch, actions, 1, 6, 4, _stepmeter.Meter([]), bare)
 
     times, bare_t = run(200, 2000)
-    chunks = -(-200 // (throughput.TIGHT_CHUNK - 1))  # each chunk's first step is left out
-    assert len(times) == chunks * (throughput.TIGHT_CHUNK - 1)
-    assert len(bare_t) == chunks * (throughput.BOUND_BLOCK - 1)
+    chunks = -(-200 // (_stepmeter.TIGHT_CHUNK - 1))  # each chunk's first step is left out
+    assert len(times) == chunks * (_stepmeter.TIGHT_CHUNK - 1)
+    assert len(bare_t) == chunks * (_stepmeter.BOUND_BLOCK - 1)
     times, _ = run(200, 60)
     assert len(times) < 60
     bare.close()

@@ -21,7 +21,7 @@ first step of each block, which starts on idle (halted, cache-cold) cores, is le
   steps; the trivial env's figure is the precise one. ``overhead_ci_us``: its 95 % confidence interval
   (``stats.median_ci``, distribution-free), printed beside it, which says how many steps a figure rests on;
 - ``bare_ms`` / ``step_ms``: the medians of both in the alternating phase;
-- at N = 1 also ``floor_ms``, the env's own step time with nothing around it (``_Floor``: the env attached to a
+- at N = 1 also ``floor_ms``, the env's own step time with nothing around it (``Floor``: the env attached to a
   loop in this thread, its step coroutine timed from inside; a third block between the two), and
   ``overhead_over_floor_us``: median over k of (vector step k - floor step k). The bare gymnasium step pays the
   hand-over to its loop thread; a worker of ``make_vec`` runs the env attached to its own loop and does not, so
@@ -58,7 +58,6 @@ overhead as a fraction of gymnasium's.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import dataclasses
 import functools
@@ -70,12 +69,23 @@ from typing import Any
 
 import numpy as np
 
+from uniros_async.bench import _stepmeter
 from uniros_async.bench._environ import environ_set
 from uniros_async.bench._ray_rows import RAY_IMPLS, RayRows, overhead_lines
+from uniros_async.bench._stepmeter import (
+    TRAIL_S,
+    Floor,
+    Meter,
+    bare_block,
+    quiesce,
+    sps_ci,
+    tight,
+    timed_block,
+)
 from uniros_async.bench.common import cpu_times, progress_counter, report, steal_percent
 from uniros_async.bench.envs import DICT_ID, IMAGE_ID
 from uniros_async.errors import ConfigError
-from uniros_async.runtime.worker import SHARED_CORES_MODES
+from uniros_async.runtime.cores import SHARED_CORES_MODES
 from uniros_async.stats import median_ci
 from uniros_async.transports._shm_ring import describe_ring_end
 
@@ -101,20 +111,6 @@ CROWDED_N = 4
 """From this many sub-envs on, a row's back-to-back phase runs until the 95 % interval of its steps/s is within
 ``CI_GOAL`` (at least ``MIN_TIGHT_STEPS`` or ``steps`` steps, at most ``MAX_TIGHT_STEPS``): there the workers
 share the cores, and a row's steps/s says how well they share them."""
-CI_GOAL = 0.025
-"""The half-width, relative to the figure, that a row at ``CROWDED_N`` or more sub-envs steps until its steps/s
-interval is within."""
-MIN_TIGHT_STEPS = 400
-"""The fewest steps the back-to-back phase of such a row takes (or ``--steps`` if more): rows of 3 chunks (147
-steps) scattered from run to run by more than their intervals said, 91-98 % of the bound where rows of 9 chunks gave
-97-101 % in the same hour (docs/performance.md, "More envs than cores")."""
-MAX_TIGHT_STEPS = 2000
-"""The most steps the back-to-back phase of such a row takes (~40 s at N = 8 on 2 cores)."""
-TIGHT_CHUNK = 50
-"""Steps between two looks at the interval."""
-TRAIL_S = 0.005
-"""Untimed pause after each vector block of the alternating phase: a worker replies before the servo tick that its
-step's last sim event also woke (~1 ms of physics), which would otherwise run during the bare step timed next."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -228,64 +224,6 @@ def _actions(space: Any, steps: int) -> list[Any]:
     return [rng.uniform(space.low, space.high).astype(np.float32) for _ in range(steps)]
 
 
-class _Floor:
-    """The env's own step time, nothing else: the same env attached to an event loop that this thread runs, each
-    step's coroutine (``astep_through``: the same wrappers) timed from inside the loop, so neither a thread
-    hand-over nor the loop's start and stop nor the servo tick that trails the step is counted."""
-
-    def __init__(self, env_id: str, kwargs: dict[str, Any]) -> None:
-        import gymnasium as gym
-
-        from uniros_async.envs.runtime import deferred_start
-
-        self.loop = asyncio.new_event_loop()
-        with deferred_start():
-            self.env: Any = gym.make(env_id, **kwargs)
-        base: Any = self.env.unwrapped
-        self.loop.run_until_complete(base.astart())
-
-    def reset(self, seed: int) -> None:
-        from uniros_async.runtime.worker import areset_through
-
-        self.loop.run_until_complete(areset_through(self.env, seed, None))
-
-    def step_s(self, action: Any) -> float:
-        from uniros_async.runtime.worker import astep_through
-
-        async def timed() -> float:
-            t0 = time.perf_counter()
-            await astep_through(self.env, action)
-            return time.perf_counter() - t0
-
-        return self.loop.run_until_complete(timed())
-
-    def close(self) -> None:
-        base: Any = self.env.unwrapped
-        self.loop.run_until_complete(base.aclose())
-        self.loop.close()
-
-
-def _bare_block(bare: Any, actions: list[Any], ks: range) -> list[float]:
-    """Steps ``ks`` of the bare env back to back, each timed (an episode's end resets it, untimed: the trivial env's
-    episodes end; the vector envs reset themselves)."""
-    times: list[float] = []
-    for k in ks:
-        t0 = time.perf_counter()
-        _, _, terminated, truncated, _ = bare.step(actions[k])
-        times.append(time.perf_counter() - t0)
-        if terminated or truncated:
-            bare.reset()
-    return times
-
-
-def _quiesce(env: Any) -> None:
-    """Let the bare env's loop thread finish what its last step's sim event woke (the next tick's physics), so that
-    it does not run, holding the GIL, during the vector env's step that is timed next."""
-    rt = getattr(env.unwrapped, "_rt", None)
-    if rt is not None:
-        rt.call(asyncio.sleep(0), 5.0)
-
-
 def _run(
     impl: str,
     n: int,
@@ -293,7 +231,7 @@ def _run(
     env_id: str,
     kwargs: dict[str, Any],
     steps: int,
-    floor: _Floor | None = None,
+    floor: Floor | None = None,
     block: int = 8,
     transport: str = "shm",
     shared_cores: str | None = None,
@@ -303,7 +241,8 @@ def _run(
     with (None: as this process has it); ``envs_per_worker``: its ``make_vec``'s."""
     block = min(block, steps)
     crowded = n >= CROWDED_N
-    actions = _actions(bare.action_space, steps + 1 + (max(MAX_TIGHT_STEPS, steps + 1) if crowded else steps + 1))
+    longest = max(_stepmeter.MAX_TIGHT_STEPS, steps + 1) if crowded else steps + 1
+    actions = _actions(bare.action_space, steps + 1 + longest)
     batch = [np.stack([a] * n) if isinstance(a, np.ndarray) else np.full(n, a) for a in actions]
     with environ_set("UNIROS_SHARED_CORES", shared_cores):  # the supervisor reads it when it connects its workers
         venv, reset, step = _vector(impl, n, env_id, kwargs, transport, envs_per_worker)
@@ -319,18 +258,18 @@ def _run(
         # vector env (same states, same actions, the same moment's load); the first step of each block is left out
         for k0 in range(0, steps + 1 - block + 1, block):
             ks = range(k0, k0 + block)
-            b = _bare_block(bare, actions, ks)
-            _quiesce(bare)
+            b = bare_block(bare, actions, ks)
+            quiesce(bare)
             if floor is not None:
                 floor_t += [floor.step_s(actions[k]) for k in ks][1:]
-            v = _timed_block(step, batch, ks)
+            v = timed_block(step, batch, ks)
             time.sleep(TRAIL_S)  # the workers' trailing work (the next servo tick) must not overlap the bare step
             bare_t += b[1:]
             vec_t += v[1:]
         # local workers: their CPU time here (each process once: envs_per_worker envs share one)
-        meter = _Meter(list(dict.fromkeys(getattr(venv, "pids", ()))) if impl == "uniros" else [])
+        meter = Meter(list(dict.fromkeys(getattr(venv, "pids", ()))) if impl == "uniros" else [])
         # throughput: back to back (crowded rows: in chunks, the bound's bare steps timed between them)
-        tight_t, tight_bare = _tight(step, batch, actions, steps + 1, steps + 1, n, meter, bare if crowded else None)
+        tight_t, tight_bare = tight(step, batch, actions, steps + 1, steps + 1, n, meter, bare if crowded else None)
     finally:
         venv.close()
     record = _record(env_id, impl, n, tight_t, vec_t, bare_t)
@@ -339,7 +278,7 @@ def _run(
     if tight_bare:
         record["bound_bare_ms"] = round(float(np.median(tight_bare)) * 1e3, 3)
     if crowded:
-        lo, hi = _sps_ci(tight_t, n)
+        lo, hi = sps_ci(tight_t, n)
         record["steps_per_s_ci"] = None if np.isnan(lo) else [round(lo, 1), round(hi, 1)]
         record["tight_steps"] = len(tight_t)
     if floor_t:
@@ -396,15 +335,15 @@ def _run_trivial(
             for i in order.permutation(len(rows)):
                 row = rows[i]
                 time.sleep(QUIET_S)
-                b = _bare_block(bare, actions, ks)
+                b = bare_block(bare, actions, ks)
                 for _, _, step in row.envs:
-                    row.vec_t += _timed_block(step, batch, ks)[1:]
+                    row.vec_t += timed_block(step, batch, ks)[1:]
                     row.bare_t += b[1:]
         singles = [row for row in rows if len(row.envs) == 1]
         for k0 in range(0, steps, block):
             for i in order.permutation(len(singles)):
                 time.sleep(QUIET_S)
-                singles[i].tight_t += _timed_block(singles[i].envs[0][2], batch, range(k0, k0 + block))
+                singles[i].tight_t += timed_block(singles[i].envs[0][2], batch, range(k0, k0 + block))
     finally:
         for row in rows:
             for venv, _, _ in row.envs:
@@ -415,143 +354,6 @@ def _run_trivial(
         else {**_record(env_id, row.impl, 1, row.vec_t, row.vec_t, row.bare_t), "envs_in_turn": 2}
         for row in rows
     ]
-
-
-def _cpu_s(pid: int | None) -> float | None:
-    """CPU time of process ``pid`` so far, all its threads (the scheduler's nanosecond count in
-    ``/proc/<pid>/task/*/schedstat``); None where that cannot be read."""
-    if pid is None:
-        return None
-    total = 0
-    try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
-                total += int(f.read().split()[0])
-    except (OSError, ValueError, IndexError):
-        return None
-    return total / 1e9
-
-
-def _sps_ci(per_step: list[float], n: int) -> tuple[float, float]:
-    """The 95 % interval of a row's steps/s (``n`` / the median time per vector step): ``median_ci`` of the step
-    times, inverted."""
-    lo, hi = median_ci(per_step)
-    return n / hi, n / lo
-
-
-def _sps_halfwidth(per_step: list[float], n: int) -> float:
-    """The larger side of ``_sps_ci`` relative to the steps/s figure (inf while too few steps for an interval)."""
-    lo, hi = _sps_ci(per_step, n)
-    if np.isnan(lo):
-        return float("inf")
-    sps = n / float(np.median(per_step))
-    return max(hi - sps, sps - lo) / sps
-
-
-class _Meter:
-    """CPU time of a row's local worker processes and of this process, and what the host's cores did, summed over
-    the stretches of the back-to-back phase in which the vector env steps (``start`` / ``stop``): figures that do not
-    depend on how busy the host is."""
-
-    def __init__(self, pids: list[int | None]) -> None:
-        self.pids = pids
-        self.steps = 0
-        self.workers_s = 0.0
-        self.agent_s = 0.0
-        self.wall_s = 0.0
-        self.ticks: list[int] | None = [0] * 8
-        self.readable = bool(pids)
-        self._start: tuple[list[float | None], float, list[int] | None, float] | None = None
-
-    def start(self) -> None:
-        if self.readable:
-            self._start = [_cpu_s(p) for p in self.pids], time.process_time(), cpu_times(), time.perf_counter()
-
-    def stop(self, steps: int) -> None:
-        """The end of a stretch of ``steps`` vector steps (the workers' CPU is read after their trailing work)."""
-        if self._start is None:
-            return
-        workers0, agent0, host0, t0 = self._start
-        self._start = None
-        host1, wall_s, agent1 = cpu_times(), time.perf_counter() - t0, time.process_time()
-        time.sleep(TRAIL_S)  # the step's trailing servo tick is the workers' too
-        workers1 = [_cpu_s(p) for p in self.pids]
-        spent = [b - a for a, b in zip(workers0, workers1, strict=True) if a is not None and b is not None]
-        if len(spent) != len(self.pids):
-            self.readable = False
-            return
-        self.workers_s += sum(spent)
-        self.agent_s += agent1 - agent0
-        self.wall_s += wall_s
-        self.steps += steps
-        if host0 is None or host1 is None or self.ticks is None:
-            self.ticks = None
-        else:
-            self.ticks = [t + b - a for t, a, b in zip(self.ticks, host0, host1, strict=True)]
-
-    def fill(self, record: dict[str, Any], n: int) -> None:
-        """Add the CPU time per env step of the workers and of the agent, and the cores' shares, to ``record``."""
-        if not self.readable or not self.steps:
-            return
-        record["worker_cpu_ms"] = round(self.workers_s / (n * self.steps) * 1e3, 3)
-        record["agent_cpu_ms"] = round(self.agent_s / (n * self.steps) * 1e3, 3)
-        if self.ticks is not None:  # what the cores did meanwhile: our processes, idle, others
-            cores = os.cpu_count() or 1
-            record["cores_ours_pct"] = round(100 * (self.workers_s + self.agent_s) / (self.wall_s * cores), 1)
-            record["cores_idle_pct"] = round(100 * (self.ticks[3] + self.ticks[4]) / max(sum(self.ticks), 1), 1)
-
-
-BOUND_BLOCK = 16
-"""Steps of the bare env timed after each chunk of a crowded row's back-to-back phase (the first left out)."""
-
-
-def _tight(
-    step: Callable[[Any], Any],
-    batch: list[Any],
-    actions: list[Any],
-    k0: int,
-    steps: int,
-    n: int,
-    meter: _Meter,
-    bare: Any = None,
-) -> tuple[list[float], list[float]]:
-    """The back-to-back phase of a row from step ``k0``: its vector step times, and the bare step times of the
-    bound. Without ``bare``: ``steps`` steps in one stretch. With ``bare`` (a row of ``CROWDED_N`` or more sub-envs):
-    chunks of ``TIGHT_CHUNK`` steps until there are ``steps`` (``MIN_TIGHT_STEPS`` if more) and the steps/s interval
-    is within ``CI_GOAL`` (at most ``MAX_TIGHT_STEPS`` in all, or as many as ``batch`` holds from ``k0``), each
-    followed by ``BOUND_BLOCK`` steps of the bare env with the chunk's first actions: the bound is timed in the same
-    seconds as the rate it bounds (this host's speed drifts by several % within a second). The first step of each
-    chunk and block, which starts on idle cores, is left out; the bare env steps on from where its last block left
-    it."""
-    if bare is None:
-        meter.start()
-        block = _timed_block(step, batch, range(k0, k0 + steps))
-        meter.stop(steps)
-        return block, []
-    times: list[float] = []
-    bare_t: list[float] = []
-    last = min(len(batch), k0 + max(MAX_TIGHT_STEPS, steps))
-    least = max(steps, min(MIN_TIGHT_STEPS, MAX_TIGHT_STEPS))
-    k = k0
-    while k < last and (len(times) < least or _sps_halfwidth(times, n) > CI_GOAL):
-        ks = range(k, min(k + TIGHT_CHUNK, last))
-        meter.start()
-        times += _timed_block(step, batch, ks)[1:]
-        meter.stop(len(ks))  # (and waits for the workers' trailing work, which must not overlap the bare block)
-        bare_t += _bare_block(bare, actions, range(k, min(k + BOUND_BLOCK, len(actions))))[1:]
-        _quiesce(bare)
-        k += TIGHT_CHUNK
-    return times, bare_t
-
-
-def _timed_block(step: Callable[[Any], Any], batch: list[Any], ks: range) -> list[float]:
-    """Steps ``ks`` of a vector env back to back, each timed."""
-    times: list[float] = []
-    for k in ks:
-        t0 = time.perf_counter()
-        step(batch[k])
-        times.append(time.perf_counter() - t0)
-    return times
 
 
 def _record(
@@ -609,7 +411,7 @@ def _measure(
     trivial_impls = IMPLS + (RAY_IMPLS if _RAY is not None else ())
     bare = _make_env(ENV_ID, ENV_KW)
     try:
-        floor: _Floor | None = _Floor(ENV_ID, ENV_KW)
+        floor: Floor | None = Floor(ENV_ID, ENV_KW)
     except ImportError:  # a tree without the attached mode (to compare an older runtime with the same benchmark)
         floor = None
     try:
