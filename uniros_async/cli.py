@@ -186,6 +186,7 @@ def _build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--baud", type=int, default=None, help="the virtual bus's baud rate (default: the servo map's)")
     bd.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bd.add_argument("--no-rt", action="store_true", help="leave the clients and the vbus in the ordinary class")
+    bd.add_argument("--allow-idle", action="store_true", help="let idle cores halt (default: kept awake)")
     bc = bench.add_parser("cameras", help="the main job's four real-time envs with and without a 30 Hz camera each")
     bc.add_argument("--duration", type=float, default=60.0, help="wall seconds per row (default 60)")
     bc.add_argument("--sizes", nargs="+", default=["none", "84x84"], help="WxH per row, or none (default none 84x84)")
@@ -446,7 +447,13 @@ def _run_bench(args: argparse.Namespace) -> int:
         from uniros_async.bench import dxl
 
         dxl.main(
-            dxl.DxlBenchConfig(cycles=args.cycles, baud=args.baud, json_path=args.json_path, real_time=not args.no_rt)
+            dxl.DxlBenchConfig(
+                cycles=args.cycles,
+                baud=args.baud,
+                json_path=args.json_path,
+                real_time=not args.no_rt,
+                keep_cores_awake=not args.allow_idle,
+            )
         )
     elif args.scenario == "cameras":
         from uniros_async.bench import cameras

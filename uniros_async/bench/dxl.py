@@ -56,6 +56,10 @@ class DxlBenchConfig:
     real_time: bool = True
     """Run the virtual bus's thread and the bench's (both clients') in the real-time class the env loops and the
     servo sims use (``priority.raise_loop_priority``), so other load on the host delays neither."""
+    keep_cores_awake: bool = True
+    """Keep idle cores from halting (``priority.cores_kept_awake``), as the latency benchmark does: on a virtual
+    machine, waking a halted core for the bus's bytes costs the hypervisor's scheduling delay. dynamixel-sdk's
+    polling keeps its own core awake; this gives our client, which sleeps until the bytes come, the same cores."""
 
 
 @contextlib.contextmanager
@@ -314,7 +318,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     """Run the benchmark; returns its JSON records (rows, the loop lag, the codec alone)."""
     from uniros_async.hardware.dxl.control_table import RETURN_DELAY_UNIT_S
     from uniros_async.hardware.dxl.servo_map import servo_map
-    from uniros_async.priority import freeze_heap
+    from uniros_async.priority import cores_kept_awake, freeze_heap
 
     servos = servo_map(config.servo_map)
     baud = config.baud or servos.baud
@@ -322,7 +326,12 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     arm_ids = [servos.primary(j).id for j in servos.arm.joints]
     sets = {len(arm_ids): arm_ids, len(servos.ids): list(servos.ids)}
     records: list[dict[str, Any]] = []
-    with _vbus(config.servo_map, config.baud, config.real_time) as path, _real_time(config.real_time) as klass:
+    awake = cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([])
+    with (
+        awake as pollers,
+        _vbus(config.servo_map, config.baud, config.real_time) as path,
+        _real_time(config.real_time) as klass,
+    ):
         ours, theirs = _Ours(path, baud, return_delay_s), _Sdk(path, baud)
         freeze_heap()  # as loop processes do once started: full collections walk only what the ticks make
         try:
@@ -353,6 +362,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
                             "failed_cycles": clients[impl].failures - failed[impl],
                             "baud": baud,
                             "scheduling": klass,
+                            "cores_kept_awake": bool(pollers),
                         }
                     )
             if ours.bus.stats.retries:
@@ -387,7 +397,8 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     lines = [
         f"uniros bench dxl: sync read of {PRESENT_LENGTH} bytes + sync write of goal positions per tick, "
         f"{config.servo_map} vbus at {baud} baud, host {os.uname().nodename} ({os.cpu_count()} cores), "
-        f"{time.strftime('%Y-%m-%d %H:%M %Z')}, clients and vbus {rows[0]['scheduling'] if rows else '?'}",
+        f"{time.strftime('%Y-%m-%d %H:%M %Z')}, clients and vbus {rows[0]['scheduling'] if rows else '?'}, "
+        f"idle cores {'kept awake' if rows and rows[0]['cores_kept_awake'] else 'allowed to halt'}",
         f"{'impl':<14} {'servos':>6} {'p50 us':>9} {'p99 us':>9} {'cpu us':>8} {'floor us':>9} "
         f"{'p50/floor':>9} {'p99/floor':>9} {'failed':>6}",
     ]
