@@ -1,6 +1,6 @@
 """A worker that finds itself on its agent's core moves off it (``ShmTransport.on_shared_core``, over tcp on
-loopback ``TcpTransport._peer_here``; ``worker._move_off_core``); workers that outnumber the cores are pinned round
-robin and run their steps through (``worker.shared_cores_mode``): real processes, real CPU affinity and scheduling
+loopback ``TcpTransport._peer_here``; ``cores.move_off_core``); workers that outnumber the cores are pinned round
+robin and run their steps through (``cores.shared_cores_mode``): real processes, real CPU affinity and scheduling
 policy, read back from /proc."""
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def test_an_agent_alone_on_its_core_is_not_moved() -> None:
 
 def _unpinned(pid: int, cpus: set[int]) -> bool:
     """Whether ``pid`` may run on every one of ``cpus``. A worker that polls moves off its agent's core by pinning
-    itself away and then allowing every core again (``worker._move_off_core``), two calls that a look from here can
+    itself away and then allowing every core again (``cores.move_off_core``), two calls that a look from here can
     fall between: look until the second has been made (or 2 s have passed)."""
     deadline = time.monotonic() + 2.0
     while os.sched_getaffinity(pid) != cpus and time.monotonic() < deadline:

@@ -423,13 +423,13 @@ def test_a_reply_that_cannot_be_read_raises_once_every_reply_is_in(monkeypatch: 
 
 
 async def test_a_tcp_worker_on_loopback_polls_for_requests_only_as_long_as_its_transport() -> None:
-    """``worker.turn_spin_ns``: a worker keeps polling 200 us for its next request (``TURN_SPIN_NS``), except over
+    """``cores.turn_spin_ns``: a worker keeps polling 200 us for its next request (``TURN_SPIN_NS``), except over
     tcp on loopback, where the woken worker often shares its agent's core and a long poll holds the agent off it;
     there it keeps the transport's 50 us. A real tcp connection on 127.0.0.1; the connection from another host is a
     stand-in (only its address is read: this machine has no second host)."""
     import types
 
-    from uniros_async.runtime import worker
+    from uniros_async.runtime import cores
     from uniros_async.transports.base import TransportOptions, connect, listen
 
     lst = await listen("tcp://127.0.0.1:0", TransportOptions())
@@ -437,16 +437,16 @@ async def test_a_tcp_worker_on_loopback_polls_for_requests_only_as_long_as_its_t
         client = await connect(lst.uri, TransportOptions())
         server = await lst.accept()
         try:
-            assert worker.turn_spin_ns(server) == server.spin_ns == 50_000
+            assert cores.turn_spin_ns(server) == server.spin_ns == 50_000
             elsewhere = types.SimpleNamespace(scheme="tcp", spin_ns=50_000, sockname=("192.0.2.7", 5555))
-            assert worker.turn_spin_ns(elsewhere) == worker.TURN_SPIN_NS == 200_000
+            assert cores.turn_spin_ns(elsewhere) == cores.TURN_SPIN_NS == 200_000
         finally:
             await client.aclose()
             await server.aclose()
     finally:
         await lst.aclose()
     shm_end = types.SimpleNamespace(scheme="shm", spin_ns=50_000)
-    assert worker.turn_spin_ns(shm_end) == worker.TURN_SPIN_NS  # shm sees a shared core by itself (_peer_here)
+    assert cores.turn_spin_ns(shm_end) == cores.TURN_SPIN_NS  # shm sees a shared core by itself (_peer_here)
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ from gymnasium.envs.registration import registry
 
 from uniros_async.bus.codec import encode_plain
 from uniros_async.errors import CodecError, ConfigError
-from uniros_async.runtime.ray_backend import RayPlacement, parse_ray_placement
+from uniros_async.runtime.ray_placement import RayPlacement, parse_ray_placement
 
 __all__ = ["CLUSTER_HOWTO", "PLACEMENT_KWARG", "check_env_args", "check_plain", "registration", "split_placement"]
 

@@ -10,7 +10,7 @@ import numpy as np
 from uniros_async.errors import ConfigError
 from uniros_async.runtime.envargs import PLACEMENT_KWARG, check_env_args
 from uniros_async.runtime.protocol import space_from_plain
-from uniros_async.runtime.ray_backend import apply_backend
+from uniros_async.runtime.ray_placement import apply_backend
 from uniros_async.runtime.supervisor import Supervisor
 
 __all__ = ["ProxyEnv", "make"]
