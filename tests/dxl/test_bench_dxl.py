@@ -34,7 +34,7 @@ def test_real_time_class_is_given_back() -> None:
 @pytest.mark.slow
 def test_bench_dxl_writes_its_rows(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "dxl.json"
-    assert cli_main(["bench", "dxl", "--cycles", "40", "--no-rt", "--json", str(out)]) == 0
+    assert cli_main(["bench", "dxl", "--cycles", "40", "--no-rt", "--allow-idle", "--json", str(out)]) == 0
     records = json.loads(out.read_text())
     rows = [r for r in records if "p50_us" in r]
     assert {(r["impl"], r["servos"]) for r in rows} == {

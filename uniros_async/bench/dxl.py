@@ -326,7 +326,9 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     arm_ids = [servos.primary(j).id for j in servos.arm.joints]
     sets = {len(arm_ids): arm_ids, len(servos.ids): list(servos.ids)}
     records: list[dict[str, Any]] = []
-    awake = cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([])
+    awake: contextlib.AbstractContextManager[list[int]] = (
+        cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([])
+    )
     with (
         awake as pollers,
         _vbus(config.servo_map, config.baud, config.real_time) as path,
