@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from uniros_async.errors import ConfigError
+from uniros_async.priority import real_time_thread
 from uniros_async.training.config import train_config_from_dict
 from uniros_async.training.recipes import train
 
@@ -132,6 +133,10 @@ def test_evaluation_alongside_training_does_not_pause_it(tmp_path: Path) -> None
     # the evaluation envs' action cycles are recorded beside the training envs'
     timing = json.loads((run / "timing.json").read_text())
     assert timing["eval_alongside"] is True
+    # the evaluation thread acted in the real-time class, as the acting thread of training does (where permitted)
+    with real_time_thread() as permitted:
+        pass
+    assert timing["eval_real_time"] is permitted
     for label in ("rx200_sim", "ned2_real"):
         assert timing["eval_envs"][label]["action_cycle"]["count"] >= 1
         assert timing["envs"][label]["action_cycle"]["count"] >= 1

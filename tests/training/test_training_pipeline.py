@@ -8,6 +8,7 @@ import csv
 import dataclasses
 import importlib.util
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +74,9 @@ def test_a_run_writes_curves_tensorboard_and_checkpoints(dense_run: tuple[Path, 
     assert any((run / "tb").rglob("events.out.tfevents.*"))
     # zero-shot on the emulated real arm (accelerated), the entry point of `uniros eval`
     r = evaluate_checkpoint(run, RX, {"clock": "sim", "robot": "emulated-real"}, episodes=1, seed=3)
-    assert r.episodes == 1 and r.success_rate in (0.0, 1.0) and 1 <= r.mean_length <= 100
+    assert r.episodes == 1 and 1 <= r.mean_length <= 100 and math.isfinite(r.mean_return)
+    # the episode either reached the goal, which ends it before the 100-step limit, or ran into that limit
+    assert (r.successes == 1) == (r.mean_length < 100), r.summary()
 
 
 def test_the_replay_buffer_comes_back_compact(dense_run: tuple[Path, TrainResult]) -> None:
@@ -186,3 +189,26 @@ def test_training_stops_once_every_env_reaches_eval_stop_success(tmp_path: Path)
     assert read_meta(latest_checkpoint(run)).step == result.steps  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"eval.stop_success"):
         _cfg(tmp_path / "bad", eval={"stop_success": 1.5})
+
+
+def test_training_runs_with_the_set_up_heap_frozen(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Once set up, ``train`` freezes the agent process's heap (``priority.freeze_heap``, as the workers do after
+    theirs): while it learns, the set-up's objects (modules, envs, model) are out of the collector's reach. After the
+    run the heap is unfrozen again."""
+    import gc
+
+    from stable_baselines3 import TD3
+
+    frozen_at_learn: list[int] = []
+    real_learn = TD3.learn
+
+    def spy(self: Any, *a: Any, **k: Any) -> Any:
+        frozen_at_learn.append(gc.get_freeze_count())
+        return real_learn(self, *a, **k)
+
+    monkeypatch.setattr(TD3, "learn", spy)
+    gc.unfreeze()  # whatever an earlier test in this process froze: train unfreezes only what it froze itself
+    result = train(_cfg(tmp_path / "frozen", total_steps=60, eval={"every_steps": 0}, checkpoint={"every_steps": 0}))
+    assert result.steps == 60
+    assert len(frozen_at_learn) == 1 and frozen_at_learn[0] > 1000, frozen_at_learn  # the set-up's objects
+    assert gc.get_freeze_count() == 0

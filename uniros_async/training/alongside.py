@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from uniros_async.errors import UnirosError
+from uniros_async.priority import real_time_thread
 from uniros_async.training.evaluate import EvalResult, evaluate_vec_policy, frozen_obs_stats
 
 if TYPE_CHECKING:
@@ -52,11 +53,19 @@ class Alongside:
     """The periodic evaluation of ``eval.alongside``: a second ConcurrentVecEnv of the training envs, stepped by a
     thread of its own (one evaluation at a time) while training goes on. ``request`` starts an evaluation with a
     copy of the policy (or, while one runs, marks the next as due), ``take`` hands over a finished one's results,
-    ``close`` stops a running one (within one action cycle) and closes the envs."""
+    ``close`` stops a running one (within one action cycle) and closes the envs.
 
-    def __init__(self, venv: ConcurrentVecEnv, env_ids: list[str]) -> None:
+    With ``real_time`` (envs on the wall clock, as the acting thread of training has it) the thread that steps the
+    evaluation envs runs in the real-time class for the evaluation (``priority.real_time_thread``, at the acting
+    thread's priority, above every env loop): without it a learner, torch or the training thread delays the
+    evaluation's actions by scheduler slices, and its arms' action cycles spread. ``real_time_class`` says whether
+    the last evaluation's thread had the class (it may not be permitted)."""
+
+    def __init__(self, venv: ConcurrentVecEnv, env_ids: list[str], *, real_time: bool = False) -> None:
         self.venv = venv
         self.env_ids = env_ids
+        self.real_time = real_time
+        self.real_time_class = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._outcome: tuple[int, float, list[EvalResult] | BaseException] | None = None
@@ -85,10 +94,13 @@ class Alongside:
         self._thread.start()
 
     def evaluate(self, policy: Any, episodes: int, seed: int, stop: threading.Event | None = None) -> list[EvalResult]:
-        """One evaluation of ``policy`` on the envs (in the calling thread), their action-cycle timing kept."""
-        results = evaluate_vec_policy(
-            policy, self.venv, episodes, self.venv.labels, seed=seed, env_ids=self.env_ids, stop=stop
-        )
+        """One evaluation of ``policy`` on the envs (in the calling thread, in the real-time class with
+        ``real_time``), their action-cycle timing kept."""
+        with real_time_thread() if self.real_time else contextlib.nullcontext(False) as rt:
+            self.real_time_class = rt
+            results = evaluate_vec_policy(
+                policy, self.venv, episodes, self.venv.labels, seed=seed, env_ids=self.env_ids, stop=stop
+            )
         self.venv.timing_window()  # the evaluation's action cycles, kept in venv.samples for timing.json
         return results
 

@@ -33,6 +33,7 @@ __all__ = [
     "build_train_env",
     "close_all",
     "model_kwargs",
+    "real_time_actor",
     "use_her",
     "vec_env",
 ]
@@ -217,13 +218,20 @@ def model_kwargs(cfg: TrainConfig, layout: EnvLayout, run_dir: Path) -> dict[str
     if cfg.learner == "async":
         kw["updates_per_step"] = cfg.async_learner.updates_per_step
         kw["sync_every"] = cfg.async_learner.sync_every
-        rt_actor = cfg.async_learner.real_time_actor
-        if rt_actor is None:  # real-time envs get a real-time acting thread; accelerated ones compute flat out
-            rt_actor = any(EnvConfig.split({**cfg.env_defaults, **e.kwargs})[0].clock == "wall" for e in cfg.envs)
-        kw["real_time_actor"] = rt_actor
+        kw["real_time_actor"] = real_time_actor(cfg)
         kw["action_l2"] = cfg.async_learner.action_l2
         kw["torch_threads"] = cfg.torch_threads
     return kw
+
+
+def real_time_actor(cfg: TrainConfig) -> bool:
+    """Whether the threads that act on the envs (AsyncTD3's acting thread, the evaluation alongside) run in the
+    real-time class: ``async_learner.real_time_actor`` if set, else whether any training env runs on the wall
+    clock (accelerated envs compute flat out and must not starve other processes)."""
+    rt_actor = cfg.async_learner.real_time_actor
+    if rt_actor is None:
+        rt_actor = any(EnvConfig.split({**cfg.env_defaults, **e.kwargs})[0].clock == "wall" for e in cfg.envs)
+    return bool(rt_actor)
 
 
 GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")

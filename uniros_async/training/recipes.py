@@ -37,6 +37,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import gc
 import json
 import logging
 import signal
@@ -52,6 +53,7 @@ import numpy as np
 import yaml
 
 from uniros_async.errors import ConfigError, TrainingInterrupted
+from uniros_async.priority import freeze_heap
 from uniros_async.training.alongside import Alongside
 from uniros_async.training.build import (
     EnvLayout,
@@ -61,6 +63,7 @@ from uniros_async.training.build import (
     build_model,
     build_train_env,
     close_all,
+    real_time_actor,
     vec_env,
 )
 from uniros_async.training.checkpoint import (
@@ -259,6 +262,21 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old)
 
 
+@contextlib.contextmanager
+def _frozen_heap() -> Iterator[None]:
+    """Set-up done (envs, model, logs): collect, then move everything the agent process holds out of the cyclic
+    collector's reach (``priority.freeze_heap``, as worker processes do after theirs), so that a full collection
+    while training walks only what training made, not the modules, envs and model, and the acting thread that
+    triggers it waits less. Unfrozen after, unless something had frozen the heap before."""
+    before = gc.get_freeze_count()
+    freeze_heap()
+    try:
+        yield
+    finally:
+        if before == 0:
+            gc.unfreeze()
+
+
 def _set_torch_threads(n: int) -> None:
     import torch
 
@@ -308,7 +326,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
             eval_envs = build_eval_envs(cfg, layout)
         elif cfg.eval.alongside:
             eval_venv, _ = build_concurrent_env(cfg)
-            alongside = Alongside(eval_venv, [i for _, i, _ in cfg.env_specs()])
+            alongside = Alongside(eval_venv, [i for _, i, _ in cfg.env_specs()], real_time=real_time_actor(cfg))
         if ckpt is not None:
             meta = read_meta(ckpt)
             check_sizes(meta, layout.obs_size, layout.action_size, layout.goal_env, f"the envs of {cfg.name}")
@@ -356,7 +374,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
         run.checkpoint = ckpt
         callback = _make_callback(run, progress)
         remaining = cfg.total_steps - start
-        with _sigterm_as_interrupt():
+        with _sigterm_as_interrupt(), _frozen_heap():
             try:
                 if remaining > 0:
                     model.learn(

@@ -194,6 +194,8 @@ class Run:
             "env_steps_per_training_hour": round(step / train_s * 3600, 1) if train_s > 0 else None,
             "learner": self.cfg.learner,
             "eval_alongside": self.alongside is not None,
+            # whether the last evaluation alongside ran its thread in the real-time class (Alongside.real_time)
+            "eval_real_time": self.alongside is not None and self.alongside.real_time_class,
             "envs": {
                 label: {"step_overruns": self.concurrent.step_overruns[label], **metrics}
                 for label, metrics in timing_summaries(self.concurrent).items()
