@@ -401,7 +401,7 @@ def _run_learner(
         def _on_step(self) -> bool:
             return time.monotonic() < self.end
 
-    before = vec.call("timing_snapshot")  # not clear=True: see looptiming.since
+    before = vec.call("timing_snapshot")  # not clear=True: see stats.since
     with progress.phase(cfg.phase_s):
         # + 30 s: learn()'s own start (its reset) must not cut the phase short; the step count ends it. The
         # asynchronous learner joins its update thread before learn() returns or raises.
