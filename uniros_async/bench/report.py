@@ -291,6 +291,8 @@ def _block(spec: str, results: Path) -> str:
         rows += [{**r, "_record": stem} for r in rec.rows if all(str(r.get(k)) == v for k, v in wanted.items())]
     if not rows:
         raise ConfigError(f"table fence {spec!r}: no row of {', '.join(files)} matches {wanted}")
+    if len(lines) > 1:  # one record per list item
+        lines = [f"- {line}" for line in lines]
     return "\n".join([*lines, "", *KINDS[kind](rows)]) + "\n"
 
 
