@@ -163,7 +163,7 @@ def test_the_e_manual_examples_encode_as_printed() -> None:
 
 
 @given(st.binary(max_size=300))
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=200, deadline=None)
 def test_crc_matches_dynamixel_sdk(data: bytes) -> None:
     assert p.crc16(data) == sdk.Protocol2PacketHandler().updateCRC(0, list(data), len(data))
     # continued CRCs compose
@@ -189,7 +189,7 @@ def _chunks(data: bytes, rng: random.Random) -> Iterator[bytes]:
 
 
 @given(_ids | st.just(p.BROADCAST_ID), st.sampled_from(list(Instruction)), _params, st.integers(0, 2**32 - 1))
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=200, deadline=None)
 def test_instruction_round_trip_in_any_chunks(servo_id: int, inst: Instruction, params: bytes, seed: int) -> None:
     if inst == Instruction.STATUS:
         return  # a status packet has an error byte; the next test covers it
@@ -202,7 +202,7 @@ def test_instruction_round_trip_in_any_chunks(servo_id: int, inst: Instruction, 
 
 
 @given(_ids, st.integers(0, 255), _params, st.binary(max_size=30), st.integers(0, 2**32 - 1))
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=200, deadline=None)
 def test_status_round_trip_after_noise(servo_id: int, error: int, params: bytes, noise: bytes, seed: int) -> None:
     # noise that cannot itself hold a header, then two packets back to back
     noise = noise.replace(b"\xff", b"\x00")
@@ -218,7 +218,7 @@ def test_status_round_trip_after_noise(servo_id: int, error: int, params: bytes,
 
 
 @given(st.binary(max_size=300))
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=200, deadline=None)
 def test_unstuff_inverts_stuff_and_agrees_with_dynamixel_sdk(body: bytes) -> None:
     stuffed = p.stuff(body)
     assert p.unstuff(stuffed) == body

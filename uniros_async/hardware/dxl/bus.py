@@ -362,7 +362,7 @@ class DxlBus:
         return {i: got[i].params for i in ids}
 
     async def fast_sync_read(self, address: int, length: int, ids: Sequence[int]) -> dict[int, bytes]:
-        """Like ``sync_read``, answered by one packet from all the servos (firmware 45 and later)."""
+        """Like ``sync_read``, answered by one packet carrying every servo's slot (``parse_fast_sync_read``)."""
         params = sync_read_params(address, length, ids)
         packet = encode_instruction(BROADCAST_ID, Instruction.FAST_SYNC_READ, params)
         n_body = len(ids) * (length + 4) - 3  # params after the first slot's error byte, before the last CRC

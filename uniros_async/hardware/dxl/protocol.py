@@ -129,8 +129,8 @@ def crc16(data: bytes | bytearray | memoryview, crc: int = 0) -> int:
 def stuff(body: bytes) -> bytes:
     """Insert an ``FD`` after every ``FF FF FD`` of ``body`` (the instruction and parameter fields).
 
-    The pattern is matched with the three bytes before ``body`` taken as the header's tail (``FF FD 00`` ends
-    with a 0, so no match straddles it).
+    Only patterns inside ``body`` count, as in dynamixel-sdk's ``addStuffing`` for any real packet (one reaching
+    back into the length field would need a length of 0xFFxx).
     """
     if b"\xff\xff\xfd" not in body:
         return body
