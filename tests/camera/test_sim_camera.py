@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import os
 
 import numpy as np
 import pytest
@@ -130,3 +131,29 @@ def test_no_egl_names_the_debian_packages(monkeypatch: pytest.MonkeyPatch) -> No
         _try_backend("egl")
     with pytest.raises(RenderError, match="libosmesa6"):
         _try_backend("osmesa")
+
+
+@pytest.mark.slow
+async def test_cameras_rendered_in_a_child_process_and_the_child_ends_with_the_node() -> None:
+    from _processes import wait_gone
+
+    cams = [SimCameraConfig(camera="scene", width=64, height=48), SimCameraConfig(camera="wrist", rate_hz=10)]
+    async with (
+        open_domain() as domain,
+        open_servo_sim("rx200", domain=domain),
+        open_node("viewer", domain=domain) as viewer,
+    ):
+        async with open_sim_cameras("rx200", domain=domain, cameras=cams, render="process") as node:
+            assert node.render_mode == "process"
+            pid = node._process.pid
+            assert pid is not None and pid != os.getpid()
+            scene = await viewer.create_subscription(Image, node.topic(0))
+            wrist = await viewer.create_subscription(Image, node.topic(1))
+            async with asyncio.timeout(30):
+                a = await scene.receive()
+                b = await scene.receive()
+                w = await wrist.receive()
+            assert a.data.shape == (48, 64, 3) and w.data.shape == (84, 84, 3) and a.data.std() > 10
+            assert b.header.seq > a.header.seq and not np.shares_memory(a.data, b.data)  # each frame its own array
+            assert node.stats[0].render_ns
+        assert wait_gone([pid], 10.0) == []  # no orphan: the render process ended with the node

@@ -12,10 +12,12 @@ as the sim node gets them), so a target on the table is in the picture.
 
 Where the rendering runs:
 
-- on a wall clock, in one thread of its own per node, which owns the GL context: a node timer at each camera's
-  rate takes the newest joint state and hands the frame to the thread, which renders it and hands the image back
-  to the loop to publish. The loop thread (the servo and env loops) never renders; a frame the thread has not
-  finished by the camera's next tick is skipped (``CameraStats.skipped``), never queued;
+- on a wall clock, off the loop: a node timer at each camera's rate takes the newest joint state and hands the
+  frame to the renderer, which hands the image back to the loop to publish; a frame not finished by the camera's
+  next tick is skipped (``CameraStats.skipped``), never queued. The renderer is a thread of the node's process
+  (``render="thread"``) or a child process (``render="process"``, camera/render_process.py). Mesa's software
+  rasteriser holds the GIL of the process that reads the pixels while it draws, so loops that share the process
+  wait for it in thread mode; in process mode they never do, which is what an env uses;
 - on a SimClock, in the timer's callback on the loop: time stands still while the frame renders, so the frame
   shows the arm at its stamp exactly, and the sim's loops keep their sim-time schedule to the nanosecond.
 
@@ -54,6 +56,8 @@ logger = logging.getLogger(__name__)
 
 CAMERA_TOPIC_NAMES = {"scene": "camera", "wrist": "wrist_camera"}
 """The topic name (a RealSense/UVC driver's camera name) of each MJCF camera every arm has."""
+RENDER_MODES = ("thread", "process")
+"""Where a node on a wall clock renders: a thread of its own, or a child process (camera/render_process.py)."""
 THREAD_JOIN_TIMEOUT_S = 5.0
 """Bound on waiting for the render thread to finish its frame and end when the node closes."""
 
@@ -173,6 +177,18 @@ class SimRenderer:
         Raises:
             RenderError: no GL backend works here (the message names the Debian packages to install).
         """
+        w, h = self.sizes[index]
+        out = np.empty((h, w, 3), dtype=np.uint8)
+        self.render_into(index, markers, out)
+        return out
+
+    def render_into(self, index: int, markers: Sequence[Marker], out: np.ndarray) -> None:
+        """``render``, written into ``out`` (height, width, 3) uint8: the one copy out of GL's buffer, flipped from
+        GL's bottom-up rows.
+
+        Raises:
+            RenderError: no GL backend works here (the message names the Debian packages to install).
+        """
         import mujoco
 
         if self._ctx is None:
@@ -190,7 +206,7 @@ class SimRenderer:
         mujoco.mjr_render(viewport, scene, self._mjr)
         buf = self._bufs[index]
         mujoco.mjr_readPixels(buf, None, viewport, self._mjr)
-        return np.flipud(buf).copy()  # GL's rows run bottom up: the one copy, into the frame published
+        np.copyto(out, np.flipud(buf))  # GL's rows run bottom up
 
     def close(self) -> None:
         """Free the GL context (from the thread that rendered); idempotent."""
@@ -233,9 +249,13 @@ class SimCameraNode:
         stats: one CameraStats per camera.
     """
 
-    def __init__(self, node: Any, robot: RobotSpec, cameras: Sequence[SimCameraConfig], namespace: str) -> None:
+    def __init__(
+        self, node: Any, robot: RobotSpec, cameras: Sequence[SimCameraConfig], namespace: str, render: str = "thread"
+    ) -> None:
         if not cameras:
             raise ConfigError("sim cameras: expected at least one camera")
+        if render not in RENDER_MODES:
+            raise ConfigError(f"sim cameras: render expected one of {RENDER_MODES}, got {render!r}")
         self.node = node
         self.robot = robot
         self.namespace = namespace
@@ -246,6 +266,9 @@ class SimCameraNode:
         self._markers: dict[tuple[str, int], Marker] = {}
         self._busy = [False] * len(cameras)
         self._inline = isinstance(node.clock, SimClock)
+        self.render_mode = "loop" if self._inline else render
+        self._process: Any = None  # a RenderProcess with render="process"
+        self._stamps = [0] * len(cameras)
         self._requests: queue.SimpleQueue[tuple[int, JointState, tuple[Marker, ...], int] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self._failed: asyncio.Future[None] | None = None
@@ -261,7 +284,8 @@ class SimCameraNode:
     async def _start(self, tg: asyncio.TaskGroup) -> None:
         from uniros_async.sim.render import gl_backend
 
-        gl_backend()  # RenderError now, naming the packages to install, rather than in the render thread
+        if self.render_mode != "process":
+            gl_backend()  # RenderError now, naming the packages to install, rather than in the render thread
         node = self.node
         self._loop = asyncio.get_running_loop()
         self._failed = self._loop.create_future()
@@ -271,9 +295,15 @@ class SimCameraNode:
             spec = FrameSpec(width=cfg.width, height=cfg.height)
             topic = camera_topic(cfg.topic_name, self.namespace)
             self.publishers.append(await ImagePublisher.create(node, topic, spec, frame_id=cfg.topic_name))
-        if not self._inline:
+        if self.render_mode == "thread":
             self._thread = threading.Thread(target=self._render_thread, name=f"{self.robot.name} cameras", daemon=True)
             self._thread.start()
+        elif self.render_mode == "process":
+            from uniros_async.camera.render_process import RenderProcess
+
+            self._process = RenderProcess(self.robot, self.cameras, self._on_process_frame)
+            await self._process.start()
+            self._failed = self._process.failed
         self._watch_task = tg.create_task(self._watch(), name="camera render thread watch")
         for i, cfg in enumerate(self.cameras):
             period_ns = round(1e9 / cfg.rate_hz)
@@ -314,7 +344,15 @@ class SimCameraNode:
             self.stats[index].skipped += 1
             return
         self._busy[index] = True
+        if self._process is not None:
+            self._stamps[index] = stamp
+            self._process.request(index, js.name, js.position, markers)
+            return
         self._requests.put((index, js, markers, stamp))
+
+    def _on_process_frame(self, index: int, frame: np.ndarray, render_ns: int) -> None:
+        self.stats[index].render_ns.append(render_ns)
+        self._publish(index, frame, self._stamps[index])
 
     def render_now(self, index: int) -> None:
         """Render camera ``index`` now, on the loop, and publish it (a node that renders in sim time; on a wall
@@ -349,6 +387,9 @@ class SimCameraNode:
             self.renderer.close()
 
     async def _shutdown(self) -> None:
+        self.stop()
+        if self._process is not None:
+            await self._process.aclose()
         thread = self._thread
         if thread is not None:
             self._requests.put(None)
@@ -377,6 +418,7 @@ async def open_sim_cameras(
     node_name: str = "sim_cameras",
     transport: str = "auto",
     options: TransportOptions | None = None,
+    render: str = "thread",
 ) -> AsyncIterator[SimCameraNode]:
     """Run the sim cameras of ``robot`` as a bus node for the duration of the block.
 
@@ -389,9 +431,12 @@ async def open_sim_cameras(
         node_name: the node's name in the namespace.
         transport: the node's transport choice (``auto``, ``memory``, ``shm``, ``tcp``).
         options: transport options.
+        render: on a wall clock, render in a ``"thread"`` of this process or in a child ``"process"``
+            (camera/render_process.py: the GIL this process's loops need is never held by a render); on a SimClock
+            frames render on the loop, in sim time, either way.
 
     Yields:
-        The running SimCameraNode; leaving the block stops its timers and render thread.
+        The running SimCameraNode; leaving the block stops its timers and its render thread or process.
 
     Raises:
         ConfigError: an unknown robot or camera, a bad size or rate.
@@ -403,7 +448,7 @@ async def open_sim_cameras(
     async with open_node(
         node_name, domain=domain, namespace=ns, clock=clock, transport=transport, options=options
     ) as node:
-        cam_node = SimCameraNode(node, spec, cams, ns)
+        cam_node = SimCameraNode(node, spec, cams, ns, render)
         try:
             async with unwrap_task_group() as tg:
                 await cam_node._start(tg)

@@ -7,9 +7,11 @@ With pixels the observation is a Dict: ``pixels``, the newest frame of the env's
 ``reset`` waits for a fresh frame and raises RobotError naming the topic when none comes.
 
 The frames come from the camera topic ``/<arm>/<camera>/color/image_raw``. On a sim placement (``robot="sim"``,
-``"sim-process"``, ``"emulated-real"``) the env runs the arm's sim cameras itself (camera/sim.py), in its own
-process, at ``image_size``: the frame in the observation is the renderer's array itself, never copied. A frame of
-another size (a real camera's) is resized by nearest neighbour.
+``"sim-process"``, ``"emulated-real"``) the env runs the arm's sim cameras itself (camera/sim.py) at ``image_size``:
+on a sim clock on its own loop, in sim time; on a wall clock in a render process of its own
+(camera/render_process.py), so that no render holds the GIL the env loop needs. The frame in the observation is the
+published array itself, never copied again. A frame of another size (a real camera's) is resized by nearest
+neighbour.
 """
 
 from __future__ import annotations
@@ -103,8 +105,14 @@ class PixelSource:
                 camera=MJCF_CAMERAS.get(name, name), name=name, width=w, height=h, rate_hz=rate_hz, phase_s=phase_s
             )
             self.cameras = await stack.enter_async_context(
-                open_sim_cameras(
-                    self.robot, domain=domain, cameras=[cam], clock=clock, transport=transport, options=options
+                open_sim_cameras(  # on a wall clock in a process of its own: a render never holds this loop's GIL
+                    self.robot,
+                    domain=domain,
+                    cameras=[cam],
+                    clock=clock,
+                    transport=transport,
+                    options=options,
+                    render="process",
                 )
             )
         self._sub = await node.create_subscription(Image, self.topic, qos=latest())

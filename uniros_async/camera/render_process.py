@@ -1,0 +1,205 @@
+"""A render process: an arm's sim cameras rendered in a child process, the frames handed back in shared memory.
+
+Rendering with Mesa's software rasteriser holds the GIL of the process that asks for the pixels while the frame is
+drawn (``mjr_readPixels`` waits for the rasteriser's threads), milliseconds per frame: an env loop in that process
+would wait for it. ``RenderProcess`` keeps the GL context in a child process of its own instead (spawned, daemonic,
+ending when its pipe closes), so the loop's process pays only a message and one copy per frame:
+
+- the parent creates one sealed memfd per camera, of one frame's size, and hands the fds to the child over the
+  pipe (SCM_RIGHTS); memfds have no name, so nothing is left in ``/dev/shm`` whoever dies;
+- per frame the parent sends ``(index, joint names, positions, markers)``; the child poses its model, renders and
+  writes the frame into the camera's memfd (the one copy out of GL, flipped to top-down rows), and answers
+  ``(index, render_ns)``; the parent copies the frame out into the array it publishes (a camera has one request in
+  flight at a time, so the memfd is not written while it is read).
+
+The parent reads answers with ``loop.add_reader`` on the pipe: nothing blocks the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import mmap
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from multiprocessing import reduction
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from uniros_async.bus.messages import Marker
+from uniros_async.robots import RobotSpec
+
+__all__ = ["RenderProcess"]
+
+logger = logging.getLogger(__name__)
+
+START_TIMEOUT_S = 30.0
+"""Bound on the child's start (a spawned interpreter importing MuJoCo, then a GL context)."""
+STOP_TIMEOUT_S = 5.0
+
+
+def _child_main(robot: RobotSpec, cameras: Sequence[Any], conn: Connection) -> None:
+    """The child: attach the memfds, open the renderer, render on request until the pipe closes."""
+    # Mesa's llvmpipe rasterises in a pool of one thread per core by default: on a machine whose cores the loops
+    # need, one rendering thread (this one) costs the least switching; a user's own setting is kept
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+    from uniros_async.camera.sim import SimRenderer
+
+    views = []
+    try:
+        renderer = SimRenderer(robot, cameras)
+        for cfg in cameras:
+            fd = reduction.recv_handle(conn)
+            buf = mmap.mmap(fd, cfg.height * cfg.width * 3)
+            os.close(fd)
+            views.append(np.ndarray((cfg.height, cfg.width, 3), np.uint8, buffer=buf))
+        renderer.render(0)  # the GL context, now: a failure is reported before the first frame is asked for
+        conn.send(("ready", None))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        with contextlib.suppress(OSError):
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    try:
+        while True:
+            try:
+                req = conn.recv()
+            except EOFError:  # the parent is gone
+                return
+            if req is None:
+                return
+            index, names, position, markers = req
+            t0 = _now_ns()
+            renderer.pose(names, position)
+            renderer.render_into(index, markers, views[index])
+            conn.send((index, _now_ns() - t0))
+    finally:
+        renderer.close()
+
+
+def _now_ns() -> int:
+    import time
+
+    return time.perf_counter_ns()
+
+
+class RenderProcess:
+    """The cameras of one arm rendered in a child process (see the module docstring).
+
+    Args:
+        robot: the arm.
+        cameras: the cameras (``SimCameraConfig``).
+        on_frame: called on the loop with ``(index, frame, render_ns)`` for every frame, ``frame`` a new array.
+    """
+
+    def __init__(
+        self, robot: RobotSpec, cameras: Sequence[Any], on_frame: Callable[[int, np.ndarray, int], None]
+    ) -> None:
+        self.robot = robot
+        self.cameras = tuple(cameras)
+        self.on_frame = on_frame
+        self._fds: list[int] = []
+        self._views: list[np.ndarray] = []
+        self._maps: list[mmap.mmap] = []
+        self._conn: Connection | None = None
+        self._proc: multiprocessing.process.BaseProcess | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.failed: asyncio.Future[None] | None = None
+
+    @property
+    def pid(self) -> int | None:
+        """The child's pid (None before start)."""
+        return None if self._proc is None else self._proc.pid
+
+    async def start(self) -> None:
+        """Start the child and wait until it renders.
+
+        Raises:
+            RenderError: the child could not render (its message says why, with the packages to install).
+            TimeoutError: it did not answer within ``START_TIMEOUT_S``.
+        """
+        from uniros_async.sim.render import RenderError
+
+        self._loop = asyncio.get_running_loop()
+        self.failed = self._loop.create_future()
+        for cfg in self.cameras:
+            size = cfg.height * cfg.width * 3
+            fd = os.memfd_create("uniros-camera", os.MFD_CLOEXEC)
+            self._fds.append(fd)
+            os.ftruncate(fd, size)
+            m = mmap.mmap(fd, size)
+            self._maps.append(m)
+            self._views.append(np.ndarray((cfg.height, cfg.width, 3), np.uint8, buffer=m))
+        ctx = multiprocessing.get_context("spawn")
+        parent, child = ctx.Pipe(duplex=True)
+        self._conn = parent
+        # daemon=True: a parent that dies takes the child with it (and the child ends when its pipe closes)
+        self._proc = ctx.Process(
+            target=_child_main, args=(self.robot, self.cameras, child), name="camera render", daemon=True
+        )
+        self._proc.start()
+        child.close()
+        for fd in self._fds:
+            reduction.send_handle(parent, fd, self._proc.pid)
+        try:
+            async with asyncio.timeout(START_TIMEOUT_S):
+                while not parent.poll():
+                    if not self._proc.is_alive():
+                        raise RenderError(f"the camera render process exited with code {self._proc.exitcode}")
+                    await asyncio.sleep(0.01)
+        except TimeoutError:
+            raise TimeoutError(f"the camera render process did not start within {START_TIMEOUT_S} s") from None
+        kind, detail = parent.recv()
+        if kind != "ready":
+            raise RenderError(f"the camera render process cannot render: {detail}")
+        self._loop.add_reader(parent.fileno(), self._on_readable)
+
+    def request(self, index: int, names: Sequence[str], position: np.ndarray, markers: Sequence[Marker]) -> None:
+        """Ask for camera ``index``'s frame of the arm at ``position`` (one request per camera in flight; none once
+        closed)."""
+        if self._conn is None:
+            return
+        self._conn.send((index, tuple(names), position, tuple(markers)))
+
+    def _on_readable(self) -> None:
+        conn = self._conn
+        assert conn is not None
+        try:
+            while conn.poll():
+                index, render_ns = conn.recv()
+                self.on_frame(index, self._views[index].copy(), render_ns)
+        except (EOFError, OSError) as exc:
+            assert self._loop is not None
+            self._loop.remove_reader(conn.fileno())
+            if self.failed is not None and not self.failed.done():
+                code = None if self._proc is None else self._proc.exitcode
+                self.failed.set_exception(RuntimeError(f"the camera render process ended (exit code {code}): {exc}"))
+
+    async def aclose(self) -> None:
+        """Stop the child (asked, then after ``STOP_TIMEOUT_S`` terminated) and free the memfds; idempotent."""
+        conn, proc = self._conn, self._proc
+        self._conn = self._proc = None
+        if conn is not None:
+            if self._loop is not None:
+                with contextlib.suppress(ValueError, OSError):
+                    self._loop.remove_reader(conn.fileno())
+            with contextlib.suppress(OSError):
+                conn.send(None)
+        if proc is not None:
+            await asyncio.to_thread(proc.join, STOP_TIMEOUT_S)
+            if proc.is_alive():
+                proc.terminate()
+                await asyncio.to_thread(proc.join, STOP_TIMEOUT_S)
+        if conn is not None:
+            conn.close()
+        self._views.clear()
+        for m in self._maps:
+            with contextlib.suppress(BufferError):
+                m.close()
+        self._maps.clear()
+        for fd in self._fds:
+            os.close(fd)
+        self._fds.clear()
