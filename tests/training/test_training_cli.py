@@ -14,9 +14,11 @@ import pytest
 pytestmark = pytest.mark.slow
 
 SMOKE = Path(__file__).resolve().parents[2] / "configs" / "smoke.yaml"
+# deadlines, not expected times: a few hundred steps take seconds, but a suite on 2 cores can slow them severalfold
+LOADED_S = 300.0
 
 
-def uniros(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess[str]:
+def uniros(*args: str, timeout_s: float = LOADED_S) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "uniros_async.cli", *args], capture_output=True, text=True, timeout=timeout_s
     )
@@ -42,13 +44,13 @@ def test_train_sigterm_resume_eval_plot(tmp_path: Path, capsys: pytest.CaptureFi
         text=True,
     )
     try:
-        deadline = time.monotonic() + 90
+        deadline = time.monotonic() + LOADED_S
         while not (run / "checkpoints" / "latest").exists():
             assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no checkpoint within 90 s"
+            assert time.monotonic() < deadline, f"no checkpoint within {LOADED_S:.0f} s"
             time.sleep(0.2)
         proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
+        out, err = proc.communicate(timeout=LOADED_S)
     finally:
         if proc.poll() is None:
             proc.kill()

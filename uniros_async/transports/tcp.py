@@ -50,12 +50,7 @@ import time
 from collections.abc import Sequence
 from typing import cast
 
-from uniros_async.errors import (
-    AuthenticationError,
-    FrameTooLargeError,
-    TransportBrokenError,
-    TransportClosedError,
-)
+from uniros_async.errors import AuthenticationError, FrameTooLargeError, TransportBrokenError, TransportClosedError
 from uniros_async.transports._tcp_connect import open_connection
 from uniros_async.transports._tcp_handshake import (
     FLAG_AUTH,
@@ -425,8 +420,6 @@ class TcpTransport(TcpReceiving, Transport):
     def resume_writing(self) -> None:
         self._write_paused = False
         self._wake_drain_waiters()
-
-    # ------------------------------------------------------------------------------------------ receiving
 
     def _retryable_drop(self) -> bool:
         """Whether a hang-up during the handshake may be a full listener (worth a retry). Under TLS a listener
