@@ -290,3 +290,30 @@ async def test_against_the_virtual_bus() -> None:
             assert vb.send("silent 6").startswith("ok")
             with pytest.raises(DxlTimeoutError, match=r"\[6\]"):
                 await bus.read(6, 132, 4)
+
+
+async def test_a_port_that_takes_no_bytes_is_a_port_error_and_the_loop_runs_on() -> None:
+    # a pty whose other end never reads: its buffer fills, the write waits in the loop (add_writer), then fails
+    master, slave = pty.openpty()
+    tty.setraw(master)
+    try:
+        async with await open_dxl_bus(os.ttyname(slave), 1_000_000, margin_s=0.01) as bus:
+            writes = [(i, 116, bytes(600)) for i in range(1, 100)]  # 60 kB a packet
+            ticks = 0
+
+            async def ticker() -> None:
+                nonlocal ticks
+                while True:
+                    await asyncio.sleep(0.001)
+                    ticks += 1
+
+            async with asyncio.TaskGroup() as tg:
+                task = tg.create_task(ticker())
+                with pytest.raises(DxlPortError, match="stalled"):
+                    for _ in range(10):  # the pty's buffers hold some; one of these fills them
+                        await bus.bulk_write(writes)
+                task.cancel()
+            assert ticks >= 5
+    finally:
+        os.close(slave)
+        os.close(master)

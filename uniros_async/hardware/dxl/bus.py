@@ -245,6 +245,11 @@ class DxlBus:
                 try:
                     async with asyncio.timeout(self.timeout_s(len(view), 0, 0) + 0.1):
                         await ready
+                except TimeoutError:
+                    raise DxlPortError(
+                        f"writing to the Dynamixel port {self.path} stalled: {len(view)} of {len(data)} bytes not "
+                        "taken by the port in time"
+                    ) from None
                 finally:
                     self._loop.remove_writer(self._fd)
 
