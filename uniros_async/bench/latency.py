@@ -37,8 +37,8 @@ and a load table follows the main one (``LOADS``):
   (``gc.collect()``), again and again.
 
 The load table gives per env the actuator cycle's median, p99 and max and the action cycle's median and IQR, and
-checks the actuator goal under load with the real-time class (``loads.LOAD_P99_GOAL_MS``, ``loads.LOAD_MAX_GOAL_MS`` above
-the period).
+checks the actuator goal under load with the real-time class (``loads.LOAD_P99_GOAL_MS``,
+``loads.LOAD_MAX_GOAL_MS`` above the period).
 
 Idle cores are kept awake during a run (``priority.cores_kept_awake``: one SCHED_IDLE busy-poll process per core,
 which any other thread preempts), as cyclictest keeps cores out of idle states: on a virtual machine a halted core

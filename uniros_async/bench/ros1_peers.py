@@ -1,4 +1,5 @@
-"""Real ROS 1 parts for the ROS benches and the tests: a rosmaster and rospy scripts run as subprocesses by the system Python.
+"""Real ROS 1 parts for the ROS benches and the tests: a rosmaster and rospy scripts run as subprocesses by the
+system Python.
 
 ROS 1 (Noetic, or Debian's own packages) lives in the system interpreter, not in ours: ``ros1_python()`` names it
 (``$UNIROS_ROS1_PYTHON``, default ``/usr/bin/python3``) and ``rosmaster_bin()`` the master (``$UNIROS_ROSMASTER``,
