@@ -10,10 +10,10 @@ timing of its baud rate and each servo's return delay. Rows, for the arm's 5 pri
 
 The two take turns in blocks, so drift of the host's speed falls on both. Each row reports the p50 and p99 of
 the cycle, the process CPU per cycle, and the wire floor: the bytes of the instruction and status packets at
-10 bits a byte and the baud rate, plus each status's return delay. Then the event loop's lag while our client
-runs the same ticks (a 1 ms ticker beside it), and the codec alone: building both instruction packets and
-parsing the status packets of one tick from memory, ours and dynamixel-sdk's (its PacketHandler on an in-memory
-port), CPU per tick.
+10 bits a byte and the baud rate, plus each status's return delay. Then the event loop while our client runs the
+same ticks: the lag of a 1 ms ticker beside it, and the thread CPU of each loop iteration (beside a ticker that
+only yields); and the codec alone: building both instruction packets and parsing the status packets of one tick
+from memory, ours and dynamixel-sdk's (its PacketHandler on an in-memory port), CPU per tick.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ PRESENT_ADDRESS = 126
 PRESENT_LENGTH = 10
 GOAL_ADDRESS = 116
 POSITION_OFFSET = 6  # present position's offset in the present block
+_HIST_BINS = 1_000_000  # 1 us bins up to 1 s
 MARGIN_S = 0.05
 """Our client's timeout margin here: the virtual bus is a process on a shared host, and a late answer should
 count as a slow cycle, not fail the run (dynamixel-sdk waits 34 ms past the wire time)."""
@@ -156,16 +157,20 @@ class _Ours:
     def block(self, ids: Sequence[int], n: int, out: list[float]) -> None:
         self.loop.run_until_complete(self._block(ids, n, out))
 
-    def lag(self, ids: Sequence[int], n: int) -> tuple[list[float], list[float], list[float]]:
-        """Run ``n`` ticks beside a 1 ms ticker.
+    def lag(self, ids: Sequence[int], n: int, period_s: float) -> tuple[list[float], list[int], list[int]]:
+        """Run ``n`` ticks beside a ticker that sleeps ``period_s`` (0: it only yields to the loop).
 
-        Returns the cycles (s), the ticker's lag (s: how late it woke, the host's scheduling included) and the
-        thread CPU time between its wake-ups beyond its own sleep (s: how long the loop ran other code, the bus's,
-        before the ticker could run; a process the host deschedules uses no CPU meanwhile).
+        Returns the cycles (s) and two histograms in 1 us bins (the last bin holds everything longer): the
+        ticker's lag (how late it woke, the host's scheduling included) and the thread CPU time from one of its
+        runs to the next (the loop's work in between, the bus's; a process the host deschedules uses no CPU
+        meanwhile). With ``period_s`` 0 the ticker runs once per loop iteration, so the second is the CPU of each
+        iteration: how long the bus held the loop. Histograms, not lists: appending to a list of millions of
+        samples reallocates it, and that copy would be measured as the loop's.
         """
-        lags: list[float] = []
-        busy: list[float] = []
+        lags = [0] * _HIST_BINS
+        busy = [0] * _HIST_BINS
         cycles: list[float] = []
+        top = _HIST_BINS - 1
 
         async def run() -> None:
             done = asyncio.Event()
@@ -173,11 +178,11 @@ class _Ours:
             async def ticker() -> None:
                 loop = asyncio.get_running_loop()
                 while not done.is_set():
-                    due = loop.time() + 0.001
+                    due = loop.time() + period_s
                     c0 = time.thread_time()
-                    await asyncio.sleep(0.001)
-                    busy.append(time.thread_time() - c0)
-                    lags.append(loop.time() - due)
+                    await asyncio.sleep(period_s)
+                    busy[min(int((time.thread_time() - c0) * 1e6), top)] += 1
+                    lags[min(max(int((loop.time() - due) * 1e6), 0), top)] += 1
 
             async with asyncio.TaskGroup() as tg:
                 tg.create_task(ticker())
@@ -307,6 +312,25 @@ def _codec_cpu_us(n: int, ticks: int) -> dict[str, float]:
 # ------------------------------------------------------------------------------------------ the run
 
 
+def _hist_summary(hist: list[int]) -> dict[str, float]:
+    """p50, p99 and max (us) and the count of a histogram of 1 us bins."""
+    n = sum(hist)
+    out = {"p50": float("nan"), "p99": float("nan"), "max": float("nan"), "count": n}
+    if not n:
+        return out
+    seen = 0
+    for us, count in enumerate(hist):
+        if not count:
+            continue
+        if seen < 0.5 * n <= seen + count:
+            out["p50"] = float(us)
+        if seen < 0.99 * n <= seen + count:
+            out["p99"] = float(us)
+        seen += count
+        out["max"] = float(us)
+    return out
+
+
 def _timed(client: _Ours | _Sdk, ids: Sequence[int], n: int, out: list[float], cpu: list[float]) -> None:
     c0 = time.process_time()
     n0 = len(out)
@@ -370,9 +394,9 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
             if ours.bus.stats.retries:
                 log(f"note: our client retried {ours.bus.stats.retries} times ({ours.bus.stats})")
             n, ids = max(sets.items())
-            cyc, lags, busy = ours.lag(ids, config.cycles)
-            lag = summary([x * 1e6 for x in lags])
-            cpu_between = summary([x * 1e6 for x in busy])
+            cyc, lags, _ = ours.lag(ids, config.cycles, 0.001)
+            _, _, held = ours.lag(ids, max(1, config.cycles // 4), 0.0)
+            lag, hold = _hist_summary(lags), _hist_summary(held)
             records.append(
                 {
                     "case": "event loop lag while the bus runs",
@@ -380,9 +404,10 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
                     "lag_p50_us": round(lag["p50"], 1),
                     "lag_p99_us": round(lag["p99"], 1),
                     "lag_max_us": round(lag["max"], 1),
-                    "busy_p99_us": round(cpu_between["p99"], 1),
-                    "busy_max_us": round(cpu_between["max"], 1),
                     "ticks": lag["count"],
+                    "hold_p99_us": round(hold["p99"], 1),
+                    "hold_max_us": round(hold["max"], 1),
+                    "iterations": hold["count"],
                     "cycle_p50_us": round(summary([c * 1e6 for c in cyc])["p50"], 1),
                 }
             )
@@ -414,9 +439,10 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     for r in records:
         if r.get("case", "").startswith("event loop"):
             lines.append(
-                f"event loop beside our client ({r['servos']} servos, a 1 ms ticker, {r['ticks']} ticks): lag p50 "
-                f"{r['lag_p50_us']} us, p99 {r['lag_p99_us']} us, max {r['lag_max_us']} us; loop thread CPU between "
-                f"ticks p99 {r['busy_p99_us']} us, max {r['busy_max_us']} us"
+                f"event loop beside our client ({r['servos']} servos): a 1 ms ticker's lag p50 {r['lag_p50_us']} us, "
+                f"p99 {r['lag_p99_us']} us, max {r['lag_max_us']} us ({r['ticks']} ticks); each loop iteration's "
+                f"thread CPU (the bus holding the loop) p99 {r['hold_p99_us']} us, max {r['hold_max_us']} us "
+                f"({r['iterations']} iterations)"
             )
     lines.append("codec alone, CPU us per tick (build both packets, parse the statuses):")
     for r in records:
