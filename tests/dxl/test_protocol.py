@@ -41,16 +41,20 @@ def sdk_port() -> Iterator[tuple[Any, Any, int]]:
         os.close(master)
 
 
-def _sent(port: Any, master: int, action: Callable[[], object], expected_len: int) -> bytes:
-    """Run ``action`` (dynamixel-sdk sending one packet) and return the bytes that came out of the pty."""
+def _sent(port: Any, master: int, action: Callable[[], object]) -> bytes:
+    """Run ``action`` (dynamixel-sdk sending one packet) and return the bytes of the packet that came out of the pty."""
     action()
     port.is_using = False  # a *Tx call leaves the port busy until its Rx call, which these tests do not make
     out = b""
+    parser = p.PacketParser()
     deadline = time.monotonic() + 2.0
-    while len(out) < expected_len and time.monotonic() < deadline:
+    while time.monotonic() < deadline:
         ready, _, _ = select.select([master], [], [], 0.05)
         if ready:
-            out += os.read(master, 4096)
+            chunk = os.read(master, 4096)
+            out += chunk
+            if parser.feed(chunk):
+                break
     # nothing more than the one packet
     ready, _, _ = select.select([master], [], [], 0.01)
     if ready:
@@ -141,7 +145,7 @@ def test_packets_are_byte_equal_to_dynamixel_sdk(sdk_port: tuple[Any, Any, int])
     )
 
     for name, action, ours in cases:
-        theirs = _sent(port, master, action, len(ours))
+        theirs = _sent(port, master, action)
         if "stuffed" in name:
             # dynamixel-sdk 4.1's Python txPacket drops addStuffing's result when the packet grows, so it sends
             # FF FF FD unstuffed; ours follows the spec. Both parse to the same instruction.
