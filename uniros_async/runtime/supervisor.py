@@ -302,7 +302,7 @@ class Supervisor(StepExchange):
     def _core_shares(self) -> dict[int, list[Any]]:
         """``[slot, count, mode]`` per worker index, for its ``spaces`` request: the rank of its process among the
         worker processes of this vector env on its machine, how many envs they host, and
-        ``worker.shared_cores_mode`` (the process pins itself to core ``slot`` modulo its cores when the envs
+        ``cores.shared_cores_mode`` (the process pins itself to core ``slot`` modulo its cores when the envs
         outnumber them: ``_Server._share_cores``)."""
         mode = shared_cores_mode()
         machine = {w.index: self._machine(w) for w in self.workers}

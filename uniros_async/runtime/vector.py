@@ -554,7 +554,7 @@ def _action_form(space: gym.Space[Any], n: int) -> tuple[Any, ...]:
 class _Returns:
     """One vector step's returns, filled reply by reply: made (its arrays allocated) while the workers step; a
     reply that ``decode`` takes while it is still in the transport's ring leaves its observation in its row of the
-    vector observation at once (a Box observation space; ``worker.unpack_step_reply_into``), the others (a Dict
+    vector observation at once (a Box observation space; ``protocol.unpack_step_reply_into``), the others (a Dict
     observation, a reply taken by the event loop, a restarted worker's) go through ``finish`` as results."""
 
     __slots__ = ("venv", "obs", "raw", "row_bytes", "rewards", "terminated", "truncated")
