@@ -62,7 +62,6 @@ def _sent(port: Any, master: int, action: Callable[[], object]) -> bytes:
     return out
 
 
-@pytest.mark.slow
 def test_packets_are_byte_equal_to_dynamixel_sdk(sdk_port: tuple[Any, Any, int]) -> None:
     port, ph, master = sdk_port
     cases: list[tuple[str, Callable[[], object], bytes]] = []
