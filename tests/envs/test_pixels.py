@@ -7,6 +7,7 @@ import time
 import gymnasium as gym
 import numpy as np
 import pytest
+from _processes import wait_gone
 from gymnasium.utils.env_checker import check_env as gym_check_env
 
 import uniros_async
@@ -132,8 +133,11 @@ def test_a_camera_that_stops_flags_stale_frames_after_its_timeout() -> None:
                 break
         assert stale_after is not None and info["frame_age_s"] > 0.3
         assert stale_after < 0.3 + 0.2 * 2 + 0.2  # within a step or so of the timeout
+        render_pid = cams._process.pid  # on a wall clock the camera renders in a process of its own
+        assert render_pid is not None
     finally:
         env.close()
+    assert wait_gone([render_pid], 10.0) == []  # and it ends with the env
 
 
 @pytest.mark.slow
