@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 from uniros_async.errors import (
     AuthenticationError,
+    BagDamagedError,
+    BagError,
     BusError,
     CameraError,
     CheckpointError,
@@ -50,6 +52,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AuthenticationError",
+    "BagDamagedError",
+    "BagError",
     "BusError",
     "CameraError",
     "CheckpointError",

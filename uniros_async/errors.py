@@ -14,6 +14,8 @@ The tree (as httpx/_exceptions.py draws its own)::
     │   ├── DomainError                      the domain registry is unreachable or refused a request
     │   ├── NameConflictError                a node or service name is taken in the domain
     │   └── ServiceError                     a service call failed on the server side; .remote_traceback
+    ├── BagError                             a bag cannot be written or read as asked; names the file
+    │   └── BagDamagedError                  a bag is truncated or corrupt at .offset; all before it was read
     ├── CameraError                          a camera source cannot be opened or read; names it
     ├── FrameError (also ValueError)         a camera frame's size or encoding differs from its topic's
     ├── SimulationError                      MuJoCo diverged (dm_control PhysicsError)
@@ -49,6 +51,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "AuthenticationError",
+    "BagDamagedError",
+    "BagError",
     "BusError",
     "CameraError",
     "CheckpointError",
@@ -129,6 +133,19 @@ class ServiceError(BusError):
     def __init__(self, message: str, *, remote_traceback: str = "") -> None:
         super().__init__(message)
         self.remote_traceback = remote_traceback
+
+
+class BagError(UnirosError):
+    """A bag cannot be written or read as asked (names the file and what was wrong)."""
+
+
+class BagDamagedError(BagError):
+    """A bag is truncated or corrupt at byte ``offset``: everything before it was read."""
+
+    def __init__(self, message: str, *, path: str, offset: int) -> None:
+        super().__init__(message)
+        self.path = path
+        self.offset = offset
 
 
 class CameraError(UnirosError):
