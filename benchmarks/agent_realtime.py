@@ -125,13 +125,15 @@ def _run(arm: str, seconds: float, root: Path, k: int) -> dict[str, Any]:
 
 def _cycle(stats: dict[str, Any]) -> str:
     c = stats["action_cycle"]
-    return f"{c['p50']:7.1f} {c['iqr']:6.2f} {c['count']:5d}" if c["count"] else f"{'-':>7} {'-':>6} {0:5d}"
+    n = int(c["count"] or 0)
+    return f"{c['p50']:7.1f} {c['iqr']:6.2f} {n:5d}" if n else f"{'-':>7} {'-':>6} {0:5d}"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=45.0, help="wall time of each training run")
     parser.add_argument("--rounds", type=int, default=1, help="runs of each arm, in turns")
+    parser.add_argument("--json", help="write every run's timing.json and collection pauses here")
     args = parser.parse_args()
     results = []
     with tempfile.TemporaryDirectory(prefix="agent_rt_") as tmp:
@@ -139,17 +141,23 @@ def main() -> None:
             for arm in ARMS:
                 results.append(_run(arm, args.seconds, Path(tmp), k))
                 print(f"  {arm} round {k} done", flush=True)
+                if args.json:
+                    Path(args.json).write_text(json.dumps(results, indent=1))
+    _print(results, args.seconds)
+
+
+def _print(results: list[dict[str, Any]], seconds: float) -> None:
     print(
         f"\nhost {platform.node()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; four arms training and four"
-        f" evaluated alongside on the wall clock, action cycle {CYCLE_S} s, {args.seconds:g} s per run"
+        f" evaluated alongside on the wall clock, action cycle {CYCLE_S} s, {seconds:g} s per run"
     )
-    head = f"{'arm':<8} {'rd':>2} {'env':<11} {'eval cycle med ms':>17} {'IQR ms':>6} {'n':>5}   {'train cycle':>11}"
-    print(head + f" {'IQR ms':>6} {'n':>5}")
-    print("-" * (len(head) + 13))
+    head = f"{'arm':<8} {'rd':>2} {'env':<11} {'eval: med ms    IQR     n':>25}   {'train: med ms    IQR     n':>26}"
+    print(head)
+    print("-" * len(head))
     for r in results:
         t = r["timing"]
         for label, stats in t["eval_envs"].items():
-            print(f"{r['arm']:<8} {r['round']:>2} {label:<11} {_cycle(stats):>30}   {_cycle(t['envs'][label]):>24}")
+            print(f"{r['arm']:<8} {r['round']:>2} {label:<11} {_cycle(stats):>25}   {_cycle(t['envs'][label]):>26}")
         print(f"{'':<12}evaluation thread real-time: {t['eval_real_time']}")
     print("\nfull (generation 2) collections in the agent process during the run")
     print(f"{'arm':<8} {'rd':>2} {'count':>5} {'median ms':>9} {'max ms':>7}")
