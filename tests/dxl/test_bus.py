@@ -21,6 +21,10 @@ from uniros_async.hardware.dxl.protocol import Instruction
 
 from ._vbus import running_vbus
 
+SLACK_S = 0.5
+"""The bus's timeout margin against the responder: a thread of this process, so a loaded host can hold it up (the
+margin bounds only calls that fail; a bad CRC is retried as soon as it is seen)."""
+
 
 class Responder:
     """Servos on the master end of a pty: a register memory per id, answering from a thread.
@@ -137,7 +141,7 @@ def responder() -> Iterator[Responder]:
 
 
 async def test_every_instruction_against_the_responder(responder: Responder) -> None:
-    async with await open_dxl_bus(responder.path, 1_000_000) as bus:
+    async with await open_dxl_bus(responder.path, 1_000_000, margin_s=SLACK_S) as bus:
         assert await bus.ping(3) == (1020, 46)
         assert await bus.read(2, 132, 4) == (2002).to_bytes(4, "little")
         await bus.write(2, 116, (2100).to_bytes(4, "little"))
@@ -161,7 +165,7 @@ async def test_every_instruction_against_the_responder(responder: Responder) -> 
 
 async def test_bad_crc_is_counted_and_retried_within_the_call(responder: Responder) -> None:
     responder.corrupt[3] = 1
-    async with await open_dxl_bus(responder.path, 1_000_000) as bus:
+    async with await open_dxl_bus(responder.path, 1_000_000, margin_s=SLACK_S) as bus:
         data = await bus.sync_read(132, 4, [1, 2, 3, 4, 5])
         assert data[3] == (2003).to_bytes(4, "little")
         assert bus.stats.crc_errors == 1 and bus.stats.retries == 1
@@ -186,7 +190,7 @@ async def test_a_silent_servo_times_out_naming_it_and_the_loop_keeps_running(res
             await asyncio.sleep(0.001)
             ticks += 1
 
-    async with await open_dxl_bus(responder.path, 1_000_000, margin_s=0.02, retries=1) as bus:
+    async with await open_dxl_bus(responder.path, 1_000_000, margin_s=0.1, retries=1) as bus:
         async with asyncio.TaskGroup() as tg:
             task = tg.create_task(ticker())
             t0 = time.perf_counter()
@@ -195,17 +199,19 @@ async def test_a_silent_servo_times_out_naming_it_and_the_loop_keeps_running(res
             elapsed = time.perf_counter() - t0
             task.cancel()
         # two attempts of about the margin each: bounded by the timeout, and the loop ran throughout
-        assert 0.035 < elapsed < 0.5, elapsed
+        assert 0.15 < elapsed < 1.5, elapsed
         assert ticks >= 10, f"the loop ticked {ticks} times in {elapsed:.3f} s: the bus blocked it"
         assert bus.stats.timeouts == 2
         # the bus goes on with the servos that answer
         assert await bus.ping(5) == (1020, 46)
+        with pytest.raises(DxlTimeoutError, match=r"fast sync read of servos \[1, 4, 5\].*silent"):
+            await bus.fast_sync_read(132, 4, [1, 4, 5])
 
 
 async def test_a_status_error_is_raised_with_its_meaning(responder: Responder) -> None:
     responder.errors[2] = 0x07
     responder.errors[5] = 0x80
-    async with await open_dxl_bus(responder.path, 1_000_000) as bus:
+    async with await open_dxl_bus(responder.path, 1_000_000, margin_s=SLACK_S) as bus:
         with pytest.raises(DxlStatusError, match=r"servo 2 .*0x07 \(access error\)") as info:
             await bus.write(2, 132, b"\x00\x00\x00\x00")
         assert info.value.error == 0x07

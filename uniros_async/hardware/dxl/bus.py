@@ -372,7 +372,14 @@ class DxlBus:
         packet = encode_instruction(BROADCAST_ID, Instruction.FAST_SYNC_READ, params)
         n_body = len(ids) * (length + 4) - 3  # params after the first slot's error byte, before the last CRC
         for attempt in range(self.retries + 1):
-            got = await self._transact(lambda _: packet, [BROADCAST_ID], {BROADCAST_ID: n_body}, "fast sync read")
+            try:
+                got = await self._transact(lambda _: packet, [BROADCAST_ID], {BROADCAST_ID: n_body}, "fast sync read")
+            except DxlTimeoutError as exc:
+                raise DxlTimeoutError(
+                    f"fast sync read of servos {list(ids)} on {self.path}: no complete answer in {self.retries + 1} "
+                    "attempts; one of them may be silent (ping each), or its firmware may not know Fast Sync Read",
+                    servo_id=None,
+                ) from exc
             try:
                 slots = parse_fast_sync_read(got[BROADCAST_ID], length)
             except (DxlCrcError, CodecError) as exc:
