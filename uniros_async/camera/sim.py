@@ -129,8 +129,10 @@ class SimRenderer:
                 raise ConfigError(f"{robot.name}: its MJCF has no camera {cfg.camera!r}; it has {names}")
             self.cam_ids.append(names.index(cfg.camera))
         self.sizes = [(c.width, c.height) for c in cameras]
-        self.model.vis.global_.offwidth = max(self.model.vis.global_.offwidth, *(w for w, _ in self.sizes))
-        self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, *(h for _, h in self.sizes))
+        # the offscreen buffer just fits the largest camera: the software rasteriser clears and resolves all of it
+        # for every frame, so a buffer larger than the frames (MuJoCo's default is 640x480) costs every frame
+        self.model.vis.global_.offwidth = max(w for w, _ in self.sizes)
+        self.model.vis.global_.offheight = max(h for _, h in self.sizes)
         self.model.vis.quality.offsamples = 0  # no multisampling: a learning frame needs no anti-aliasing
         self._qpos_adr = {self.model.joint(i).name: int(self.model.jnt_qposadr[i]) for i in range(self.model.njnt)}
         key = next((k for k in range(self.model.nkey) if self.model.key(k).name == "home"), None)
@@ -154,7 +156,7 @@ class SimRenderer:
         self._mjr = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._mjr)
         self._scene = mujoco.MjvScene(self.model, maxgeom=1000)
-        # no shadow map: in Mesa's software rasteriser the 4096-pixel shadow pass costs ~20x the frame itself
+        # no shadow map: in Mesa's software rasteriser the 4096-pixel shadow pass costs far more than the frame
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self._opt = mujoco.MjvOption()
         self._cams = []
