@@ -7,6 +7,7 @@
     uniros robot ...                      simulated and emulated arms (sim/cli.py)
     uniros camera serve SOURCE            a V4L2/UVC device or a video file as a camera node (camera/cli.py)
     uniros train|eval|plot                TD3 / TD3+HER training, checkpoint evaluation, curves (training/cli.py)
+    uniros bag record|info|play           MCAP bags of a domain's topics, as ros2 bag (bag/cli.py)
 
 Every introspection command takes ``--domain URI`` or reads ``UNIROS_DOMAIN``. Errors print one line and exit 2;
 nothing here starts a domain (``open_domain()`` does that from Python).
@@ -246,6 +247,10 @@ def _build_parser() -> argparse.ArgumentParser:
     from uniros_async.camera import cli as camera_cli  # imports no OpenCV until a camera command runs
 
     camera_cli.add_parser(sub)
+
+    from uniros_async.bag import cli as bag_cli  # imports no mcap until a bag command runs
+
+    bag_cli.add_parser(sub)
 
     from uniros_async.training import cli as training_cli  # imports no torch/SB3 until a training command runs
 
@@ -539,6 +544,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from uniros_async.camera import cli as camera_cli
 
             return camera_cli.run(args)
+        if args.command == "bag":
+            from uniros_async.bag import cli as bag_cli
+
+            return bag_cli.run(args)
     except KeyboardInterrupt:
         return 130
     except (UnirosError, KeyError, TimeoutError) as exc:
