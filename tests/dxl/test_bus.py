@@ -279,7 +279,7 @@ async def test_against_the_virtual_bus() -> None:
 
     with running_vbus() as vb:
         path = vb.path
-        async with await open_dxl_bus(path, 1_000_000, margin_s=0.03) as bus:
+        async with await open_dxl_bus(path, 1_000_000, margin_s=0.2) as bus:
             models = {i: model_by_number((await bus.ping(i))[0]) for i in range(1, 8)}
             assert {t.name for t in models.values()} == {XL430_W250.name, XM430_W350.name}
             ids = [1, 2, 3, 4, 5, 6, 7]
