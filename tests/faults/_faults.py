@@ -105,6 +105,65 @@ FAULTS: dict[str, tuple[Callable[[Link], Callable[[], None]], bool]] = {
 }
 
 
+@dataclass
+class Trial:
+    """One fault on one link, and how to judge it (``robot``: the link's name in the figures; ``check_ages``: the
+    arm checks command stamps)."""
+
+    link: Link
+    name: str
+    robot: str
+    check_ages: bool = True
+    t_fault: int = 0
+    t_clear: int = 0
+
+
+def groups(names: list[str], links: int) -> list[list[str]]:
+    """``names`` in groups of at most ``links``: the faults that run at once, each on a link of its own."""
+    return [names[i : i + links] for i in range(0, len(names), links)]
+
+
+def run_faults(
+    trials: list[Trial],
+    duration_s: float,
+    *,
+    robot_timeout_s: float,
+    command_timeout_s: float,
+    period_s: float,
+) -> list[dict[str, Any]]:
+    """Inject each trial's fault on its own link at once, for ``duration_s``, clear them, then judge each as
+    ``run_fault`` does; every trial's figures are reported before the first failure is raised."""
+    for trial in trials:
+        trial.link.agent.wait_for(time.monotonic_ns(), "step", RECOVER_S, "a step before the fault")
+    clears: list[Callable[[], None]] = []
+    try:
+        for trial in trials:
+            # the fault is in effect once its command has returned (spawning ip/nft can take a while when loaded)
+            clears.append(FAULTS[trial.name][0](trial.link))
+            trial.t_fault = time.monotonic_ns()
+        time.sleep(duration_s)  # the fault's duration: the things under test run meanwhile
+    finally:
+        for trial, clear in zip(trials, clears, strict=False):
+            clear()
+            trial.t_clear = time.monotonic_ns()
+    rows, failures = [], []
+    for trial in trials:
+        try:
+            rows.append(
+                _judge(
+                    trial,
+                    duration_s,
+                    robot_timeout_s=robot_timeout_s,
+                    command_timeout_s=command_timeout_s,
+                    period_s=period_s,
+                )  # fmt: skip
+            )
+        except AssertionError as exc:
+            failures.append(f"{trial.name} on {trial.robot} ({duration_s} s): {exc}")
+    assert not failures, "\n".join(failures)
+    return rows
+
+
 def run_fault(
     link: Link,
     name: str,
@@ -119,17 +178,19 @@ def run_fault(
     """Inject fault ``name`` for ``duration_s``, clear it, wait for the agent's recovery, check the goals (and, on a
     bus arm, that a new process sees the arm's topics and gets its states); returns the figures (``fault_figures``,
     with ``duration_s`` and the probe's), also appended to ``$UNIROS_FAULT_REPORT`` when set."""
-    inject, must_notice = FAULTS[name]
+    trial = Trial(link, name, robot, check_ages)
+    return run_faults(
+        [trial], duration_s, robot_timeout_s=robot_timeout_s, command_timeout_s=command_timeout_s, period_s=period_s
+    )[0]
+
+
+def _judge(
+    trial: Trial, duration_s: float, *, robot_timeout_s: float, command_timeout_s: float, period_s: float
+) -> dict[str, Any]:
+    link, name, check_ages = trial.link, trial.name, trial.check_ages
+    t_fault, t_clear = trial.t_fault, trial.t_clear
+    must_notice = FAULTS[name][1]
     arm, agent = link.arm, link.agent
-    agent.wait_for(time.monotonic_ns(), "step", RECOVER_S, "a step before the fault")
-    # the fault is in effect once its command has returned (spawning ip/nft can take a while on a loaded machine)
-    clear = inject(link)
-    t_fault = time.monotonic_ns()
-    try:
-        time.sleep(duration_s)  # the fault's duration: the thing under test runs meanwhile
-    finally:
-        clear()
-        t_clear = time.monotonic_ns()
     recovered = agent.wait_for(t_clear, "step", RECOVER_S, "recovery after the fault was cleared")
     # what the arm applies right after recovery is judged too: wait until it applied one half a second later
     arm.wait_for(recovered["t_ns"] + 500_000_000, "cmd", RECOVER_S, "a command applied after recovery")
@@ -142,7 +203,7 @@ def run_fault(
         recovered_ns=recovered["t_ns"],
         robot_timeout_s=robot_timeout_s,
     )
-    row["link"] = robot
+    row["link"] = trial.robot
     row["duration_s"] = duration_s
     if link.domain is not None:
         seen = probe_domain(link.pair, link.env, link.domain, "/rx200/joint_states", "/rx200/reset")

@@ -1,7 +1,7 @@
 """Faults on the link to a ROS 1 arm: a real rosmaster and our sim as the arm's ROS 1 driver (``uniros robot serve
 --ros1-master``) in one network namespace, the agent with the ROS 1 bridge in its env (``robot="ros1://..."``) in
-another, joined by a veth pair (``rig.netfault``). Each fault lasts each of ``DURATIONS_S``; measured as in
-test_tcp_arm_faults.py.
+another, joined by a veth pair (``rig.netfault``); three such rigs, a round of faults at once, one per rig, each
+lasting each of ``DURATIONS_S``; measured as in test_tcp_arm_faults.py.
 
 ROS 1 cannot authenticate peers, so the driver and the bridge are allowed beyond loopback (``--insecure``,
 ``ros1={"insecure": True}``): only the two namespaces the test creates can reach them.
@@ -13,6 +13,7 @@ command older than the robot timeout reaches it after a partition is test_ros1_s
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -25,40 +26,55 @@ from ._arm import (
     PERIOD_S,
     ROBOT_TIMEOUT_S,
     START_S,
+    assert_nothing_left,
     require_ros1,
+    shm_names,
     start_agent,
     start_ros1_driver,
     start_rosmaster,
     stopping,
 )
-from ._faults import DURATIONS_S, Link, run_fault
+from ._faults import DURATIONS_S, Link, Trial, groups, run_faults
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("netfault_ready")]
 
-ROS1_FAULTS = ["partition", "loss 10 %", "tcp reset", "link down", "frozen arm (SIGSTOP)"]
+ROS1_FAULTS = ["partition", "loss 10 %", "tcp reset", "link down", "frozen arm (SIGSTOP)", "arm output dropped"]
+RIGS = 3
+"""ROS 1 arms (rosmaster, driver, agent), each in a namespace pair of its own: a round's faults run at once."""
+ROUNDS = groups(ROS1_FAULTS, RIGS)
 
 
 @pytest.fixture(scope="module")
-def ros1_link(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Link]:
+def ros1_rigs(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[Link]]:
     require_ros1()
-    home = Path(tmp_path_factory.mktemp("ros_home"))
-    with open_netns_pair() as pair, stopping() as peers:
-        master_uri, _ = start_rosmaster(pair, peers, home)
-        arm = start_ros1_driver(pair, peers, master_uri, ["--command-timeout", str(COMMAND_TIMEOUT_S), "--trace"])
-        agent = start_agent(pair, peers, f"ros1://{pair.arm_ip}:{MASTER_PORT}", ros_host=pair.env_ip)
-        agent.wait_for(0, "step", START_S, "the agent's first step")
-        yield Link(pair, arm, agent)
+    shm = shm_names()
+    with contextlib.ExitStack() as stack:
+        pairs = [stack.enter_context(open_netns_pair()) for _ in range(RIGS)]
+        peers = stack.enter_context(stopping())
+        links = []
+        for pair in pairs:
+            home = Path(tmp_path_factory.mktemp("ros_home"))
+            master_uri, _ = start_rosmaster(pair, peers, home)
+            arm = start_ros1_driver(pair, peers, master_uri, ["--command-timeout", str(COMMAND_TIMEOUT_S), "--trace"])
+            agent = start_agent(pair, peers, f"ros1://{pair.arm_ip}:{MASTER_PORT}", ros_host=pair.env_ip)
+            links.append(Link(pair, arm, agent))
+        for link in links:
+            link.agent.wait_for(0, "step", START_S, "the agent's first step")
+        yield links
+    for pair in pairs:
+        assert_nothing_left(pair, peers, shm)
 
 
-@pytest.mark.parametrize(("name", "duration_s"), [(n, d) for n in ROS1_FAULTS for d in DURATIONS_S])
-def test_ros1_fault(ros1_link: Link, name: str, duration_s: float) -> None:
-    run_fault(
-        ros1_link,
-        name,
+@pytest.mark.parametrize(
+    ("faults", "duration_s"),
+    [(r, d) for r in ROUNDS for d in DURATIONS_S],
+    ids=[f"{'+'.join(r)}-{d:g}s" for r in ROUNDS for d in DURATIONS_S],
+)
+def test_ros1_faults(ros1_rigs: list[Link], faults: list[str], duration_s: float) -> None:
+    run_faults(
+        [Trial(link, name, "ros1", check_ages=False) for name, link in zip(faults, ros1_rigs, strict=False)],
         duration_s,
-        robot="ros1",
         robot_timeout_s=ROBOT_TIMEOUT_S,
         command_timeout_s=COMMAND_TIMEOUT_S,
         period_s=PERIOD_S,
-        check_ages=False,
     )
