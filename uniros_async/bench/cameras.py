@@ -29,7 +29,7 @@ from uniros_async.bench.common import report
 from uniros_async.errors import ConfigError
 from uniros_async.stats import loop_metrics, since, summary
 
-__all__ = ["CameraBenchConfig", "main", "parse_sizes"]
+__all__ = ["CameraBenchConfig", "main", "meets_goal", "parse_sizes"]
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +62,12 @@ class CameraBenchConfig:
         for w, h in self.sizes:
             if (w, h) != (0, 0) and not (8 <= w <= 1024 and 8 <= h <= 1024):
                 raise ConfigError(f"camera size: expected 8..1024 pixels each way (or 0x0: none), got {w}x{h}")
+
+
+def meets_goal(median_ms: float, iqr_ms: float, period_ms: float) -> bool:
+    """The loop's goal: the actuator cycle's median within ``MEDIAN_GOAL_MS`` of the period, its IQR below
+    ``IQR_GOAL_MS``."""
+    return abs(median_ms - period_ms) <= MEDIAN_GOAL_MS and iqr_ms < IQR_GOAL_MS
 
 
 def parse_sizes(sizes: Sequence[str]) -> tuple[tuple[int, int], ...]:
@@ -140,7 +146,7 @@ def _row(cfg: CameraBenchConfig, size: tuple[int, int]) -> list[dict[str, Any]]:
             "actuator_p99_ms": act["p99"],
             "actuator_max_ms": act["max"],
             "ticks": act["count"],
-            "goal_met": abs(act["p50"] - period_ms) <= MEDIAN_GOAL_MS and act["iqr"] < IQR_GOAL_MS,
+            "goal_met": meets_goal(act["p50"], act["iqr"], period_ms),
         }
         if cam is not None:
             rec.update(frames=cam["frames"], skipped=cam["skipped"], render_median_ms=cam["render_median_ms"])
