@@ -96,3 +96,12 @@ def test_dotted_attributes_load_and_missing_ones_are_named() -> None:
     assert load_entry_point("os:path.join", "join") is __import__("os").path.join
     with pytest.raises(ConfigError, match=r"cannot load 'os:no_such_thing' \('os' has no 'no_such_thing'\)"):
         load_entry_point("os:no_such_thing", "thing")
+
+
+def test_the_modules_example_runs() -> None:
+    import doctest
+
+    import uniros_async.registry
+
+    result = doctest.testmod(uniros_async.registry)
+    assert result.attempted >= 3 and result.failed == 0
