@@ -60,7 +60,7 @@ async def test_camera_serve_publishes_a_video_file_to_another_process(tmp_path: 
             assert max(levels) > 150 and min(levels) < 30  # the grey square counts up, then the file starts again
             # the frame's age where it is used: stamped at capture on CLOCK_MONOTONIC, one clock on this machine
             ages_ms = [(t - f.header.stamp_ns) / 1e6 for f, t in frames[1:]]
-            assert 0 <= np.median(ages_ms) < 50
+            assert 0 <= np.median(ages_ms) < 200  # a frame, not a backlog: latest QoS
             stamps = np.diff([f.header.stamp_ns for f, _ in frames]) / 1e9
             assert 0.02 < np.median(stamps) < 0.05  # paced at 30 Hz
         finally:
