@@ -111,3 +111,16 @@ def pty_gone(path: str, timeout_s: float = 5.0) -> bool:
             return True
         time.sleep(0.05)
     return False
+
+
+def read(ph: sdk.PacketHandler, port: sdk.PortHandler, servo_id: int, address: int, size: int) -> int:
+    """A register's value read with dynamixel-sdk, retried as a host does when a status is late on a loaded
+    machine; fails the test when none of 5 reads succeeds."""
+    fn = {1: ph.read1ByteTxRx, 2: ph.read2ByteTxRx, 4: ph.read4ByteTxRx}[size]
+    for _ in range(5):
+        value, result, error = fn(port, servo_id, address)
+        if result == sdk.COMM_SUCCESS:
+            return int(value)
+    raise AssertionError(
+        f"servo {servo_id}: reading {size} bytes at {address} failed 5 times: {ph.getTxRxResult(result)}"
+    )

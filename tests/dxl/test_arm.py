@@ -16,7 +16,7 @@ from uniros_async.hardware.dxl.control_table import rad_to_ticks
 from uniros_async.hardware.dxl.placement import parse_dxl_uri
 from uniros_async.hardware.dxl.servo_map import servo_map
 
-from ._vbus import Vbus, running_vbus, sdk_port
+from ._vbus import Vbus, read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -32,10 +32,7 @@ def vbus() -> Iterator[Vbus]:
 def _present(path: str, ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7)) -> dict[int, tuple[int, int, int]]:
     """(present position, goal position, torque enable) of each servo, read with dynamixel-sdk."""
     with sdk_port(path) as (port, ph):
-        return {
-            i: (ph.read4ByteTxRx(port, i, 132)[0], ph.read4ByteTxRx(port, i, 116)[0], ph.read1ByteTxRx(port, i, 64)[0])
-            for i in ids
-        }
+        return {i: (read(ph, port, i, 132, 4), read(ph, port, i, 116, 4), read(ph, port, i, 64, 1)) for i in ids}
 
 
 async def test_start_holds_every_servo_where_it_is_then_ticks_and_holds_at_shutdown(vbus: Vbus) -> None:

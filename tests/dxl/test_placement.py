@@ -16,7 +16,7 @@ import pytest
 import uniros_async
 from uniros_async.errors import RobotError
 
-from ._vbus import running_vbus, sdk_port
+from ._vbus import read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -72,8 +72,8 @@ def test_make_vec_mixes_a_bus_arm_with_a_sim_arm() -> None:
             envs.close()
         with sdk_port(vbus.path) as (port, ph):
             # the worker's shutdown held the arm: torque on, goal at the present position
-            assert ph.read1ByteTxRx(port, 1, 64)[0] == 1
-            assert abs(ph.read4ByteTxRx(port, 1, 116)[0] - ph.read4ByteTxRx(port, 1, 132)[0]) <= 3
+            assert read(ph, port, 1, 64, 1) == 1
+            assert abs(read(ph, port, 1, 116, 4) - read(ph, port, 1, 132, 4)) <= 3
 
 
 _ENV_PROCESS = textwrap.dedent(
@@ -121,8 +121,8 @@ def test_servos_stop_and_hold_within_the_watchdog_time_after_the_env_process_is_
         assert worst <= 0.100 + 0.015, f"the last servo stopped {worst * 1e3:.0f} ms after the kill"
         time.sleep(0.4)
         with sdk_port(vbus.path) as (port, ph):
-            first = [ph.read4ByteTxRx(port, i, 132)[0] for i in range(1, 7)]
+            first = [read(ph, port, i, 132, 4) for i in range(1, 7)]
             time.sleep(0.3)
-            second = [ph.read4ByteTxRx(port, i, 132)[0] for i in range(1, 7)]
+            second = [read(ph, port, i, 132, 4) for i in range(1, 7)]
             assert max(abs(a - b) for a, b in zip(first, second, strict=True)) <= 2, (first, second)
-            assert all(ph.read1ByteTxRx(port, i, 64)[0] == 1 for i in range(1, 7))  # held, torque on
+            assert all(read(ph, port, i, 64, 1) == 1 for i in range(1, 7))  # held, torque on

@@ -12,7 +12,7 @@ import pytest
 
 import uniros_async  # noqa: F401  (registers the env ids)
 
-from ._vbus import running_vbus, sdk_port
+from ._vbus import read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -48,5 +48,5 @@ def test_serve_dxl_serves_the_bus_arm_over_tcp_until_sigint() -> None:
                     stream.close()
         with sdk_port(vbus.path) as (port, ph):
             # the server's shutdown held the arm: torque on, goal at the present position
-            assert ph.read1ByteTxRx(port, 1, 64)[0] == 1
-            assert abs(ph.read4ByteTxRx(port, 1, 116)[0] - ph.read4ByteTxRx(port, 1, 132)[0]) <= 3
+            assert read(ph, port, 1, 64, 1) == 1
+            assert abs(read(ph, port, 1, 116, 4) - read(ph, port, 1, 132, 4)) <= 3

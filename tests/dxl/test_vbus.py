@@ -17,7 +17,7 @@ import pytest
 from uniros_async.hardware.dxl.control_table import MODELS, rad_to_ticks
 from uniros_async.hardware.dxl.servo_map import servo_map
 
-from ._vbus import Vbus, pty_gone, running_vbus, sdk_port
+from ._vbus import Vbus, pty_gone, read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -41,7 +41,7 @@ def test_sdk_pings_and_reads_every_servo_with_its_model(vbus: Vbus) -> None:
             assert model == MODELS[servo.model].model_number
             value, result, error = ph.read1ByteTxRx(port, servo.id, 7)  # ID
             assert (value, result, error) == (servo.id, sdk.COMM_SUCCESS, 0)
-            limits = [ph.read4ByteTxRx(port, servo.id, a)[0] for a in (52, 48)]
+            limits = [read(ph, port, servo.id, a, 4) for a in (52, 48)]
             assert limits == [servo.min_position, servo.max_position]
             secondary, _, _ = ph.read1ByteTxRx(port, servo.id, 12)
             assert secondary == (2 if servo.id == 3 else 255)
@@ -62,22 +62,22 @@ def test_sdk_writes_and_the_access_rules_hold(vbus: Vbus) -> None:
         assert ph.write4ByteTxRx(port, 4, GOAL_POSITION, 3500) == (sdk.COMM_SUCCESS, 6)
         present, _, _ = ph.read4ByteTxRx(port, 4, PRESENT_POSITION)
         assert ph.write4ByteTxRx(port, 4, GOAL_POSITION, present) == (sdk.COMM_SUCCESS, 0)
-        assert ph.read4ByteTxRx(port, 4, GOAL_POSITION)[0] == present
+        assert read(ph, port, 4, GOAL_POSITION, 4) == present
         for servo_id in (4, 6):
             assert ph.write1ByteTxRx(port, servo_id, TORQUE_ENABLE, 0) == (sdk.COMM_SUCCESS, 0)
         # with the torque off, EEPROM takes the write
         assert ph.write1ByteTxRx(port, 6, 10, 4) == (sdk.COMM_SUCCESS, 0)
-        assert ph.read1ByteTxRx(port, 6, 10)[0] == 4
+        assert read(ph, port, 6, 10, 1) == 4
 
 
 def test_sdk_sync_write_moves_the_arm_and_sync_read_sees_it(vbus: Vbus) -> None:
     goal_rad = {1: 0.4, 2: -0.3, 4: 0.5, 5: -0.4, 6: 0.6}
     with sdk_port(vbus.path) as (port, ph):
-        read = sdk.GroupSyncRead(port, ph, PRESENT_POSITION, 4)
+        sync_read = sdk.GroupSyncRead(port, ph, PRESENT_POSITION, 4)
         for servo in RX200.servos:
-            assert read.addParam(servo.id)
-        assert read.txRxPacket() == sdk.COMM_SUCCESS
-        start = {s.id: read.getData(s.id, PRESENT_POSITION, 4) for s in RX200.servos}
+            assert sync_read.addParam(servo.id)
+        assert sync_read.txRxPacket() == sdk.COMM_SUCCESS
+        start = {s.id: sync_read.getData(s.id, PRESENT_POSITION, 4) for s in RX200.servos}
         # the shadow reports the primary's ticks (its reverse drive mode mirrors its mounting)
         assert abs(start[3] - start[2]) <= 1
         # start-up as the host does it: goal := present, a 300 ms time profile, then torque on
@@ -94,15 +94,15 @@ def test_sdk_sync_write_moves_the_arm_and_sync_read_sees_it(vbus: Vbus) -> None:
         assert goals.txPacket() == sdk.COMM_SUCCESS
         assert torque.txPacket() == sdk.COMM_SUCCESS
         # the shadow obeyed the writes to ID 2 (Secondary_ID) without answering them
-        assert ph.read1ByteTxRx(port, 3, TORQUE_ENABLE)[0] == 1
+        assert read(ph, port, 3, TORQUE_ENABLE, 1) == 1
         goals.clearParam()
         for servo_id, q in goal_rad.items():
             assert goals.addParam(servo_id, rad_to_ticks(q).to_bytes(4, "little"))
         assert goals.txPacket() == sdk.COMM_SUCCESS
         deadline = time.monotonic() + 5.0
         while True:
-            assert read.txRxPacket() == sdk.COMM_SUCCESS
-            now = {s.id: read.getData(s.id, PRESENT_POSITION, 4) for s in RX200.servos}
+            assert sync_read.txRxPacket() == sdk.COMM_SUCCESS
+            now = {s.id: sync_read.getData(s.id, PRESENT_POSITION, 4) for s in RX200.servos}
             if all(abs(now[i] - rad_to_ticks(q)) <= 25 for i, q in goal_rad.items()):
                 break
             assert time.monotonic() < deadline, f"the arm did not reach its goals: {now}"
@@ -139,7 +139,7 @@ def test_faults_on_command(vbus: Vbus) -> None:
         assert vbus.send("error 1 0x20") == "ok error 1 0x20"
         value, result, error = ph.read1ByteTxRx(port, 1, HARDWARE_ERROR)
         assert (value, result, error) == (0x20, sdk.COMM_SUCCESS, 0x80)
-        assert ph.read1ByteTxRx(port, 1, TORQUE_ENABLE)[0] == 0
+        assert read(ph, port, 1, TORQUE_ENABLE, 1) == 0
         assert ph.reboot(port, 1) == (sdk.COMM_SUCCESS, 0)
         assert ph.read1ByteTxRx(port, 1, HARDWARE_ERROR)[:2] == (0, sdk.COMM_SUCCESS)
         # a bus that stops
@@ -194,13 +194,13 @@ def test_watchdog_stops_and_holds_the_servo_after_its_host_is_killed(tmp_path: o
         assert tripped - killed <= 0.100 + 0.015, event
         time.sleep(0.3)  # let the arm come to rest after its stop
         with sdk_port(vbus.path) as (port, ph):
-            first = ph.read4ByteTxRx(port, 1, PRESENT_POSITION)[0]
+            first = read(ph, port, 1, PRESENT_POSITION, 4)
             time.sleep(0.3)
-            second = ph.read4ByteTxRx(port, 1, PRESENT_POSITION)[0]
+            second = read(ph, port, 1, PRESENT_POSITION, 4)
             assert abs(second - first) <= 2, "the waist still moves after its watchdog fired"
-            assert ph.read1ByteTxRx(port, 1, BUS_WATCHDOG)[0] == 0xFF  # -1: the watchdog error
-            assert ph.read1ByteTxRx(port, 1, TORQUE_ENABLE)[0] == 1  # held, never dropped
-            goal = ph.read4ByteTxRx(port, 1, GOAL_POSITION)[0]
+            assert read(ph, port, 1, BUS_WATCHDOG, 1) == 0xFF  # -1: the watchdog error
+            assert read(ph, port, 1, TORQUE_ENABLE, 1) == 1  # held, never dropped
+            goal = read(ph, port, 1, GOAL_POSITION, 4)
             assert goal < rad_to_ticks(0.0) + 1500 - 100, "the goal was not replaced by the stop position"
             # goals are refused until the host clears the watchdog error
             assert ph.write4ByteTxRx(port, 1, GOAL_POSITION, second)[1] == 7

@@ -42,6 +42,7 @@ from uniros_async.hardware.dxl.control_table import RETURN_DELAY_UNIT_S
 from uniros_async.hardware.dxl.protocol import PacketParser
 from uniros_async.hardware.dxl.servo_map import ServoMap
 from uniros_async.hardware.dxl.vbus import VirtualBus, VirtualServo
+from uniros_async.priority import freeze_heap, raise_loop_priority
 from uniros_async.sim.emulated import EmulationConfig
 
 __all__ = ["VbusServer", "serve_vbus"]
@@ -235,6 +236,10 @@ def serve_vbus(
     server = VbusServer(servos, baud=baud, emulation=emulation, emit=emit)
     previous = {sig: signal.signal(sig, lambda *_: server.request_stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
+        # it stands in for servos, which answer whatever else the host runs: the loop's real-time class, taken once
+        # start-up is done and before the path is out (uniros_async.priority)
+        freeze_heap()
+        raise_loop_priority()
         emit(server.path)
         server.run(control_fd)
     finally:
