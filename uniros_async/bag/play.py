@@ -104,7 +104,7 @@ async def play(config: PlayConfig) -> int:
             if (topics is None or t.topic in topics) and not (sim and t.topic == "/clock"):
                 pubs[t.topic] = await node.create_publisher(message_type(t.type_name), t.topic, qos=reliable(1000))
         clock_pub = await node.create_publisher(ClockTick, "/clock") if sim else None
-        for p in pubs.values():
+        for p in [*pubs.values(), *([clock_pub] if clock_pub is not None else [])]:
             await p.wait_for_subscribers(config.wait_subscribers, timeout_s=config.wait_timeout_s)
         offset_ns = 0
         while True:
