@@ -140,6 +140,8 @@ class RobotEnv(BaseEnv):
         clock), the same instant for every member; used once, then cleared (see ``_step_deadline``)."""
         self._last_return_wall_ns: int | None = None
         self._cmd_seq = 0
+        self.last_command: JointCommand | None = None
+        """The newest command the env loop sent (``bag.episodes.RecordEpisodes`` records it)."""
         self._transit = StateTransit(stall_s=config.robot_timeout_s)
         self.unsafe_actions = 0
         self.robot_process: Any = None  # a process the placement runs the arm in (ArmLink.process), or None
@@ -320,7 +322,8 @@ class RobotEnv(BaseEnv):
 
     def _send(self, q: np.ndarray, now: int) -> None:
         self._cmd_seq += 1
-        self._cmd.publish(JointCommand(header=Header(stamp_ns=now, seq=self._cmd_seq), position=q, duration_s=0.0))
+        self.last_command = JointCommand(header=Header(stamp_ns=now, seq=self._cmd_seq), position=q, duration_s=0.0)
+        self._cmd.publish(self.last_command)
         self._transit.sent(now)  # an arm that echoes this stamp gives the link's round trip
         self.timing.command_ns.append(now)
 
