@@ -159,6 +159,16 @@ def test_dxl_uri_forms_and_errors() -> None:
         parse_dxl_uri("dxl:///dev/ttyUSB0?shutdown=drop")
 
 
+def test_the_bus_loop_keeps_two_ticks_per_watchdog_window() -> None:
+    from uniros_async.hardware.dxl.placement import _rate
+
+    assert _rate(None, 100, 10.0) == 20.0  # a 10 Hz env loop: the bus ticks at 20 Hz for a 100 ms watchdog
+    assert _rate(None, 100, 100.0) == 100.0
+    assert _rate(50.0, 100, 10.0) == 50.0
+    with pytest.raises(ConfigError, match=r"dxl rate=10 Hz: the servos' bus watchdog is 100 ms, so the bus loop needs"):
+        _rate(10.0, 100, 10.0)
+
+
 def test_open_error_names_the_tty() -> None:
     import asyncio
 

@@ -5,7 +5,8 @@
 
 The path is the serial device (a pty of ``uniros robot vbus`` too). The query may set ``baud`` (default: the
 map's), ``map`` (a registered servo map; default: the one named as the env's robot), ``rate`` (the bus loop in Hz;
-default the robot's hardware rate, raised to at least two ticks per Bus Watchdog window) and ``shutdown``
+default the env's loop rate, ``env_loop_rate_hz``, else the robot's hardware rate, raised to at least two ticks
+per Bus Watchdog window) and ``shutdown``
 (``hold``, the default, or ``rest``).
 
 The placement opens a memory domain in the env's process and runs ``DxlArmNode`` on it: a node in the robot's
@@ -20,6 +21,7 @@ RobotError, which names the joint, the servo's ID and what happened.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import dataclasses
 import logging
@@ -121,6 +123,8 @@ class DxlArmNode:
         self.node, self.arm, self.rate_hz = node, arm, rate_hz
         self.ticks = 0
         self.late_ticks = 0
+        self.cycle_s: collections.deque[float] = collections.deque(maxlen=2000)
+        """The last ticks' bus time (sync read, then sync write), in s."""
         self.error: str = ""
         self.current_a: dict[str, float] = {}
         self._seen = 0
@@ -140,7 +144,9 @@ class DxlArmNode:
         next_t = loop.time()
         try:
             while True:
+                t0 = time.perf_counter()
                 await self._tick()
+                self.cycle_s.append(time.perf_counter() - t0)
                 next_t += period
                 delay = next_t - loop.time()
                 if delay < 0:
@@ -196,8 +202,12 @@ class DxlArmNode:
 
     def _srv_stats(self, req: Empty) -> Data:
         bus = self.arm.bus.stats
+        cycles = sorted(self.cycle_s)
         value: dict[str, Any] = {
+            "rate_hz": self.rate_hz,
             "ticks": self.ticks,
+            "cycle_p50_us": round(cycles[len(cycles) // 2] * 1e6) if cycles else None,
+            "cycle_p99_us": round(cycles[min(len(cycles) - 1, len(cycles) * 99 // 100)] * 1e6) if cycles else None,
             "late_ticks": self.late_ticks,
             "clamped": self.arm.clamped,
             "transactions": bus.transactions,
@@ -210,16 +220,18 @@ class DxlArmNode:
         return Data(value=value)
 
 
-def _rate(uri: DxlUri, watchdog_ms: int, hardware_rate_hz: float) -> float:
-    floor = 2000.0 / watchdog_ms  # two ticks per watchdog window
-    if uri.rate_hz is not None:
-        if uri.rate_hz < floor:
+def _rate(rate_hz: float | None, watchdog_ms: int, default_hz: float) -> float:
+    """The bus loop's rate: ``rate_hz`` if given (at least two ticks per watchdog window), else ``default_hz``
+    raised to that."""
+    floor = 2000.0 / watchdog_ms
+    if rate_hz is not None:
+        if rate_hz < floor:
             raise ConfigError(
-                f"dxl rate={uri.rate_hz} Hz: the servos' bus watchdog is {watchdog_ms} ms, so the bus loop needs at "
+                f"dxl rate={rate_hz:g} Hz: the servos' bus watchdog is {watchdog_ms} ms, so the bus loop needs at "
                 f"least {floor:g} Hz (two ticks per watchdog window)"
             )
-        return uri.rate_hz
-    return max(hardware_rate_hz, floor)
+        return rate_hz
+    return max(default_hz, floor)
 
 
 @contextlib.asynccontextmanager
@@ -231,6 +243,7 @@ async def open_dxl_arm(
     domain: Any,
     baud: int | None = None,
     rate_hz: float | None = None,
+    default_rate_hz: float | None = None,
     shutdown: str = "hold",
     clock: Clock | None = None,
     namespace: str | None = None,
@@ -238,6 +251,9 @@ async def open_dxl_arm(
     options: TransportOptions | None = None,
 ) -> AsyncIterator[DxlArmNode]:
     """Start the arm of ``servos`` on the bus at ``path`` and serve it as a node of ``domain`` for the block.
+
+    The bus loop runs at ``rate_hz`` if given, else at ``default_rate_hz`` (None: the robot's hardware rate) raised
+    to two ticks per Bus Watchdog window.
 
     Raises:
         ConfigError: a map of another robot, or a rate too low for the servos' bus watchdog.
@@ -251,7 +267,7 @@ async def open_dxl_arm(
 
     if servos.robot != robot.name:
         raise ConfigError(f"servo map {servos.name!r} drives {servos.robot!r}, not {robot.name!r}")
-    rate = _rate(DxlUri(path, baud, servos.name, rate_hz, shutdown), servos.bus_watchdog_ms, robot.hardware_rate_hz)
+    rate = _rate(rate_hz, servos.bus_watchdog_ms, default_rate_hz or robot.hardware_rate_hz)
     return_delay_s = max(s.return_delay_time for s in servos.servos) * 2e-6
     bus = await open_dxl_bus(path, baud or servos.baud, return_delay_s=return_delay_s)
     async with bus:
@@ -301,6 +317,7 @@ async def open_dxl_placement(request: PlacementRequest) -> AsyncIterator[ArmLink
             domain=domain,
             baud=uri.baud,
             rate_hz=uri.rate_hz,
+            default_rate_hz=request.config.env_loop_rate_hz,
             shutdown=uri.shutdown,
             clock=request.clock,
         ),
