@@ -95,23 +95,37 @@ def _arm(rt_eval: bool, freeze: bool) -> Iterator[None]:
 
 @contextlib.contextmanager
 def _full_collections() -> Iterator[list[float]]:
-    """The pause (ms) of every generation-2 collection in the block, in whichever thread triggered it."""
+    """The pause (ms) of every generation-2 collection while the learner learns (``AsyncTD3.learn``: after the
+    set-up, whose own collection ``freeze_heap`` makes), in whichever thread triggered it."""
+    from uniros_async.training.async_td3 import AsyncTD3
+
     out: list[float] = []
     started: list[float] = []
+    learning = [False]
+    learn = AsyncTD3.learn
+
+    def timed_learn(self: Any, *a: Any, **k: Any) -> Any:
+        learning[0] = True
+        try:
+            return learn(self, *a, **k)
+        finally:
+            learning[0] = False
 
     def callback(phase: str, info: dict[str, Any]) -> None:
-        if info.get("generation") != 2:
+        if info.get("generation") != 2 or not learning[0]:
             return
         if phase == "start":
             started.append(time.perf_counter())
         elif started:
             out.append((time.perf_counter() - started.pop()) * 1e3)
 
+    AsyncTD3.learn = timed_learn  # type: ignore[method-assign]
     gc.callbacks.append(callback)
     try:
         yield out
     finally:
         gc.callbacks.remove(callback)
+        AsyncTD3.learn = learn  # type: ignore[method-assign]
 
 
 def _run(arm: str, seconds: float, root: Path, k: int) -> dict[str, Any]:
@@ -159,7 +173,7 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
         for label, stats in t["eval_envs"].items():
             print(f"{r['arm']:<8} {r['round']:>2} {label:<11} {_cycle(stats):>25}   {_cycle(t['envs'][label]):>26}")
         print(f"{'':<12}evaluation thread real-time: {t['eval_real_time']}")
-    print("\nfull (generation 2) collections in the agent process during the run")
+    print("\nfull (generation 2) collections in the agent process while it learned")
     print(f"{'arm':<8} {'rd':>2} {'count':>5} {'median ms':>9} {'max ms':>7}")
     for r in results:
         pauses = r["collections"]
