@@ -221,3 +221,22 @@ def test_unknown_servo_map_is_a_clear_error() -> None:
     done = subprocess.run(argv, capture_output=True, text=True, timeout=60, env={**os.environ})
     assert done.returncode != 0
     assert "unknown servo map 'rx20' (did you mean 'rx200'?)" in done.stderr
+
+
+async def test_our_client_fast_sync_reads_bulk_reads_and_bulk_writes_the_virtual_bus(vbus: Vbus) -> None:
+    from uniros_async.hardware.dxl.bus import open_dxl_bus
+
+    ids = [s.id for s in RX200.servos]
+    async with await open_dxl_bus(vbus.path) as bus:
+        plain = await bus.sync_read(PRESENT_POSITION, 4, ids)
+        fast = await bus.fast_sync_read(PRESENT_POSITION, 4, ids)
+        assert set(fast) == set(ids)
+        for i in ids:
+            a, b = (int.from_bytes(x[i], "little", signed=True) for x in (plain, fast))
+            assert abs(a - b) <= 3, (i, a, b)
+        # bulk: each servo its own register
+        got = await bus.bulk_read([(1, 7, 1), (2, 12, 1), (3, 12, 1), (7, 11, 1)])
+        assert (got[1], got[2], got[3]) == (b"\x01", b"\xff", b"\x02")
+        await bus.bulk_write([(6, 65, b"\x01"), (7, 65, b"\x01")])  # LEDs
+        assert await bus.read(6, 65, 1) == b"\x01" and await bus.read(7, 65, 1) == b"\x01"
+        await bus.bulk_write([(6, 65, b"\x00"), (7, 65, b"\x00")])
