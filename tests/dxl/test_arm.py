@@ -185,3 +185,29 @@ async def _sleep(s: float) -> None:
     import asyncio
 
     await asyncio.sleep(s)
+
+
+async def test_the_arms_node_serves_its_stats_with_current_and_temperature(vbus: Vbus) -> None:
+    import asyncio
+
+    from uniros_async.bus import open_domain, open_node
+    from uniros_async.bus.messages import Data, Empty, JointState
+    from uniros_async.hardware.dxl.placement import open_dxl_arm
+    from uniros_async.robots import get_robot_spec
+
+    async with (
+        open_domain("memory://") as domain,
+        open_dxl_arm(vbus.path, get_robot_spec("rx200"), RX200, domain=domain, rate_hz=50) as arm_node,
+        open_node("probe", domain=domain, namespace="/rx200") as probe,
+    ):
+        states = await probe.create_subscription(JointState, "joint_states")
+        await asyncio.sleep(0.5)
+        stats = (await probe.create_client(Empty, Data, "stats").call(Empty())).value
+        assert stats["rate_hz"] == 50 and stats["ticks"] >= 15 and stats["error"] == ""
+        assert set(stats["temperature_c"]) == {"waist", "shoulder", "elbow", "wrist_angle", "wrist_rotate", "gripper"}
+        assert all(t == 30.0 for t in stats["temperature_c"].values())  # what the virtual servos report
+        assert set(stats["current_a"]) == {"shoulder", "elbow"}
+        assert stats["cycle_p50_us"] is not None and stats["cycle_p50_us"] > 0
+        latest = states.latest()
+        assert latest is not None and latest.name == get_robot_spec("rx200").joint_state_names
+        assert arm_node.ticks >= 15

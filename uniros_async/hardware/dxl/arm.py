@@ -13,7 +13,8 @@ Start-up (``start``), in the order that keeps the arm still:
 
 Each tick (``read_state`` and ``write_goals``) is one sync read of the contiguous present current (load on the
 XL430), velocity and position block of every answering servo, and one sync write of the arm's goal positions; the
-gripper, a group of its own in PWM mode, gets its own sync write when its command changes. Goals are clamped to
+gripper, a group of its own in PWM mode, gets its own sync write when its command changes. The temperatures are a
+sync read of their own (``read_temperatures``), taken far less often. Goals are clamped to
 the servos' position limits in ticks before they reach the wire, and each clamped joint is said once in the log.
 
 Errors are ``RobotError``s that name the joint, the ID and what happened: a servo whose status has the alert bit
@@ -344,6 +345,18 @@ class DxlArm:
         if pwm != self._gripper_pwm:
             await self._write_reg(self.gripper, "goal_pwm", pwm)
             self._gripper_pwm = pwm
+
+    async def read_temperatures(self) -> dict[str, float]:
+        """Present_Temperature of every arm and gripper servo, in degC, by joint (one sync read).
+
+        Raises:
+            RobotError: the bus failed.
+        """
+        try:
+            raw = await self.bus.sync_read(146, 1, self.read_ids)
+        except DxlError as exc:
+            raise self._error("reading the temperatures", exc) from exc
+        return {s.joint: float(raw[s.id][0]) for s in self.read_servos}
 
     # ------------------------------------------------------------------------------------------ errors
 

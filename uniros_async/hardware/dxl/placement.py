@@ -11,8 +11,9 @@ per Bus Watchdog window) and ``shutdown``
 
 The placement opens a memory domain in the env's process and runs ``DxlArmNode`` on it: a node in the robot's
 namespace that publishes ``joint_states`` and takes ``command`` as every other placement's arm does, and serves
-``hold`` and ``stats``. Its loop is one task: each tick one sync read (published as the joint state) and one sync
-write of the newest command's goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
+``hold`` and ``stats`` (the bus's counters and cycle time, the present current and, read once a second, the
+temperature of each servo). Its loop is one task: each tick one sync read (published as the joint state) and one
+sync write of the newest command's goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
 A ``RobotError`` of the arm (hardware error, a silent servo: the bus's timeouts are milliseconds, well within the
 env's ``robot_timeout_s``) ends the node's task and, with it, the env's loop: the env's next call raises that
 RobotError, which names the joint, the servo's ID and what happened.
@@ -60,6 +61,8 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _KEYS = ("baud", "map", "rate", "shutdown")
+TEMPERATURE_PERIOD_S = 1.0
+"""How often the bus loop reads the servos' temperatures (one sync read of its own)."""
 
 
 class DxlUri:
@@ -127,6 +130,7 @@ class DxlArmNode:
         """The last ticks' bus time (sync read, then sync write), in s."""
         self.error: str = ""
         self.current_a: dict[str, float] = {}
+        self.temperature_c: dict[str, float] = {}
         self._seen = 0
         self._cmd_echo: tuple[int, int] | None = None
         self._goal: np.ndarray | None = None
@@ -178,6 +182,8 @@ class DxlArmNode:
             )
         self.joint_states.publish(js)
         self.ticks += 1
+        if self.ticks % max(1, round(self.rate_hz * TEMPERATURE_PERIOD_S)) == 1:
+            self.temperature_c = await self.arm.read_temperatures()
         sub = self.commands
         if sub.received != self._seen:
             self._seen = sub.received
@@ -215,6 +221,7 @@ class DxlArmNode:
             "timeouts": bus.timeouts,
             "retries": bus.retries,
             "current_a": self.current_a,
+            "temperature_c": self.temperature_c,
             "error": self.error,
         }
         return Data(value=value)
