@@ -32,6 +32,11 @@ logger = logging.getLogger(__name__)
 M = TypeVar("M", bound=Ros1Message)
 
 _conn_ids = itertools.count(1)
+RETRY_MAX_S = 0.5
+"""Longest wait between a subscriber's attempts to reconnect to a publisher the master still lists."""
+RETRY_ATTEMPT_S = 1.0
+"""Bound on each retry's connection (``requestTopic``, the TCP connect): the first attempt takes the node's
+``timeout_s``."""
 _MAX_UNACKED_FRAMES = 4096
 """Publication times a subscriber link remembers for frames its peer has not acknowledged; beyond it, neighbouring
 frames share an entry (the older time), which can only make a frame look older than it is."""
@@ -122,12 +127,14 @@ class _Subscription:
             self.links[uri] = self.node._spawn(self._link(uri), name=f"ros1 sub {self.topic} <- {uri}")
 
     async def _link(self, uri: str) -> None:
-        # Like rospy: while the master lists the publisher, reconnect after failures with a growing delay (capped at
-        # 1 s, so a link that comes back after a long outage carries states again within about a second)
-        backoff = Backoff(first_s=0.2, max_s=1.0)
+        # Like rospy: while the master lists the publisher, reconnect after failures with a growing delay (capped,
+        # and each retry's connection bounded by RETRY_ATTEMPT_S, so a link that comes back after a long outage
+        # carries states again within about a second: a SYN lost in the outage is sent afresh, not backed off)
+        backoff = Backoff(first_s=0.2, max_s=RETRY_MAX_S)
+        attempt_s = self.node.timeout_s
         while True:
             try:
-                if not await self._connect_and_read(uri):
+                if not await self._connect_and_read(uri, attempt_s):
                     return  # refused for good (type mismatch or an error header): wait for the master to relist
                 backoff.reset()
             except asyncio.IncompleteReadError:
@@ -140,17 +147,18 @@ class _Subscription:
                 logger.exception(
                     "%s: connection to publisher %s failed; retrying in %.1f s", self.topic, uri, backoff.delay_s
                 )
+            attempt_s = min(self.node.timeout_s, RETRY_ATTEMPT_S)
             await backoff.sleep()
 
-    async def _connect_and_read(self, uri: str) -> bool:
+    async def _connect_and_read(self, uri: str, attempt_s: float) -> bool:
         node, ours = self.node, self.msg_type
         code, status, proto = await call_ros(
-            uri, "requestTopic", node.name, self.topic, [["TCPROS"]], timeout_s=node.timeout_s
+            uri, "requestTopic", node.name, self.topic, [["TCPROS"]], timeout_s=attempt_s
         )
         if code != 1 or not isinstance(proto, list) or len(proto) < 3 or proto[0] != "TCPROS":
             raise ConnectionRefusedError(f"requestTopic answered {code}, {status!r}, {proto!r}")
         loop = asyncio.get_running_loop()
-        async with asyncio.timeout(node.timeout_s):
+        async with asyncio.timeout(attempt_s):
             transport, reader = await loop.create_connection(_tcpros.FrameReader, str(proto[1]), int(proto[2]))
         try:
             _tcpros.tune_socket(transport)
