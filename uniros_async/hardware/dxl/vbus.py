@@ -285,7 +285,6 @@ class VirtualBus:
         self._arm = list(self.robot.arm_joint_names)
         self._index = {name: i for i, name in enumerate(names)}
         self._gripper_finger: float | None = None
-        self._hold = np.asarray(self.sim.target, dtype=np.float64)
         self._goal_dirty = False
         self._t0_s: float | None = None
         self._steps = 0
@@ -572,7 +571,6 @@ class VirtualBus:
         if self.emulation is not None and (self.emulation.position_noise_std or self.emulation.velocity_noise_std):
             state = add_sensor_noise(state, self.emulation, self._rng)
         pos, vel, eff = state.position, state.velocity, state.effort
-        self._hold = np.asarray(self.sim.qpos)
         tick_ms = int(self.sim.time_ns // 1_000_000) % 32768
         for s in self.servos.values():
             joint = s.config.joint
