@@ -18,6 +18,7 @@ from uniros_async.training.config import (
     EnvEntry,
     EvalConfig,
     HerConfig,
+    RecordConfig,
     TD3Config,
     TrainConfig,
 )
@@ -33,6 +34,7 @@ SECTIONS: list[tuple[str, type[ConfigModel], str]] = [
     ("`async_learner` (`AsyncLearnerConfig`)", AsyncLearnerConfig, "async_learner."),
     ("`eval` (`EvalConfig`)", EvalConfig, "eval."),
     ("`checkpoint` (`CheckpointConfig`)", CheckpointConfig, "checkpoint."),
+    ("`record` (`RecordConfig`)", RecordConfig, "record."),
     ("Env keyword arguments of every task (`EnvConfig`)", EnvConfig, ""),
     ("Env keyword arguments of the reach tasks (`ReachConfig`)", ReachConfig, ""),
 ]

@@ -73,6 +73,10 @@ def add_parsers(subparsers: Any) -> None:
     e.add_argument("--episodes", type=int, default=200, help="episodes to run (default %(default)s)")
     e.add_argument("--seed", type=int, default=0, help="seeds the env and its goals (default %(default)s)")
     e.add_argument("--label", default=None, help="training label of the env (task-indexed multi-task policies)")
+    e.add_argument("--record", default=None, metavar="FILE.mcap", help="write every step to this MCAP bag")
+    e.add_argument(
+        "--record-every", type=int, default=None, metavar="N", help="with --record: a new file every N episodes"
+    )
     e.add_argument(
         "--placement",
         choices=("inprocess", "workers"),
@@ -211,6 +215,8 @@ def _run_eval(args: argparse.Namespace) -> int:
             label=label,
             placement=args.placement,
             on_episode=on_episode,
+            record=args.record,
+            record_episodes_per_file=args.record_every,
         )
     finally:
         if bar is not None:
@@ -219,6 +225,9 @@ def _run_eval(args: argparse.Namespace) -> int:
     print(f"success rate: {100 * result.success_rate:.1f} % ({result.successes}/{result.episodes})")
     print(f"mean return: {result.mean_return:.3f} (std {result.std_return:.3f})")
     print(f"mean episode length: {result.mean_length:.2f}")
+    if args.record:
+        every = f" (a file every {args.record_every} episodes)" if args.record_every else ""
+        print(f"steps recorded to {args.record}{every}")
     if result.normalized_obs:
         print("observations: normalised with the checkpoint's statistics (trained with normalize_obs)")
     else:

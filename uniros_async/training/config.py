@@ -44,6 +44,7 @@ __all__ = [
     "EnvEntry",
     "EvalConfig",
     "HerConfig",
+    "RecordConfig",
     "TD3Config",
     "TrainConfig",
     "config_to_dict",
@@ -189,6 +190,19 @@ class CheckpointConfig(ConfigModel):
     """Save the replay buffer too (needed to resume exactly)."""
 
 
+class RecordConfig(ConfigModel):
+    """Every step of the training envs written to MCAP bags while training (``bag.episodes.RecordEpisodes``:
+    observation, action, reward, goal, success, the env loop's joint states, commands and timings, camera
+    frames)."""
+
+    path: Str | None = None
+    """The bag; unset: ``<run_dir>/episodes.mcap``. With ``episodes_per_file``, the stem of the numbered files."""
+    episodes_per_file: Int | None = Field(default=None, ge=1)
+    """A new file every this many episodes; unset: one file per run."""
+    compression: Literal["zstd", "lz4"] = "zstd"
+    """The chunks' compression."""
+
+
 class TrainConfig(ConfigModel):
     """One training run (see the module docstring)."""
 
@@ -248,6 +262,8 @@ class TrainConfig(ConfigModel):
     """Where logs and checkpoints go; unset: ``runs/<name>``."""
     progress_bar: Bool = True
     """Show a progress bar of the run's steps (``uniros train --no-progress`` turns it off)."""
+    record: RecordConfig | None = None
+    """Record the training envs' steps to MCAP (not with ``concurrent``); unset: nothing is recorded."""
 
     @pydantic.model_validator(mode="after")
     def _check(self) -> TrainConfig:
@@ -274,6 +290,8 @@ class TrainConfig(ConfigModel):
                     raise key_error("concurrent", f"does not support {key} (the envs are padded alike)")
             if self.eval.envs:
                 raise key_error("concurrent", "evaluates on the training envs; remove eval.envs")
+            if self.record is not None:
+                raise key_error("record", "records one env's steps, and a concurrent run steps a vector env")
         elif self.eval.alongside:
             raise key_error(
                 "eval.alongside", "evaluates on a second vector env of the training envs: it needs concurrent: true"

@@ -346,11 +346,19 @@ def evaluate_checkpoint(
     label: str | None = None,
     placement: str = "inprocess",
     on_episode: Callable[[int, bool, float, int], None] | None = None,
+    record: str | Path | None = None,
+    record_episodes_per_file: int | None = None,
 ) -> EvalResult:
-    """Load a checkpoint and evaluate it on ``env_id`` (see the module docstring and ``make_eval_env``)."""
+    """Load a checkpoint and evaluate it on ``env_id`` (see the module docstring and ``make_eval_env``); with
+    ``record``, every step goes to that MCAP bag (``bag.episodes.RecordEpisodes``; a new file every
+    ``record_episodes_per_file`` episodes)."""
     kwargs = dict(kwargs or {})
     model, meta, _ = load_policy(checkpoint)
     env = make_eval_env(meta, env_id, kwargs, label=label, placement=placement)
+    if record is not None:
+        from uniros_async.bag.episodes import RecordEpisodes
+
+        env = RecordEpisodes(env, record, episodes_per_file=record_episodes_per_file)
     try:
         stats = model.get_vec_normalize_env()
         if stats is not None:

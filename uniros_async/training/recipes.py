@@ -317,6 +317,12 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
         env, layout = build_concurrent_env(cfg)
     else:
         env, layout = build_train_env(cfg)
+        if cfg.record is not None:  # every training step to MCAP (bag/episodes.py)
+            from uniros_async.bag.episodes import RecordEpisodes
+
+            rec = cfg.record
+            path = rec.path or run_dir / "episodes.mcap"
+            env = RecordEpisodes(env, path, episodes_per_file=rec.episodes_per_file, compression=rec.compression)
     eval_envs: list[tuple[str, str, gym.Env[Any, Any]]] = []
     alongside: Alongside | None = None
     logs: list[CsvLog] = []
