@@ -52,8 +52,10 @@ def test_bench_dxl_writes_its_rows(tmp_path: Path, capsys: pytest.CaptureFixture
     for r in rows:
         assert {"impl", "servos", "p50_us", "p99_us", "cpu_us", "floor_us"} <= set(r)
         assert r["floor_us"] == pytest.approx(dxl._floor_us(r["servos"], 1_000_000, 0.0), abs=0.1)
-        # a cycle cannot beat the wire: the virtual bus sends each byte at the baud rate
-        assert r["p50_us"] > 0.9 * r["floor_us"], r
+        # a cycle cannot beat the sync read's own bytes on the wire: the virtual bus sends each byte at the baud
+        # rate (it does not hold the sync write's bytes against the next sync read, so the floor itself can be beaten)
+        n = r["servos"]
+        assert r["p50_us"] > 0.95 * (14 + n + 21 * n) * 10, r
         assert r["cpu_us"] > 0 and r["cycles"] == 40
     (lag,) = [r for r in records if r.get("case", "").startswith("event loop")]
     assert lag["ticks"] > 0 and lag["iterations"] > lag["ticks"] and 0 < lag["hold_p99_us"] <= lag["hold_max_us"]
