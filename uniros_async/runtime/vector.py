@@ -27,7 +27,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
-from uniros_async.errors import ConfigError, InvalidActionsError, WorkerError
+from uniros_async.errors import ConfigError, InvalidActionsError, StepTimeoutError, WorkerError
 from uniros_async.runtime.protocol import (
     PackedRequest,
     array_head,
@@ -38,26 +38,13 @@ from uniros_async.runtime.protocol import (
     unpack,
     unpack_step_reply_into,
 )
-from uniros_async.runtime.ray_backend import apply_backend
+from uniros_async.runtime.ray_placement import apply_backend
+from uniros_async.runtime.specs import AUTO, EnvSpec, factory_of, normalize_specs
 from uniros_async.runtime.supervisor import Supervisor
 
 __all__ = ["UnirosVectorEnv", "make_vec"]
 
 logger = logging.getLogger(__name__)
-
-EnvSpec = str | tuple[str, dict[str, Any]]
-
-
-def _normalize_specs(specs: Sequence[EnvSpec]) -> list[tuple[str, dict[str, Any]]]:
-    out: list[tuple[str, dict[str, Any]]] = []
-    for i, s in enumerate(specs):
-        if isinstance(s, str):
-            out.append((s, {}))
-        elif isinstance(s, tuple | list) and len(s) == 2 and isinstance(s[0], str) and isinstance(s[1], dict):
-            out.append((s[0], dict(s[1])))
-        else:
-            raise ConfigError(f"spec {i}: expected an env id or an (env id, kwargs) pair, got {s!r:.80}")
-    return out
 
 
 def _vector_box(space: gym.Space[Any]) -> gym.spaces.Box | None:
@@ -93,7 +80,7 @@ def _merge(spaces: list[gym.Space[Any]], names: list[str], *, union: bool, what:
         low, high = (lows.min(0), highs.max(0)) if union else (lows.max(0), highs.min(0))
         if np.any(low > high):
             raise ConfigError(f"{what} spaces have no common range: " + ", ".join(names))
-        return gym.spaces.Box(low, high, dtype=first.dtype)
+        return gym.spaces.Box(low, high, shape=first.shape, dtype=first.dtype)  # a 0-d Box stays 0-d
     if not all(s == first for s in spaces):
         raise ConfigError(f"{what} spaces differ: {_listing(names, spaces)}")
     return first
@@ -251,10 +238,13 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         self._pending = self._sup.submit_steps(msgs)
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Collect the replies of ``step_async``.
+        """Collect the replies of ``step_async``, waiting at most ``timeout`` seconds (None: the call timeout).
 
         Raises:
-            WorkerError: a worker raised, died or did not answer within the call timeout (its index named).
+            StepTimeoutError: not every reply came within ``timeout`` (the first worker still owing one named; the
+                step stays pending: the next ``step_wait`` collects it), or a worker did not answer within the call
+                timeout (that worker is broken).
+            WorkerError: a worker raised or died (its index named).
         """
         return _Returns(self).finish(self._wait(timeout))
 
@@ -326,7 +316,9 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
 
     def as_sb3(self) -> Any:
         """An SB3 ``VecEnv`` over the same workers (same-step autoreset, as SB3 expects)."""
-        return _sb3_class()(self)
+        from uniros_async.runtime.sb3 import UnirosSB3VecEnv
+
+        return UnirosSB3VecEnv(self)
 
     # ---- helpers (also used by the SB3 adapter)
 
@@ -351,10 +343,10 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         if form[0] is not space:  # worked out once per action space: a step then costs no isinstance or shape tuple
             form = self._action_form = _action_form(space, self.num_envs)
         _, kind, shape, dtype = form
-        if kind == "box":
-            per_env: Any = np.asarray(actions, dtype)
-            if per_env.shape != shape:
-                _bad_actions(shape, per_env.shape)
+        if kind == "box":  # each sub-env's row as given (its dtype too), as gymnasium's vector envs pass it
+            per_env: Any = np.asarray(actions)
+            if per_env.shape != shape and not (per_env.ndim and len(per_env) == shape[0] == per_env.size):
+                _bad_actions(shape, per_env.shape)  # (n,) for n sub-envs of one entry each: their entries as given
         elif kind == "discrete":  # gymnasium's iterate over the batch space costs ~7 us here
             batch = np.asarray(actions, dtype)
             if batch.shape != shape:
@@ -379,11 +371,16 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
     def _wait(self, timeout: float | None) -> list[Any]:
         fut = self._pending
         if fut is None:
-            raise gym.error.NoAsyncCallError("step_wait called without step_async", "step")
+            raise gym.error.NoAsyncCallError("Calling `step_wait` without any prior call to `step_async`.", "step")
+        wait_s = self._sup.call_timeout_s + 5.0 if timeout is None else timeout
         try:
-            result = fut.result(self._sup.call_timeout_s + 5.0 if timeout is None else timeout)
+            result = fut.result(wait_s)
         except concurrent.futures.TimeoutError:
-            raise gym.error.AlreadyPendingCallError(f"the step did not finish within {timeout} s", "step") from None
+            raise StepTimeoutError(
+                self._sup.first_owing(),
+                f"no reply to 'step' within {wait_s} s (step_wait's timeout; the step stays pending, and the next "
+                "step_wait collects it)",
+            ) from None
         finally:
             if fut.done():
                 self._pending = None
@@ -611,152 +608,6 @@ class _Returns:
         return obs, self.rewards, self.terminated, self.truncated, infos
 
 
-_SB3_CLASS: list[type] = []
-
-
-def _sb3_class() -> type:
-    """The SB3 adapter class, defined on first use (SB3 imports torch, which a plain gymnasium user need not pay)."""
-    if _SB3_CLASS:
-        return _SB3_CLASS[0]
-    from stable_baselines3.common.vec_env.base_vec_env import VecEnv as SB3VecEnv
-
-    class UnirosSB3VecEnv(SB3VecEnv):
-        """An SB3 VecEnv over the workers of a UnirosVectorEnv, with SB3's conventions (as DummyVecEnv): the step
-        that ends an episode resets at once; its info holds ``terminal_observation`` and ``TimeLimit.truncated``;
-        the reset's info goes to ``reset_infos``."""
-
-        def __init__(self, venv: UnirosVectorEnv) -> None:
-            self.venv = venv
-            super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
-
-        def reset(self) -> Any:
-            v = self.venv
-            v._check_open()
-            v._drop_pending()
-            msgs = [
-                {"op": "reset", "seed": self._seeds[i], "options": self._options[i] or None}
-                for i in range(self.num_envs)
-            ]
-            replies = v._sup.call(v._sup.request_all(msgs))
-            self.reset_infos = [r[1] for r in replies]
-            self._reset_seeds()
-            self._reset_options()
-            return v._stack_obs([r[0] for r in replies])
-
-        def step_async(self, actions: np.ndarray) -> None:
-            v = self.venv
-            v._check_open()
-            if v._pending is not None:
-                raise gym.error.AlreadyPendingCallError("step_async was called twice without step_wait", "step")
-            msgs = v._step_messages(actions, "same_step")
-            v._pending = v._sup.submit_steps(msgs)
-
-        def step_wait(self) -> tuple[Any, np.ndarray, np.ndarray, list[dict[str, Any]]]:
-            v = self.venv
-            replies = v._wait(None)
-            infos: list[dict[str, Any]] = []
-            dones = np.zeros(self.num_envs, dtype=np.bool_)
-            space = v.single_observation_space
-            for i, (_, _, terminated, truncated, info) in enumerate(replies):
-                done = dones[i] = terminated or truncated
-                if "final_obs" in info:  # the worker reset after the step (protocol: same_step)
-                    reset_info = {k: x for k, x in info.items() if k not in ("final_obs", "final_info")}
-                    self.reset_infos[i] = reset_info
-                    final = info["final_obs"]
-                    info = dict(info["final_info"])
-                    info["terminal_observation"] = conform(space, final) if v._conform_obs else final
-                elif done:  # a restarted worker: its final observation died with it
-                    info["terminal_observation"] = replies[i][0]
-                info["TimeLimit.truncated"] = bool(truncated and not terminated)
-                infos.append(info)
-            obs = v._stack_obs([r[0] for r in replies])
-            rewards = np.array([r[1] for r in replies], dtype=np.float32)
-            return obs, rewards, dones, infos
-
-        def close(self) -> None:
-            self.venv.close()
-
-        def get_images(self) -> Sequence[np.ndarray | None]:
-            if self.render_mode != "rgb_array":
-                import warnings
-
-                warnings.warn(
-                    f"The render mode is {self.render_mode}, but this method assumes it is `rgb_array` to obtain "
-                    "images.",
-                    stacklevel=2,
-                )
-                return [None] * self.num_envs
-            return list(self.venv.render() or ())
-
-        def _targets(self, indices: Any) -> list[int]:
-            """``indices`` as SB3 takes them (None: all; an int; an iterable; negative ones count from the end).
-
-            Raises:
-                IndexError: an index out of range.
-            """
-            n = self.num_envs
-            if indices is None:
-                return list(range(n))
-            if isinstance(indices, int | np.integer):
-                indices = [indices]
-            out = []
-            for i in indices:
-                k = int(i)
-                if not -n <= k < n:
-                    raise IndexError(f"env index {k} out of range for {n} envs")
-                out.append(k % n)
-            return out
-
-        def _each(self, msg: dict[str, Any], indices: Any) -> list[Any]:
-            """``msg`` to each worker of ``indices``, in their order (an index named twice gets it twice); the
-            results in that order."""
-            v = self.venv
-            v._check_open()
-            targets = self._targets(indices)
-            results: list[Any] = [None] * len(targets)
-            todo = list(enumerate(targets))
-            while todo:  # one request per worker at a time: a repeated index waits for the next round
-                round_: list[tuple[int, int]] = []
-                later: list[tuple[int, int]] = []
-                seen: set[int] = set()
-                for pos, i in todo:
-                    (later if i in seen else round_).append((pos, i))
-                    seen.add(i)
-                msgs: list[Any] = [None] * self.num_envs
-                for _, i in round_:
-                    msgs[i] = msg
-                try:
-                    out = v._sup.call(v._sup.request_all(msgs))
-                except WorkerError as exc:
-                    if "AttributeError" in str(exc):
-                        raise AttributeError(str(exc)) from exc
-                    raise
-                for pos, i in round_:
-                    results[pos] = result_value(out[i])
-                todo = later
-            return results
-
-        def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
-            return self._each({"op": "get", "name": attr_name}, indices)
-
-        def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
-            self._each({"op": "set", "name": attr_name, "value": value}, indices)
-
-        def env_method(
-            self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any
-        ) -> list[Any]:
-            msg = {"op": "call", "name": method_name, "args": list(method_args), "kwargs": method_kwargs}
-            return self._each(msg, indices)
-
-        def env_is_wrapped(self, wrapper_class: type, indices: Any = None) -> list[bool]:
-            """Asked of each worker's env (its wrappers live there)."""
-            name = f"{wrapper_class.__module__}:{wrapper_class.__qualname__}"
-            return [bool(r) for r in self._each({"op": "is_wrapped", "wrapper": name}, indices)]
-
-    _SB3_CLASS.append(UnirosSB3VecEnv)
-    return UnirosSB3VecEnv
-
-
 def make_vec(
     specs: Sequence[EnvSpec],
     *,
@@ -767,16 +618,20 @@ def make_vec(
     transport: str = "shm",
     autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     backend: str = "local",
-    envs_per_worker: int = 1,
+    envs_per_worker: int | str = AUTO,
     **common_kwargs: Any,
 ) -> UnirosVectorEnv:
-    """A gymnasium VectorEnv over one worker process per spec (or per ``envs_per_worker`` specs).
+    """A gymnasium VectorEnv over worker processes: one per env, or one per core where accelerated envs outnumber
+    the cores (``envs_per_worker``).
 
     Args:
-        specs: env ids or ``(env_id, kwargs)`` pairs, e.g. ``["uniros/Rx200Reach-v0", ("uniros/Ned2Reach-v0",
-            {"robot": "emulated-real"})]``; any gymnasium id, and for an env of your own gymnasium's
-            ``"module:Id"`` (the worker imports ``module``, which registers ``Id``). ``{"worker": "ray"}``
-            or ``{"worker": {"ray": {...}}}`` has Ray place that spec's worker on a node of its cluster (see
+        specs: env ids, ``(env_id, kwargs)`` pairs or env factories, mixed as you like, e.g.
+            ``["uniros/Rx200Reach-v0", ("uniros/Ned2Reach-v0", {"robot": "emulated-real"})]`` or, as gymnasium's
+            AsyncVectorEnv and SB3's SubprocVecEnv take them, ``[lambda: gym.make("CartPole-v1")] * 4``. Any
+            gymnasium id, and for an env of your own gymnasium's ``"module:Id"`` (the worker imports ``module``,
+            which registers ``Id``). A factory (a callable without arguments that returns a gymnasium.Env) is
+            cloudpickled into its worker and called there (runtime/specs.py). ``{"worker": "ray"}`` or
+            ``{"worker": {"ray": {...}}}`` has Ray place that spec's worker on a node of its cluster (see
             ``backend``; its pid in ``pids`` is on that node); ``"worker": None`` keeps it here.
         pad: when the envs' spaces differ, pad observations and actions to the largest sizes (1-D Box spaces, or a
             Dict with a 1-D ``observation``); identical spaces are never padded. Without it the spaces must match.
@@ -794,23 +649,32 @@ def make_vec(
             on a node of the connected cluster, runtime/ray_backend.py; a spec's ``{"worker": {"ray": {"resources":
             {"rx200_arm": 1}}}}`` or ``node_id`` pins it, ``"worker": None`` keeps it here).
         envs_per_worker: how many envs one worker process hosts (consecutive specs with the same placement), each
-            with its own connection, all stepped on the process's one event loop. More than one where accelerated
-            envs outnumber the cores (one process per core: the envs of a process share its caches, where a core
-            switching between processes pays ~7 % more per step). A real-time env (wall clock) needs a process
-            of its own (its loop's ticks would wait for the others' steps): one in a shared process fails to
-            start with a WorkerError that says so. A process that dies takes its envs with it: the first is
-            reported, or all are restarted together (each step truncated, ``info["worker_restarted"]``).
-        **common_kwargs: passed to every env (a spec's own kwargs win), e.g. ``clock="sim"``.
+            with its own connection, all stepped on the process's one event loop. ``"auto"`` (the default): one
+            process per core where accelerated envs outnumber the cores (the envs of a process share its caches,
+            where a core switching between processes pays more per step), one per env otherwise, and a real-time
+            env (wall clock) always alone; decided before any env is built, from the specs' ``clock`` and their
+            registrations (the rule: runtime/specs.py). A count >= 1 is taken as given; a real-time env in a shared
+            process then fails to start with a WorkerError that says so. A process that dies takes its envs with
+            it: the first is reported, or all are restarted together (each step truncated,
+            ``info["worker_restarted"]``).
+        **common_kwargs: passed to every env given by id (a spec's own kwargs win), e.g. ``clock="sim"``; not
+            with factories.
 
     Raises:
-        ConfigError: a malformed spec, an unknown id or a ``worker`` that is neither None nor a Ray placement
+        ConfigError: a malformed spec, a factory that cannot be pickled (or with ``backend="ray"``, or with
+            ``common_kwargs``), an unknown id or a ``worker`` that is neither None nor a Ray placement
             (before any process starts), an unknown or invalid keyword argument (before any worker is given its
             env: the workers' interpreters, started meanwhile, are stopped), or spaces that cannot be padded or
             combined (naming the envs; the workers are closed).
         WorkerError: a worker failed to start or to build its env, or Ray could not place or start it (its index
             and traceback; the others are closed).
     """
-    norm = [(env_id, {**common_kwargs, **kw}) for env_id, kw in _normalize_specs(specs)]
+    norm = normalize_specs(specs, common_kwargs)
+    if backend == "ray" and any(factory_of(kw) is not None for _, kw in norm):
+        raise ConfigError(
+            "backend='ray' places workers built from env ids (their nodes are sent plain data, not pickles); env "
+            "factories are built by workers on this machine: give ids, or backend='local'"
+        )
     norm = apply_backend(norm, backend)
     sup = Supervisor(
         norm,
