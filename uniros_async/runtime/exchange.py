@@ -244,6 +244,10 @@ class StepExchange:
             self._orphans.append(task)
         raise error
 
+    def first_owing(self) -> int:
+        """The index of the first worker whose reply is still owed (0 when none is)."""
+        return next((w.index for w in self.workers if w.in_flight), 0)
+
     def submit(self, coro: Coroutine[Any, Any, T]) -> _Pending[T]:
         """Start ``coro`` on the supervisor's loop, run it until it waits, and return; ``.result()`` finishes it."""
 

@@ -248,11 +248,15 @@ def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
     shape and dtype, Discrete, MultiDiscrete, MultiBinary, Text, and Dict, Tuple, Sequence, OneOf and Graph nested
     in any way).
 
+    A subclass of one of them (one that samples differently, say) travels as that space.
+
     Raises:
         ConfigError: another kind of space (a custom Space subclass), naming it.
     """
-    t = type(space)
     spaces = gym.spaces
+    known: tuple[type, ...] = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary, spaces.Text)
+    known += (spaces.Dict, spaces.Tuple, spaces.Sequence, spaces.OneOf, spaces.Graph)
+    t: type = next((c for c in type(space).__mro__ if c in known), type(space))
     if t is spaces.Box:
         b: Any = space
         return {"type": "Box", "low": b.low, "high": b.high, "dtype": np.dtype(b.dtype).str}
@@ -287,7 +291,7 @@ def space_to_plain(space: gym.Space[Any]) -> dict[str, Any]:
         return {"type": "Graph", "node_space": space_to_plain(g.node_space), "edge_space": edge}
     raise ConfigError(
         f"cannot send the space {space!r} between processes: expected Box, Discrete, MultiDiscrete, MultiBinary, "
-        f"Text, Dict, Tuple, Sequence, OneOf or Graph, got {t.__name__}"
+        f"Text, Dict, Tuple, Sequence, OneOf or Graph (or a subclass of one), got {t.__name__}"
     )
 
 

@@ -49,6 +49,7 @@ from uniros_async.runtime.handle import WorkerHandle
 from uniros_async.runtime.launch import WorkerProcess, found_libraries, start_interpreter, start_worker
 from uniros_async.runtime.ray_placement import RayPlacement, check_placements
 from uniros_async.runtime.ray_process import RayWorkerProcess
+from uniros_async.runtime.specs import AUTO, factory_of, plan_envs_per_worker
 from uniros_async.runtime.worker import WorkerSpec
 
 __all__ = ["Supervisor", "WorkerHandle", "worker_groups"]
@@ -76,14 +77,15 @@ class Supervisor(StepExchange):
     """Starts one worker per spec and runs requests on them; ``close()`` stops them all (idempotent, bounded).
 
     Args:
-        specs: ``(env_id, kwargs)`` per worker, in index order.
+        specs: ``(env_id, kwargs)`` per worker, in index order (a factory's as ``specs.normalize_specs`` makes it).
         start_timeout_s: bound on starting every worker and building its env.
         call_timeout_s: bound on any one request (reset, step, ...).
         close_timeout_s: bound on ``close`` per stage (ask, join, terminate).
         transport: ``"shm"`` (same machine, the default) or ``"tcp"`` (loopback), for local workers; a spec with
             a Ray placement in its ``worker`` keyword runs where Ray places it (runtime/ray_backend.py).
         envs_per_worker: how many envs one worker process hosts (``worker_groups``): consecutive specs with the same
-            placement, each with its own connection, stepped on the process's one event loop.
+            placement, each with its own connection, stepped on the process's one event loop; ``"auto"``: as
+            ``specs.plan_envs_per_worker`` decides.
     """
 
     def __init__(
@@ -94,12 +96,14 @@ class Supervisor(StepExchange):
         call_timeout_s: float = 60.0,
         close_timeout_s: float = 3.0,
         transport: str = "shm",
-        envs_per_worker: int = 1,
+        envs_per_worker: int | str = 1,
     ) -> None:
         if not specs:
             raise ConfigError("expected at least one env spec, got none")
-        if isinstance(envs_per_worker, bool) or not isinstance(envs_per_worker, int) or envs_per_worker < 1:
-            raise ConfigError(f"envs_per_worker must be an int >= 1, got {envs_per_worker!r}")
+        if envs_per_worker != AUTO and (
+            isinstance(envs_per_worker, bool) or not isinstance(envs_per_worker, int) or envs_per_worker < 1
+        ):
+            raise ConfigError(f"envs_per_worker must be an int >= 1 or 'auto', got {envs_per_worker!r}")
         self.envs_per_worker = envs_per_worker
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
@@ -108,7 +112,13 @@ class Supervisor(StepExchange):
         spares = _start_interpreters(specs, envs_per_worker)
         try:
             for env_id, kwargs in specs:
-                check_env_args(env_id, kwargs)
+                if factory_of(kwargs) is None:
+                    check_env_args(env_id, kwargs)
+                elif split_placement(kwargs)[0] is not None:  # a factory is judged by the env it builds, here
+                    raise ConfigError(
+                        f"{env_id}: an env factory is built by a worker on this machine; workers placed by Ray are "
+                        "built from env ids (their nodes are sent plain data, not pickles)"
+                    )
         except BaseException:
             _discard_all(spares)
             raise
@@ -122,6 +132,7 @@ class Supervisor(StepExchange):
         self._ray_key = secrets.token_bytes(32)  # the key of this vector env's Ray-placed workers
         try:
             self._start(specs, start_timeout_s)
+            _discard_all(self._spares)  # none is left unless "auto" judged a "module:Id" anew once it was imported
         except BaseException:
             _discard_all(self._spares)
             self.close()
@@ -134,7 +145,7 @@ class Supervisor(StepExchange):
         split = [split_placement(kwargs) for _, kwargs in specs]
         check_placements([p for p, _ in split if isinstance(p, RayPlacement)])  # before anything starts
         placements = [p for p, _ in split]
-        for group in worker_groups(placements, self.envs_per_worker):
+        for group in _groups(specs, placements, self.envs_per_worker):
             # the first worker the highest real-time priority: the order in which a step's requests are sent
             members = [(i, specs[i][0], split[i][1], min(len(specs) - 1 - i, MAX_LOOP_RANK)) for i in group]
             self.workers += self._new_group(members, placements[group[0]], timeout_s)
@@ -197,7 +208,7 @@ class Supervisor(StepExchange):
                 accept_timeout_s=timeout_s,
                 listen_uri=listen_uri,
                 rt_rank=rt_rank,
-                registration=registration(env_id),
+                registration=registration(env_id) if factory_of(kwargs) is None else None,
                 environ=environ,
             )
             for index, env_id, kwargs, rt_rank in members
@@ -454,25 +465,44 @@ def _local_address(ip: str) -> bool:
     return True
 
 
-def worker_groups(placements: Sequence[RayPlacement | None], envs_per_worker: int) -> list[list[int]]:
+def worker_groups(
+    placements: Sequence[RayPlacement | None], envs_per_worker: int, alone: Sequence[bool] = ()
+) -> list[list[int]]:
     """The spec indices each worker process hosts: runs of consecutive specs with the same placement (here, or the
-    same Ray resources, node, CPUs and cluster), at most ``envs_per_worker`` each. A Ray-placed process asks for
-    that placement once (its actor's resources and CPUs), however many envs it hosts."""
+    same Ray resources, node, CPUs and cluster), at most ``envs_per_worker`` each; a spec marked in ``alone`` is
+    hosted by itself. A Ray-placed process asks for that placement once (its actor's resources and CPUs), however
+    many envs it hosts."""
 
     def where(p: RayPlacement | None) -> Any:
         return None if p is None else (sorted(p.resources.items()), p.node_id, p.num_cpus, p.address)
 
+    alone = list(alone) or [False] * len(placements)
     groups: list[list[int]] = []
     for i, p in enumerate(placements):
-        if groups and len(groups[-1]) < envs_per_worker and where(placements[groups[-1][0]]) == where(p):
-            groups[-1].append(i)
+        last = groups[-1] if groups else None
+        if (
+            last is not None
+            and len(last) < envs_per_worker
+            and not alone[i]
+            and not alone[last[0]]
+            and where(placements[last[0]]) == where(p)
+        ):
+            last.append(i)
         else:
             groups.append([i])
     return groups
 
 
+def _groups(
+    specs: Sequence[tuple[str, dict[str, Any]]], placements: Sequence[RayPlacement | None], envs_per_worker: int | str
+) -> list[list[int]]:
+    """``worker_groups`` for ``specs``, ``envs_per_worker`` a count or ``"auto"`` (``specs.plan_envs_per_worker``)."""
+    most, alone = plan_envs_per_worker(specs, [p is not None for p in placements], envs_per_worker)
+    return worker_groups(placements, most, alone)
+
+
 def _start_interpreters(
-    specs: Sequence[tuple[str, dict[str, Any]]], envs_per_worker: int = 1
+    specs: Sequence[tuple[str, dict[str, Any]]], envs_per_worker: int | str = 1
 ) -> list[tuple[WorkerProcess, multiprocessing.connection.Connection]]:
     """One interpreter for each worker process that runs here (``launch.start_interpreter``; ``worker_groups``);
     none if any spec's placement is malformed or its env id unknown (``check_env_args`` then reports it, before any
@@ -480,13 +510,16 @@ def _start_interpreters(
     from uniros_async.tasks.registry import register_envs
 
     register_envs()
-    if not all(isinstance(env_id, str) and (":" in env_id or env_id in gym.registry) for env_id, _ in specs):
+    if not all(
+        isinstance(env_id, str) and (":" in env_id or env_id in gym.registry or factory_of(kwargs) is not None)
+        for env_id, kwargs in specs
+    ):
         return []
     try:
         placements = [split_placement(kwargs)[0] for _, kwargs in specs]
     except ConfigError:
         return []
-    local = sum(placements[g[0]] is None for g in worker_groups(placements, envs_per_worker))
+    local = sum(placements[g[0]] is None for g in _groups(specs, placements, envs_per_worker))
     spares: list[tuple[WorkerProcess, multiprocessing.connection.Connection]] = []
     try:
         for _ in range(local):

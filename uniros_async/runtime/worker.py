@@ -2,12 +2,13 @@
 
 A worker is started with one frozen ``WorkerSpec``: by the supervisor as ``python -m uniros_async.runtime``
 (``launch.start_worker``, ``__main__.py``), and the same way by a Ray actor on the node Ray placed it on
-(``ray_backend.py``). It listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through
-the start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` and then
-answers requests until told to close or until the supervisor goes away. A spec with ``mates``
-(``make_vec(envs_per_worker=...)``) makes the process do the same for each of them too, every env with its own
-listener and connection, all served on the one event loop: where accelerated envs outnumber the cores, one
-process per core keeps a core's caches for its envs instead of switching between processes at every step.
+(``ray_host.py``). It listens on ``shm://`` (a unique name), hands the listen URI to the supervisor through the
+start-up pipe, accepts one connection, builds its env with ``gymnasium.make(env_id, **kwargs)`` (or calls the env
+factory it was given, ``specs.normalize_specs``) and then answers requests until told to close or until the
+supervisor goes away. A spec with ``mates`` (``make_vec(envs_per_worker=...)``) makes the process do the same for
+each of them too, every env with its own listener and connection, all served on the one event loop: where
+accelerated envs outnumber the cores, one process per core keeps a core's caches for its envs instead of switching
+between processes at every step.
 
 One event loop per worker (docs/architecture.md): a uniros env is made inside ``envs.runtime.deferred_start()`` and
 started on the worker's own loop (``await env.astart()``), so its bus, servo sim and env loop run beside the
@@ -66,6 +67,7 @@ from uniros_async.runtime.protocol import (
     space_to_plain,
     unpack,
 )
+from uniros_async.runtime.specs import factory_of
 
 __all__ = [
     "LOOP_PHASE_STEP_NS",
@@ -355,8 +357,13 @@ class _Server:
             reg = self.spec.registration
             if reg is not None and reg["id"] not in gym.registry:
                 gym.register(**reg)
+            factory = factory_of(self.spec.kwargs)
             with deferred_start():
-                self.env = env = gym.make(self.spec.env_id, **self.spec.kwargs)
+                if factory is None:
+                    env = gym.make(self.spec.env_id, **self.spec.kwargs)
+                else:
+                    env = _env_from_factory(factory)
+                self.env = env
             # before the env's loop starts: the collection that starts a freeze walks the whole heap (~15 ms), and
             # without the freeze the first full collection would come in the loop's first seconds, on its thread
             freeze_heap()
@@ -637,6 +644,20 @@ class _Server:
             await base.aclose()  # the wrappers' close() only passes close on
         else:
             env.close()
+
+
+def _env_from_factory(payload: bytes) -> gym.Env[Any, Any]:
+    """The env that a pickled env factory (``specs.normalize_specs``) builds.
+
+    Raises:
+        TypeError: the factory returned something other than a gymnasium.Env.
+    """
+    import cloudpickle
+
+    env = cloudpickle.loads(payload)()
+    if not isinstance(env, gym.Env):
+        raise TypeError(f"the env factory returned {type(env).__name__}, expected a gymnasium.Env")
+    return env
 
 
 def _action_conformer(space: gym.Space[Any]) -> Any:
