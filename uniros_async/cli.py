@@ -192,6 +192,12 @@ def _build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--duration", type=float, default=60.0, help="wall seconds per row (default 60)")
     bc.add_argument("--sizes", nargs="+", default=["none", "84x84"], help="WxH per row, or none (default none 84x84)")
     bc.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
+    bb = bench.add_parser("bag", help="four real-time envs and a 30 Hz 640x480 camera recorded to one MCAP bag")
+    bb.add_argument("--duration", type=float, default=600.0, help="wall seconds (default 600)")
+    bb.add_argument("--baseline", type=float, default=60.0, help="first, seconds without recording (default 60)")
+    bb.add_argument("--out", default="bench_bag.mcap", metavar="FILE", help="the bag (default bench_bag.mcap)")
+    bb.add_argument("--keep", action="store_true", help="keep the bag (default: removed after reading it back)")
+    bb.add_argument("--json", dest="json_path", default=None, metavar="PATH", help=_JSON_HELP)
     bs = bench.add_parser("simclock", help="how many times faster than real time the accelerated sim runs")
     bs.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds per case (default 60)")
     bs.add_argument("--episodes", type=int, default=3, help="reach episodes to time (default 3)")
@@ -458,6 +464,18 @@ def _run_bench(args: argparse.Namespace) -> int:
                 json_path=args.json_path,
                 real_time=not args.no_rt,
                 keep_cores_awake=not args.allow_idle,
+            )
+        )
+    elif args.scenario == "bag":
+        from uniros_async.bench import bag as bench_bag
+
+        bench_bag.main(
+            bench_bag.BagBenchConfig(
+                duration_s=args.duration,
+                baseline_s=args.baseline,
+                out=args.out,
+                keep=args.keep,
+                json_path=args.json_path,
             )
         )
     elif args.scenario == "cameras":

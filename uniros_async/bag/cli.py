@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import signal
 import sys
 from typing import Any
@@ -29,6 +30,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     rec.add_argument("--clock", choices=("wall", "sim"), default="wall", help="log times: wall clock or /clock")
     rec.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunks (default zstd)")
     rec.add_argument("--depth", type=int, default=100, help="reliable queue depth per topic (default 100)")
+    rec.add_argument(
+        "--nice",
+        type=int,
+        default=10,
+        help="lower the recorder's priority by this much, so that on a busy machine it yields the CPU to the loops "
+        "it records and drops (counted) instead (default 10; 0: not)",
+    )
     info = actions.add_parser("info", help="topics, types, counts, time span and chunks of a bag")
     info.add_argument("file", help="the .mcap file")
     play = actions.add_parser(
@@ -74,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
 
         def started(topics: list[str]) -> None:
             print(f"# recording {len(topics)} topic(s) to {args.output}: {' '.join(topics)}", flush=True)
+
+        if args.nice > 0:
+            os.nice(args.nice)
 
         async def main_record() -> None:
             stop = asyncio.Event()

@@ -73,6 +73,9 @@ class BagWriter:
         max_queue_bytes: and their arrays' bytes at most.
         ros2: write the standard types as ROS 2 CDR (default); False writes every type as our own.
         metadata: MCAP metadata records to write first, name -> {key: value}.
+        nice: the writer thread lowers its own scheduling priority by this much (Linux nice, per thread), so that
+            on a busy machine compressing and writing yield the CPU to loops and publishers; its queue then fills
+            and drops, counted, instead.
 
     Raises:
         ConfigError: a bad setting. BagError: the file cannot be created.
@@ -89,6 +92,7 @@ class BagWriter:
         max_queue_bytes: int = 256 << 20,
         ros2: bool = True,
         metadata: Mapping[str, Mapping[str, str]] | None = None,
+        nice: int = 10,
     ) -> None:
         from mcap.writer import CompressionType, Writer
 
@@ -104,6 +108,7 @@ class BagWriter:
         self.stats = WriterStats()
         self.error: BaseException | None = None
         self._flush_interval_s = flush_interval_s
+        self._nice = nice
         self._max_queue = max_queue
         self._max_queue_bytes = max_queue_bytes
         self._queue: collections.deque[tuple[str, Any, int, int, int]] = collections.deque()
@@ -200,6 +205,10 @@ class BagWriter:
         return cid
 
     def _run(self) -> None:
+        if self._nice > 0:
+            with contextlib.suppress(OSError, AttributeError):  # best effort: not on every OS
+                tid = threading.get_native_id()
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + self._nice)
         t0 = time.thread_time()
         last_flush = time.monotonic()
         try:
