@@ -8,7 +8,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from _processes import wait_gone
-from gymnasium.utils.env_checker import check_env as gym_check_env
 
 import uniros_async
 from uniros_async.errors import ConfigError, RobotError
@@ -20,17 +19,14 @@ def _red_pixels(img: np.ndarray) -> int:
 
 
 @pytest.mark.slow
-def test_pixel_reach_passes_gymnasium_and_sb3_checkers() -> None:
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
-
+def test_pixel_reach_observes_the_target_only_in_the_frame() -> None:
+    # gymnasium's and SB3's env checkers run on this id in tests/envs/test_reach_env.py's sweep of every id
     env = gym.make("uniros/Rx200ReachPixels-v0", clock="sim")
     try:
         space = env.observation_space
         assert isinstance(space, gym.spaces.Dict) and set(space.spaces) == {"pixels", "state"}
         assert space["pixels"].shape == (84, 84, 3) and space["pixels"].dtype == np.uint8
         assert space["state"].shape == (24,)  # the reach vector without the goal's direction and distance
-        gym_check_env(env.unwrapped, skip_render_check=True)
-        sb3_check_env(env.unwrapped, warn=False)
         obs, info = env.reset(seed=3)
         assert _red_pixels(obs["pixels"]) > 5  # the target is in the picture, and only there
         assert info["frame_age_s"] == 0.0 and info["frame_stale"] is False
