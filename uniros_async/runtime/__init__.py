@@ -1,11 +1,23 @@
-"""Env workers and the agent-side API over them: ``make`` (one env in a worker process) and ``make_vec`` (a
-gymnasium VectorEnv, and through ``.as_sb3()`` an SB3 VecEnv, over one worker per env).
+"""Env workers and the agent-side API over them: ``make_vec`` (a gymnasium VectorEnv, and through ``.as_sb3()`` an
+SB3 VecEnv, over worker processes) and ``make`` (one env in a worker process of its own).
 
-See docs/architecture.md: every env runs in a worker process of its own (``python -m uniros_async.runtime``) with
-its own event loop; the agent side talks to it over ``shm://``; worker failures come back as WorkerError with the
-worker's index and traceback.
+``make`` is not ``gymnasium.make``: ``gymnasium.make(id)`` builds the env in the calling process, while
+``uniros_async.make(id)`` starts a worker process, builds the env there and returns a ``ProxyEnv`` that forwards
+``reset``, ``step`` and ``call`` to it (``make(id, in_process=True)`` returns ``gymnasium.make``'s env instead).
+
+See docs/architecture.md: every env runs in a worker process (``python -m uniros_async.runtime``) with its own
+event loop, one process per env or, where accelerated envs outnumber the cores, one per core hosting several
+(``make_vec(envs_per_worker="auto")``, runtime/specs.py); the agent side talks to each env over ``shm://``; worker
+failures come back as WorkerError with the worker's index and traceback, a request that gets no reply in time as
+StepTimeoutError.
 A spec with a Ray placement (``worker="ray"``, ``{"ray": {...}}``, or ``backend="ray"``) runs on the node of a Ray
 cluster that Ray's scheduler picks, and the agent steps it over tcp, or shm on its own node (runtime/ray_backend.py).
+
+The modules: ``vector`` and ``sb3`` (the vector envs), ``proxy`` (``make``), ``specs`` (what ``make_vec`` is given,
+and which envs share a process), ``supervisor`` (starting, restarting and stopping the workers), ``exchange`` and
+``handle`` (requests out, replies in), ``hangup`` (a Ray-placed worker's connection ending mid-step), ``worker``,
+``cores``, ``protocol`` and ``launch`` (the worker process), ``envargs`` (checks of ids and kwargs), and
+``ray_placement``, ``ray_host`` and ``ray_process`` (workers placed by Ray).
 
 Names are imported lazily: a worker process, which runs ``python -m uniros_async.runtime`` and so imports this
 package first, loads only its own modules (worker.py, protocol.py), not the agent side (supervisor, vector env).

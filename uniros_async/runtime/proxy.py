@@ -1,4 +1,9 @@
-"""``make``: one env in its own worker process, behind ``ProxyEnv``, a gymnasium.Env that forwards to it."""
+"""``make``: one env in its own worker process, behind ``ProxyEnv``, a gymnasium.Env that forwards to it.
+
+``uniros_async.make`` is not ``gymnasium.make``: the same id given to ``gymnasium.make`` builds the env in the
+calling process; given to ``uniros_async.make`` it is built in a worker process, and what comes back is a proxy
+(``ProxyEnv``: ``reset``, ``step``, ``call`` and ``close`` go to the worker; its ``pid`` is the worker's).
+"""
 
 from __future__ import annotations
 
@@ -79,7 +84,10 @@ def make(
     backend: str = "local",
     **kwargs: Any,
 ) -> gym.Env[Any, Any]:
-    """Make ``env_id`` in its own worker process and return a gymnasium.Env proxy for it.
+    """Make ``env_id`` in its own worker process and return a gymnasium.Env proxy for it (``ProxyEnv``).
+
+    Unlike ``gymnasium.make``, which builds the env in this process, the env runs in a worker process with its own
+    event loop; ``in_process=True`` returns ``gymnasium.make``'s env instead. Several envs at once: ``make_vec``.
 
     Args:
         env_id: a registered id, e.g. ``"uniros/Rx200Reach-v0"``, or ``"module:Id"`` for an env of your own

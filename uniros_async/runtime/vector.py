@@ -1,5 +1,10 @@
-"""``make_vec``: a gymnasium VectorEnv over one worker process per env, and ``.as_sb3()``: an SB3 VecEnv over the
-same workers.
+"""``make_vec``: a gymnasium VectorEnv over worker processes, and ``.as_sb3()``: an SB3 VecEnv over the same workers
+(runtime/sb3.py).
+
+Its specs are env ids, ``(env id, kwargs)`` pairs or env factories, as gymnasium's AsyncVectorEnv and SB3's
+SubprocVecEnv take them (runtime/specs.py). Each env runs in a worker process: one process per env, or, where
+accelerated envs outnumber the cores, one process per core hosting several (``envs_per_worker="auto"``, the
+default; a real-time env always has a process of its own).
 
 Heterogeneous envs (an rx200 and a ned2, sim and emulated real) are padded to the largest observation and action
 size, as the paper's multi-task experiment does: each worker wraps its env in ``envs.wrappers.PadSpaces`` (zeros
@@ -11,7 +16,8 @@ Steps go to every worker before any reply is awaited (``step_async`` sends, ``st
 methods, not coroutines). Autoreset follows gymnasium's ``AutoresetMode.NEXT_STEP`` (as AsyncVectorEnv): the step
 after a sub-env's episode ended resets it, ignores its action and returns the reset observation with reward 0.
 The SB3 VecEnv resets in the same step instead, as SB3 expects, with ``info["terminal_observation"]`` and
-``info["TimeLimit.truncated"]``.
+``info["TimeLimit.truncated"]``. ``step_wait(timeout)`` that runs out raises StepTimeoutError naming the first worker
+still owing its reply; the step stays pending and the next ``step_wait`` collects it.
 """
 
 from __future__ import annotations
