@@ -1,7 +1,7 @@
 """Sim cameras: the MJCF cameras of a simulated arm, rendered offscreen and published as camera topics.
 
-Each arm's MJCF has a scene camera (``scene``: over the arm's shoulder, looking down at the table in front of it)
-and a wrist camera (``wrist``: on the gripper, looking ahead). ``open_sim_cameras`` runs a bus node that renders
+Each arm's MJCF has a scene camera (``scene``: beside the arm, looking down at the table in front of it) and a
+wrist camera (``wrist``: on the gripper, looking ahead and down). ``open_sim_cameras`` runs a bus node that renders
 them at their own rate and publishes each as ``Image`` on ``/<arm>/camera/color/image_raw`` (``scene``) and
 ``/<arm>/wrist_camera/color/image_raw`` (``wrist``), the names of a RealSense/UVC driver (camera/topic.py).
 
