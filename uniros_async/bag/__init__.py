@@ -25,6 +25,8 @@ __all__ = [
     "BagMessage",
     "BagReader",
     "BagWriter",
+    "PlayConfig",
+    "RecordConfig",
     "RecordEpisodes",
     "TopicInfo",
     "WriterStats",
@@ -35,14 +37,14 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:
     # record and play import the bus's nodes, RecordEpisodes gymnasium: only when asked for
-    if name == "record":
-        from uniros_async.bag.record import record
+    if name in ("record", "RecordConfig"):
+        from uniros_async.bag import recorder
 
-        return record
-    if name == "play":
-        from uniros_async.bag.play import play
+        return getattr(recorder, name)
+    if name in ("play", "PlayConfig"):
+        from uniros_async.bag import player
 
-        return play
+        return getattr(player, name)
     if name == "RecordEpisodes":
         from uniros_async.bag.episodes import RecordEpisodes
 

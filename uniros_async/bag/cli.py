@@ -1,4 +1,4 @@
-"""``uniros bag record|info|play``: bags of a domain's topics, as ``ros2 bag`` (record.py, reader.py, play.py)."""
+"""``uniros bag record|info|play``: bags of a domain's topics, as ``ros2 bag`` (recorder.py, reader.py, player.py)."""
 
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         print(info.format())
         return 1 if info.damage else 0
     if args.action == "record":
-        from uniros_async.bag.record import RecordConfig, record
+        from uniros_async.bag.recorder import RecordConfig, record
 
         config = RecordConfig(
             path=args.output,
@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
 
         asyncio.run(main_record())
         return 0
-    from uniros_async.bag.play import PlayConfig, play
+    from uniros_async.bag.player import PlayConfig, play
 
     pconfig = PlayConfig(
         path=args.file,
