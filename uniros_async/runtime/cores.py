@@ -30,18 +30,19 @@ logger = logging.getLogger(__name__)
 
 TURN_SPIN_NS = 200_000
 """How long a worker without a real-time env loop polls for the next request before it sleeps: the agent's turn
-between two steps (collect the returns, pick the next actions, pack them: ~60 us for one env here) is longer than
-``ShmTransport.spin_ns``, so with the default every step would wake the worker from sleep (~40 us on an idle core).
+between two steps (collect the returns, pick the next actions, pack them) is longer than ``ShmTransport.spin_ns``,
+so with the default every step would wake the worker from sleep (docs/performance.md has the costs).
 The spin credit still stops the polling when requests come slower than this (a learner's update between steps).
 Not for a tcp connection on loopback: see ``turn_spin_ns``."""
 
 
 def turn_spin_ns(transport: Any) -> int:
     """How long this worker polls for its next request: ``TURN_SPIN_NS``, but a tcp connection on loopback keeps
-    the transport's own ``spin_ns`` (50 us). A socket wakes its reader with a sync wake-up (the kernel is told that
-    the waker is about to sleep), which places a woken worker on its agent's core. There a 200 us poll held the
-    agent off its own core for the whole window: two tcp vector envs stepped in turn took ~400 us a step, ~140 us
-    with 50 us polls, while one env's steps cost the same with either (docs/perf/history.md). A poll that finds
+    the transport's own ``spin_ns``. A socket wakes its reader with a sync wake-up (the kernel is told that the
+    waker is about to sleep), which places a woken worker on its agent's core. There a long poll holds the agent off
+    its own core for the whole window: two tcp vector envs stepped in turn take far longer a step with
+    ``TURN_SPIN_NS`` than with the transport's short poll, while one env's steps cost the same with either. A poll
+    that finds
     the agent on its core moves the worker off it (``TcpTransport._peer_here``, as shm's ``_peer_here``). A worker
     on another host never shares its agent's core and keeps the longer poll."""
     if on_loopback(transport):

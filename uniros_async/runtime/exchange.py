@@ -3,7 +3,7 @@
 The agent side is synchronous (gymnasium), the transports are asyncio: the supervisor has a private event loop
 that the calling thread runs itself, only for the duration of each call (``loop.run_until_complete``): nothing on
 the agent side needs to run between calls (replies wait in the shm rings, a dead worker's hang-up in its socket),
-and a call then costs no hand-over to another thread (~16 us of loop start/stop instead of ~300 us of thread
+and a call then costs no hand-over to another thread (a loop's start and stop cost far less than a thread's
 wake-ups and GIL hand-offs). Calls from several threads are serialised by a lock. ``submit_steps`` sends requests
 and returns at once; the replies are collected by ``_Pending.result``. A step does not run the loop at all: the
 requests go out with the transport's ``try_send`` and the replies come in with its ``receive_blocking`` (shm and
@@ -125,7 +125,7 @@ class StepExchange:
         (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
         half is ``receive_steps_now``; ``submit_steps`` (``step_async``) sends with it too. In as few lines of Python
         as it can: this runs on every step, and at one env the agent's share of a step's overhead is what its lines of
-        Python cost (the goal: 50 us over the bare env step).
+        Python cost (its goal over the bare env step: docs/performance.md).
 
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).

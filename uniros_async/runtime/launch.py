@@ -200,7 +200,7 @@ def found_libraries() -> dict[str, str]:
 
     ``import mujoco`` imports ``glfw`` (for ``mujoco.GLContext``), which looks for libglfw by loading each candidate
     in a Python subprocess of its own to read its version: a second interpreter and an ``ldconfig -p`` in every
-    process that imports MuJoCo, ~50 ms of CPU each. Where this process has made that search already, the worker
+    process that imports MuJoCo. Where this process has made that search already, the worker
     is given its result (``PYGLFW_LIBRARY``, glfw's own setting) and loads the same library at once; a variable set
     by the user is left as it is.
     """

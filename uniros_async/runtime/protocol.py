@@ -3,9 +3,9 @@
 One frame per message, both directions: msgpack of plain data in which every numpy array travels as an ExtType
 (code 42: dtype, shape, raw bytes) and numpy scalars as Python numbers (float32 and the like with their dtype),
 converted by msgpack's own ``default`` /
-``ext_hook`` hooks, so the C packer walks the message and Python sees only the arrays (a step reply: ~10 us of CPU
-each way instead of ~13-33 us for a recursive walk in Python; ``to_wire``/``from_wire`` remain, for plain-data
-users). Anything else msgpack cannot take travels as its ``repr`` (infos may hold odd objects). A request is
+``ext_hook`` hooks, so the C packer walks the message and Python sees only the arrays (a step reply costs less CPU
+each way than a recursive walk in Python; ``to_wire``/``from_wire`` remain, for plain-data users). Anything else
+msgpack cannot take travels as its ``repr`` (infos may hold odd objects). A request is
 ``{"op": ..., ...}``; a reply is ``{"ok": True, "result": ...}`` or ``{"ok": False, "error": "Type: message",
 "traceback": "..."}``. A step, the hot path, has frames of its own (``pack_step_request``, ``pack_step_reply``;
 first byte ``STEP_TAG``, which msgpack never uses): a fixed header (autoreset mode and reference time; reward and

@@ -59,9 +59,9 @@ logger = logging.getLogger(__name__)
 Member = tuple[int, str, dict[str, Any], int]
 """One env of a worker process: ``(index, env_id, kwargs, rt_rank)``."""
 REPLY_SPIN_NS = 200_000
-"""How long the supervisor polls for a reply before it sleeps (``ShmTransport.spin_ns``): a worker takes ~60 us to
-unpack a request, step a trivial env and pack the reply, longer than the transport's default window, so the agent
-would sleep and pay a wake-up (~30 us) on every step. The agent's thread has nothing else to do meanwhile, and the
+"""How long the supervisor polls for a reply before it sleeps (``ShmTransport.spin_ns``): a worker takes longer to
+unpack a request, step a trivial env and pack the reply than the transport's default window, so the agent would
+sleep and pay a wake-up on every step. The agent's thread has nothing else to do meanwhile, and the
 spin credit stops the polling when replies take longer (a 10 Hz env's step). Not for workers with a real-time env
 loop: there the acting thread may run SCHED_RR above the workers, and its poll would keep a lower-ranked worker
 from the very reply it waits for; their connections keep the transport's default. Nor when the workers outnumber

@@ -84,11 +84,11 @@ logger = logging.getLogger(__name__)
 LOOP_PHASE_STEP_NS = 1_000_000
 """A real-time env's loop ticks and step deadlines fall ``rt_rank`` times this much after the common grid
 (``RobotEnv.loop_phase_ns``), so the members of a vector env tick and return one after the other, the
-highest-ranked last. On one instant, four workers on 2 cores ran in priority order anyway, and the later ones
-started whenever the others' variable work let them: the last reply, which the agent waits for, came 2.1 ms after
-the deadline with an IQR of 0.43 ms. Staggered, each runs alone and the last reply comes from the worker with the
-highest priority: IQR 0.1 ms (git's docs/perf/history.md). 1 ms is well above a worker's tick or return (0.2-0.4 ms when
-its caches are cold); the first member's returns wait up to ``(n - 1)`` ms longer for the agent."""
+highest-ranked last. On one instant, workers that outnumber the cores run in priority order anyway, and the later
+ones start whenever the others' variable work lets them, so the last reply, which the agent waits for, scatters;
+staggered, each runs alone and the last reply comes from the worker with the highest priority. The step is well
+above a worker's tick or return, even with cold caches; the first member's returns wait up to ``n - 1`` steps
+longer for the agent."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -316,7 +316,7 @@ async def _host(spec: WorkerSpec, listener: Any, builds: asyncio.Lock, *, shared
                 server.raise_loop_priority(thread_ids() - before)
         if hasattr(transport, "spin_ns"):  # shm and tcp
             # a real-time env loop shares this event loop now: its ticks matter more than the wake-up a poll
-            # for the next request would save, and the poll would hold the loop (up to 50 us)
+            # for the next request would save, and the poll would hold the loop (up to its spin window)
             transport.spin_ns = 0 if server.realtime or shared_loop else turn_spin_ns(transport)
         if hasattr(transport, "on_shared_core") and not server.realtime:
             transport.on_shared_core = move_off_core
@@ -364,7 +364,7 @@ class _Server:
                 else:
                     env = _env_from_factory(factory)
                 self.env = env
-            # before the env's loop starts: the collection that starts a freeze walks the whole heap (~15 ms), and
+            # before the env's loop starts: the collection that starts a freeze walks the whole heap, and
             # without the freeze the first full collection would come in the loop's first seconds, on its thread
             freeze_heap()
             self._conform_action = _action_conformer(env.action_space)
