@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -153,3 +156,21 @@ def test_make_vec_with_pixel_observations(transport: str, envs_per_worker: int) 
         assert obs["pixels"].shape == (2, 84, 84, 3) and np.all(info["frame_age_s"] <= 0.1)
     finally:
         envs.close()
+
+
+@pytest.mark.slow
+def test_a_script_without_a_main_guard_runs_a_wall_clock_pixel_env(tmp_path: Path) -> None:
+    # the render process is a fresh interpreter (python -m), not a multiprocessing spawn that re-runs the script
+    script = tmp_path / "no_guard.py"
+    script.write_text(
+        "import gymnasium as gym\n"
+        "import uniros_async\n"
+        "env = gym.make('uniros/Rx200ReachPixels-v0', action_cycle_s=0.2)\n"
+        "obs, info = env.reset(seed=0)\n"
+        "obs, *_, info = env.step(env.action_space.sample())\n"
+        "print('ok', obs['pixels'].shape, info['frame_stale'])\n"
+        "env.close()\n"
+    )
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "ok (84, 84, 3) False"

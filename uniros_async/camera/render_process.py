@@ -2,29 +2,35 @@
 
 Rendering with Mesa's software rasteriser holds the GIL of the process that asks for the pixels while the frame is
 drawn (``mjr_readPixels`` waits for the rasteriser's threads), milliseconds per frame: an env loop in that process
-would wait for it. ``RenderProcess`` keeps the GL context in a child process of its own instead (spawned, daemonic,
-ending when its pipe closes), so the loop's process pays only a message and one copy per frame:
+would wait for it. ``RenderProcess`` keeps the GL context in a child process of its own instead
+(``python -m uniros_async.camera.render_process``: a fresh interpreter, so a user's script needs no main guard; it
+ends when its socket to the parent closes, and the kernel ends it when the parent dies), so the loop's process pays
+only a message and one copy per frame:
 
-- the parent creates one sealed memfd per camera, of one frame's size, and hands the fds to the child over the
-  pipe (SCM_RIGHTS); memfds have no name, so nothing is left in ``/dev/shm`` whoever dies;
+- the parent creates one memfd per camera, of one frame's size, and hands the fds to the child when it starts;
+  memfds have no name, so nothing is left in ``/dev/shm`` whoever dies;
 - per frame the parent sends ``(index, joint names, positions, markers)``; the child poses its model, renders and
   writes the frame into the camera's memfd (the one copy out of GL, flipped to top-down rows), and answers
   ``(index, render_ns)``; the parent copies the frame out into the array it publishes (a camera has one request in
   flight at a time, so the memfd is not written while it is read).
 
-The parent reads answers with ``loop.add_reader`` on the pipe: nothing blocks the loop.
+The parent reads answers with ``loop.add_reader`` on the socket: nothing blocks the loop.
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
+import ctypes
 import logging
 import mmap
-import multiprocessing
 import os
+import signal
+import socket
+import subprocess
+import sys
 from collections.abc import Callable, Sequence
-from multiprocessing import reduction
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -42,8 +48,9 @@ START_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 5.0
 
 
-def _child_main(robot: RobotSpec, cameras: Sequence[Any], conn: Connection) -> None:
-    """The child: attach the memfds, open the renderer, render on request until the pipe closes."""
+def _child_main(conn: Connection, frame_fds: Sequence[int]) -> None:
+    """The child: get the arm and cameras, map the memfds, open the renderer, render on request until the socket
+    closes."""
     # Mesa's llvmpipe rasterises in a pool of one thread per core by default: on a machine whose cores the loops
     # need, one rendering thread (this one) costs the least switching; a user's own setting is kept
     os.environ.setdefault("LP_NUM_THREADS", "1")
@@ -51,9 +58,9 @@ def _child_main(robot: RobotSpec, cameras: Sequence[Any], conn: Connection) -> N
 
     views = []
     try:
+        robot, cameras = conn.recv()
         renderer = SimRenderer(robot, cameras)
-        for cfg in cameras:
-            fd = reduction.recv_handle(conn)
+        for cfg, fd in zip(cameras, frame_fds, strict=True):
             buf = mmap.mmap(fd, cfg.height * cfg.width * 3)
             os.close(fd)
             views.append(np.ndarray((cfg.height, cfg.width, 3), np.uint8, buffer=buf))
@@ -67,7 +74,7 @@ def _child_main(robot: RobotSpec, cameras: Sequence[Any], conn: Connection) -> N
         while True:
             try:
                 req = conn.recv()
-            except EOFError:  # the parent is gone
+            except (EOFError, OSError):  # the parent is gone
                 return
             if req is None:
                 return
@@ -78,6 +85,28 @@ def _child_main(robot: RobotSpec, cameras: Sequence[Any], conn: Connection) -> N
             conn.send((index, _now_ns() - t0))
     finally:
         renderer.close()
+
+
+def _spawn(sock_fd: int, frame_fds: Sequence[int]) -> subprocess.Popen[bytes]:
+    cmd = [sys.executable, "-m", "uniros_async.camera.render_process", "--sock", str(sock_fd), "--frames"]
+    cmd += [str(fd) for fd in frame_fds]
+    return subprocess.Popen(cmd, pass_fds=(sock_fd, *frame_fds), stdin=subprocess.DEVNULL, close_fds=True)
+
+
+def _die_with_parent() -> None:
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m uniros_async.camera.render_process --sock FD --frames FD...``: the child's entry point."""
+    parser = argparse.ArgumentParser(prog="uniros_async.camera.render_process")
+    parser.add_argument("--sock", type=int, required=True)
+    parser.add_argument("--frames", type=int, nargs="+", required=True)
+    args = parser.parse_args(argv)
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops it (a ctrl-C reaches the whole group)
+    _child_main(Connection(args.sock), args.frames)
 
 
 def _now_ns() -> int:
@@ -105,7 +134,7 @@ class RenderProcess:
         self._views: list[np.ndarray] = []
         self._maps: list[mmap.mmap] = []
         self._conn: Connection | None = None
-        self._proc: multiprocessing.process.BaseProcess | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.failed: asyncio.Future[None] | None = None
 
@@ -133,22 +162,20 @@ class RenderProcess:
             m = mmap.mmap(fd, size)
             self._maps.append(m)
             self._views.append(np.ndarray((cfg.height, cfg.width, 3), np.uint8, buffer=m))
-        ctx = multiprocessing.get_context("spawn")
-        parent, child = ctx.Pipe(duplex=True)
+        parent_sock, child_sock = socket.socketpair()
+        parent = Connection(parent_sock.detach())
         self._conn = parent
-        # daemon=True: a parent that dies takes the child with it (and the child ends when its pipe closes)
-        self._proc = ctx.Process(
-            target=_child_main, args=(self.robot, self.cameras, child), name="camera render", daemon=True
-        )
-        self._proc.start()
-        child.close()
-        for fd in self._fds:
-            reduction.send_handle(parent, fd, self._proc.pid)
+        child_fd = child_sock.detach()
+        try:
+            self._proc = await asyncio.to_thread(_spawn, child_fd, self._fds)  # a fork of a big process takes a while
+        finally:
+            os.close(child_fd)
+        parent.send((self.robot, self.cameras))
         try:
             async with asyncio.timeout(START_TIMEOUT_S):
                 while not parent.poll():
-                    if not self._proc.is_alive():
-                        raise RenderError(f"the camera render process exited with code {self._proc.exitcode}")
+                    if self._proc.poll() is not None:
+                        raise RenderError(f"the camera render process exited with code {self._proc.returncode}")
                     await asyncio.sleep(0.01)
         except TimeoutError:
             raise TimeoutError(f"the camera render process did not start within {START_TIMEOUT_S} s") from None
@@ -175,11 +202,11 @@ class RenderProcess:
             assert self._loop is not None
             self._loop.remove_reader(conn.fileno())
             if self.failed is not None and not self.failed.done():
-                code = None if self._proc is None else self._proc.exitcode
+                code = None if self._proc is None else self._proc.poll()
                 self.failed.set_exception(RuntimeError(f"the camera render process ended (exit code {code}): {exc}"))
 
     async def aclose(self) -> None:
-        """Stop the child (asked, then after ``STOP_TIMEOUT_S`` terminated) and free the memfds; idempotent."""
+        """Stop the child (asked, then after ``STOP_TIMEOUT_S`` killed) and free the memfds; idempotent."""
         conn, proc = self._conn, self._proc
         self._conn = self._proc = None
         if conn is not None:
@@ -189,10 +216,11 @@ class RenderProcess:
             with contextlib.suppress(OSError):
                 conn.send(None)
         if proc is not None:
-            await asyncio.to_thread(proc.join, STOP_TIMEOUT_S)
-            if proc.is_alive():
-                proc.terminate()
-                await asyncio.to_thread(proc.join, STOP_TIMEOUT_S)
+            try:
+                await asyncio.to_thread(proc.wait, STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                await asyncio.to_thread(proc.wait, STOP_TIMEOUT_S)
         if conn is not None:
             conn.close()
         self._views.clear()
@@ -203,3 +231,7 @@ class RenderProcess:
         for fd in self._fds:
             os.close(fd)
         self._fds.clear()
+
+
+if __name__ == "__main__":
+    main()

@@ -34,13 +34,14 @@ if TYPE_CHECKING:
     from uniros_async.camera.sim import SimCameraNode
     from uniros_async.envs.config import EnvConfig
 
-__all__ = ["CAMERA_AFTER_TICK_NS", "OBS_MODES", "SIM_CAMERA_PLACEMENTS", "PixelSource", "pixel_space"]
+__all__ = ["CAMERA_TICK_GAP_NS", "OBS_MODES", "SIM_CAMERA_PLACEMENTS", "PixelSource", "pixel_space"]
 
 OBS_MODES = ("state", "pixels", "pixels+state")
 SIM_CAMERA_PLACEMENTS = ("sim", "sim-process", "emulated-real")
 """Placements whose arm is simulated: the env renders its cameras (``sim_camera`` unset)."""
-CAMERA_AFTER_TICK_NS = 1_000_000
-"""A sim camera the env runs ticks this long after the env loop's ticks (its phase on the clock's grid)."""
+CAMERA_TICK_GAP_NS = 1_000_000
+"""A sim camera the env runs ticks this long after the env loop's ticks on a wall clock, before them on a sim clock
+(``PixelSource.camera_phase_ns``)."""
 MJCF_CAMERAS = {"camera": "scene", "wrist_camera": "wrist"}
 """The MJCF camera behind each sim camera topic name."""
 
@@ -81,6 +82,15 @@ class PixelSource:
         if self.config.camera_rate_hz is not None:
             return float(self.config.camera_rate_hz)
         return env_loop_rate_hz if self.config.clock == "sim" else 30.0
+
+    def camera_phase_ns(self, tick_phase_ns: int) -> int:
+        """Where the sim camera ticks on the clock's grid, given where the env loop ticks (``tick_phase_ns``): on a
+        wall clock just after the loop's ticks, so that a frame never renders, nor arrives, when a servo or env tick
+        is due; on a sim clock just before them (time stands still while a frame renders), so that each tick
+        observes a frame of its own instant's joint state."""
+        if self.config.clock == "sim":
+            return max(tick_phase_ns - CAMERA_TICK_GAP_NS, 0)
+        return tick_phase_ns + CAMERA_TICK_GAP_NS
 
     async def join(
         self,

@@ -51,7 +51,7 @@ from pydantic import Field
 from uniros_async.bus.messages import JointState
 from uniros_async.config import ConfigModel, Float, Vec3, key_error
 from uniros_async.envs.base import GoalEnv
-from uniros_async.envs.pixels import CAMERA_AFTER_TICK_NS, PixelSource
+from uniros_async.envs.pixels import PixelSource
 from uniros_async.envs.robot import TICK_OFFSET_NS
 from uniros_async.envs.task import TaskEnv, parse_kwargs
 from uniros_async.errors import ConfigError
@@ -215,8 +215,7 @@ class ReachEnv(TaskEnv):
             return
         try:
             rate_hz = self._pixels.camera_rate_hz(self.env_loop_rate_hz)
-            # frames render just after this loop's ticks (and the servo's, on the same grid), never at them
-            phase_s = (TICK_OFFSET_NS + self._phase_ns + CAMERA_AFTER_TICK_NS) / 1e9
+            phase_s = self._pixels.camera_phase_ns(TICK_OFFSET_NS + self._phase_ns) / 1e9
             await self._pixels.join(
                 self._node, self._node_stack, domain, transport, options, self._clock, rate_hz, phase_s
             )
