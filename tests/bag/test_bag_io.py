@@ -171,6 +171,8 @@ def test_bad_files_and_settings_are_named(tmp_path: Path) -> None:
         BagWriter(tmp_path / "y.mcap", compression="gzip")
     with pytest.raises(BagError, match="cannot create bag"):
         BagWriter(tmp_path / "no_dir" / "z.mcap")
+    with BagWriter(tmp_path / "t.mcap") as w, pytest.raises(ConfigError, match="ns >= 0"):
+        w.put("/text", m.Text(data="x"), -1)
 
 
 def test_a_full_queue_drops_new_messages_and_counts_them_per_topic(tmp_path: Path) -> None:

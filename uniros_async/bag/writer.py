@@ -140,7 +140,12 @@ class BagWriter:
         """Queue ``msg`` of ``topic`` for writing; False when it was dropped (queue full, or the writer stopped).
 
         Do not mutate ``msg``'s arrays afterwards (bus messages are never mutated).
+
+        Raises:
+            ConfigError: a negative time (MCAP's times are unsigned ns).
         """
+        if log_time_ns < 0 or (publish_time_ns is not None and publish_time_ns < 0):
+            raise ConfigError(f"{topic}: bag times are ns >= 0, got log {log_time_ns} and publish {publish_time_ns}")
         size = _size(msg)
         with self._cond:
             if (
@@ -232,7 +237,7 @@ class BagWriter:
                     self._mcap.flush()  # type: ignore[no-untyped-call]
                     last_flush = time.monotonic()
                 self.stats.file_bytes = self._file.tell()
-        except OSError as exc:
+        except Exception as exc:  # OSError (a full disk), or a record mcap refuses: the recording stops, named
             with self._cond:
                 self.error = exc
                 for topic, *_ in self._queue:
