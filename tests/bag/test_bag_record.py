@@ -140,26 +140,36 @@ async def test_record_info_and_play_on_both_clocks_round_trip_every_type(tmp_pat
         for a, b in zip(played[topic], msgs, strict=True):
             assert_same(a, b)
 
-    # on the sim clock as fast as it goes: the player is /clock, and /clock carries the bag's log times
+    # on the sim clock as fast as it goes: the player is /clock, and /clock carries the bag's log times; a recorder on
+    # the sim clock records the played messages at those times
     types.pop("/clock")
     types["/clock"] = m.ClockTick
+    again = tmp_path / "again.mcap"
     async with open_domain() as domain3:
         played = defaultdict(list)
         async with await collect(domain3.uri, types, played):
-            rc, out, err = await uniros(
-                "bag",
-                "play",
-                str(bag),
-                "--domain",
-                domain3.uri,
-                "--clock",
-                "sim",
-                "--rate",
-                "0",
-                "--wait-subscribers",
-                "1",
-            )
+            rec = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "uniros_async.cli", "bag", "record", "-o", str(again), "--domain", domain3.uri,
+                "--clock", "sim", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            )  # fmt: skip
+            try:
+                assert rec.stdout is not None
+                async with asyncio.timeout(30):
+                    assert (await rec.stdout.readline()).startswith(b"# recording 12 topic(s)")
+                rc, out, err = await uniros(
+                    "bag", "play", str(bag), "--domain", domain3.uri, "--clock", "sim", "--rate", "0",
+                    "--wait-subscribers", "2",
+                )  # fmt: skip
+                await asyncio.sleep(0.5)  # the last messages reach the recorder
+                rec.send_signal(signal.SIGINT)
+                async with asyncio.timeout(30):
+                    rec_out, rec_err = await rec.communicate()
+            finally:
+                if rec.returncode is None:
+                    rec.kill()
+                    await rec.wait()
         assert rc == 0, err
+        assert rec.returncode == 0, rec_err
     for topic, msgs in got.items():
         if topic != "/clock":
             assert len(played[topic]) == len(msgs), topic
@@ -167,6 +177,16 @@ async def test_record_info_and_play_on_both_clocks_round_trip_every_type(tmp_pat
                 assert_same(a, b)
     ticks = [t.sim_time_ns for t in played["/clock"]]
     assert ticks == [bm.log_time_ns for bm in recorded if bm.topic != "/clock"]
+    recorded_again = list(BagReader(again).messages())
+    again_by_topic = by_topic(recorded_again)
+    for topic, msgs in got.items():
+        if topic != "/clock":
+            assert len(again_by_topic[topic]) == len(msgs), topic
+            for a, b in zip(again_by_topic[topic], msgs, strict=True):
+                assert_same(a, b)
+    # log times on the bag's time, which /clock carried (not this run's wall clock)
+    first, last = recorded[0].log_time_ns, recorded[-1].log_time_ns
+    assert all(first <= bm.log_time_ns <= last for bm in recorded_again)
 
 
 async def test_a_sigkilled_recording_reads_up_to_its_last_complete_chunk(tmp_path: Path) -> None:
