@@ -11,9 +11,10 @@ its registry can be killed and restarted without it): prints ``export UNIROS_DOM
 trace events, and serves until SIGTERM.
 
 ``python -m rig.domain_peer probe --domain URI [--topic T] [--service S] [--param P]``: joins the domain as a new
-node (over tcp, as from another machine, unless ``--transport``) and prints one JSON line: the topics (with their publishers), services, nodes, and, for each ``--topic``, the
-first message's seconds to arrive (None: none within ``--timeout``); for each ``--service``, whether it is listed;
-for each ``--param``, its value. It is what a user's ``uniros topic list`` in a new shell would see.
+node (over tcp, as from another machine, unless ``--transport``) and prints one JSON line: the topics (with their
+publishers), services, nodes, and, for each ``--topic``, the first message's seconds to arrive (None: none within
+``--timeout``); for each ``--service``, whether it is listed; for each ``--param``, its value. It is what a user's
+``uniros topic list`` in a new shell would see.
 """
 
 from __future__ import annotations
@@ -124,7 +125,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(asyncio.CancelledError):
             asyncio.run(_arm(args.domain, args.host, args.command_timeout, args.max_command_age))
         return 0
-    print(json.dumps(asyncio.run(_probe(args.domain, args.topic, args.service, args.param, args.timeout, args.transport))))
+    seen = asyncio.run(_probe(args.domain, args.topic, args.service, args.param, args.timeout, args.transport))
+    print(json.dumps(seen))
     return 0
 
 
