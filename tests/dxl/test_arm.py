@@ -16,7 +16,7 @@ from uniros_async.hardware.dxl.control_table import rad_to_ticks
 from uniros_async.hardware.dxl.placement import parse_dxl_uri
 from uniros_async.hardware.dxl.servo_map import servo_map
 
-from ._vbus import Vbus, read, running_vbus, sdk_port
+from ._vbus import MARGIN_MS, Vbus, read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -39,7 +39,7 @@ async def test_start_holds_every_servo_where_it_is_then_ticks_and_holds_at_shutd
     await _sleep(0.5)  # the sim's arm settles under gravity first
     before = _present(vbus.path)
     assert all(torque == 0 for _, _, torque in before.values())
-    async with await open_dxl_bus(vbus.path) as bus:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, RX200)
         await arm.start()
         n0 = bus.stats.transactions
@@ -70,7 +70,7 @@ async def test_a_wrong_model_and_a_silent_servo_are_named(vbus: Vbus) -> None:
         RX200,
         servos=tuple(dataclasses.replace(s, model="XL430-W250") if s.id == 4 else s for s in RX200.servos),
     )
-    async with await open_dxl_bus(vbus.path) as bus:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         with pytest.raises(
             RobotError, match=r"servo ID 4 \(elbow\) is model number 1020 \(XM430-W350\), expected 1060 \(XL430-W250\)"
         ):
@@ -85,7 +85,7 @@ async def test_a_wrong_model_and_a_silent_servo_are_named(vbus: Vbus) -> None:
 
 
 async def test_hardware_error_is_a_robot_error_naming_joint_id_and_bits_and_the_arm_holds(vbus: Vbus) -> None:
-    async with await open_dxl_bus(vbus.path) as bus:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, RX200)
         await arm.start()
         await arm.write_goals(np.array([0.6, 0.0, 0.0, 0.0, 0.0]))  # the waist moves
@@ -99,7 +99,7 @@ async def test_hardware_error_is_a_robot_error_naming_joint_id_and_bits_and_the_
 
 
 async def test_a_servo_that_stops_answering_and_bad_crcs(vbus: Vbus) -> None:
-    async with await open_dxl_bus(vbus.path) as bus:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, RX200, max_crc_errors=2)
         await arm.start()
         await arm.read_state(0)
@@ -121,7 +121,7 @@ async def test_a_servo_that_stops_answering_and_bad_crcs(vbus: Vbus) -> None:
 async def test_goals_past_a_limit_are_clamped_in_ticks_and_said_once(
     vbus: Vbus, caplog: pytest.LogCaptureFixture
 ) -> None:
-    async with await open_dxl_bus(vbus.path) as bus:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, RX200)
         await arm.start()
         with caplog.at_level(logging.WARNING, logger="uniros_async.hardware.dxl.arm"):
@@ -135,7 +135,7 @@ async def test_goals_past_a_limit_are_clamped_in_ticks_and_said_once(
 
 
 async def test_shutdown_rest_moves_to_the_rest_pose_before_torque_off(vbus: Vbus) -> None:
-    async with await open_dxl_bus(vbus.path) as bus:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, RX200, shutdown="rest")
         await arm.start()
         await arm.close(timeout_s=8.0)
@@ -197,7 +197,9 @@ async def test_the_arms_node_serves_its_stats_with_current_and_temperature(vbus:
 
     async with (
         open_domain("memory://") as domain,
-        open_dxl_arm(vbus.path, get_robot_spec("rx200"), RX200, domain=domain, rate_hz=50) as arm_node,
+        open_dxl_arm(
+            vbus.path, get_robot_spec("rx200"), RX200, domain=domain, rate_hz=50, margin_s=MARGIN_MS / 1e3
+        ) as arm_node,
         open_node("probe", domain=domain, namespace="/rx200") as probe,
     ):
         states = await probe.create_subscription(JointState, "joint_states")

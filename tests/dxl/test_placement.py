@@ -16,7 +16,7 @@ import pytest
 import uniros_async
 from uniros_async.errors import RobotError
 
-from ._vbus import read, running_vbus, sdk_port
+from ._vbus import MARGIN_MS, read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -27,7 +27,10 @@ Q = slice(7, 12)
 def test_real_time_env_on_a_bus_arm_and_a_silent_servo_is_a_robot_error() -> None:
     with running_vbus() as vbus:
         env = gym.make(
-            "uniros/Rx200Reach-v0", robot=f"dxl://{vbus.path}?map=rx200", robot_timeout_s=0.5, action_cycle_s=0.2
+            "uniros/Rx200Reach-v0",
+            robot=f"dxl://{vbus.path}?map=rx200&margin_ms={MARGIN_MS}",
+            robot_timeout_s=1.0,
+            action_cycle_s=0.2,
         )
         try:
             obs, _ = env.reset(seed=0)
@@ -47,7 +50,7 @@ def test_real_time_env_on_a_bus_arm_and_a_silent_servo_is_a_robot_error() -> Non
             with pytest.raises(RobotError, match=r"joint 'elbow' \(servo ID 4\) does not answer"):
                 for _ in range(20):
                     env.step(action)
-            assert time.monotonic() - t < 0.5 + 0.5, "no RobotError within the robot timeout"
+            assert time.monotonic() - t < 1.0 + 0.5, "no RobotError within the robot timeout"
         finally:
             env.close()
 
@@ -56,7 +59,7 @@ def test_make_vec_mixes_a_bus_arm_with_a_sim_arm() -> None:
     with running_vbus() as vbus:
         envs = uniros_async.make_vec(
             [
-                ("uniros/Rx200Reach-v0", {"robot": f"dxl://{vbus.path}?map=rx200"}),
+                ("uniros/Rx200Reach-v0", {"robot": f"dxl://{vbus.path}?map=rx200&margin_ms={MARGIN_MS}"}),
                 ("uniros/Rx200Reach-v0", {"robot": "sim"}),
             ]
         )
@@ -71,9 +74,9 @@ def test_make_vec_mixes_a_bus_arm_with_a_sim_arm() -> None:
         finally:
             envs.close()
         with sdk_port(vbus.path) as (port, ph):
-            # the worker's shutdown held the arm: torque on, goal at the present position
+            # the worker's shutdown held the arm: torque on, goal where it was (a moving arm stops a hair past it)
             assert read(ph, port, 1, 64, 1) == 1
-            assert abs(read(ph, port, 1, 116, 4) - read(ph, port, 1, 132, 4)) <= 3
+            assert abs(read(ph, port, 1, 116, 4) - read(ph, port, 1, 132, 4)) <= 10
 
 
 _ENV_PROCESS = textwrap.dedent(
@@ -82,7 +85,7 @@ _ENV_PROCESS = textwrap.dedent(
     import gymnasium as gym
     import numpy as np
     import uniros_async
-    env = gym.make("uniros/Rx200Reach-v0", robot=f"dxl://{sys.argv[1]}?map=rx200")
+    env = gym.make("uniros/Rx200Reach-v0", robot=f"dxl://{sys.argv[1]}?map=rx200&margin_ms={sys.argv[2]}")
     env.reset(seed=0)
     action = np.zeros(env.action_space.shape, dtype=np.float32)
     action[0] = env.action_space.high[0]
@@ -96,7 +99,7 @@ _ENV_PROCESS = textwrap.dedent(
 def test_servos_stop_and_hold_within_the_watchdog_time_after_the_env_process_is_killed() -> None:
     with running_vbus() as vbus:
         env_process = subprocess.Popen(
-            [sys.executable, "-c", _ENV_PROCESS, vbus.path], stdout=subprocess.PIPE, text=True
+            [sys.executable, "-c", _ENV_PROCESS, vbus.path, str(MARGIN_MS)], stdout=subprocess.PIPE, text=True
         )
         try:
             assert env_process.stdout is not None

@@ -12,14 +12,27 @@ import pytest
 
 import uniros_async  # noqa: F401  (registers the env ids)
 
-from ._vbus import read, running_vbus, sdk_port
+from ._vbus import MARGIN_MS, read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
 
 def test_serve_dxl_serves_the_bus_arm_over_tcp_until_sigint() -> None:
     with running_vbus() as vbus:
-        argv = [sys.executable, "-m", "uniros_async.cli", "robot", "serve", "rx200", "--dxl", vbus.path, "--port", "0"]
+        argv = [
+            sys.executable,
+            "-m",
+            "uniros_async.cli",
+            "robot",
+            "serve",
+            "rx200",
+            "--dxl",
+            vbus.path,
+            "--port",
+            "0",
+            "--dxl-margin-ms",
+            str(MARGIN_MS),
+        ]
         server = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             assert server.stdout is not None
@@ -47,6 +60,6 @@ def test_serve_dxl_serves_the_bus_arm_over_tcp_until_sigint() -> None:
                 if stream is not None:
                     stream.close()
         with sdk_port(vbus.path) as (port, ph):
-            # the server's shutdown held the arm: torque on, goal at the present position
+            # the server's shutdown held the arm: torque on, goal where it was (a moving arm stops a hair past it)
             assert read(ph, port, 1, 64, 1) == 1
-            assert abs(read(ph, port, 1, 116, 4) - read(ph, port, 1, 132, 4)) <= 3
+            assert abs(read(ph, port, 1, 116, 4) - read(ph, port, 1, 132, 4)) <= 10

@@ -104,7 +104,7 @@ def test_a_users_own_arm_on_the_virtual_bus_in_an_env() -> None:
     the env find it by ``module:name``."""
     import gymnasium as gym
 
-    from ._vbus import running_vbus
+    from ._vbus import MARGIN_MS, running_vbus
 
     from_module = servo_map("dxl._acme_servos:acme5")
     assert isinstance(from_module, ServoMap) and from_module.ids == (11, 12, 13, 14, 15)
@@ -112,7 +112,9 @@ def test_a_users_own_arm_on_the_virtual_bus_in_an_env() -> None:
         servos="dxl._acme_servos:acme5", pythonpath=str(Path(__file__).resolve().parents[1] / "extension")
     ) as vbus:
         env = gym.make(
-            "acme_arms:acme/Acme5Reach-v0", robot=f"dxl://{vbus.path}?map=dxl._acme_servos:acme5", action_cycle_s=0.2
+            "acme_arms:acme/Acme5Reach-v0",
+            robot=f"dxl://{vbus.path}?map=dxl._acme_servos:acme5&margin_ms={MARGIN_MS}",
+            action_cycle_s=0.2,
         )
         try:
             obs, _ = env.reset(seed=0)

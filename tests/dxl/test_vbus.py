@@ -17,7 +17,7 @@ import pytest
 from uniros_async.hardware.dxl.control_table import MODELS, rad_to_ticks
 from uniros_async.hardware.dxl.servo_map import servo_map
 
-from ._vbus import Vbus, pty_gone, read, running_vbus, sdk_port
+from ._vbus import MARGIN_MS, Vbus, pty_gone, read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -227,7 +227,7 @@ async def test_our_client_fast_sync_reads_bulk_reads_and_bulk_writes_the_virtual
     from uniros_async.hardware.dxl.bus import open_dxl_bus
 
     ids = [s.id for s in RX200.servos]
-    async with await open_dxl_bus(vbus.path) as bus:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         plain = await bus.sync_read(PRESENT_POSITION, 4, ids)
         fast = await bus.fast_sync_read(PRESENT_POSITION, 4, ids)
         assert set(fast) == set(ids)

@@ -29,6 +29,7 @@ turns the torque off. Torque is never simply dropped.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -38,7 +39,7 @@ from typing import Literal
 import numpy as np
 
 from uniros_async.bus.messages import Header, JointState
-from uniros_async.errors import ConfigError, DxlCrcError, DxlError, DxlStatusError, DxlTimeoutError, RobotError
+from uniros_async.errors import ConfigError, DxlCrcError, DxlError, DxlTimeoutError, RobotError
 from uniros_async.hardware.dxl.bus import DxlBus
 from uniros_async.hardware.dxl.control_table import (
     BUS_WATCHDOG_UNIT_S,
@@ -266,9 +267,6 @@ class DxlArm:
             await self._hold_quietly()
             raise self._error("reading the state", exc) from exc
         self._crc_ticks = 0
-        alerts = [i for i in self.read_ids if self.bus.alerts.get(i)]
-        if alerts:
-            await self._hardware_error(alerts)
         n = len(self.read_servos)
         pos, vel, eff = np.empty(n), np.empty(n), np.empty(n)
         current: dict[str, float] = {}
@@ -286,6 +284,9 @@ class DxlArm:
             else:
                 eff[k] = load / 1000.0 * _STALL_TORQUE_NM.get(servo.model, 1.0)
         self.last_q = pos[: len(self.arm_servos)].copy()
+        alerts = [i for i in self.read_ids if self.bus.alerts.get(i)]
+        if alerts:
+            await self._hardware_error(alerts)  # the arm holds where this read found it
         names = self.robot.joint_state_names
         position, velocity, effort = np.zeros(len(names)), np.zeros(len(names)), np.zeros(len(names))
         position[:n], velocity[:n], effort[:n] = pos, vel, eff
@@ -376,15 +377,24 @@ class DxlArm:
         )
 
     async def _hold_quietly(self) -> None:
-        """Goal := present for every servo that answers; errors are logged, not raised (we are already failing)."""
+        """Every arm servo's goal := its position at the last read, in one sync write (no status packets, so a servo
+        that went silent costs no timeout); before any read, goal := present servo by servo. Errors are logged,
+        not raised: the arm is already failing."""
         try:
-            ids = [s.id for s in self.map.servos if not s.is_shadow]
-            for servo_id in ids:
-                try:
-                    raw = await self.bus.read(servo_id, 132, 4)
-                    await self.bus.write(servo_id, 116, raw)
-                except DxlStatusError:
+            if self.last_q is not None:
+                ticks = [
+                    rad_to_ticks(float(q)) + s.homing_offset for s, q in zip(self.arm_servos, self.last_q, strict=True)
+                ]
+                clamped = np.clip(ticks, self._lower, self._upper)
+                await self._sync_write(
+                    "goal_position", {s.id: int(t) for s, t in zip(self.arm_servos, clamped, strict=True)}
+                )
+                return
+            for servo in self.map.servos:
+                if servo.is_shadow:
                     continue
+                try:
+                    await self.bus.write(servo.id, 116, await self.bus.read(servo.id, 132, 4))
                 except DxlError:
                     continue
         except Exception:  # noqa: BLE001 - holding is best effort here
@@ -415,6 +425,8 @@ class DxlArm:
         self.started = False
         try:
             if self.shutdown == "hold":
+                with contextlib.suppress(DxlError, RobotError):
+                    await self.read_state(time.monotonic_ns())  # hold where the arm is now, not a tick ago
                 await self._hold_quietly()
                 return
             rest = np.asarray(self.robot.rest_q_rad)

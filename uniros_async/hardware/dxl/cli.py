@@ -54,6 +54,13 @@ def add_serve_arguments(serve: argparse.ArgumentParser) -> None:
     serve.add_argument("--dxl-map", default=None, help="with --dxl: the servo map (default: the robot's)")
     serve.add_argument("--dxl-baud", type=int, default=None, help="with --dxl: the baud rate (default: the map's)")
     serve.add_argument(
+        "--dxl-margin-ms",
+        type=float,
+        default=None,
+        help="with --dxl: host-side slack of each bus transaction's timeout (default 10; ~35 for an FTDI adapter "
+        "whose latency timer is left at 16 ms)",
+    )
+    serve.add_argument(
         "--dxl-shutdown",
         choices=("hold", "rest"),
         default="hold",
@@ -84,6 +91,7 @@ def serve(
         tls=args.tls,
         servo_map_name=args.dxl_map,
         baud=args.dxl_baud,
+        margin_s=args.dxl_margin_ms / 1e3 if args.dxl_margin_ms else None,
         shutdown=args.dxl_shutdown,
         namespace=args.namespace,
         options=options,

@@ -1,13 +1,14 @@
 """The ``dxl://`` placement: an env's arm on its Dynamixel bus, driven from the env's own process.
 
     robot="dxl:///dev/ttyUSB0"                                  # the robot's servo map, at the map's baud rate
-    robot="dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=rest"
+    robot="dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=rest&margin_ms=35"
 
 The path is the serial device (a pty of ``uniros robot vbus`` too). The query may set ``baud`` (default: the
 map's), ``map`` (a registered servo map; default: the one named as the env's robot), ``rate`` (the bus loop in Hz;
 default the env's loop rate, ``env_loop_rate_hz``, else the robot's hardware rate, raised to at least two ticks
-per Bus Watchdog window) and ``shutdown``
-(``hold``, the default, or ``rest``).
+per Bus Watchdog window), ``shutdown`` (``hold``, the default, or ``rest``) and ``margin_ms`` (the host-side slack
+of every transaction's timeout; default 10 ms, for a USB adapter whose latency timer is 1 ms: an FTDI adapter left
+at its 16 ms default needs about 35).
 
 The placement opens a memory domain in the env's process and runs ``DxlArmNode`` on it: a node in the robot's
 namespace that publishes ``joint_states`` and takes ``command`` as every other placement's arm does, and serves
@@ -60,16 +61,21 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_KEYS = ("baud", "map", "rate", "shutdown")
+_KEYS = ("baud", "map", "rate", "shutdown", "margin_ms")
 TEMPERATURE_PERIOD_S = 1.0
 """How often the bus loop reads the servos' temperatures (one sync read of its own)."""
 
 
+@dataclasses.dataclass(frozen=True)
 class DxlUri:
     """A parsed ``dxl://`` URI (see the module docstring)."""
 
-    def __init__(self, path: str, baud: int | None, map_name: str | None, rate_hz: float | None, shutdown: str):
-        self.path, self.baud, self.map_name, self.rate_hz, self.shutdown = path, baud, map_name, rate_hz, shutdown
+    path: str
+    baud: int | None
+    map_name: str | None
+    rate_hz: float | None
+    shutdown: str
+    margin_s: float | None = None
 
 
 def parse_dxl_uri(uri: str) -> DxlUri:
@@ -90,14 +96,17 @@ def parse_dxl_uri(uri: str) -> DxlUri:
     try:
         baud = int(one["baud"]) if "baud" in one else None
         rate = float(one["rate"]) if "rate" in one else None
+        margin = float(one["margin_ms"]) / 1e3 if "margin_ms" in one else None
     except ValueError:
-        raise ConfigError(f"robot={uri!r}: baud must be an integer and rate a number of Hz, e.g. {form}") from None
-    if baud is not None and baud <= 0 or rate is not None and not rate > 0:
-        raise ConfigError(f"robot={uri!r}: baud and rate must be > 0")
+        raise ConfigError(
+            f"robot={uri!r}: baud must be an integer, rate a number of Hz and margin_ms of ms, e.g. {form}"
+        ) from None
+    if any(v is not None and not v > 0 for v in (baud, rate, margin)):
+        raise ConfigError(f"robot={uri!r}: baud, rate and margin_ms must be > 0")
     shutdown = one.get("shutdown", "hold")
     if shutdown not in ("hold", "rest"):
         raise ConfigError(f"robot={uri!r}: shutdown must be 'hold' or 'rest', got {shutdown!r}")
-    return DxlUri(parts.path, baud, one.get("map"), rate, shutdown)
+    return DxlUri(parts.path, baud, one.get("map"), rate, shutdown, margin)
 
 
 def check_dxl_placement(robot: str, config: EnvConfig) -> None:
@@ -251,6 +260,7 @@ async def open_dxl_arm(
     baud: int | None = None,
     rate_hz: float | None = None,
     default_rate_hz: float | None = None,
+    margin_s: float | None = None,
     shutdown: str = "hold",
     clock: Clock | None = None,
     namespace: str | None = None,
@@ -260,7 +270,8 @@ async def open_dxl_arm(
     """Start the arm of ``servos`` on the bus at ``path`` and serve it as a node of ``domain`` for the block.
 
     The bus loop runs at ``rate_hz`` if given, else at ``default_rate_hz`` (None: the robot's hardware rate) raised
-    to two ticks per Bus Watchdog window.
+    to two ticks per Bus Watchdog window. ``margin_s`` is the bus client's host-side slack on every transaction
+    (None: ``bus.DEFAULT_MARGIN_S``, for a USB adapter whose latency timer is 1 ms).
 
     Raises:
         ConfigError: a map of another robot, or a rate too low for the servos' bus watchdog.
@@ -270,13 +281,15 @@ async def open_dxl_arm(
     """
     from uniros_async.bus.tasks import unwrap_task_group
     from uniros_async.hardware.dxl.arm import DxlArm
-    from uniros_async.hardware.dxl.bus import open_dxl_bus
+    from uniros_async.hardware.dxl.bus import DEFAULT_MARGIN_S, open_dxl_bus
 
     if servos.robot != robot.name:
         raise ConfigError(f"servo map {servos.name!r} drives {servos.robot!r}, not {robot.name!r}")
     rate = _rate(rate_hz, servos.bus_watchdog_ms, default_rate_hz or robot.hardware_rate_hz)
     return_delay_s = max(s.return_delay_time for s in servos.servos) * 2e-6
-    bus = await open_dxl_bus(path, baud or servos.baud, return_delay_s=return_delay_s)
+    bus = await open_dxl_bus(
+        path, baud or servos.baud, return_delay_s=return_delay_s, margin_s=margin_s or DEFAULT_MARGIN_S
+    )
     async with bus:
         arm = DxlArm(bus, servos, robot, shutdown=shutdown)  # type: ignore[arg-type]
         await arm.start()
@@ -325,6 +338,7 @@ async def open_dxl_placement(request: PlacementRequest) -> AsyncIterator[ArmLink
             baud=uri.baud,
             rate_hz=uri.rate_hz,
             default_rate_hz=request.config.env_loop_rate_hz,
+            margin_s=uri.margin_s,
             shutdown=uri.shutdown,
             clock=request.clock,
         ),
@@ -342,6 +356,7 @@ async def serve_dxl_arm(
     servo_map_name: str | None = None,
     baud: int | None = None,
     rate_hz: float | None = None,
+    margin_s: float | None = None,
     shutdown: str = "hold",
     namespace: str | None = None,
     options: TransportOptions | None = None,
@@ -369,6 +384,7 @@ async def serve_dxl_arm(
             domain=domain,
             baud=baud,
             rate_hz=rate_hz,
+            margin_s=margin_s,
             shutdown=shutdown,
             namespace=namespace,
             transport=scheme,

@@ -7,7 +7,8 @@ The server is one thread with one ``select`` loop: it reads instruction packets 
 pty is in raw mode; the server keeps its slave end open too, so a client may close and reopen the path), applies
 them to the ``VirtualBus`` and writes each status packet when it would have arrived on a real wire: after the
 instruction's bytes, the servo's Return_Delay_Time and the status packet's own bytes at the bus's baud rate (10
-bits a byte), one servo after the other. Between packets the arm's sim follows the wall clock in 10 ms steps.
+bits a byte), one servo after the other, and after whatever the wire still carried when the instruction came (a
+sync write's bytes before the next sync read). Between packets the arm's sim follows the wall clock in 10 ms steps.
 
 Faults are lines on stdin (each answered ``ok ...`` or ``error: ...`` on stdout):
 
@@ -42,7 +43,7 @@ from uniros_async.hardware.dxl.control_table import RETURN_DELAY_UNIT_S
 from uniros_async.hardware.dxl.protocol import PacketParser
 from uniros_async.hardware.dxl.servo_map import ServoMap
 from uniros_async.hardware.dxl.vbus import VirtualBus, VirtualServo
-from uniros_async.priority import freeze_heap, raise_loop_priority
+from uniros_async.priority import MAX_LOOP_RANK, freeze_heap, raise_loop_priority
 from uniros_async.sim.emulated import EmulationConfig
 
 __all__ = ["VbusServer", "serve_vbus"]
@@ -87,6 +88,7 @@ class VbusServer:
         self._running = True
         self._parser = PacketParser()
         self.status_sent = 0
+        self._wire_free_at = 0.0  # when the modelled wire has carried the last packet and its answers
 
     def close(self) -> None:
         """Close both ends of the pty (the path disappears); idempotent."""
@@ -149,7 +151,9 @@ class VbusServer:
             if packet.is_status:
                 continue
             self.bus.advance(arrived)
-            due = arrived + len(packet.raw) * byte_s
+            # the wire carries one packet at a time: an instruction that came right after another (a sync write,
+            # then a sync read) starts when the one before it, and its status packets, have passed
+            due = max(arrived, self._wire_free_at) + len(packet.raw) * byte_s
             for servo_id, status in self.bus.handle(packet, arrived):
                 servo = self.bus.servos[servo_id]
                 due += servo.get("return_delay_time") * RETURN_DELAY_UNIT_S + len(status) * byte_s
@@ -162,6 +166,7 @@ class VbusServer:
                     self.status_sent += 1
                 except (BlockingIOError, OSError):
                     pass  # nobody reads: the status is lost, as on a bus with no host listening
+            self._wire_free_at = due
 
     # ------------------------------------------------------------------------------------------ faults
 
@@ -206,12 +211,11 @@ class VbusServer:
 
 
 def _sleep_until(t: float) -> None:
-    """Wait until ``time.monotonic()`` reaches ``t``: sleep for the bulk, spin the last fraction of a ms."""
+    """Wait until ``time.monotonic()`` reaches ``t``. A sleep, not a spin: a real-time thread has no timer slack,
+    so it wakes within tens of microseconds, and a spin would hold a core at a real-time priority."""
     left = t - time.monotonic()
-    if left > 0.0015:
-        time.sleep(left - 0.001)
-    while time.monotonic() < t:
-        pass
+    if left > 0.0:
+        time.sleep(left)
 
 
 def serve_vbus(
@@ -236,10 +240,10 @@ def serve_vbus(
     server = VbusServer(servos, baud=baud, emulation=emulation, emit=emit)
     previous = {sig: signal.signal(sig, lambda *_: server.request_stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        # it stands in for servos, which answer whatever else the host runs: the loop's real-time class, taken once
-        # start-up is done and before the path is out (uniros_async.priority)
+        # it stands in for servos, which answer whatever else the host runs: the real-time class above every env
+        # loop (a few ms of work a second), taken once start-up is done and before the path is out
         freeze_heap()
-        raise_loop_priority()
+        raise_loop_priority(MAX_LOOP_RANK)
         emit(server.path)
         server.run(control_fd)
     finally:
