@@ -179,8 +179,8 @@ def format_table(records: Sequence[dict[str, Any]], cfg: CameraBenchConfig) -> s
         )
     lines.append(
         f"goal: actuator cycle median within {MEDIAN_GOAL_MS} ms of the period (100 ms rx200, 40 ms ned2) and IQR "
-        f"below {IQR_GOAL_MS} ms. frames/skipped: rendered and published, and camera ticks skipped while the render "
-        "thread was busy; render: median ms per frame; age: median frame age in the observation at each step (ms)"
+        f"below {IQR_GOAL_MS} ms. frames/skipped: rendered and published, and camera ticks skipped while the renderer "
+        "was busy; render: median ms per frame; age: median frame age in the observation at each step (ms)"
     )
     return "\n".join(lines)
 
