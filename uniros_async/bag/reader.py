@@ -144,7 +144,7 @@ class BagReader:
             BagError: a message that does not decode as its channel's type (names the topic and offset).
         """
         wanted = None if topics is None else set(topics)
-        for item in self._walk(strict=strict, want_messages=True):
+        for item in self._walk(strict=strict):
             offset, ch, rec = item
             if wanted is not None and ch.topic not in wanted:
                 continue
@@ -170,7 +170,7 @@ class BagReader:
         metadata: dict[str, dict[str, str]] = {}
         complete = False
         self.damage = None
-        for offset, ch, rec in self._walk(strict=False, want_messages=True, chunks_too=True):
+        for offset, ch, rec in self._walk(strict=False, chunks_too=True):
             del offset
             if isinstance(rec, Chunk):
                 chunks += 1
@@ -215,7 +215,7 @@ class BagReader:
             offset=offset,
         )
 
-    def _walk(self, *, strict: bool, want_messages: bool, chunks_too: bool = False) -> Iterator[tuple[int, Any, Any]]:
+    def _walk(self, *, strict: bool, chunks_too: bool = False) -> Iterator[tuple[int, Any, Any]]:
         """Yields (offset, channel, Message record) for each message; with ``chunks_too`` also (offset, None,
         Chunk | Metadata) and, at a clean end, (offset, None, None)."""
         from mcap.data_stream import ReadDataStream
