@@ -68,10 +68,10 @@ class SpinCredit:
     and write ``_spin_credit`` as a plain attribute: a poll that finds its frame sets it to ``SPIN_CREDIT``, one
     that finds nothing takes one off, and ``_waited`` gives one back after a wait a poll would have caught.
     ``_spin_allowed`` False: never polls (both ends in one process, where the peer likely runs on this very event
-    loop and a poll cannot help)."""
+    loop and a poll cannot help). The transport sets both in its ``__init__``."""
 
-    _spin_credit: int = SPIN_CREDIT
-    _spin_allowed: bool = True
+    _spin_credit: int
+    _spin_allowed: bool
 
     def _waited(self, t0_ns: int, window: int) -> None:
         """After a wait that began at ``t0_ns`` (on ``now_ns``) following a poll window of ``window`` ns: without

@@ -139,6 +139,7 @@ class TcpReceiving(SpinCredit, asyncio.BufferedProtocol):
         self._pool: list[bytearray] = []
         self._fd = -1  # the socket's descriptor, for receive's own reads while it spins (-1: none, or lost)
         self._spin_credit = _SPIN_CREDIT
+        self._spin_allowed = True
         self._next_look_ns = 0  # _peer_here: not before then
         self._sent_since_receive = 0  # bytes: only a receive that may be waiting for an answer polls
 
