@@ -113,7 +113,7 @@ def _takes_a_slice() -> bool:
 def test_workers_that_outnumber_the_cores_are_pinned_round_robin_and_run_their_steps_through() -> None:
     cpus = sorted(os.sched_getaffinity(0))
     n = len(cpus) + 1
-    venv = make_vec(["CartPole-v1"] * n, pad=False)
+    venv = make_vec(["CartPole-v1"] * n, pad=False, envs_per_worker=1)  # a process per env: more than cores
     try:
         venv.reset(seed=0)
         for k in range(10):

@@ -6,8 +6,9 @@ Foundation). Where a reference implementation is at hand, ``make_vec`` is compar
 the same test (same seeds, same actions: observations, rewards, flags and infos must be equal), over shm and tcp.
 
 Differences on purpose, each said where it is tested:
-- envs are given by id (``make_vec`` starts a worker process per env, which builds it from its id), not by thunk;
-  the test envs are registered by ``_vector_envs`` and named ``"_vector_envs:Id"``;
+- envs are given by id (each worker builds its env from its id; test_gymnasium_async_vector_env.py gives env
+  factories, as Gymnasium's own tests do); the test envs are registered by ``_vector_envs`` and named
+  ``"_vector_envs:Id"``;
 - envs whose spaces differ are refused with ConfigError naming the envs and their spaces (gymnasium raises a
   RuntimeError), unless they can be padded;
 - a real-time uniros env (wall clock) returns on its action cycle's deadline, not when stepped; these tests use

@@ -5,7 +5,8 @@ Copyright (c) 2019 Antonin Raffin). Each test runs on ``.as_sb3()`` and, where i
 made of the same envs in the same test.
 
 Differences on purpose, each said where it is tested:
-- envs are given by id (each worker builds its env from it), so the test envs are registered by ``_sb3_envs``;
+- envs are given by id (each worker builds its env from it), so the test envs are registered by ``_sb3_envs``
+  (test_sb3_vec_envs.py runs SB3's tests with their env factories);
 - SubprocVecEnv's start methods are not tested: ``make_vec`` starts its workers its own way
   (``python -m uniros_async.runtime``);
 - a real-time uniros env (wall clock) returns on its action cycle's deadline, not when stepped; these tests use
