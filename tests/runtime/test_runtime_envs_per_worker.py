@@ -116,12 +116,12 @@ def test_a_killed_process_is_reported_by_the_index_of_one_of_its_envs() -> None:
     assert not any(pid_alive(p) for p in set(venv.pids) if p is not None)
 
 
-@pytest.mark.parametrize("bad", [0, -1, True, "2", 1.5])
+@pytest.mark.parametrize("bad", [0, -1, True, "2", 1.5, "cores"])
 def test_a_bad_envs_per_worker_is_refused_by_name_before_any_process_starts(bad: object) -> None:
     from uniros_async.runtime.launch import live_workers
 
     before = {p.pid for p in live_workers()}
-    with pytest.raises(ConfigError, match=r"envs_per_worker must be an int >= 1, got"):
+    with pytest.raises(ConfigError, match=r"envs_per_worker must be an int >= 1 or 'auto', got"):
         make_vec([CART] * 2, envs_per_worker=bad)  # type: ignore[arg-type]
     assert {p.pid for p in live_workers()} <= before
 
@@ -134,6 +134,22 @@ def test_worker_groups_are_runs_of_the_same_placement_cut_at_the_count() -> None
     assert worker_groups(placements, 1) == [[i] for i in range(7)]
     assert worker_groups(placements, 2) == [[0, 1], [2], [3, 4], [5], [6]]
     assert worker_groups(placements, 8) == [[0, 1, 2], [3, 4], [5], [6]]
+    alone = [False, True, False, False, False, False, False]  # a spec marked alone is hosted by itself
+    assert worker_groups(placements, 8, alone) == [[0], [1], [2], [3, 4], [5], [6]]
+
+
+def test_auto_hosts_a_real_time_env_alone_and_the_accelerated_ones_one_process_per_core() -> None:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    venv = make_vec(["uniros/Rx200Reach-v0"] + [("uniros/Rx200Reach-v0", {"clock": "sim"})] * (2 * cores))
+    try:
+        pids = list(venv.pids)
+        assert pids[0] not in pids[1:]  # the wall-clock env has a process of its own
+        assert len(set(pids[1:])) == cores  # the 2 * cores accelerated ones: two to a process, one per core
+        obs, _ = venv.reset(seed=0)
+        assert obs.shape == (1 + 2 * cores, 28)
+    finally:
+        venv.close()
+    assert not any(pid_alive(p) for p in set(pids) if p is not None)
 
 
 def test_a_real_time_env_in_a_shared_process_is_refused_with_what_to_do() -> None:
