@@ -22,6 +22,7 @@ every command, and once the relay's delay is taken down (the link stays up) the 
 
 from __future__ import annotations
 
+import math
 import statistics
 import subprocess
 import sys
@@ -31,10 +32,20 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
-from rig.netfault import EventPeer, open_netns_pair
+from rig.netfault import EventPeer, NetnsPair, open_netns_pair
 
-from ._arm import ROBOT_TIMEOUT_S, auth_env, report, start_agent, start_tcp_arm, stopping, uncaught
-from ._faults import CODE_PATH_S, RECOVER_S, Link
+from ._arm import (
+    COMMAND_TIMEOUT_S,
+    PERIOD_S,
+    ROBOT_TIMEOUT_S,
+    auth_env,
+    report,
+    start_agent,
+    start_tcp_arm,
+    stopping,
+    uncaught,
+)
+from ._faults import CODE_PATH_S, RECOVER_S, STALL_S, Link
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("netfault_ready")]
 
@@ -43,7 +54,7 @@ RELAY_MARK = 1
 WINDOW_S = 8.0
 START_S = 90.0
 """A bound against a hang: the agent's first step (or report), every round trip of its setup delayed twice."""
-DELAYS = [(0.05, 0.01), (0.2, 0.05), (1.0, 0.2)]  # (delay, jitter) each way, s
+DELAYS = [(0.05, 0.01), (0.2, 0.05), (0.75, 0.05), (1.0, 0.2)]  # (delay, jitter) each way, s; 0.75: 1.5 timeouts
 RECOVERY_DELAY = (0.05, 0.01)
 """What the relay's delay is taken down to, to see the env recover by itself."""
 MEASURE_SLACK_S = 1e-3
@@ -67,21 +78,38 @@ class Delayed:
 @pytest.fixture(scope="module", params=DELAYS, ids=[f"{d * 1000:.0f}ms+-{j * 1000:.0f}ms" for d, j in DELAYS])
 def delayed(request: pytest.FixtureRequest, netfault_ready: None) -> Iterator[Delayed]:
     delay_s, jitter_s = request.param
-    env = auth_env()
     with open_netns_pair() as pair, stopping() as peers:
-        argv = [sys.executable, "-m", "rig.delayrelay", "--port", str(RELAY_PORT), "--delay",
-                str(delay_s), "--jitter", str(jitter_s), "--mark", str(RELAY_MARK), "--control"]  # fmt: skip
-        relay = EventPeer(pair.popen("arm", argv, stdin=subprocess.PIPE))
-        peers.append(relay)
-        assert relay.proc.stdout is not None
-        assert relay.proc.stdout.readline().strip() == "ready"
-        relay.start_reader()
-        pair.delay_through(RELAY_PORT, RELAY_MARK)  # before any connection crosses the link
-        arm, uri = start_tcp_arm(pair, peers, env)
-        agent = start_agent(pair, peers, uri, env=env)
+        relay, arm, agent = _start_delayed(pair, peers, delay_s, jitter_s)
         first = "robot_error" if _reports(delay_s, jitter_s) else "step"
         agent.wait_for(0, first, START_S, f"the agent's first {first}")
         yield Delayed(Link(pair, arm, agent), relay, delay_s, jitter_s)
+
+
+def _start_delayed(
+    pair: NetnsPair, peers: list[EventPeer], delay_s: float, jitter_s: float
+) -> tuple[EventPeer, EventPeer, EventPeer]:
+    """The relay (delaying every tcp connection across the link), a served arm and an agent on it."""
+    env = auth_env()
+    argv = [sys.executable, "-m", "rig.delayrelay", "--port", str(RELAY_PORT), "--delay",
+            str(delay_s), "--jitter", str(jitter_s), "--mark", str(RELAY_MARK), "--control"]  # fmt: skip
+    relay = EventPeer(pair.popen("arm", argv, stdin=subprocess.PIPE))
+    peers.append(relay)
+    assert relay.proc.stdout is not None
+    assert relay.proc.stdout.readline().strip() == "ready"
+    relay.start_reader()
+    pair.delay_through(RELAY_PORT, RELAY_MARK)  # before any connection crosses the link
+    arm, uri = start_tcp_arm(pair, peers, env)
+    return relay, arm, start_agent(pair, peers, uri, env=env)
+
+
+def _set_delay(relay: EventPeer, delay_s: float, jitter_s: float) -> int:
+    """Give the relay a new delay (for what it reads from then on); when it took it."""
+    assert relay.proc.stdin is not None
+    t_set = time.monotonic_ns()
+    relay.proc.stdin.write(f"delay {delay_s} {jitter_s}\n")
+    relay.proc.stdin.flush()
+    relay.wait_for(t_set, "delay", RECOVER_S, "the relay's new delay")
+    return t_set
 
 
 def _round_trips(events: list[dict[str, Any]]) -> list[float]:
@@ -142,12 +170,8 @@ def _figures(d: Delayed, t0: int, t1: int) -> dict[str, Any]:
 def _recover(d: Delayed) -> dict[str, Any]:
     """Take the relay's delay down to ``RECOVERY_DELAY`` (the link and every connection stay up) and wait until the
     same agent steps again and the arm applies a command; the figures of that."""
-    agent, arm, relay = d.link.agent, d.link.arm, d.relay
-    assert relay.proc.stdin is not None
-    t_set = time.monotonic_ns()
-    relay.proc.stdin.write(f"delay {RECOVERY_DELAY[0]} {RECOVERY_DELAY[1]}\n")
-    relay.proc.stdin.flush()
-    relay.wait_for(t_set, "delay", RECOVER_S, "the relay's new delay")
+    agent, arm = d.link.agent, d.link.arm
+    t_set = _set_delay(d.relay, *RECOVERY_DELAY)
     step = agent.wait_for(t_set, "step", RECOVER_S, "a step after the delay was taken down")
     cmd = arm.wait_for(t_set, "cmd", RECOVER_S, "a command applied after it", where=lambda e: bool(e["applied"]))
     return {
@@ -200,3 +224,52 @@ def test_delay(delayed: Delayed) -> None:
     assert row["commands_applied_since_start"] == 0 and row["commands_since_start"] > 0, row
     # the delay taken down: the same env steps again by itself, on a fresh state, and the arm takes commands
     assert row["recovered_step_state_stamp_age_s"] <= ROBOT_TIMEOUT_S + CODE_PATH_S, row
+
+
+ONSET = (0.75, 0.05)
+"""A delay of 1.5 robot timeouts each way, setting in while the env steps on a 50 ms link."""
+
+
+def test_a_delay_that_sets_in_raises_and_the_arm_holds(netfault_ready: None) -> None:
+    """The env raises RobotError within the robot timeout (and the old link's delay, a period and its own loop's
+    lateness) of a delay of 1.5 robot timeouts setting in, and the arm's watchdog holds it within the command
+    timeout (the robot timeout) and one control period of the last command it applied: every later one comes too
+    old and is dropped. Taken down again, the same env steps by itself."""
+    with open_netns_pair() as pair, stopping() as peers:
+        relay, arm, agent = _start_delayed(pair, peers, *RECOVERY_DELAY)
+        agent.wait_for(0, "step", START_S, "the agent's first step")
+        agent.wait_for(time.monotonic_ns() + round(2e9), "step", RECOVER_S, "steps on the 50 ms link")
+        t_set = _set_delay(relay, *ONSET)
+        error = agent.wait_for(t_set, "robot_error", RECOVER_S, "a RobotError after the delay set in")
+        hold = arm.wait_for(t_set, "hold", RECOVER_S, "the arm's watchdog hold")
+        time.sleep(3.0)  # the delay stays: nothing more is applied, nothing stepped
+        t_down = _set_delay(relay, *RECOVERY_DELAY)
+        step = agent.wait_for(t_down, "step", RECOVER_S, "a step after the delay was taken down")
+    applied = [e for e in arm.after(0, "cmd") if e["applied"]]
+    last = [e for e in applied if e["t_ns"] < hold["t_ns"]][-1]
+    late_steps = [e for e in agent.after(t_set, "step") if e["t_ns"] < t_down]
+    row = {
+        "fault": f"delay setting in: {ONSET[0] * 1000:.0f} ms +- {ONSET[1] * 1000:.0f} ms each way (relay)",
+        "link": "tcp",
+        "notice_after_onset_s": round((error["t_ns"] - t_set) / 1e9, 3),
+        "agent_loop_late_s": error["loop_late_s"],
+        "agent_saw": error["msg"],
+        "hold_after_last_command_s": round((hold["t_ns"] - last["t_ns"]) / 1e9, 3),
+        "hold_ticks_after_last_command": hold["tick"] - last["tick"],
+        "applied_after_hold": sum(1 for e in applied if hold["t_ns"] < e["t_ns"] < t_down),
+        "max_age_applied_s": round(max(e["age_ns"] for e in applied) / 1e9, 3),
+        "steps_while_delayed": sum(1 for e in late_steps if e["t_ns"] > error["t_ns"]),
+        "oldest_state_a_step_returned_on_s": round(max((e["state_stamp_age_s"] for e in late_steps), default=-1), 3),
+        "recovered_step_after_s": round((step["t_ns"] - t_down) / 1e9, 3),
+        "uncaught_exceptions": len(uncaught(agent)),
+    }
+    report(row)
+    assert not uncaught(agent), uncaught(agent)[0]["tb"]
+    old_link_s = RECOVERY_DELAY[0] + RECOVERY_DELAY[1]  # what the newest state before the onset took to arrive
+    limit = ROBOT_TIMEOUT_S + old_link_s + PERIOD_S + row["agent_loop_late_s"] + CODE_PATH_S
+    assert row["notice_after_onset_s"] <= limit, row
+    assert row["hold_ticks_after_last_command"] <= math.ceil(COMMAND_TIMEOUT_S / PERIOD_S - 1e-9) + 1, row
+    assert row["hold_after_last_command_s"] <= COMMAND_TIMEOUT_S + PERIOD_S + STALL_S, row
+    assert row["applied_after_hold"] == 0 and row["max_age_applied_s"] <= ROBOT_TIMEOUT_S, row
+    assert row["steps_while_delayed"] == 0, row
+    assert row["oldest_state_a_step_returned_on_s"] <= ROBOT_TIMEOUT_S + CODE_PATH_S, row
