@@ -194,3 +194,26 @@ async def test_a_node_whose_connection_broke_takes_its_registration_over() -> No
         assert "/arm" not in await observer.list_nodes()
         assert await observer.list_services() == []
         await other.aclose()
+
+
+@pytest.mark.slow
+async def test_a_subscription_reconnects_to_a_publisher_that_comes_back() -> None:
+    """The talker's process killed (the registry drops it), then a new talker process of the same name: the same
+    subscription reads from it, with no call of ours."""
+    async with open_domain() as domain, open_node("listener", domain=domain, transport="tcp") as node:
+        sub = await node.create_subscription(JointState, "/chatter")
+        first = BusPeer(domain.uri, "talker", "tcp")
+        async with first:
+            await sub.wait_for_publishers(1, timeout_s=10)
+            async with asyncio.timeout(REJOIN_S):
+                while (await sub.receive()).header.seq <= 200:  # the first talker's seq past what a new one starts at
+                    pass
+            first.kill()
+            async with asyncio.timeout(REJOIN_S):
+                while sub.publisher_count:  # noqa: ASYNC110 - the reader's connection, polled
+                    await asyncio.sleep(0.02)
+        async with BusPeer(domain.uri, "talker", "tcp"):
+            async with asyncio.timeout(REJOIN_S):
+                while (await sub.receive()).header.seq > 100:  # a message of the new talker: its seq starts from 1
+                    pass
+            assert sub.publisher_count == 1
