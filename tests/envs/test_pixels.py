@@ -174,3 +174,20 @@ def test_a_script_without_a_main_guard_runs_a_wall_clock_pixel_env(tmp_path: Pat
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "ok (84, 84, 3) False"
+
+
+def test_a_real_cameras_frames_are_converted_to_the_observations_size_and_rgb() -> None:
+    from uniros_async.bus.messages import Header, Image
+    from uniros_async.envs.config import EnvConfig
+    from uniros_async.envs.pixels import PixelSource
+    from uniros_async.robots import get_robot_spec
+
+    src = PixelSource(EnvConfig(obs_mode="pixels", image_size=(8, 12)), get_robot_spec("rx200"))
+    bgr = np.zeros((16, 24, 3), np.uint8)
+    bgr[..., 0] = 200  # blue in BGR
+    out = src._rgb(Image(header=Header(), encoding="bgr8", data=bgr))
+    assert out is not None and out.shape == (8, 12, 3) and out[0, 0].tolist() == [0, 0, 200]
+    mono = np.full((8, 12, 1), 77, np.uint8)
+    out = src._rgb(Image(header=Header(), encoding="mono8", data=mono))
+    assert out is not None and out.shape == (8, 12, 3) and (out == 77).all()
+    assert src._rgb(Image(header=Header(), encoding="rgb8", data=np.zeros((8, 12, 4), np.uint8))) is None

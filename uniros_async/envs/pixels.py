@@ -10,14 +10,16 @@ The frames come from the camera topic ``/<arm>/<camera>/color/image_raw``. On a 
 ``"sim-process"``, ``"emulated-real"``) the env runs the arm's sim cameras itself (camera/sim.py) at ``image_size``:
 on a sim clock on its own loop, in sim time; on a wall clock in a render process of its own
 (camera/render_process.py), so that no render holds the GIL the env loop needs. The frame in the observation is the
-published array itself, never copied again. A frame of another size (a real camera's) is resized by nearest
-neighbour.
+published array itself, never copied again. A frame of another size or encoding (a real camera's ``bgr8`` or
+``mono8``) is converted to RGB and resized by nearest neighbour; a frame the observation cannot hold gives a black
+frame with ``frame_stale`` set in its place (and a warning naming it, once).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -35,6 +37,8 @@ if TYPE_CHECKING:
     from uniros_async.envs.config import EnvConfig
 
 __all__ = ["CAMERA_TICK_GAP_NS", "OBS_MODES", "SIM_CAMERA_PLACEMENTS", "PixelSource", "pixel_space"]
+
+logger = logging.getLogger(__name__)
 
 OBS_MODES = ("state", "pixels", "pixels+state")
 SIM_CAMERA_PLACEMENTS = ("sim", "sim-process", "emulated-real")
@@ -71,6 +75,7 @@ class PixelSource:
         self._clock: Any = None
         self._index_cache: tuple[tuple[int, ...], tuple[np.ndarray, np.ndarray]] | None = None
         self._blank = np.zeros((*self.image_size, 3), np.uint8)
+        self._warned = False
 
     def space(self, state_space: gym.Space[Any]) -> gym.spaces.Dict:
         """The observation space around the task's ``state_space``."""
@@ -145,12 +150,25 @@ class PixelSource:
         same = self.cameras is not None  # stamped in this process, on the env's clock
         return frame_age_ns(img, self._sub.latest_recv_ns, self._clock.now_ns(), same_clock=same)
 
-    def _resized(self, data: np.ndarray) -> np.ndarray:
+    def _rgb(self, img: Image) -> np.ndarray | None:
+        """``img`` as uint8 RGB at ``image_size``: as it is when it already is, else converted (``bgr8``, ``mono8``)
+        and resized by nearest neighbour; None for an encoding or shape it cannot be (logged once per topic)."""
+        data, enc = img.data, img.encoding
         h, w = self.image_size
-        if data.shape == (h, w, 3):
+        if enc == "rgb8" and data.shape == (h, w, 3):
             return data
-        if data.ndim != 3 or data.shape[2] != 3:
-            return self._blank
+        channels = data.shape[2] if data.ndim == 3 else 0
+        if (enc, channels) not in (("rgb8", 3), ("bgr8", 3), ("mono8", 1)):
+            if not self._warned:
+                self._warned = True
+                logger.warning(
+                    "%s: a %s frame of shape %s is not an image the observation can hold (rgb8, bgr8 or mono8, "
+                    "height x width x channels); the frame is left out and ages",
+                    self.topic,
+                    enc,
+                    data.shape,
+                )
+            return None
         cache = self._index_cache
         if cache is None or cache[0] != data.shape:
             rows = (np.arange(h) * data.shape[0] // h).astype(np.intp)
@@ -158,16 +176,21 @@ class PixelSource:
             cache = self._index_cache = (data.shape, (rows[:, None], cols[None, :]))
         rows_i, cols_i = cache[1]
         out: np.ndarray = data[rows_i, cols_i]
-        return out
+        if enc == "bgr8":
+            out = out[..., ::-1]
+        elif enc == "mono8":
+            out = np.repeat(out, 3, axis=2)
+        return np.ascontiguousarray(out)
 
     def observe(self, state_obs: Any, info: dict[str, Any]) -> dict[str, Any]:
         """The Dict observation of the newest frame and ``state_obs``; sets ``info["frame_age_s"]`` and
         ``info["frame_stale"]``."""
         img = self._sub.latest() if self._sub is not None else None
-        if img is None:
+        frame = None if img is None else self._rgb(img)
+        if img is None or frame is None:
             frame, age_s = self._blank, float("inf")
         else:
-            frame, age_s = self._resized(img.data), self._age_ns(img) / 1e9
+            age_s = self._age_ns(img) / 1e9
         info["frame_age_s"] = age_s
         info["frame_stale"] = not age_s <= self.config.camera_timeout_s
         obs: dict[str, Any] = {"pixels": frame}
