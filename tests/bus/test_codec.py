@@ -110,3 +110,18 @@ def test_wrong_dtype_and_shape_are_named() -> None:
         Marker(header=Header(), kind="blob")
     with pytest.raises(CodecError, match="expected a @message instance, got dict"):
         codec.encode({"not": "a message"})
+
+
+def test_markers_of_every_kind_round_trip_with_text_and_lifetime() -> None:
+    pts = np.array([[0.1, 0.0, 0.0], [0.2, 0.1, 0.3]])
+    for kind in ("sphere", "cube", "arrow", "cylinder", "line_strip", "points", "text"):
+        m = Marker(header=Header(stamp_ns=7, frame_id="world"), ns="goal", id=3, kind=kind, points=pts,
+                   color=[0.1, 0.2, 0.3, 0.4], text=f"a {kind}", lifetime_s=1.5)  # fmt: skip
+        out = codec.decode(b"".join(bytes(p) for p in codec.encode(m)), Marker)
+        assert (out.kind, out.text, out.lifetime_s, out.header.frame_id) == (kind, f"a {kind}", 1.5, "world")
+        np.testing.assert_array_equal(out.points, pts)
+        np.testing.assert_array_equal(out.color, [0.1, 0.2, 0.3, 0.4])
+    with pytest.raises(CodecError, match=r"Marker.points: expected shape \(N, 3\)"):
+        Marker(header=Header(), kind="points", points=np.zeros((2, 2)))
+    with pytest.raises(CodecError, match="Marker.lifetime_s: expected >= 0"):
+        Marker(header=Header(), lifetime_s=-1.0)

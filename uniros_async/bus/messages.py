@@ -233,12 +233,17 @@ class Pose:
             )
 
 
-MARKER_KINDS = ("sphere", "cube", "arrow", "cylinder", "line_strip")
+MARKER_KINDS = ("sphere", "cube", "arrow", "cylinder", "line_strip", "points", "text")
 
 
 @message
 class Marker:
-    """A shape to draw (goal, EE, workspace), as visualization_msgs/Marker."""
+    """A shape to draw (goal, EE, workspace), as visualization_msgs/Marker.
+
+    ``header.frame_id`` is the frame of ``position`` and ``points`` (m); ``color`` is rgba in [0, 1]. ``points``
+    (N, 3) are the vertices of a ``line_strip`` or the dots of ``points``; a ``text`` marker shows ``text`` at
+    ``position``. ``lifetime_s`` > 0: a viewer removes the marker that long after its stamp (0: until replaced).
+    """
 
     header: Header
     ns: str = ""
@@ -250,6 +255,8 @@ class Marker:
     scale: np.ndarray = array_field(np.float64, 1, optional=True, default=None)
     color: np.ndarray = array_field(np.float64, 1, optional=True, default=None)
     points: np.ndarray | None = array_field(np.float64, 2, optional=True, default=None)
+    text: str = ""
+    lifetime_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in MARKER_KINDS:
@@ -261,6 +268,10 @@ class Marker:
                 object.__setattr__(self, name, np.array(default, dtype=np.float64))
         if self.position.shape != (3,) or self.scale.shape != (3,) or self.color.shape != (4,):
             raise CodecError("Marker: expected position (3,), scale (3,), color (4,) rgba")
+        if self.points is not None and self.points.shape[1:] != (3,):
+            raise CodecError(f"Marker.points: expected shape (N, 3), got {self.points.shape}")
+        if not self.lifetime_s >= 0.0:
+            raise CodecError(f"Marker.lifetime_s: expected >= 0 s, got {self.lifetime_s!r}")
 
 
 @message
