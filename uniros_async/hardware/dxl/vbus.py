@@ -553,6 +553,15 @@ class VirtualBus:
         t0 = self._t0_s if self._t0_s is not None else 0.0
         return t0 + (self._steps + 1) * SIM_STEP_S
 
+    def next_watchdog_s(self) -> float:
+        """When the first armed Bus Watchdog runs out (wall clock), or infinity, for the server's wait."""
+        due = math.inf
+        for s in self.servos.values():
+            limit = s.watchdog_s()
+            if limit and s.torque_on and not s.watchdog_tripped and s.last_instruction_s is not None:
+                due = min(due, s.last_instruction_s + limit)
+        return due
+
     def _check_watchdogs(self, now_s: float) -> None:
         for s in self.servos.values():
             limit = s.watchdog_s()

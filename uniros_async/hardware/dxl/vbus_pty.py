@@ -50,7 +50,8 @@ __all__ = ["VbusServer", "serve_vbus"]
 
 BITS_PER_BYTE = 10
 """A byte on the wire at 8N1: start bit, 8 data bits, stop bit."""
-_MAX_WAIT_S = 0.005  # the loop wakes at least this often, so watchdogs trip within a few ms of their time
+_MAX_WAIT_S = 0.005  # the loop wakes at least this often
+_WATCHDOG_SLACK_S = 0.0002  # a watchdog trips once the silence is longer than its time: wake just after it
 
 
 class VbusServer:
@@ -117,7 +118,8 @@ class VbusServer:
             while self._running:
                 now = time.monotonic()
                 self.bus.advance(now)
-                timeout = min(_MAX_WAIT_S, max(0.0, self.bus.next_due_s() - time.monotonic()))
+                wake = min(self.bus.next_due_s(), self.bus.next_watchdog_s() + _WATCHDOG_SLACK_S)
+                timeout = min(_MAX_WAIT_S, max(0.0, wake - time.monotonic()))
                 for key, _ in sel.select(timeout):
                     if key.data == "bus":
                         self._on_bus()
