@@ -26,9 +26,14 @@ COMMAND_PACKAGES = {
     "pgrep": "procps",
     "rosmaster": "python3-rosmaster",
     "python3": "python3-rospy",  # the system python3 that runs the rospy peers (/usr/bin/python3)
+    "chromium": "chromium",  # the headless browser that photographs the live view (tests/view)
 }
 # Started through a helper that resolves the path at run time, so the scan below cannot see the literal name.
-CALLED_THROUGH_HELPERS = {"rosmaster": "uniros_async.bench.ros1_peers.rosmaster_bin", "python3": "ros1 peers"}
+CALLED_THROUGH_HELPERS = {
+    "rosmaster": "uniros_async.bench.ros1_peers.rosmaster_bin",
+    "python3": "ros1 peers",
+    "chromium": "uniros_async.view.screenshot.headless_chromium",
+}
 # Programs every Debian machine and this Python environment have: the essential set and our own console script.
 ALWAYS_THERE = {"uniros", "sh", "bash", "true", "sleep", "kill"}
 

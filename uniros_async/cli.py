@@ -8,6 +8,7 @@
     uniros camera serve SOURCE            a V4L2/UVC device or a video file as a camera node (camera/cli.py)
     uniros train|eval|plot                TD3 / TD3+HER training, checkpoint evaluation, curves (training/cli.py)
     uniros bag record|info|play           MCAP bags of a domain's topics, as ros2 bag (bag/cli.py)
+    uniros view --domain URI | --bag FILE the arms live or a bag in Rerun's web viewer (view/cli.py)
 
 Every introspection command takes ``--domain URI`` or reads ``UNIROS_DOMAIN``. Errors print one line and exit 2;
 nothing here starts a domain (``open_domain()`` does that from Python).
@@ -257,6 +258,10 @@ def _build_parser() -> argparse.ArgumentParser:
     from uniros_async.bag import cli as bag_cli  # imports no mcap until a bag command runs
 
     bag_cli.add_parser(sub)
+
+    from uniros_async.view import cli as view_cli  # imports no rerun until the view runs
+
+    view_cli.add_parser(sub)
 
     from uniros_async.training import cli as training_cli  # imports no torch/SB3 until a training command runs
 
@@ -566,6 +571,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from uniros_async.bag import cli as bag_cli
 
             return bag_cli.run(args)
+        if args.command == "view":
+            from uniros_async.view import cli as view_cli
+
+            return view_cli.run(args)
     except KeyboardInterrupt:
         return 130
     except (UnirosError, KeyError, TimeoutError) as exc:

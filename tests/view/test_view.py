@@ -1,0 +1,99 @@
+"""``uniros view`` as real processes: the rx200 reaching for its goal, served by Rerun's viewer on loopback and
+photographed twice by headless Chromium (Debian's chromium, SwiftShader's software GL); a bag replayed; and what
+it refuses, by name."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import socket
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from uniros_async.bag import BagWriter
+from uniros_async.bus.messages import Header, JointCommand, JointState, Marker
+from uniros_async.view.demo import free_port, reach_and_photograph
+
+pytestmark = pytest.mark.slow
+
+
+async def uniros(*args: str, timeout_s: float = 60.0) -> tuple[int, str]:
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "uniros_async.cli",
+        *args,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT,
+    )
+    try:
+        async with asyncio.timeout(timeout_s):
+            out, _ = await proc.communicate()
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+    assert proc.returncode is not None
+    return proc.returncode, out.decode()
+
+
+async def test_the_rx200_moves_toward_its_goal_in_headless_chromium(tmp_path: Path) -> None:
+    shots = [tmp_path / "a.png", tmp_path / "b.png"]
+    out = await reach_and_photograph(shots, reach_s=12.0, first_after_s=12.0, every_s=4.0)
+    assert "/rx200/joint_states" in out and "/rx200/markers" in out, out
+    a, b = (np.asarray(Image.open(io.BytesIO(p.read_bytes())).convert("RGB"), dtype=np.int16) for p in shots)
+    h, w, _ = a.shape
+    scene_a, scene_b = a[40 : h * 2 // 3, : w * 3 // 5], b[40 : h * 2 // 3, : w * 3 // 5]  # the 3D view
+    # not a blank canvas: the arm's dark links and the viewer's light background are both there
+    dark = (scene_b.max(axis=2) < 60).mean()
+    assert 0.01 < dark < 0.6, f"dark (arm) pixels in the 3D view: {dark:.3f}"
+    assert len(np.unique(scene_b.reshape(-1, 3), axis=0)) > 50, "a flat canvas"
+    # the arm moved between the two pictures
+    changed = (np.abs(scene_a - scene_b).max(axis=2) > 40).mean()
+    assert changed > 0.002, f"only {changed:.4f} of the 3D view changed in 4 s"
+
+
+async def test_a_bag_is_replayed_and_bad_input_is_named(tmp_path: Path) -> None:
+    bag = tmp_path / "reach.mcap"
+    names = ("waist", "shoulder", "elbow", "wrist_angle", "wrist_rotate")
+    with BagWriter(bag) as w:
+        for i in range(20):
+            t = 1_000_000_000 + i * 100_000_000
+            q = np.full(5, i * 0.02)
+            js = JointState(header=Header(stamp_ns=t), name=names, position=q, velocity=np.zeros(5), effort=np.zeros(5))
+            w.put("/rx200/joint_states", js, t, t)
+            w.put("/rx200/command", JointCommand(header=Header(stamp_ns=t), position=q + 0.01), t, t)
+            w.put("/rx200/markers", Marker(header=Header(stamp_ns=t), ns="goal", position=[0.3, 0, 0.2]), t, t)
+    rc, out = await uniros("view", "--bag", str(bag), "--port", str(free_port()), "--web-port", str(free_port()),
+                           "--duration", "0.5")  # fmt: skip
+    assert rc == 0, out
+    assert "drew 60 messages of 3 topic(s); arms: rx200" in out, out
+
+    not_a_bag = tmp_path / "notes.txt"
+    not_a_bag.write_text("hello")
+    rc, out = await uniros("view", "--bag", str(not_a_bag))
+    assert rc == 2 and "is not an MCAP file" in out and str(not_a_bag) in out, out
+
+    rc, out = await uniros("view", "--bag", str(bag), "--host", "0.0.0.0")
+    assert rc == 2 and "not a loopback address" in out and "--allow-remote" in out, out
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        rc, out = await uniros("view", "--bag", str(bag), "--port", str(port), "--web-port", str(free_port()))
+    assert rc == 2 and f"gRPC port {port} on 127.0.0.1 is in use" in out, out
+
+    from uniros_async.bus import open_domain, open_node
+
+    async with open_domain() as domain, open_node("lonely", domain=domain.uri) as node:
+        from uniros_async.bus.messages import Text
+
+        await node.create_publisher(Text, "/chatter")
+        rc, out = await uniros("view", "--domain", domain.uri, "--arm-wait", "1", "--port", str(free_port()),
+                               "--web-port", str(free_port()))  # fmt: skip
+    assert rc == 2 and f"no arm in the domain {domain.uri}" in out and "/chatter" in out, out
