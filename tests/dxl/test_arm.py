@@ -88,9 +88,10 @@ async def test_hardware_error_is_a_robot_error_naming_joint_id_and_bits_and_the_
     async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, RX200)
         await arm.start()
-        await arm.write_goals(np.array([0.6, 0.0, 0.0, 0.0, 0.0]))  # the waist moves
-        await _sleep(0.3)
-        await arm.read_state(0)
+        for _ in range(6):  # the waist moves, ticked at 20 Hz
+            await arm.write_goals(np.array([0.6, 0.0, 0.0, 0.0, 0.0]))
+            await arm.read_state(0)
+            await _sleep(0.05)
         assert vbus.send("error 4 0x20") == "ok error 4 0x20"
         with pytest.raises(RobotError, match=r"joint 'elbow' \(servo ID 4\): overload \(0x20\).*the arm holds"):
             await arm.read_state(0)
@@ -157,6 +158,17 @@ def test_dxl_uri_forms_and_errors() -> None:
         parse_dxl_uri("dxl://host/dev/ttyUSB0")
     with pytest.raises(ConfigError, match="shutdown must be 'hold' or 'rest'"):
         parse_dxl_uri("dxl:///dev/ttyUSB0?shutdown=drop")
+
+
+async def test_a_bus_silent_past_the_watchdog_is_a_robot_error(vbus: Vbus) -> None:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
+        arm = DxlArm(bus, RX200)
+        await arm.start()
+        await arm.read_state(0)
+        await _sleep(0.25)  # this host stalls: the servos' 100 ms watchdog stops them
+        with pytest.raises(RobotError, match=r"the bus was silent for \d+ ms, longer than the servos' Bus Watchdog"):
+            await arm.read_state(0)
+    assert vbus.expect(("watchdog id=1",), 2.0)
 
 
 def test_the_bus_loop_keeps_two_ticks_per_watchdog_window() -> None:

@@ -133,6 +133,8 @@ class DxlArm:
         self.clamped = 0
         self._gripper_pwm = 0
         self._crc_ticks = 0
+        self._last_io_s: float | None = None  # when the last tick's bus I/O ended (the watchdog's clock, host side)
+        self._watchdog_s = servos.bus_watchdog_ms / 1e3
         self.started = False
         self.last_q: np.ndarray | None = None
         self.firmware: dict[int, int] = {}
@@ -215,6 +217,7 @@ class DxlArm:
         except DxlError as exc:
             raise self._error("start-up", exc) from exc
         self.started = True
+        self._last_io_s = time.monotonic()
         logger.info(
             "%s: %d servos on %s at %d baud, torque on, bus watchdog %d ms",
             self.robot.name,
@@ -254,8 +257,17 @@ class DxlArm:
         """One sync read of the state block of every arm and gripper servo.
 
         Raises:
-            RobotError: a servo in hardware error (the arm then holds), a silent servo, or bad CRCs too often.
+            RobotError: a servo in hardware error (the arm then holds), a silent servo, bad CRCs too often, or a
+                bus silent for longer than the Bus Watchdog since the last tick (the servos then stopped and hold,
+                and refuse goals).
         """
+        now = time.monotonic()
+        if self.started and self._last_io_s is not None and now - self._last_io_s > self._watchdog_s:
+            raise RobotError(
+                f"{self.robot.name}: the bus was silent for {(now - self._last_io_s) * 1e3:.0f} ms, longer than the "
+                f"servos' Bus Watchdog ({self.map.bus_watchdog_ms} ms): they stopped and hold, and refuse goals. This "
+                "process fell behind its bus loop (a stalled or overloaded host); start the env again"
+            )
         try:
             block = await self.bus.sync_read(*STATE_BLOCK, self.read_ids)
         except DxlCrcError as exc:
@@ -267,6 +279,7 @@ class DxlArm:
             await self._hold_quietly()
             raise self._error("reading the state", exc) from exc
         self._crc_ticks = 0
+        self._last_io_s = time.monotonic()
         n = len(self.read_servos)
         pos, vel, eff = np.empty(n), np.empty(n), np.empty(n)
         current: dict[str, float] = {}
@@ -331,6 +344,7 @@ class DxlArm:
             )
             if gripper_m is not None and self.gripper is not None and math.isfinite(gripper_m):
                 await self._gripper(gripper_m)
+            self._last_io_s = time.monotonic()
         except DxlError as exc:
             raise self._error("writing goals", exc) from exc
 
