@@ -13,11 +13,12 @@ StepTimeoutError.
 A spec with a Ray placement (``worker="ray"``, ``{"ray": {...}}``, or ``backend="ray"``) runs on the node of a Ray
 cluster that Ray's scheduler picks, and the agent steps it over tcp, or shm on its own node (runtime/ray_backend.py).
 
-The modules: ``vector`` and ``sb3`` (the vector envs), ``proxy`` (``make``), ``specs`` (what ``make_vec`` is given,
-and which envs share a process), ``supervisor`` (starting, restarting and stopping the workers), ``exchange`` and
-``handle`` (requests out, replies in), ``hangup`` (a Ray-placed worker's connection ending mid-step), ``worker``,
-``cores``, ``protocol`` and ``launch`` (the worker process), ``envargs`` (checks of ids and kwargs), and
-``ray_placement``, ``ray_host`` and ``ray_process`` (workers placed by Ray).
+The modules: ``vector`` and ``sb3`` (the vector envs), ``spaces`` (one space over the sub-envs'), ``proxy``
+(``make``), ``specs`` (what ``make_vec`` is given, and which envs share a process), ``supervisor`` (starting,
+restarting and stopping the workers), ``exchange`` and ``handle`` (requests out, replies in), ``hangup`` (a
+Ray-placed worker's connection ending mid-step), ``worker``, ``cores``, ``protocol`` and ``launch`` (the worker
+process), ``envargs`` (checks of ids and kwargs), and ``ray_placement``, ``ray_host`` and ``ray_process`` (workers
+placed by Ray).
 
 Names are imported lazily: a worker process, which runs ``python -m uniros_async.runtime`` and so imports this
 package first, loads only its own modules (worker.py, protocol.py), not the agent side (supervisor, vector env).

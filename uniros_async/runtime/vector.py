@@ -45,51 +45,13 @@ from uniros_async.runtime.protocol import (
     unpack_step_reply_into,
 )
 from uniros_async.runtime.ray_placement import apply_backend
+from uniros_async.runtime.spaces import merge_spaces, vector_box
 from uniros_async.runtime.specs import AUTO, EnvSpec, factory_of, normalize_specs
 from uniros_async.runtime.supervisor import Supervisor
 
 __all__ = ["UnirosVectorEnv", "make_vec"]
 
 logger = logging.getLogger(__name__)
-
-
-def _vector_box(space: gym.Space[Any]) -> gym.spaces.Box | None:
-    """The 1-D Box that padding applies to (the ``observation`` key of a goal env), or None."""
-    if isinstance(space, gym.spaces.Dict):
-        space = space.spaces.get("observation")  # type: ignore[assignment]
-    if isinstance(space, gym.spaces.Box) and len(space.shape) == 1:
-        return space
-    return None
-
-
-def _listing(names: list[str], spaces: list[gym.Space[Any]]) -> str:
-    return "; ".join(f"{n}: {s}" for n, s in zip(names, spaces, strict=True))
-
-
-def _merge(spaces: list[gym.Space[Any]], names: list[str], *, union: bool, what: str) -> gym.Space[Any]:
-    """One space covering ``spaces`` (bounds: union or intersection); ConfigError naming the envs if they differ."""
-    first = spaces[0]
-    if isinstance(first, gym.spaces.Dict):
-        if not all(isinstance(s, gym.spaces.Dict) and s.spaces.keys() == first.spaces.keys() for s in spaces):
-            raise ConfigError(f"{what} spaces differ in kind or keys: {_listing(names, spaces)}")
-        return gym.spaces.Dict(
-            {k: _merge([s[k] for s in spaces], names, union=union, what=f"{what}[{k!r}]") for k in first.spaces}  # type: ignore[index]
-        )
-    if isinstance(first, gym.spaces.Box):
-        boxes = [
-            s for s in spaces if isinstance(s, gym.spaces.Box) and (s.shape, s.dtype) == (first.shape, first.dtype)
-        ]
-        if len(boxes) != len(spaces):
-            raise ConfigError(f"{what} spaces cannot be combined: {_listing(names, spaces)}")
-        lows = np.stack([b.low for b in boxes])
-        highs = np.stack([b.high for b in boxes])
-        low, high = (lows.min(0), highs.max(0)) if union else (lows.max(0), highs.min(0))
-        if np.any(low > high):
-            raise ConfigError(f"{what} spaces have no common range: " + ", ".join(names))
-        return gym.spaces.Box(low, high, shape=first.shape, dtype=first.dtype)  # a 0-d Box stays 0-d
-    if not all(s == first for s in spaces):
-        raise ConfigError(f"{what} spaces differ: {_listing(names, spaces)}")
-    return first
 
 
 class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
@@ -128,8 +90,8 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
             self._pad(names, obs_spaces, act_spaces)
             obs_spaces = [space_from_plain(w.info["observation_space"]) for w in workers]
             act_spaces = [space_from_plain(w.info["action_space"]) for w in workers]
-        self.single_observation_space = _merge(obs_spaces, names, union=True, what="observation")
-        self.single_action_space = _merge(act_spaces, names, union=False, what="action")
+        self.single_observation_space = merge_spaces(obs_spaces, names, union=True, what="observation")
+        self.single_action_space = merge_spaces(act_spaces, names, union=False, what="action")
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         obs_space = self.single_observation_space
@@ -173,8 +135,8 @@ class UnirosVectorEnv(VectorEnv[Any, Any, Any]):
         Raises:
             ConfigError: the spaces differ and cannot be padded (not 1-D Boxes), naming the envs and their spaces.
         """
-        obs_boxes = [_vector_box(s) for s in obs_spaces]
-        act_boxes = [_vector_box(s) for s in act_spaces]
+        obs_boxes = [vector_box(s) for s in obs_spaces]
+        act_boxes = [vector_box(s) for s in act_spaces]
         bad = [i for i, (o, a) in enumerate(zip(obs_boxes, act_boxes, strict=True)) if o is None or a is None]
         if bad:
             listing = "; ".join(
