@@ -261,3 +261,33 @@ async def test_a_full_disk_stops_recording_with_a_clear_error_and_the_file_reads
     got = list(reader.messages(strict=False))
     assert reader.damage is not None and len(got) >= 5
     assert_run_of([bm.message for bm in got], published["/camera/image"])
+
+
+async def test_play_loops_on_the_sim_clock_with_time_going_on(tmp_path: Path) -> None:
+    from uniros_async.bag import BagWriter, PlayConfig, play
+
+    bag = tmp_path / "l.mcap"
+    with BagWriter(bag) as w:
+        for i in range(5):
+            w.put("/text", m.Text(data=f"t{i}"), 1_000 + 1_000 * i)
+    async with open_domain() as domain:
+        got: dict[str, list[Any]] = defaultdict(list)
+        async with await collect(domain.uri, {"/text": m.Text, "/clock": m.ClockTick}, got):
+            task = asyncio.create_task(
+                play(PlayConfig(path=bag, domain=domain.uri, clock="sim", rate=0, loop=True, wait_subscribers=1))
+            )
+            try:
+                for _ in range(3000):  # 30 s at most
+                    if len(got["/text"]) >= 12:
+                        break
+                    await asyncio.sleep(0.01)
+            finally:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+    texts = [t.data for t in got["/text"]][:12]
+    assert texts == [f"t{i % 5}" for i in range(12)]
+    ticks = [t.sim_time_ns for t in got["/clock"]][:12]
+    assert ticks[:5] == [1_000, 2_000, 3_000, 4_000, 5_000]
+    assert ticks[5:10] == [t + 4_001 for t in ticks[:5]]  # the next round goes on from the last one's end
+    assert all(b > a for a, b in zip(ticks, ticks[1:], strict=False))
