@@ -120,7 +120,10 @@ async def play(config: PlayConfig) -> int:
                     try:
                         item = q.get_nowait()
                     except queue.Empty:
-                        item = await asyncio.to_thread(q.get)
+                        try:  # bounded, so that a cancelled play leaves no thread waiting on an empty queue
+                            item = await asyncio.to_thread(q.get, True, 0.2)
+                        except queue.Empty:
+                            continue
                     if item is _END:
                         break
                     if isinstance(item, BaseException):
