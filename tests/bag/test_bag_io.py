@@ -40,6 +40,7 @@ def test_every_type_round_trips_with_both_compressions(tmp_path: Path) -> None:
             assert (bm.topic, bm.log_time_ns, bm.type_name) == (topic, t, type(msg).__name__)
             assert_same(bm.message, msg)
         info = BagReader(path).info()
+        assert BagReader(path)._summary_info() == info  # a complete bag's info comes from its summary
         assert info.complete and info.damage is None and info.compression == {compression}
         assert info.chunks > 1 and info.message_count == len(written)
         assert info.topics["/rx200/joint_states"].schema_name == "sensor_msgs/msg/JointState"

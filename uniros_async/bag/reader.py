@@ -160,8 +160,13 @@ class BagReader:
             yield BagMessage(ch.topic, rec.log_time, rec.publish_time, msg, ch.type_name)
 
     def info(self) -> BagInfo:
-        """What the bag holds; a damaged bag's info covers what reads, and says where the damage is."""
+        """What the bag holds: from its summary when it is complete (nothing decompressed), else by reading it to
+        its end; a damaged bag's info covers what reads, and says where the damage is."""
         from mcap.records import Chunk, Metadata
+
+        summarised = self._summary_info()
+        if summarised is not None:
+            return summarised
 
         topics: dict[str, TopicInfo] = {}
         start = end = None
@@ -206,6 +211,48 @@ class BagReader:
             str(self.damage) if self.damage else None,
         )
 
+    def _summary_info(self) -> BagInfo | None:
+        """The info from a complete bag's summary (statistics, channels, chunk indexes), or None: no summary."""
+        from mcap.reader import make_reader
+
+        try:
+            with open(self.path, "rb") as f:
+                reader = make_reader(f)
+                summary = reader.get_summary()
+                if summary is None or summary.statistics is None:
+                    return None
+                metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        except Exception:  # no footer, a torn summary, ...: the walk reads what there is and names the damage
+            return None
+        stats = summary.statistics
+        topics: dict[str, TopicInfo] = {}
+        for cid, c in summary.channels.items():
+            ch = _channel(c, summary.schemas.get(c.schema_id))
+            t = topics.setdefault(
+                ch.topic,
+                TopicInfo(
+                    ch.topic,
+                    ch.type_name or "?",
+                    ch.schema.name if ch.schema else "?",
+                    ch.schema.message_encoding if ch.schema else "?",
+                ),
+            )
+            t.count += stats.channel_message_counts.get(cid, 0)
+        self.damage = None
+        n = stats.message_count
+        return BagInfo(
+            str(self.path),
+            self.path.stat().st_size,
+            topics,
+            stats.message_start_time if n else None,
+            stats.message_end_time if n else None,
+            stats.chunk_count,
+            {i.compression or "none" for i in summary.chunk_indexes},
+            metadata,
+            True,
+            None,
+        )
+
     # ---- the walk
 
     def _damaged(self, offset: int, what: str) -> BagDamagedError:
@@ -233,18 +280,7 @@ class BagReader:
             elif opcode == Opcode.CHANNEL:
                 c = Channel.read(stream)
                 if c.id not in channels:
-                    s = schemas_by_id.get(c.schema_id)
-                    type_name = c.metadata.get("uniros_type", "")
-                    schema = None
-                    if s is not None:
-                        schema = schemas.Schema(s.name, s.encoding, bytes(s.data), c.message_encoding)
-                        if not type_name and s.name in schemas.ROS2_TYPES.values():
-                            type_name = next(k for k, v in schemas.ROS2_TYPES.items() if v == s.name)
-                        elif not type_name and s.name.startswith(schemas.OWN_PACKAGE):
-                            type_name = s.name.removeprefix(schemas.OWN_PACKAGE)
-                    if schema is not None and not _readable(schema):
-                        schema = None
-                    channels[c.id] = _Channel(c.topic, type_name, schema)
+                    channels[c.id] = _channel(c, schemas_by_id.get(c.schema_id))
             elif opcode == Opcode.MESSAGE:
                 return Message.read(stream, len(body))
             elif opcode == Opcode.METADATA:
@@ -308,6 +344,21 @@ class BagReader:
         self.damage = err
         if strict:
             raise err
+
+
+def _channel(c: Any, s: Any) -> _Channel:
+    """Our view of an MCAP channel ``c`` of schema ``s`` (None: unknown): its type, and its schema if we read it."""
+    type_name = c.metadata.get("uniros_type", "")
+    schema = None
+    if s is not None:
+        schema = schemas.Schema(s.name, s.encoding, bytes(s.data), c.message_encoding)
+        if not type_name and s.name in schemas.ROS2_TYPES.values():
+            type_name = next(k for k, v in schemas.ROS2_TYPES.items() if v == s.name)
+        elif not type_name and s.name.startswith(schemas.OWN_PACKAGE):
+            type_name = s.name.removeprefix(schemas.OWN_PACKAGE)
+    if schema is not None and not _readable(schema):
+        schema = None
+    return _Channel(c.topic, type_name, schema)
 
 
 def _readable(schema: schemas.Schema) -> bool:
