@@ -4,6 +4,7 @@
     node.py      ServoSimNode / open_servo_sim: the sim on the bus, in the caller's process
     serve.py     open_servo_sim_process (own process, same domain), serve_servo_sim (remote, own tcp domain)
     emulated.py  EmulationConfig: perturbed dynamics, sensor noise, network delay (the emulated real arm)
+    imperfections.py  Imperfections: servo-level imperfections of a real arm as knobs with a strength
     placement.py the "sim", "sim-process" and "emulated-real" placements' factories (uniros_async.placements)
     render.py    render_png (offscreen), view (interactive)
     cli.py       ``uniros robot serve|render|view``
@@ -17,6 +18,7 @@ from uniros_async._lazy import lazy_exports
 
 __all__ = [
     "EmulationConfig",
+    "Imperfections",
     "LatencyModel",
     "ServeConfig",
     "ServoSim",
@@ -32,6 +34,7 @@ __all__ = [
 
 _WHERE = {
     "EmulationConfig": "emulated",
+    "Imperfections": "imperfections",
     "LatencyModel": "emulated",
     "ServeConfig": "serve",
     "ServoSim": "servo",

@@ -108,6 +108,8 @@ class EmulationConfig:
         velocity_noise_std: Gaussian noise on published velocities (rad/s or m/s).
         state_latency: the network between the arm and its joint_states subscribers.
         command_latency: the network between a commander and the arm.
+        state_repeat: probability that a tick sends the previous joint state again (new stamp, old values) in
+            place of the new one, as a driver does when a read fails.
     """
 
     seed: int = 0
@@ -119,8 +121,13 @@ class EmulationConfig:
     velocity_noise_std: float = 0.01
     state_latency: LatencyModel = field(default_factory=LatencyModel)
     command_latency: LatencyModel = field(default_factory=LatencyModel)
+    state_repeat: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.state_repeat < 1.0:
+            raise ConfigError(
+                f"EmulationConfig.state_repeat: expected a probability in [0, 1), got {self.state_repeat}"
+            )
         for name in ("mass_scale", "damping_scale", "friction_scale", "kp_scale"):
             v = getattr(self, name)
             if not 0.0 <= v <= 0.9:

@@ -63,6 +63,7 @@ from uniros_async.clock import Clock, grid_after
 from uniros_async.errors import ConfigError
 from uniros_async.robots import RobotSpec, get_robot_spec
 from uniros_async.sim.emulated import DelayLine, EmulationConfig, add_sensor_noise, perturb_model
+from uniros_async.sim.imperfections import Imperfections
 from uniros_async.sim.servo import ServoSim, ServoSimConfig, ServoStats, load_model
 from uniros_async.sim_clock import SimClock
 from uniros_async.transports.base import TransportOptions
@@ -87,6 +88,7 @@ class ServoSimNode:
         last_state: the last published JointState (after noise), or None.
         max_command_age_s: commands older than this when taken at a tick are dropped (None: none are).
         stale_commands: commands dropped for their age.
+        repeated_states: ticks that sent the previous state again (``EmulationConfig.state_repeat``).
         on_event: called with each command and watchdog event (see the module docstring), or None.
     """
 
@@ -105,6 +107,7 @@ class ServoSimNode:
             raise ConfigError(f"max_command_age_s: expected a value > 0 or None, got {max_command_age_s}")
         self.max_command_age_s = max_command_age_s
         self.stale_commands = 0
+        self.repeated_states = 0
         self.on_event = on_event
         self.node = node
         self.sim = sim
@@ -232,6 +235,11 @@ class ServoSimNode:
             self.on_event({"ev": "hold", "t_ns": self.node.now_ns(), "tick": self.sim.stats.ticks})
         if self.emulation is not None and (self.emulation.position_noise_std or self.emulation.velocity_noise_std):
             state = add_sensor_noise(state, self.emulation, self._rng)
+        if self.emulation is not None and self.emulation.state_repeat and self.last_state is not None:
+            if self._rng.random() < self.emulation.state_repeat:
+                self.repeated_states += 1
+                prev, h = self.last_state, state.header
+                state = dataclasses.replace(prev, header=Header(stamp_ns=h.stamp_ns, seq=h.seq, frame_id=h.frame_id))
         self.last_state = state
         if self._state_line is not None:
             self._state_line.push(state)
@@ -354,6 +362,7 @@ class ServoSimNode:
         if self._cmd_line is not None:
             out["command_lost"] = self._cmd_line.lost
         out["stale_commands"] = self.stale_commands
+        out["repeated_states"] = self.repeated_states
         return Data(value=out)
 
 
@@ -361,20 +370,25 @@ def build_sim(
     robot: RobotSpec | str,
     config: ServoSimConfig | None = None,
     emulation: EmulationConfig | None = None,
+    imperfections: Imperfections | None = None,
 ) -> tuple[ServoSim, dict[str, np.ndarray]]:
     """A ServoSim of ``robot``; for an emulated real arm its model is perturbed first (seeded).
+
+    ``imperfections`` adds its servo-side knobs to the sim (``Imperfections.servo_effects``); its bus-side knobs
+    are ``imperfections.emulation()``, which the caller passes as ``emulation``.
 
     Returns:
         The sim and the perturbation factors drawn ({} without emulation).
     """
     spec = get_robot_spec(robot) if isinstance(robot, str) else robot
     config = config or ServoSimConfig()
+    effects = None if imperfections is None else imperfections.servo_effects(spec)
     if emulation is None:
-        return ServoSim(spec, config), {}
+        return ServoSim(spec, config, effects=effects), {}
     model = load_model(spec, config.physics_dt_s)
     act_ids = [model.actuator(n).id for n in spec.arm_joint_names]
     factors = perturb_model(model, emulation, np.random.default_rng(emulation.seed), actuator_ids=act_ids)
-    return ServoSim(spec, config, model=model), factors
+    return ServoSim(spec, config, model=model, effects=effects), factors
 
 
 @contextlib.asynccontextmanager
@@ -386,6 +400,7 @@ async def open_servo_sim(
     config: ServoSimConfig | None = None,
     clock: Clock | None = None,
     emulation: EmulationConfig | None = None,
+    imperfections: Imperfections | None = None,
     publish_markers: bool = False,
     node_name: str = "servo_sim",
     transport: str = "auto",
@@ -402,6 +417,8 @@ async def open_servo_sim(
         config: servo settings.
         clock: the domain's clock; a SimClock (not a follower) without a driver is driven by this node.
         emulation: make it an emulated real arm (perturbed, noisy, delayed).
+        imperfections: servo-level imperfections with a strength (``uniros_async.sim.imperfections``); without
+            ``emulation``, its bus-side knobs give the emulation.
         publish_markers: publish the EE marker every tick and goal markers on ``markers``.
         node_name: the node's name within the namespace.
         transport: the node's transport choice (``auto``, ``memory``, ``shm``, ``tcp``).
@@ -418,7 +435,9 @@ async def open_servo_sim(
         SimulationError: (inside an ExceptionGroup, from the node's tasks) physics diverged.
     """
     spec = get_robot_spec(robot) if isinstance(robot, str) else robot
-    sim, factors = build_sim(spec, config, emulation)
+    if imperfections is not None and emulation is None:
+        emulation = imperfections.emulation()
+    sim, factors = build_sim(spec, config, emulation, imperfections)
     ns = namespace if namespace is not None else f"/{spec.name}"
     async with open_node(
         node_name, domain=domain, namespace=ns, clock=clock, transport=transport, options=options

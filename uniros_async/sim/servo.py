@@ -40,7 +40,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import mujoco
 import numpy as np
@@ -50,6 +50,9 @@ from uniros_async.bus.messages import Header, JointCommand, JointState
 from uniros_async.errors import ConfigError, SimulationError
 from uniros_async.robots import RobotSpec, get_robot_spec
 from uniros_async.sim.profiles import AccelLimited, Brake, Constant, Integrate, Profile, TimeSegment, VelocityLimited
+
+if TYPE_CHECKING:
+    from uniros_async.sim.imperfections import ServoEffects
 
 __all__ = ["MODES", "ServoSim", "ServoSimConfig", "ServoStats", "load_model"]
 
@@ -174,13 +177,20 @@ class ServoSim:
         robot: a RobotSpec or a registered robot name (``"rx200"``, ``"ned2"``).
         config: servo settings; defaults to ``ServoSimConfig()``.
         model: an already-loaded (e.g. perturbed) MjModel of this robot; default: load ``robot.mjcf_path``.
+        effects: servo-level imperfections (``uniros_async.sim.imperfections``): they change the model's gains and
+            force ranges and the velocity limits here, and every setpoint and arm joint reading; None: none.
 
     Raises:
         ConfigError: bad config, unknown robot, or a model that lacks the robot's joints or actuators.
     """
 
     def __init__(
-        self, robot: RobotSpec | str, config: ServoSimConfig | None = None, *, model: mujoco.MjModel | None = None
+        self,
+        robot: RobotSpec | str,
+        config: ServoSimConfig | None = None,
+        *,
+        model: mujoco.MjModel | None = None,
+        effects: ServoEffects | None = None,
     ) -> None:
         self.robot = get_robot_spec(robot) if isinstance(robot, str) else robot
         self.config = config or ServoSimConfig()
@@ -219,6 +229,11 @@ class ServoSim:
         self.lower = np.where(limited, np.maximum(self.lower, ctrl_lo), self.lower)
         self.upper = np.where(limited, np.minimum(self.upper, ctrl_hi), self.upper)
         self.vmax = np.asarray(spec.velocity_limits_rad_s, dtype=np.float64)
+        self.effects = effects
+        if effects is not None:
+            effects.perturb(m, self._act_ids)
+            mujoco.mj_setConst(m, self.data)
+            self.vmax = self.vmax * effects.velocity_factor
         prof = spec.servo_profile
         self._profile_kind = prof.kind
         self._accel_time_s = prof.accel_time_s
@@ -288,13 +303,17 @@ class ServoSim:
         """The joint state now, for ``RobotSpec.joint_state_names``; stamped with sim time unless told. ``echo``:
         its ``command_stamp_ns`` and ``command_age_ns`` (the round-trip echo, ``ServoSimNode``)."""
         d = self.data
+        position, velocity = d.qpos[self._qadr], d.qvel[self._vadr]
+        if self.effects is not None:
+            n = self.n_joints
+            position[:n], velocity[:n] = self.effects.measure(position[:n], velocity[:n])
         return JointState(
             header=Header(
                 stamp_ns=self.time_ns if stamp_ns is None else stamp_ns, seq=self.stats.ticks if seq is None else seq
             ),
             name=self._names,
-            position=d.qpos[self._qadr],
-            velocity=d.qvel[self._vadr],
+            position=position,
+            velocity=velocity,
             effort=d.qfrc_actuator[self._vadr],
             command_stamp_ns=echo[0],
             command_age_ns=echo[1],
@@ -433,6 +452,8 @@ class ServoSim:
     def _step_period(self) -> None:
         m, d, n, k = self.model, self.data, self.n_substeps, self._chunk
         traj = self._profile.advance(n // k, self.config.physics_dt_s * k)
+        if traj is not None and self.effects is not None:
+            traj = np.array([self.effects.setpoint(row) for row in traj])
         if traj is None:
             self._set_ctrl(self._profile.pos)
             mujoco.mj_step(m, d, nstep=n)
@@ -452,6 +473,8 @@ class ServoSim:
         self._check_divergence()
 
     def _set_ctrl(self, q: np.ndarray) -> None:
+        if self.effects is not None:
+            q = self.effects.setpoint(q)
         if self._contiguous_acts:
             self.data.ctrl[: self.n_joints] = q
         else:
@@ -537,8 +560,11 @@ class ServoSim:
             mujoco.mj_resetDataKeyframe(m, d, self._home_key)
         else:
             mujoco.mj_resetData(m, d)
-        d.qpos[self._arm_qadr] = q_arr
+        # with calibration offsets the servos read q_arr there
+        d.qpos[self._arm_qadr] = q_arr if self.effects is None else q_arr - self.effects.offsets
         d.qvel[:] = 0.0
+        if self.effects is not None:
+            self.effects.reset(q_arr)
         self._set_ctrl(q_arr)
         mujoco.mj_forward(m, d)
         self._warn_counts = d.warning.number[_WARN_IDX].copy()
