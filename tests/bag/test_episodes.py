@@ -3,6 +3,8 @@ reward, goal, success, the env loop's joint states, commands and ticks, and a pi
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +58,13 @@ def test_every_step_is_recorded_with_the_env_loops_states_commands_and_ticks(tmp
     for s, c, st in zip(states, commands, steps, strict=True):
         assert s.header.stamp_ns <= st.header.stamp_ns and len(s.position) == 8
         assert c.header.stamp_ns == st.command_ns[-1] and c.position.shape == (5,)
+    # a process that never imported the wrapper (nor gymnasium) reads the whole bag
+    code = (
+        "import sys; from uniros_async.bag import BagReader; "
+        f"print(len(list(BagReader({str(env.files[0])!r}).messages()))); print('gymnasium' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
+    assert out.split() == [str(len(list(BagReader(env.files[0]).messages()))), "False"]
 
 
 def test_a_pixel_env_records_its_camera_frames(tmp_path: Path) -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 from typing import Any
 
 from uniros_async.bag.errors import BagDamagedError, BagError
-from uniros_async.bag.reader import BagInfo, BagMessage, BagReader, TopicInfo
+from uniros_async.bag.reader import BagInfo, BagMessage, BagReader, EpisodeStep, TopicInfo
 from uniros_async.bag.writer import BagWriter, WriterStats
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "BagMessage",
     "BagReader",
     "BagWriter",
+    "EpisodeStep",
     "PlayConfig",
     "RecordConfig",
     "RecordEpisodes",

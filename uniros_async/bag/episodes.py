@@ -25,36 +25,12 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from uniros_async.bag.step import EpisodeStep
 from uniros_async.bag.writer import BagWriter, WriterStats
-from uniros_async.bus.messages import Header, Image, JointCommand, JointState, array_field, message
+from uniros_async.bus.messages import Header, Image, JointCommand, JointState
 from uniros_async.errors import ConfigError
 
 __all__ = ["EpisodeStep", "RecordEpisodes"]
-
-
-@message
-class EpisodeStep:
-    """One env step as RecordEpisodes writes it (see the module docstring)."""
-
-    header: Header
-    episode: int = 0
-    step: int = 0
-    observation: np.ndarray | None = array_field(np.float64, 1, optional=True, default=None)
-    action: np.ndarray | None = array_field(np.float64, 1, optional=True, default=None)
-    reward: float = 0.0
-    terminated: bool = False
-    truncated: bool = False
-    success: bool | None = None
-    desired_goal: np.ndarray | None = array_field(np.float64, 1, optional=True, default=None)
-    achieved_goal: np.ndarray | None = array_field(np.float64, 1, optional=True, default=None)
-    step_wall_ns: int = 0
-    """How long ``step`` took, on the wall clock."""
-    tick_ns: np.ndarray | None = array_field(np.int64, 1, optional=True, default=None)
-    """The env loop's ticks since the previous step (the env's clock)."""
-    command_ns: np.ndarray | None = array_field(np.int64, 1, optional=True, default=None)
-    """The ticks of those that sent a command."""
-    observation_age_ns: int | None = None
-    action_latency_ns: int | None = None
 
 
 def _vector(x: Any) -> np.ndarray | None:

@@ -23,9 +23,10 @@ from typing import Any
 
 from uniros_async.bag import schemas
 from uniros_async.bag.errors import BagDamagedError, BagError
+from uniros_async.bag.step import EpisodeStep  # registered by its import: episode bags read in any process
 from uniros_async.errors import CodecError
 
-__all__ = ["BagInfo", "BagMessage", "BagReader", "TopicInfo"]
+__all__ = ["BagInfo", "BagMessage", "BagReader", "EpisodeStep", "TopicInfo"]
 
 MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")
