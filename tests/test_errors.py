@@ -101,6 +101,10 @@ def test_the_old_places_import_them_from_errors() -> None:
         ("training/evaluate.py", "EvaluationStopped"),
         ("training/recipes.py", "TrainingInterrupted"),
         ("sim/render.py", "RenderError"),
+        ("camera/capture.py", "CameraError"),
+        ("camera/topic.py", "FrameError"),
+        ("bag/errors.py", "BagDamagedError"),
+        ("view/__init__.py", "ViewError"),
     ]:
         tree = ast.parse((PACKAGE / module).read_text())
         imported = {

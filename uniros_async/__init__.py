@@ -38,6 +38,7 @@ from uniros_async.errors import (
     TransportClosedError,
     TransportError,
     UnirosError,
+    ViewError,
     WorkerError,
 )
 
@@ -80,6 +81,7 @@ __all__ = [
     "TransportClosedError",
     "TransportError",
     "UnirosError",
+    "ViewError",
     "WorkerError",
     "__version__",
     "make",

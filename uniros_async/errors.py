@@ -20,6 +20,7 @@ The tree (as httpx/_exceptions.py draws its own)::
     ├── FrameError (also ValueError)         a camera frame's size or encoding differs from its topic's
     ├── SimulationError                      MuJoCo diverged (dm_control PhysicsError)
     ├── RenderError                          no GL backend could render here; names what was tried
+    ├── ViewError                            the live view cannot start or show what it was given; names why
     ├── RobotError                           a robot stopped publishing or refused a command
     │   └── DxlError                         a Dynamixel bus transaction failed; .servo_id when one servo did
     │       ├── DxlCrcError                  a packet's CRC did not match (counted and retried within the tick)
@@ -79,6 +80,7 @@ __all__ = [
     "TransportClosedError",
     "TransportError",
     "UnirosError",
+    "ViewError",
     "WorkerError",
 ]
 
@@ -162,6 +164,10 @@ class SimulationError(UnirosError):
 
 class RenderError(UnirosError):
     """No GL backend could render here (the message lists what was tried and what to install)."""
+
+
+class ViewError(UnirosError):
+    """The view cannot start or show what it was given (the message names what and why)."""
 
 
 class RobotError(UnirosError):

@@ -11,10 +11,6 @@ entities (the arm's geoms posed by MuJoCo forward kinematics of its MJCF, marker
 
 from __future__ import annotations
 
-from uniros_async.errors import UnirosError
+from uniros_async.errors import ViewError
 
 __all__ = ["ViewError"]
-
-
-class ViewError(UnirosError):
-    """The view cannot start or show what it was given (the message names what and why)."""
