@@ -42,15 +42,20 @@ async def uniros(*args: str, timeout_s: float = 60.0) -> tuple[int, str]:
 
 
 async def test_the_rx200_moves_toward_its_goal_in_headless_chromium(tmp_path: Path) -> None:
+    """A real Rx200Reach-v0 env steps toward its goal; the 3D view is not blank and changes between two pictures."""
     shots = [tmp_path / "a.png", tmp_path / "b.png"]
-    out = await reach_and_photograph(shots, reach_s=12.0, first_after_s=12.0, every_s=4.0)
+    # 0.03 rad per step: the reach lasts past the second picture
+    out, reach = await reach_and_photograph(shots, step_rad=0.03, first_after_s=12.0, every_s=4.0)
     assert "/rx200/joint_states" in out and "/rx200/markers" in out, out
+    assert reach["ik"] and reach["steps"] >= 15, reach
     a, b = (np.asarray(Image.open(io.BytesIO(p.read_bytes())).convert("RGB"), dtype=np.int16) for p in shots)
     h, w, _ = a.shape
     scene_a, scene_b = a[40 : h * 2 // 3, : w * 3 // 5], b[40 : h * 2 // 3, : w * 3 // 5]  # the 3D view
-    # not a blank canvas: the arm's dark links and the viewer's light background are both there
+    # not a blank canvas: the arm's dark links, the red goal and the viewer's light background are all there
     dark = (scene_b.max(axis=2) < 60).mean()
-    assert 0.01 < dark < 0.6, f"dark (arm) pixels in the 3D view: {dark:.3f}"
+    assert 0.004 < dark < 0.6, f"dark (arm) pixels in the 3D view: {dark:.4f}"
+    red = ((scene_b[..., 0] > 170) & (scene_b[..., 1] < 80) & (scene_b[..., 2] < 80)).sum()
+    assert red > 30, f"{red} red (goal) pixels in the 3D view"
     assert len(np.unique(scene_b.reshape(-1, 3), axis=0)) > 50, "a flat canvas"
     # the arm moved between the two pictures
     changed = (np.abs(scene_a - scene_b).max(axis=2) > 40).mean()

@@ -55,6 +55,7 @@ from uniros_async.envs.pixels import PixelSource
 from uniros_async.envs.robot import TICK_OFFSET_NS
 from uniros_async.envs.task import TaskEnv, parse_kwargs
 from uniros_async.errors import ConfigError
+from uniros_async.tasks.markers import TaskMarkers, reach_markers
 
 __all__ = ["ReachConfig", "ReachEnv", "ReachGoalEnv", "reach_reward"]
 
@@ -188,6 +189,7 @@ class ReachEnv(TaskEnv):
         self.goal = np.zeros(3)
         self._prev_action = np.zeros(n, dtype=np.float32)
         self._limit_hit = False
+        self._markers = TaskMarkers()  # goal, EE and bounds on /<arm>/markers, from the step, never from the tick
         self._start()
 
     def _vector_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -211,6 +213,7 @@ class ReachEnv(TaskEnv):
 
     async def _join(self, domain: Any, transport: str, options: Any) -> None:
         await super()._join(domain, transport, options)
+        await self._markers.join(self._node)
         if self._pixels is None:
             return
         try:
@@ -256,11 +259,24 @@ class ReachEnv(TaskEnv):
 
     def _on_action(self, action: np.ndarray) -> None:
         self._prev_action = action.astype(np.float32)
+        if self._markers.due():
+            self._publish_markers()
 
     def _on_reset(self, q_arm: np.ndarray) -> None:
         self._prev_action = np.zeros_like(self._prev_action)
         self._limit_hit = False
         self.goal = self.sample_goal(self.np_random)
+        self._publish_markers()
+
+    def _publish_markers(self) -> None:
+        js = self._js.latest()
+        ee = None if js is None else self.kin.ee_position(js.position[self._arm_idx])
+        bounds = (self.safety.config.workspace_min_m, self.safety.config.workspace_max_m)
+        self._markers.publish(
+            reach_markers(
+                self._clock.now_ns(), self.goal, ee, bounds, (self.goal_min, self.goal_max), self.reach_tolerance
+            )
+        )
 
     def sample_goal(self, rng: np.random.Generator, max_tries: int = 200) -> np.ndarray:
         """A goal uniform in the goal box that the arm can reach (IK succeeds, EE inside the workspace).

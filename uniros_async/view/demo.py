@@ -1,9 +1,10 @@
-"""The rx200 reaching for a goal, in the live view, photographed by headless Chromium (the docs' picture and the
+"""The rx200 reaching for its goal, in the live view, photographed by headless Chromium (the docs' picture and the
 view's test): ``python -m uniros_async.view.demo -o view.png``.
 
-A domain of this process holds an rx200 servo sim publishing its markers (the goal, the end effector); a node of
-it commands the arm from home toward a goal pose over a few seconds and publishes the task's safety box as a marker;
-``uniros view --domain`` runs as a child process; Chromium opens the printed URL and takes the screenshots.
+A domain of this process holds an rx200 servo sim; a real ``uniros/Rx200Reach-v0`` env on that arm (in a thread)
+steps toward its goal with joint deltas toward an IK solution, at most ``step_rad`` per joint and step, and its task
+publishes the goal, the end effector and the bounds on ``/rx200/markers``; ``uniros view --domain`` runs as a child
+process; Chromium opens the URL it prints and takes the screenshots.
 """
 
 from __future__ import annotations
@@ -12,16 +13,15 @@ import argparse
 import asyncio
 import socket
 import sys
+import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from uniros_async.view import ViewError
 
 __all__ = ["free_port", "reach_and_photograph"]
-
-GOAL_Q = (0.6, 0.35, 0.1, 0.5, 0.0)
-"""The goal's joint positions (rad); the goal marker sits where they put the end effector."""
 
 
 def free_port() -> int:
@@ -32,44 +32,53 @@ def free_port() -> int:
         return port
 
 
-def _box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    c = [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-    order = [0, 1, 3, 2, 0, 4, 5, 7, 6, 4, 5, 1, 3, 7, 6, 2]
-    return np.array([c[i] for i in order], dtype=np.float64)
+def _reach(uri: str, stop: threading.Event, step_rad: float, seed: int, result: dict[str, Any]) -> None:
+    """Step an Rx200Reach-v0 env on the arm at ``uri`` toward its goal until it is reached or ``stop`` is set."""
+    import gymnasium as gym
+
+    import uniros_async  # noqa: F401  (registers the envs)
+
+    env = gym.make("uniros/Rx200Reach-v0", robot=uri, goal_space="workspace")
+    try:
+        env.reset(seed=seed)
+        task: Any = env.unwrapped
+        q_goal, ok = task.kin.ik(task.goal, rng=seed)
+        result.update(goal=task.goal.copy(), ik=ok, steps=0, success=False)
+        per_action = task.delta_coeff * task._half_range * round(0.8 * task.env_loop_rate_hz)
+        while not stop.is_set():
+            js = task._js.latest()
+            q = js.position[task._arm_idx]
+            action = np.clip(np.clip(q_goal - q, -step_rad, step_rad) / per_action, -1, 1).astype(np.float32)
+            _, _, terminated, truncated, info = env.step(action)
+            result["steps"] += 1
+            if terminated or truncated:
+                result["success"] = bool(info.get("is_success"))
+                break
+    finally:
+        env.close()
 
 
 async def reach_and_photograph(
-    outputs: list[Path], *, reach_s: float = 12.0, first_after_s: float = 14.0, every_s: float = 4.0
-) -> str:
-    """Run the scene and write one screenshot per path of ``outputs``; returns the view's output.
+    outputs: list[Path], *, step_rad: float = 0.05, first_after_s: float = 14.0, every_s: float = 4.0, seed: int = 3
+) -> tuple[str, dict[str, Any]]:
+    """Run the scene and write one screenshot per path of ``outputs``; returns the view's output and the reach's
+    result (``goal``, ``steps``, ``success``).
 
     Raises:
         ViewError: the view or the browser did not start (with the view's output).
     """
-    from uniros_async.bus import open_domain, open_node
-    from uniros_async.bus.messages import Header, JointCommand, Marker
-    from uniros_async.robots import get_robot_spec
+    from uniros_async.bus import open_domain
     from uniros_async.sim.node import open_servo_sim
-    from uniros_async.view.scene import ArmGeoms
     from uniros_async.view.screenshot import headless_chromium
 
-    spec = get_robot_spec("rx200")
-    geoms = ArmGeoms("rx200")
-    geoms.pose(spec.arm_joint_names, np.array(GOAL_Q))
-    goal = geoms.ee_position.copy()
-    home = np.asarray(spec.home_q_rad, dtype=np.float64)
     grpc, web = free_port(), free_port()
-    async with (
-        open_domain() as domain,
-        open_servo_sim("rx200", domain=domain.uri, publish_markers=True) as sim,
-        open_node("reach_demo", domain=domain.uri) as node,
-    ):
-        sim.set_goal_marker(goal)
-        cmd = await node.create_publisher(JointCommand, "/rx200/command")
-        markers = await node.create_publisher(Marker, "/rx200/task_markers")
+    result: dict[str, Any] = {}
+    stop = threading.Event()
+    async with open_domain() as domain, open_servo_sim("rx200", domain=domain.uri):
         view = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "uniros_async.cli", "view", "--domain", domain.uri, "--port", str(grpc),
-            "--web-port", str(web), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
+            "--web-port", str(web), "--arm-wait", "30", stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.STDOUT,
         )  # fmt: skip
         out: list[str] = []
         try:
@@ -89,22 +98,6 @@ async def reach_and_photograph(
                 while line := (await view.stdout.readline()).decode():
                     out.append(line)
 
-            async def move() -> None:
-                t0 = node.now_ns()
-                while True:
-                    s = min(1.0, (node.now_ns() - t0) / 1e9 / reach_s)
-                    q = home + (np.array(GOAL_Q) - home) * s
-                    cmd.publish(JointCommand(header=Header(stamp_ns=node.now_ns()), position=q))
-                    lo, hi = np.array([0.1, -0.3, 0.02]), np.array([0.45, 0.3, 0.4])
-                    h = Header(stamp_ns=node.now_ns(), frame_id="world")
-                    markers.publish(Marker(header=h, ns="bounds", kind="line_strip", points=_box_edges(lo, hi),
-                                           scale=np.full(3, 0.004), color=np.array([0.3, 0.5, 1.0, 1.0])))  # fmt: skip
-                    markers.publish(Marker(header=h, ns="goal", kind="sphere", position=goal, scale=np.full(3, 0.04),
-                                           color=np.array([0.9, 0.1, 0.1, 0.9])))  # fmt: skip
-                    markers.publish(Marker(header=h, ns="goal_label", kind="text", position=goal + [0, 0, 0.04],
-                                           text="goal", color=np.ones(4)))  # fmt: skip
-                    await asyncio.sleep(spec.hardware_period_s)
-
             async def photograph() -> None:
                 with headless_chromium() as browser:
                     await asyncio.to_thread(browser.open, url)
@@ -115,10 +108,14 @@ async def reach_and_photograph(
                         path.write_bytes(await asyncio.to_thread(browser.screenshot))
 
             async with asyncio.TaskGroup() as tg:
-                movers = [tg.create_task(move()), tg.create_task(drain())]
-                await photograph()
-                for t in movers:
-                    t.cancel()
+                drainer = tg.create_task(drain())
+                reacher = tg.create_task(asyncio.to_thread(_reach, domain.uri, stop, step_rad, seed, result))
+                try:
+                    await photograph()
+                finally:
+                    stop.set()
+                    await reacher
+                    drainer.cancel()
         finally:
             if view.returncode is None:
                 view.terminate()
@@ -128,7 +125,7 @@ async def reach_and_photograph(
                 except TimeoutError:
                     view.kill()
                     await view.wait()
-    return "".join(out)
+    return "".join(out), result
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,10 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--first-after", type=float, default=14.0, help="seconds before the first screenshot")
     p.add_argument("--every", type=float, default=4.0, help="seconds between screenshots")
     args = p.parse_args(argv)
-    out = asyncio.run(
+    out, result = asyncio.run(
         reach_and_photograph([Path(o) for o in args.output], first_after_s=args.first_after, every_s=args.every)
     )
     print(out, end="")
+    print(f"# the reach: {result}")
     return 0
 
 

@@ -58,7 +58,7 @@ async def view_domain(
         ViewError: no arm in the domain within ``arm_wait_s`` (names the domain and its topics).
         DomainError: the domain cannot be reached.
     """
-    from uniros_async.bus import latest, open_node
+    from uniros_async.bus import latest, open_node, reliable
     from uniros_async.bus.messages import message_type
 
     scene = SceneLogger(recording)
@@ -84,7 +84,9 @@ async def view_domain(
                 stamp = header.stamp_ns if header is not None and header.stamp_ns > 0 else node.now_ns()
                 scene.log(topic, msg, stamp)
 
-            subs[topic] = await node.create_subscription(message_type(type_name), topic, on_msg, qos=latest())
+            # markers come in bursts (a task's goal, end effector, bounds): each one counts; of the rest the newest
+            qos = reliable(64) if type_name == "Marker" else latest()
+            subs[topic] = await node.create_subscription(message_type(type_name), topic, on_msg, qos=qos)
 
         async def discover() -> None:
             for t in await node.list_topics():

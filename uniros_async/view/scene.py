@@ -29,6 +29,9 @@ logger = logging.getLogger(__name__)
 TRAIL_LENGTH = 200
 """End-effector positions kept in an arm's trail."""
 
+ARM_EYE = ((0.65, -0.65, 0.5), (0.1, 0.0, 0.15))
+"""Where the 3D view looks from and at (m, world): an arm at the origin, its reach in front."""
+
 
 class ArmGeoms:
     """An arm's MuJoCo model, posed from joint positions: its geoms as Rerun capsules, boxes and spheres."""
@@ -180,13 +183,15 @@ class SceneLogger:
         beside measured) on the right."""
         import rerun.blueprint as rrb
 
+        EYE = rrb.EyeControls3D(position=ARM_EYE[0], look_target=ARM_EYE[1], eye_up=(0.0, 0.0, 1.0))
+
         plots = [
             rrb.TimeSeriesView(origin=f"joints/{ns}/{j}", name=f"{ns} {j}")
             for ns, arm in self.arms.items()
             for j in (arm.spec.arm_joint_names if arm is not None else joints)
         ]
-        left = rrb.Vertical(rrb.Spatial3DView(origin="/", contents=["arms/**", "markers/**"], name="arms"),
-                            rrb.Spatial2DView(origin="cameras", name="cameras"), row_shares=[3, 1])  # fmt: skip
+        scene = rrb.Spatial3DView(origin="/", contents=["arms/**", "markers/**"], name="arms", eye_controls=EYE)
+        left = rrb.Vertical(scene, rrb.Spatial2DView(origin="cameras", name="cameras"), row_shares=[3, 1])
         self.rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(left, rrb.Grid(*plots), column_shares=[3, 2]),
                                               collapse_panels=True))  # fmt: skip
 
