@@ -82,6 +82,10 @@ class EnvConfig(ConfigModel):
     than 10x it per s (0.02: the servos' steady-state error under gravity is ~0.011 rad)."""
     emulation_seed: Int = 0
     """Seed of the emulated real arm's perturbations and noise."""
+    imperfections: float | dict[str, float] | None = None
+    """With ``clock="sim"`` on ``robot="sim"`` or ``"emulated-real"``: servo-level imperfections
+    (``uniros_async.sim.imperfections``): one strength in [0, 3] for every knob, or a dict knob -> strength (the
+    others 0), seeded by ``emulation_seed``; on the emulated arm they replace its default emulation."""
     unsafe_action: Literal["hold", "project"] = "hold"
     """What the loop does with an action whose target fails a safety check: ``"hold"`` (UniROS: nothing of it is
     sent, the arm holds) or ``"project"`` (the safe part of it is sent: joint by joint, from the base, each joint

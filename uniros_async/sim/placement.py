@@ -12,6 +12,7 @@ import contextlib
 from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager
 
+from uniros_async.errors import ConfigError
 from uniros_async.placements import ArmLink, PlacementRequest
 
 __all__ = ["open_emulated_real", "open_sim", "open_sim_process"]
@@ -24,10 +25,16 @@ async def _open_in_process_sim(request: PlacementRequest, *, emulated: bool) -> 
     from uniros_async.sim.emulated import EmulationConfig
     from uniros_async.sim.node import open_servo_sim
 
-    emulation = EmulationConfig(seed=request.config.emulation_seed) if emulated else None
+    from uniros_async.sim.imperfections import Imperfections
+
+    cfg = request.config
+    imperfections = None if cfg.imperfections is None else Imperfections.of(cfg.imperfections, cfg.emulation_seed)
+    emulation = EmulationConfig(seed=cfg.emulation_seed) if emulated and imperfections is None else None
     async with (
         open_domain("memory://") as domain,
-        open_servo_sim(request.robot, domain=domain, clock=request.clock, emulation=emulation),
+        open_servo_sim(
+            request.robot, domain=domain, clock=request.clock, emulation=emulation, imperfections=imperfections
+        ),
     ):
         yield ArmLink(domain=domain)
 
@@ -40,6 +47,11 @@ async def _open_sim_process(request: PlacementRequest, *, emulated: bool) -> Asy
     from uniros_async.sim.emulated import EmulationConfig
     from uniros_async.sim.serve import open_servo_sim_process
 
+    if request.config.imperfections is not None:
+        raise ConfigError(
+            f"imperfections: expected clock='sim' (the arm in the env's process), got clock={request.config.clock!r} "
+            f"on robot={request.config.robot!r}"
+        )
     transport = "tcp" if emulated else "auto"
     emulation = EmulationConfig(seed=request.config.emulation_seed) if emulated else None
     async with (

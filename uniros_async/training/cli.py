@@ -4,6 +4,7 @@
     uniros train --env uniros/Rx200Reach-v0 --steps 10000 [--env-kwargs '{reward_type: dense}']
     uniros train --resume --run-dir runs/NAME            (the run's own config.yaml)
     uniros eval CHECKPOINT --env ID [--robot emulated-real] [--env-kwargs YAML] --episodes 200 [--json PATH]
+    uniros eval CHECKPOINT --env ID --sweep [--sweep-knobs all backlash ...] [--strengths 0 1 3] --json PATH --plot PNG
     uniros plot RUN_DIR [RUN_DIR ...] [--out PNG] [--labels ...] [--x steps|minutes]
 
 ``main`` functions take parsed values, not argparse (house style: the bench CLI keeps ``main(config)`` apart).
@@ -84,6 +85,14 @@ def add_parsers(subparsers: Any) -> None:
         help="the env in this process (default) or in a worker process",
     )
     e.add_argument("--json", dest="json_path", default=None, metavar="PATH", help="also write the result as JSON")
+    e.add_argument(
+        "--sweep",
+        action="store_true",
+        help="success against imperfection strength (training/sweep.py), each knob alone and all together",
+    )
+    e.add_argument("--sweep-knobs", nargs="+", default=None, metavar="KNOB", help="with --sweep: these curves only")
+    e.add_argument("--strengths", nargs="+", type=float, default=None, help="with --sweep: these strengths only")
+    e.add_argument("--plot", default=None, metavar="PNG", help="with --sweep: plot success against strength")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     p = subparsers.add_parser("plot", help="learning curves (episode length, return, success rate) to PNG")
@@ -191,6 +200,8 @@ def _run_eval(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
     label = args.label or EnvEntry(id=args.env, kwargs=kwargs).label()
+    if args.sweep:
+        return _run_sweep(args, kwargs, label)
     bar: Any = None
     wins = [0]
 
@@ -234,6 +245,34 @@ def _run_eval(args: argparse.Namespace) -> int:
         print("observations: as the env gives them (trained without normalize_obs)")
     if args.json_path:
         Path(args.json_path).write_text(json.dumps({**result.to_dict(), "checkpoint": str(args.checkpoint)}, indent=2))
+    return 0
+
+
+def _run_sweep(args: argparse.Namespace, kwargs: dict[str, Any], label: str) -> int:
+    from uniros_async.training.sweep import CURVES, STRENGTHS, plot_sweep, sweep_checkpoint, write_sweep
+
+    def on_point(curve: str, strength: float, point: dict[str, Any]) -> None:
+        print(
+            f"{curve} {strength:g}: success {100 * point['success_rate']:.1f} % ({point['successes']}/"
+            f"{point['episodes']}), mean length {point['mean_length']:.2f}",
+            flush=True,
+        )
+
+    result = sweep_checkpoint(
+        args.checkpoint,
+        args.env,
+        kwargs,
+        episodes=args.episodes,
+        seed=args.seed,
+        curves=args.sweep_knobs or CURVES,
+        strengths=args.strengths or STRENGTHS,
+        label=args.label,
+        on_point=on_point,
+    )
+    if args.json_path:
+        print(f"wrote {write_sweep(result, args.json_path)}")
+    if args.plot:
+        print(f"wrote {plot_sweep([result], args.plot)}")
     return 0
 
 
