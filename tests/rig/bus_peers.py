@@ -22,10 +22,12 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
 
     - ``talker``: publishes JointState on /chatter at 200 Hz (seq counts up) and serves /add (Data -> Data).
     - ``echo``: subscribes /ping (Blob, reliable) and republishes each message on /pong.
+    - ``frames``: reads /cam/color/image_raw (Image, latest, zero_copy) and answers each frame on /frames_seen with
+      Data ``[seq, pixel sum, read-only, shape, encoding, frame_id]``.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from uniros_async.bus import open_node, reliable
-    from uniros_async.bus.messages import Blob, Data, Header, JointState
+    from uniros_async.bus.messages import Blob, Data, Header, Image, JointState
 
     async def main() -> None:
         stop = asyncio.Event()
@@ -53,6 +55,15 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
             elif role == "echo":
                 pong = await node.create_publisher(Blob, "/pong", qos=reliable(1000))
                 await node.create_subscription(Blob, "/ping", pong.publish, qos=reliable(1000))
+            elif role == "frames":
+                seen = await node.create_publisher(Data, "/frames_seen", qos=reliable(1000))
+
+                def check(m: Image) -> None:
+                    d = m.data
+                    info = [m.header.seq, int(d.sum(dtype=np.int64)), not d.flags.writeable, list(d.shape)]
+                    seen.publish(Data(value=[*info, m.encoding, m.header.frame_id]))
+
+                await node.create_subscription(Image, "/cam/color/image_raw", check, zero_copy=True)
             conn.send("ready")
             await stop.wait()
 

@@ -77,10 +77,12 @@ def _fields_to_list(msg: Any, arrays: list[np.ndarray]) -> list[Any]:
     return out
 
 
-def encode(msg: Any) -> list[bytes | memoryview]:
+def encode(msg: Any, blob_offset: int = 0) -> list[bytes | memoryview]:
     """Encode a message into frame parts (send them back to back as one frame).
 
     The arrays' own memory is referenced, not copied: do not mutate them until the frame was sent.
+    ``blob_offset``: the arrays' offsets in the table start there (a loaned frame whose array was written in place
+    further into the frame, bus/_loan.py).
 
     Raises:
         CodecError: ``msg`` is not a registered message, or a field is not msgpack-able (named).
@@ -94,7 +96,7 @@ def encode(msg: Any) -> list[bytes | memoryview]:
     values = _fields_to_list(msg, arrays)
     table: list[list[Any]] = []
     blobs: list[bytes | memoryview] = []
-    offset = 0
+    offset = blob_offset
     for a in arrays:
         if not a.flags.c_contiguous:
             a = np.ascontiguousarray(a)

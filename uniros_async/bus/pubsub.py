@@ -10,8 +10,11 @@ import time
 from collections.abc import AsyncIterator, Callable
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
+import numpy as np
+
 from uniros_async.backoff import Backoff
 from uniros_async.bus import codec
+from uniros_async.bus._loan import HEAD_BYTES, Loan, check_message, encode_head
 from uniros_async.bus._local import (
     _HELLO_TIMEOUT_S,
     _LOCAL_PUBS,
@@ -25,6 +28,7 @@ from uniros_async.errors import (
     CodecError,
     ConfigError,
     DomainError,
+    FrameTooLargeError,
     TransportBrokenError,
     TransportClosedError,
     TransportError,
@@ -50,6 +54,7 @@ class _Sink:
         self.wake = asyncio.Event()
         self.dropped = 0
         self.qos = qos
+        self.busy = asyncio.Lock()  # held while a frame is sent, and through a loan of this connection's ring
 
     def push(self, frame: list[bytes | memoryview]) -> None:
         if len(self.queue) == self.queue.maxlen:
@@ -61,8 +66,9 @@ class _Sink:
         while True:
             await self.wake.wait()
             self.wake.clear()
-            while self.queue:
-                await self.conn.send(self.queue.popleft())
+            async with self.busy:
+                while self.queue:
+                    await self.conn.send(self.queue.popleft())
 
 
 class Publisher(Generic[M]):
@@ -76,6 +82,8 @@ class Publisher(Generic[M]):
         self._local = _LOCAL_SUBS[(node.domain_id, topic)]
         self._sinks: list[_Sink] = []
         self.published = 0
+        self.loaned_in_place = 0
+        """Messages published from a loan written in place in a subscriber's ring (no copy after the producer's)."""
         self._closed = False
         self._subs_changed = asyncio.Event()
 
@@ -97,6 +105,72 @@ class Publisher(Generic[M]):
             frame = codec.encode(msg)
             for sink in self._sinks:
                 sink.push(frame)
+
+    @contextlib.asynccontextmanager
+    async def loan(self, shape: tuple[int, ...], dtype: Any = np.uint8) -> AsyncIterator[Loan[M]]:
+        """Loan a message's array: write it in the block, set ``loan.message``, and it is published when the block
+        ends (not if the block raises). Shaped like rclcpp's ``borrow_loaned_message`` and iceoryx's ``loan``.
+
+        With one remote subscriber over shm and none in this process, ``loan.array`` is the frame's own place in
+        that subscriber's ring: the producer's write is the frame's only copy on this side. Otherwise it is a
+        buffer of the publisher's own, published as ``publish`` would (one copy per remote subscriber, made by its
+        transport; in-process subscribers get the message). May wait for room in the ring, as a send does.
+        Don't use ``loan.array`` after the block. The other frames of this publisher wait for the block to end.
+
+        Example::
+
+            async with pub.loan((480, 640, 3)) as loan:
+                renderer.render_into(loan.array)
+                loan.message = Image(header=Header(stamp_ns=t), data=loan.array)
+
+        Raises:
+            TransportClosedError: the publisher (or its node) was closed.
+            CodecError: at the block's end, ``loan.message`` is unset, not a ``msg_type``, or holds an array other
+                than the loan's (nothing is published).
+        """
+        if self._closed:
+            raise TransportClosedError(f"publisher of {self.topic} is closed")
+        dt = np.dtype(dtype)
+        count = 1
+        for s in shape:
+            count *= int(s)
+        nbytes = HEAD_BYTES + count * dt.itemsize
+        sink = self._sinks[0] if len(self._sinks) == 1 and not self._local else None
+        lends: Callable[[int], bool] | None = getattr(sink.conn, "lends", None) if sink is not None else None
+        if sink is None or lends is None or not lends(nbytes):  # no ring to lend: a buffer of our own
+            loan: Loan[M] = Loan(np.empty(shape, dt), in_place=False)
+            yield loan
+            self.publish(check_message(self.topic, self.msg_type, loan))
+            return
+        async with contextlib.AsyncExitStack() as stack:
+            await stack.enter_async_context(sink.busy)
+            buf: memoryview | None = None
+            try:
+                if sink.qos.kind == "latest":
+                    sink.dropped += len(sink.queue)
+                    sink.queue.clear()
+                while sink.queue:
+                    await sink.conn.send(sink.queue.popleft())
+                buf = await stack.enter_async_context(sink.conn.loan(nbytes))
+            except (TransportBrokenError, TransportClosedError, FrameTooLargeError) as exc:
+                logger.debug("%s: no loan from the subscriber's ring (%s): a buffer of our own", self.topic, exc)
+            if buf is None:
+                loan = Loan(np.empty(shape, dt), in_place=False)
+                yield loan
+                self.publish(check_message(self.topic, self.msg_type, loan))
+                return
+            loan = Loan(np.frombuffer(buf, dt, count, HEAD_BYTES).reshape(shape), in_place=True)
+            yield loan
+            msg = check_message(self.topic, self.msg_type, loan)
+            head = encode_head(msg)
+            buf[: len(head)] = head
+            self.published += 1
+            self.loaned_in_place += 1
+            try:
+                await stack.aclose()  # ShmTransport.loan's end: the frame is committed to the ring
+            except (TransportBrokenError, TransportClosedError) as exc:
+                # the subscriber went away as the frame was sent: its sink's task sees it too and removes it
+                logger.debug("%s: loaned frame to a subscriber that went away: %s", self.topic, exc)
 
     @property
     def subscription_count(self) -> int:

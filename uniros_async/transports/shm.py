@@ -132,6 +132,8 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
         self._poller: select.poll | None = None  # receive_blocking's, made on first use
         self._tx_waiter: asyncio.Future[None] | None = None
         self._loaned = False  # a loan() block is writing the next frame in place
+        self.frames_loaned = 0
+        """Frames sent in place (``loan``): the ring holds them as written; the others were copied into it."""
         self._rx_partial: Partial | None = None
         self._tx_stream: asyncio.Task[None] | None = None
         self._peer_gone = False
@@ -380,6 +382,10 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
         """
         return self._ring.try_send(frame)
 
+    def lends(self, nbytes: int) -> bool:
+        """Whether ``loan(nbytes)`` lends the ring's own memory (the frame fits the ring) rather than a buffer."""
+        return 0 <= nbytes <= self._max_frame and 8 + ((nbytes + 7) & ~7) <= self._cap
+
     @contextlib.asynccontextmanager
     async def loan(self, nbytes: int) -> AsyncIterator[memoryview]:
         """The next frame's own place in the ring, ``nbytes`` long: write it in the block, and it is sent when the
@@ -424,6 +430,7 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
             off = 0
         data_q[off >> 3] = nbytes
         ring.commit(nbytes, rec, skip)
+        self.frames_loaned += 1
 
     def _write(self, parts: Sequence[Buffer], n: int, rec: int, off: int, skip: int) -> None:
         """Copy the frame's ``parts`` to the place ``RingEnd.place`` gave, publish it, and ring the reader if it
