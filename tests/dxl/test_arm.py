@@ -50,12 +50,12 @@ async def test_start_holds_every_servo_where_it_is_then_ticks_and_holds_at_shutd
             assert abs(rad_to_ticks(float(q)) - before[servo.id][0]) <= 3, "an arm servo moved at start-up"
         assert set(state.current_a) == {"shoulder", "elbow"}  # the XM430s sense current
         goal = np.array([0.3, -0.2, 0.3, 0.2, -0.3])
-        for _ in range(40):
+        for _ in range(200):  # the 2 s time profile of rx200 modes.yaml, ticked every ~20 ms
             await arm.write_goals(goal)
             state = await arm.read_state(0)
             if np.max(np.abs(state.joint_state.position[:5] - goal)) < 0.02:
                 break
-            await _sleep(0.05)
+            await _sleep(0.02)
         assert np.max(np.abs(state.joint_state.position[:5] - goal)) < 0.02, state.joint_state.position
         await arm.close()
     after = _present(vbus.path)
@@ -91,7 +91,7 @@ async def test_hardware_error_is_a_robot_error_naming_joint_id_and_bits_and_the_
         for _ in range(6):  # the waist moves, ticked at 20 Hz
             await arm.write_goals(np.array([0.6, 0.0, 0.0, 0.0, 0.0]))
             await arm.read_state(0)
-            await _sleep(0.05)
+            await _sleep(0.02)
         assert vbus.send("error 4 0x20") == "ok error 4 0x20"
         with pytest.raises(RobotError, match=r"joint 'elbow' \(servo ID 4\): overload \(0x20\).*the arm holds"):
             await arm.read_state(0)

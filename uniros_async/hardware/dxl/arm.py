@@ -451,7 +451,7 @@ class DxlArm:
                 q = state.joint_state.position[: len(self.arm_servos)]
                 if np.max(np.abs(q - rest)) < 0.03 and np.max(np.abs(state.joint_state.velocity[: len(q)])) < 0.05:
                     break
-                await asyncio.sleep(0.05)
+                await asyncio.sleep(0.02)  # a read every 20 ms keeps the bus watchdog fed
             else:
                 logger.warning(
                     "%s: the rest pose was not reached in %.1f s: holding, torque stays on", self.robot.name, timeout_s
