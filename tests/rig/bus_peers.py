@@ -22,8 +22,8 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
 
     - ``talker``: publishes JointState on /chatter at 200 Hz (seq counts up) and serves /add (Data -> Data).
     - ``echo``: subscribes /ping (Blob, reliable) and republishes each message on /pong.
-    - ``frames``: reads /cam/color/image_raw (Image, latest, zero_copy) and answers each frame on /frames_seen with
-      Data ``[seq, pixel sum, read-only, shape, encoding, frame_id]``.
+    - ``frames`` (or ``frames:TOPIC``): reads /cam/color/image_raw (or TOPIC; Image, latest, zero_copy) and answers
+      each frame on /frames_seen with Data ``[seq, pixel sum, read-only, shape, encoding, frame_id]``.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from uniros_async.bus import open_node, reliable
@@ -32,7 +32,7 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
     async def main() -> None:
         stop = asyncio.Event()
         asyncio.get_running_loop().add_reader(conn.fileno(), stop.set)
-        async with open_node(role, domain=domain_uri, transport=transport) as node:
+        async with open_node(role.partition(":")[0], domain=domain_uri, transport=transport) as node:
             if role == "talker":
                 pub = await node.create_publisher(JointState, "/chatter", qos=reliable(1000))
                 await node.create_service(Data, Data, "/add", lambda r: Data(value=sum(r.value)))
@@ -55,7 +55,7 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
             elif role == "echo":
                 pong = await node.create_publisher(Blob, "/pong", qos=reliable(1000))
                 await node.create_subscription(Blob, "/ping", pong.publish, qos=reliable(1000))
-            elif role == "frames":
+            elif role.startswith("frames"):
                 seen = await node.create_publisher(Data, "/frames_seen", qos=reliable(1000))
 
                 def check(m: Image) -> None:
@@ -63,7 +63,8 @@ def peer_main(domain_uri: str, role: str, transport: str, conn: Connection) -> N
                     info = [m.header.seq, int(d.sum(dtype=np.int64)), not d.flags.writeable, list(d.shape)]
                     seen.publish(Data(value=[*info, m.encoding, m.header.frame_id]))
 
-                await node.create_subscription(Image, "/cam/color/image_raw", check, zero_copy=True)
+                topic = role.partition(":")[2] or "/cam/color/image_raw"
+                await node.create_subscription(Image, topic, check, zero_copy=True)
             conn.send("ready")
             await stop.wait()
 

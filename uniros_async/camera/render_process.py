@@ -11,8 +11,9 @@ only a message and one copy per frame:
   memfds have no name, so nothing is left in ``/dev/shm`` whoever dies;
 - per frame the parent sends ``(index, joint names, positions, markers)``; the child poses its model, renders and
   writes the frame into the camera's memfd (the one copy out of GL, flipped to top-down rows), and answers
-  ``(index, render_ns)``; the parent copies the frame out into the array it publishes (a camera has one request in
-  flight at a time, so the memfd is not written while it is read).
+  ``(index, render_ns)``; the parent copies the frame out, into a new array or (``view=True``: the memfd's own
+  view is handed over) straight into a loaned frame (a camera has one request in flight at a time, so the memfd is
+  not written while it is read).
 
 The parent reads answers with ``loop.add_reader`` on the socket: nothing blocks the loop.
 """
@@ -122,14 +123,22 @@ class RenderProcess:
         robot: the arm.
         cameras: the cameras (``SimCameraConfig``).
         on_frame: called on the loop with ``(index, frame, render_ns)`` for every frame, ``frame`` a new array.
+        view: hand ``on_frame`` the memfd's own view instead of a copy; it holds the frame until the next request
+            for that camera (the caller copies it out, e.g. into a loaned frame, before asking again).
     """
 
     def __init__(
-        self, robot: RobotSpec, cameras: Sequence[Any], on_frame: Callable[[int, np.ndarray, int], None]
+        self,
+        robot: RobotSpec,
+        cameras: Sequence[Any],
+        on_frame: Callable[[int, np.ndarray, int], None],
+        *,
+        view: bool = False,
     ) -> None:
         self.robot = robot
         self.cameras = tuple(cameras)
         self.on_frame = on_frame
+        self._hand_view = view
         self._fds: list[int] = []
         self._views: list[np.ndarray] = []
         self._maps: list[mmap.mmap] = []
@@ -197,7 +206,8 @@ class RenderProcess:
         try:
             while conn.poll():
                 index, render_ns = conn.recv()
-                self.on_frame(index, self._views[index].copy(), render_ns)
+                frame = self._views[index]
+                self.on_frame(index, frame if self._hand_view else frame.copy(), render_ns)
         except (EOFError, OSError) as exc:
             assert self._loop is not None
             self._loop.remove_reader(conn.fileno())

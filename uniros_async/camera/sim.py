@@ -17,7 +17,9 @@ Where the rendering runs:
   next tick is skipped (``CameraStats.skipped``), never queued. The renderer is a thread of the node's process
   (``render="thread"``) or a child process (``render="process"``, camera/render_process.py). Mesa's software
   rasteriser holds the GIL of the process that reads the pixels while it draws, so loops that share the process
-  wait for it in thread mode; in process mode they never do, which is what an env uses;
+  wait for it in thread mode; in process mode they never do, which is what an env uses. In process mode the frame
+  goes from the child's memfd straight into a loaned frame (``ImagePublisher.loan``): with one subscriber in
+  another process over shm, that is the frame's place in its ring, and the frame's only copy after the render;
 - on a SimClock, in the timer's callback on the loop: time stands still while the frame renders, so the frame
   shows the arm at its stamp exactly, and the sim's loops keep their sim-time schedule to the nanosecond.
 
@@ -45,7 +47,7 @@ from uniros_async.bus.qos import latest, reliable
 from uniros_async.bus.tasks import unwrap_task_group
 from uniros_async.camera.topic import FrameSpec, ImagePublisher, camera_topic
 from uniros_async.clock import Clock, grid_after
-from uniros_async.errors import ConfigError
+from uniros_async.errors import ConfigError, TransportClosedError
 from uniros_async.robots import RobotSpec, get_robot_spec
 from uniros_async.sim_clock import SimClock
 from uniros_async.transports.base import TransportOptions
@@ -60,6 +62,8 @@ RENDER_MODES = ("thread", "process")
 """Where a node on a wall clock renders: a thread of its own, or a child process (camera/render_process.py)."""
 THREAD_JOIN_TIMEOUT_S = 5.0
 """Bound on waiting for the render thread to finish its frame and end when the node closes."""
+LOAN_TIMEOUT_S = 1.0
+"""How long a rendered frame waits for room in a subscriber's ring before it is skipped."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -270,6 +274,7 @@ class SimCameraNode:
         self._inline = isinstance(node.clock, SimClock)
         self.render_mode = "loop" if self._inline else render
         self._process: Any = None  # a RenderProcess with render="process"
+        self._tg: asyncio.TaskGroup | None = None  # owns the tasks that publish the render process's frames
         self._stamps = [0] * len(cameras)
         self._requests: queue.SimpleQueue[tuple[int, JointState, tuple[Marker, ...], int] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
@@ -303,7 +308,8 @@ class SimCameraNode:
         elif self.render_mode == "process":
             from uniros_async.camera.render_process import RenderProcess
 
-            self._process = RenderProcess(self.robot, self.cameras, self._on_process_frame)
+            self._tg = tg
+            self._process = RenderProcess(self.robot, self.cameras, self._on_process_frame, view=True)
             await self._process.start()
             self._failed = self._process.failed
         self._watch_task = tg.create_task(self._watch(), name="camera render thread watch")
@@ -352,9 +358,25 @@ class SimCameraNode:
             return
         self._requests.put((index, js, markers, stamp))
 
-    def _on_process_frame(self, index: int, frame: np.ndarray, render_ns: int) -> None:
+    def _on_process_frame(self, index: int, view: np.ndarray, render_ns: int) -> None:
         self.stats[index].render_ns.append(render_ns)
-        self._publish(index, frame, self._stamps[index])
+        assert self._tg is not None
+        self._tg.create_task(self._publish_loaned(index, view, self._stamps[index]), name="camera frame")
+
+    async def _publish_loaned(self, index: int, view: np.ndarray, stamp_ns: int) -> None:
+        """Copy the render process's frame (its memfd, untouched until this camera's next request) into a loaned
+        frame: with one remote subscriber over shm, the frame's one copy after the render."""
+        try:
+            async with asyncio.timeout(LOAN_TIMEOUT_S):
+                async with self.publishers[index].loan(stamp_ns) as out:
+                    np.copyto(out, view)
+            self.stats[index].frames += 1
+        except TimeoutError:  # a subscriber's ring stayed full: this frame is skipped, as a busy renderer's tick
+            self.stats[index].skipped += 1
+        except TransportClosedError:  # the node is closing
+            pass
+        finally:
+            self._busy[index] = False
 
     def render_now(self, index: int) -> None:
         """Render camera ``index`` now, on the loop, and publish it (a node that renders in sim time; on a wall

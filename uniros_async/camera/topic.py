@@ -5,12 +5,15 @@ namespace: ``/<namespace>/<camera>/color/image_raw`` (``camera_topic``), with ``
 the newest frame, never a backlog). Every frame of one topic has one size and encoding (``FrameSpec``);
 ``ImagePublisher.publish`` checks each frame against it and raises ``FrameError`` naming both, publishing nothing.
 The frame's stamp is the instant it shows (the render's joint state, the capture), on the publishing node's clock;
-its age is measured where it is used (``frame_age_ns``).
+its age is measured where it is used (``frame_age_ns``). ``ImagePublisher.loan`` lends the frame's place in the
+subscriber's shared-memory ring, so a renderer's or capture's write into it is the frame's only copy.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -119,6 +122,23 @@ class ImagePublisher:
         msg = Image(header=Header(stamp_ns=stamp_ns, seq=self.seq, frame_id=self.frame_id), encoding=enc, data=data)
         self._pub.publish(msg)
         return msg
+
+    @contextlib.asynccontextmanager
+    async def loan(self, stamp_ns: int) -> AsyncIterator[np.ndarray]:
+        """A frame to write in place (``Publisher.loan``): the block writes the whole array (this topic's shape,
+        uint8), and the frame is published stamped ``stamp_ns`` when it ends (not if it raises). With one remote
+        subscriber over shm the array is the frame's place in its ring, so the write is the frame's only copy.
+        Don't use the array after the block."""
+        async with self._pub.loan(self.spec.shape, np.uint8) as loan:
+            yield loan.array
+            self.seq += 1
+            header = Header(stamp_ns=stamp_ns, seq=self.seq, frame_id=self.frame_id)
+            loan.message = Image(header=header, encoding=self.spec.encoding, data=loan.array)
+
+    @property
+    def loaned_in_place(self) -> int:
+        """Frames published in place in a subscriber's ring (``loan``)."""
+        return int(self._pub.loaned_in_place)
 
     @property
     def subscription_count(self) -> int:
