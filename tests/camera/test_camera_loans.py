@@ -40,7 +40,7 @@ async def test_a_rendered_frame_is_copied_once_into_the_remote_subscribers_ring(
                 while len(got) < 5:
                     got.append((await seen.receive()).value)
             # the subscriber read each frame in place (a read-only view), the camera's whole picture, end to end
-            for seq, total, read_only, shape, encoding, frame_id in got:
+            for _seq, total, read_only, shape, encoding, frame_id in got:
                 assert read_only and shape == [120, 160, 3] and encoding == "rgb8" and frame_id == "camera"
                 assert total > 0
             assert [g[0] for g in got] == sorted({g[0] for g in got})
