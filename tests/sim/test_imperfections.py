@@ -216,3 +216,20 @@ def test_dynamics_scale_todays_perturbation_ranges() -> None:
         assert np.abs(factors["kp"] - 1).max() <= 0.15 * s and np.abs(factors["kp"] - 1).max() > 0.05 * s
     _, factors = build_sim("rx200", CFG, Imperfections.of({"dynamics": 0.0}).emulation())
     assert all(np.array_equal(f, np.ones_like(f)) for f in factors.values())
+
+
+def test_the_virtual_servo_bus_has_the_servo_side_knobs() -> None:
+    from uniros_async.hardware.dxl.servo_map import servo_map
+    from uniros_async.hardware.dxl.vbus import VirtualBus
+
+    plain = VirtualBus(servo_map("rx200"))
+    offset = VirtualBus(servo_map("rx200"), imperfections=Imperfections.of({"offsets": 3.0, "sag": 1.0}, seed=4))
+    for bus in (plain, offset):
+        bus.advance(0.0)
+        bus.advance(0.05)
+    waist = offset.sim.effects.offsets[0]  # type: ignore[union-attr]
+    # the waist servo (ID 1) reads home on both buses; on the imperfect one the joint is off by its offset
+    assert offset.servos[1].get("present_position") == plain.servos[1].get("present_position")
+    assert abs(waist) > 2 * TICK_RAD
+    assert plain.sim.qpos[0] - offset.sim.qpos[0] == pytest.approx(waist, abs=1e-4)
+    assert offset.sim.model.actuator_gainprm[1, 0] < 0.3 * plain.sim.model.actuator_gainprm[1, 0]  # sag: softer

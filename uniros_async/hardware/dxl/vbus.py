@@ -48,6 +48,7 @@ from uniros_async.hardware.dxl.protocol import (
 from uniros_async.hardware.dxl.servo_map import DRIVE_MODE_TIME_PROFILE, OPERATING_MODES, ServoConfig, ServoMap
 from uniros_async.robots import get_robot_spec
 from uniros_async.sim.emulated import EmulationConfig, add_sensor_noise
+from uniros_async.sim.imperfections import Imperfections
 from uniros_async.sim.node import build_sim
 from uniros_async.sim.servo import ServoSimConfig
 
@@ -246,6 +247,8 @@ class VirtualBus:
     Args:
         servos: the arm's servo map.
         emulation: make the sim the emulated real arm (perturbed dynamics, sensor noise); None: the nominal sim.
+        imperfections: servo-level imperfections of the sim's servos (``Imperfections.servo_effects``: backlash,
+            offsets, quantization and deadband, sag, limits); None: none.
         on_event: called with one line for every notable event (watchdog trips, hardware errors).
 
     Raises:
@@ -257,6 +260,7 @@ class VirtualBus:
         servos: ServoMap,
         *,
         emulation: EmulationConfig | None = None,
+        imperfections: Imperfections | None = None,
         on_event: Callable[[str], None] | None = None,
     ) -> None:
         self.map = servos
@@ -264,7 +268,7 @@ class VirtualBus:
         self.emulation = emulation
         self.on_event = on_event or (lambda line: None)
         config = ServoSimConfig(control_period_s=SIM_STEP_S, command_timeout_s=None, target_update_steps=5)
-        self.sim, _ = build_sim(self.robot, config, emulation)
+        self.sim, _ = build_sim(self.robot, config, emulation, imperfections)
         self._rng = np.random.default_rng(None if emulation is None else emulation.seed + 2)
         self.servos: dict[int, VirtualServo] = {}
         self._ram_defaults: dict[int, dict[str, int]] = {}
