@@ -46,7 +46,7 @@ from uniros_async.envs.config import EnvConfig
 from uniros_async.envs.safety import SafetyChecker, SafetyConfig
 from uniros_async.envs.timing import Timing
 from uniros_async.envs.transit import StateTransit
-from uniros_async.errors import ConfigError, DomainError, NameConflictError, RobotError, TransportError
+from uniros_async.errors import ConfigError, RobotError
 from uniros_async.kinematics import Kinematics
 from uniros_async.placements import PlacementRequest, placement_spec
 from uniros_async.robots import get_robot_spec
@@ -67,9 +67,6 @@ period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the
 must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and
 action cycles that are multiples of their periods) keep one phase, give or take each member's
 ``RobotEnv.loop_phase_ns`` of a few ms: the agent gets every member's returns about equally fresh."""
-REJOIN_RETRY_S = 0.1
-"""First wait between attempts to join the arm's domain again after the connection to it was lost (doubling to
-1 s)."""
 LOOP_PHASE_MAX_FRACTION = 4
 """``RobotEnv.loop_phase_ns`` is capped at a quarter of the loop's period, so a tick still sees the state its servo
 published at the period's start."""
@@ -211,9 +208,9 @@ class RobotEnv(BaseEnv):
                     clock.pause()
                 self._start_timer()
                 started(None)
-                while True:  # until close() cancels main
-                    await self._registry_lost()
-                    await self._rejoin(domain, transport, options)
+                # until close() cancels main. The node rejoins the domain by itself after an outage (its registry
+                # client), and its subscriptions reconnect: ``_transit_delay_ns`` notices a restarted registry
+                await asyncio.Event().wait()
         except BaseException as exc:
             started(exc)
             raise
@@ -249,32 +246,6 @@ class RobotEnv(BaseEnv):
         if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
             start = grid_after(self._clock.now_ns(), self._period_ns, TICK_OFFSET_NS + self._phase_ns)
             self._node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
-
-    async def _registry_lost(self) -> None:
-        """Return when the node's connection to the domain registry is gone (a tcp reset, the arm's host
-        restarted): the domain then forgets the node, and the arm its subscription to our commands."""
-        node = self._node
-        reader = [t for t in node._tasks if t.get_name() == f"{node.name} registry"]
-        if reader:  # none: it has ended already
-            await asyncio.wait(reader)  # the registry reader ends when the connection does
-
-    async def _rejoin(self, domain: Any, transport: str, options: TransportOptions | None) -> None:
-        """Leave the dead node and join the domain again, retrying with backoff until it answers. Meanwhile the
-        newest joint state only ages: steps and resets fail with RobotError, nothing is commanded."""
-        logger.warning("%s: lost the arm's domain %s; joining it again", self.robot_spec.name, domain)
-        await self._node_stack.aclose()
-        delay = REJOIN_RETRY_S
-        while True:
-            try:
-                await self._join(domain, transport, options)
-                break
-            except (DomainError, NameConflictError, TransportError, TimeoutError, OSError) as exc:
-                # NameConflictError: the domain has not yet noticed that our old connection is gone (TCP keepalive)
-                logger.info("%s: domain %s not back yet (%s)", self.robot_spec.name, domain, exc)
-            await asyncio.sleep(delay)
-            delay = min(delay * 2, 1.0)
-        self._start_timer()
-        logger.warning("%s: joined the arm's domain %s again", self.robot_spec.name, domain)
 
     @property
     def _relative_action(self) -> bool:
@@ -344,9 +315,10 @@ class RobotEnv(BaseEnv):
     def _transit_delay_ns(self, js: JointState, now: int) -> int:
         """How long the newest state spent on its way from the arm (``envs.transit``: against the quickest state
         of the last minute, and half a round trip of the link when the arm echoes our commands). A new subscription
-        (the arm's domain joined again: perhaps a new arm, a new clock) starts afresh."""
+        (the arm's domain joined again: perhaps a new arm, a new clock) or a restarted registry (a new domain id,
+        seen when the node rejoins it: the arm's process may be new, with another clock) starts afresh."""
         sub = self._js
-        self._transit.follow(sub)
+        self._transit.follow(sub, self._node.domain_id)
         return self._transit.transit_ns(js, sub.latest_recv_ns)
 
     def _stale_at_ns(self) -> int:
@@ -363,7 +335,7 @@ class RobotEnv(BaseEnv):
         newest = (
             f"the newest joint state on {self._js.topic} is {age_s:.2f} s old"
             if self._js.latest() is not None
-            else f"no joint state on {self._js.topic} since the env joined the arm's domain again"
+            else f"no joint state on {self._js.topic} yet"
         )
         round_trip = self._transit.describe(time.monotonic_ns())
         round_trip = f"; {round_trip}" if round_trip else ""

@@ -88,6 +88,7 @@ class StateTransit:
         self._stall_end = 0  # the arrival of the first state after the newest stall
         self._sub: Subscription[JointState] | None = None  # the subscription ``follow`` last saw
         self._seen = -1  # how many of its states were observed (its ``received``)
+        self._domain_id = ""  # the domain id it was followed in
         self.echoes = False
         """Whether the arm echoes commands (a state with ``command_age_ns`` set was seen since ``clear``)."""
         self.round_trip_ns: int | None = None
@@ -154,12 +155,17 @@ class StateTransit:
             trips.pop()
         trips.append((arrival_ns, offset, rtt))
 
-    def follow(self, sub: Subscription[JointState]) -> None:
+    def follow(self, sub: Subscription[JointState], domain_id: str = "") -> None:
         """Observe the newest state of ``sub`` if it is new (each state once, at its arrival ``sub.latest_recv_ns``).
         A subscription other than the one followed before (the arm's domain joined again: perhaps a new arm, a new
-        clock) is started afresh: ``clear`` first."""
+        clock) is started afresh: ``clear`` first. So is the same subscription in a domain whose id changed (its
+        node rejoined a restarted registry, where the arm may be a new process with another clock); the state it
+        holds then, perhaps the old arm's, is not observed."""
         if self._sub is not sub:
-            self._sub, self._seen = sub, -1
+            self._sub, self._seen, self._domain_id = sub, -1, domain_id
+            self.clear()
+        elif domain_id != self._domain_id:
+            self._seen, self._domain_id = sub.received, domain_id
             self.clear()
         js = sub.latest()
         if js is not None and sub.received != self._seen:
