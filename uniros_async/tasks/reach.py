@@ -29,6 +29,13 @@ front of it: the box rx200 x 0.15-0.40, y -0.40-0.40, z 0.05-0.40 m (the rx200 r
 shoulder 0.06 m higher; 90 % of its draws are reachable, 97 % of the rx200's). ``goal_min`` / ``goal_max`` set a
 box of one's own.
 
+A draw runs IK, and a point the arm cannot reach runs it from every restart, so the goals are drawn at construction,
+before the env loop starts: a pool of ``goal_pool`` reachable goals (1024 by default) drawn with the fixed seed
+``GOAL_POOL_SEED``, the same pool in every env of one arm, box and safety config. A reset picks one of them with the
+env's seeded generator (``self.np_random``), so a reset's goal follows from the reset's seed and the env loop's
+thread runs no IK. ``goal_pool=0`` draws each goal at reset instead (a continuous distribution; the IK then runs on
+the loop's thread).
+
 Observation modes (``obs_mode``, envs/pixels.py): ``"state"`` is the vector above; ``"pixels"`` a Dict with the
 camera's newest frame (``pixels``); ``"pixels+state"`` both (``pixels``, ``state``). The goal env takes
 ``"state"`` only (HER relabels its vector goals).
@@ -69,6 +76,8 @@ WORKSPACE_BOXES = {
     "ned2": ((0.15, -0.40, 0.10), (0.40, 0.40, 0.45)),
 }
 GOAL_SPACES = {"uniros-box": GOAL_BOXES, "workspace": WORKSPACE_BOXES}
+GOAL_POOL_SEED = 0
+"""The seed the goal pool is drawn with (see the module docstring)."""
 REWARD_TYPES = ("dense", "sparse")
 ACTION_MODES = ("absolute", "delta")
 
@@ -91,6 +100,9 @@ class ReachConfig(ConfigModel):
     """Lower corner of the goal box (m); unset: ``goal_space``'s."""
     goal_max: Vec3 | None = None
     """Upper corner of the goal box (m); unset: ``goal_space``'s."""
+    goal_pool: int = Field(default=1024, ge=0)
+    """How many reachable goals are drawn at construction for resets to pick from (see the module docstring); 0:
+    each reset draws its goal on the env loop's thread."""
     delta_coeff: Float = Field(default=0.05, gt=0)
     """With ``action_mode="delta"``: an action of 1 moves a joint by this times half its range per env-loop tick."""
     render_mode: Literal["rgb_array"] | None = None
@@ -190,6 +202,8 @@ class ReachEnv(TaskEnv):
         self._prev_action = np.zeros(n, dtype=np.float32)
         self._limit_hit = False
         self._markers = TaskMarkers()  # goal, EE and bounds on /<arm>/markers, from the step, never from the tick
+        # before the loop starts: the IK of the goals' draws runs on this thread, never on the loop's
+        self.goal_pool = self.draw_goal_pool(task.goal_pool)
         self._start()
 
     def _vector_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -265,7 +279,11 @@ class ReachEnv(TaskEnv):
     def _on_reset(self, q_arm: np.ndarray) -> None:
         self._prev_action = np.zeros_like(self._prev_action)
         self._limit_hit = False
-        self.goal = self.sample_goal(self.np_random)
+        pool = self.goal_pool
+        if pool is None:
+            self.goal = self.sample_goal(self.np_random)
+        else:
+            self.goal = pool[int(self.np_random.integers(len(pool)))].copy()
         self._publish_markers()
 
     def _publish_markers(self) -> None:
@@ -277,6 +295,18 @@ class ReachEnv(TaskEnv):
                 self._clock.now_ns(), self.goal, ee, bounds, (self.goal_min, self.goal_max), self.reach_tolerance
             )
         )
+
+    def draw_goal_pool(self, size: int) -> np.ndarray | None:
+        """``size`` reachable goals (``sample_goal``) drawn with ``GOAL_POOL_SEED``, as a (size, 3) array; None for
+        a size of 0.
+
+        Raises:
+            ConfigError: the goal box is out of reach (``sample_goal``).
+        """
+        if size == 0:
+            return None
+        rng = np.random.default_rng(GOAL_POOL_SEED)
+        return np.array([self.sample_goal(rng) for _ in range(size)])
 
     def sample_goal(self, rng: np.random.Generator, max_tries: int = 200) -> np.ndarray:
         """A goal uniform in the goal box that the arm can reach (IK succeeds, EE inside the workspace).
