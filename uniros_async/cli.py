@@ -51,7 +51,7 @@ def _build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--quick", action="store_true", help="fewer samples: finishes within 60 s")
     bt.add_argument("--json", dest="json_path", default=None, metavar="PATH", help="write records as JSON")
     bt.add_argument("--transports", nargs="+", default=None, help="subset to run (default: all)")
-    bt.add_argument("--payloads", nargs="+", default=None, help="small, 64k, image (default: all)")
+    bt.add_argument("--payloads", nargs="+", default=None, help="small, 64k, image, hd (default: all)")
     bt.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
     bti = bench.add_parser("timers", help="fire-time error of 10 Hz and 25 Hz timers vs asyncio.sleep")
     bti.add_argument("--duration", type=float, default=60.0, help="seconds per phase (default 60)")
@@ -412,7 +412,7 @@ def _run_bench(args: argparse.Namespace) -> int:
             quick=args.quick,
             json_path=args.json_path,
             progress=not args.no_progress,
-            transports=tuple(args.transports) if args.transports else transport.OURS + transport.PEERS,
+            transports=tuple(args.transports) if args.transports else transport.ALL,
             payloads=tuple(args.payloads) if args.payloads else tuple(transport.PAYLOADS),
         )
         transport.main(cfg)

@@ -80,3 +80,25 @@ def test_the_loan_echo_answers_in_place_with_the_stamp_only() -> None:
         if proc.is_alive():
             proc.kill()
         parent.close()
+
+
+@pytest.mark.slow
+def test_frame_payloads_beside_the_memcpy_floor_and_iceoryx2() -> None:
+    """image and hd frames through shm, shm-loan and iceoryx2's Python binding (a real echo in another process,
+    which the client checks answers each frame), with one memcpy of the frame timed in the same run."""
+    pytest.importorskip("iceoryx2", reason="iceoryx2 is in the bench extra")
+    import os
+
+    kinds = ("memcpy", "shm", "shm-loan", "iceoryx2", "iceoryx2-loan")
+    lines: list[str] = []
+    cfg = transport.TransportBenchConfig(
+        transports=kinds, payloads=("image", "hd"), rtt_samples=20, throughput_frames=20, progress=False
+    )
+    before = {n for n in os.listdir("/dev/shm") if n.startswith("iox2_")}
+    records = transport.main(cfg, log=lines.append)
+    assert {(r["transport"], r["payload"]) for r in records} == {(k, p) for k in kinds for p in ("image", "hd")}
+    assert all(r["rtt_p50_us"] > 0 and r["throughput_msg_s"] > 0 for r in records)
+    table = "\n".join(lines)
+    assert table.count("shm p50 vs one memcpy of the payload") == 2
+    assert table.count("shm-loan p50 vs fastest peer") == 2
+    assert {n for n in os.listdir("/dev/shm") if n.startswith("iox2_")} == before  # no segment left by the run

@@ -166,3 +166,85 @@ def serve_zenoh(addr: str, ready: Connection) -> None:
     done.wait(600)
     sub.undeclare()  # type: ignore[no-untyped-call]  # zenoh ships no annotations here
     session.close()  # type: ignore[no-untyped-call]
+
+
+def iceoryx2_ports(node: Any, name: str, max_len: int, *, send: str, receive: str) -> tuple[Any, Any]:
+    """A publisher on ``name/send`` and a subscriber of ``name/receive``: iceoryx2 publish-subscribe services of
+    byte slices up to ``max_len`` bytes, that block a publisher whose subscriber's buffer is full (no loss)."""
+    import ctypes
+
+    import iceoryx2 as iox2
+
+    def service(topic: str) -> Any:
+        return (
+            node.service_builder(iox2.ServiceName.new(f"{name}/{topic}"))
+            .publish_subscribe(iox2.Slice[ctypes.c_uint8])
+            .enable_safe_overflow(False)
+            .subscriber_max_buffer_size(16)
+            .open_or_create()
+        )
+
+    pub = (
+        service(send)
+        .publisher_builder()
+        .initial_max_slice_len(max_len)
+        .backpressure_strategy(iox2.BackpressureStrategy.RetryUntilDelivered)
+        .create()
+    )
+    sub = service(receive).subscriber_builder().buffer_size(16).create()
+    return pub, sub
+
+
+def iceoryx2_bytes(sample: Any) -> Any:
+    """A sample's payload as a uint8 numpy array over its shared memory (iceoryx2's memoryview has format '<B')."""
+    import numpy as np
+
+    return np.frombuffer(sample.payload().as_memory_view(), np.uint8)
+
+
+def iceoryx2_receive(sub: Any) -> Any:
+    """The next sample of ``sub``, polled (iceoryx2's own benchmark polls too: no event wakes the reader)."""
+    while True:
+        sample = sub.receive()
+        if sample is not None:
+            return sample
+
+
+def serve_iceoryx2(addr: str, ready: Connection, copy: bool, max_len: int) -> None:
+    """iceoryx2 echo: receives on ``addr/ping``, answers on ``addr/pong`` with a loaned sample of the same size.
+
+    ``copy``: the answer carries the whole payload (copied from the received sample into the loan, as ``shm``
+    copies it); else only its first 8 bytes (the stamp), as ``shm-loan`` does."""
+    _quiet()
+    import iceoryx2 as iox2
+    import numpy as np
+
+    node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
+    pub, sub = iceoryx2_ports(node, addr, max_len, send="pong", receive="ping")
+    ready.send(addr)
+    counting = 0
+    while True:
+        sample = iceoryx2_receive(sub)
+        view = iceoryx2_bytes(sample)
+        n = view.nbytes
+        if n == 4 and view.tobytes() == STOP:
+            break
+        if counting:
+            counting -= 1
+            if counting == 0:
+                ack = pub.loan_slice_uninit(3)
+                iceoryx2_bytes(ack)[:] = np.frombuffer(b"ACK", np.uint8)
+                ack.assume_init().send()
+            continue
+        if n == 13 and view[:5].tobytes() == COUNT:
+            counting = _Q.unpack(view[5:13].tobytes())[0]
+            continue
+        out = pub.loan_slice_uninit(n)
+        dst = iceoryx2_bytes(out)
+        if copy:
+            dst[:] = view
+        else:
+            dst[: min(8, n)] = view[: min(8, n)]
+        del view, dst, sample
+        out.assume_init().send()
+    del pub, sub, node

@@ -28,11 +28,11 @@ from uniros_async.bench.common import progress_counter, report
 from uniros_async.errors import ConfigError
 from uniros_async.stats import summary
 
-__all__ = ["PAYLOADS", "TransportBenchConfig", "format_table", "main"]
+__all__ = ["ALL", "PAYLOADS", "TransportBenchConfig", "format_table", "main"]
 
 logger = logging.getLogger(__name__)
 
-PAYLOADS: dict[str, int] = {"small": 277, "64k": 64 * 1024, "image": 640 * 480 * 3}
+PAYLOADS: dict[str, int] = {"small": 277, "64k": 64 * 1024, "image": 640 * 480 * 3, "hd": 1280 * 720 * 3}
 OURS = ("memory", "shm", "shm-loan", "tcp", "tls")
 """shm-loan: the shm transport with both ends writing each frame in place (``ShmTransport.loan``) instead of
 copying it in: a producer that renders into the loan (a camera, a renderer) pays no send copy. The client writes an
@@ -44,15 +44,23 @@ sides (``send``).
 
 tls: the tcp transport inside mutual TLS (``tls://``), with throw-away certificates written for the run
 (``uniros_async.testing.tls``, ``openssl`` needed); its row beside tcp's is the price of encryption."""
-PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh")
+PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh", "iceoryx2", "iceoryx2-loan")
+"""iceoryx2: its Python binding's publish-subscribe over shared memory, an echo answering on a second service; the
+reader polls for samples (as iceoryx2's own benchmark does). ``iceoryx2`` copies the payload into each loaned
+sample on both sides (as ``shm`` copies it); ``iceoryx2-loan`` writes only an 8-byte stamp, as ``shm-loan``."""
+COPYING_PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh", "iceoryx2")
 NETWORK_PEERS = ("zmq-tcp", "zenoh")
+FLOOR = ("memcpy",)
+"""memcpy: one copy of the payload into a buffer of its size (numpy ``copyto``), timed as a round trip is: the
+floor a copying transport is measured against."""
+ALL = FLOOR + OURS + PEERS
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class TransportBenchConfig:
     """What to run. ``quick`` shrinks the sample counts so the whole run takes under a minute on 2 cores."""
 
-    transports: tuple[str, ...] = OURS + PEERS
+    transports: tuple[str, ...] = ALL
     payloads: tuple[str, ...] = tuple(PAYLOADS)
     quick: bool = False
     rtt_samples: int = 0  # 0: by payload and quick
@@ -61,9 +69,9 @@ class TransportBenchConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        bad = [t for t in self.transports if t not in OURS + PEERS]
+        bad = [t for t in self.transports if t not in FLOOR + OURS + PEERS]
         if bad:
-            raise ConfigError(f"unknown transport(s) {bad}; choose from {list(OURS + PEERS)}")
+            raise ConfigError(f"unknown transport(s) {bad}; choose from {list(FLOOR + OURS + PEERS)}")
         badp = [p for p in self.payloads if p not in PAYLOADS]
         if badp:
             raise ConfigError(f"unknown payload(s) {badp}; choose from {list(PAYLOADS)}")
@@ -71,13 +79,13 @@ class TransportBenchConfig:
     def n_rtt(self, payload: str) -> int:
         if self.rtt_samples:
             return self.rtt_samples
-        base = {"small": 5000, "64k": 2000, "image": 500}[payload]
+        base = {"small": 5000, "64k": 2000, "image": 500, "hd": 300}[payload]
         return base // 5 if self.quick else base
 
     def n_tput(self, payload: str) -> int:
         if self.throughput_frames:
             return self.throughput_frames
-        base = {"small": 50000, "64k": 5000, "image": 2000}[payload]
+        base = {"small": 50000, "64k": 5000, "image": 2000, "hd": 1000}[payload]
         return base // 10 if self.quick else base
 
 
@@ -372,7 +380,119 @@ class _ZenohClient(_Client):
         self._session.close()  # type: ignore[no-untyped-call]
 
 
+class _MemcpyFloor(_Client):
+    """Not a transport: one memcpy of the payload per sample, the floor of a copying round trip."""
+
+    name = "memcpy"
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        import numpy as np
+
+        src = np.frombuffer(payload, np.uint8)
+        dst = np.empty_like(src)
+        clock, out = time.perf_counter_ns, []
+        for _ in range(n):
+            t0 = clock()
+            np.copyto(dst, src)
+            out.append((clock() - t0) / 1e3)
+        return out
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        t0 = time.perf_counter()
+        self.rtt(payload, n)
+        return n / (time.perf_counter() - t0)
+
+    def close(self) -> None:
+        pass
+
+
+class _Iceoryx2Client(_Client):
+    """iceoryx2's Python binding: loaned samples to an echo in another process (``_peers.serve_iceoryx2``)."""
+
+    def __init__(self, kind: str) -> None:
+        import iceoryx2 as iox2
+
+        self.name = kind
+        self._copy = kind == "iceoryx2"
+        iox2.set_log_level_from_env_or(iox2.LogLevel.Warn)
+        name = f"uniros_bench_{os.getpid()}_{kind}"
+        max_len = max(PAYLOADS.values())
+        ctx = mp.get_context("spawn")
+        ready_parent, ready_child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_peers.serve_iceoryx2, args=(name, ready_child, self._copy, max_len), daemon=True
+        )
+        self._proc.start()
+        if not ready_parent.poll(30):
+            self._proc.kill()
+            raise TimeoutError("iceoryx2 echo server did not start")
+        ready_parent.recv()
+        self._node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
+        self._pub, self._sub = _peers.iceoryx2_ports(self._node, name, max_len, send="ping", receive="pong")
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:  # until the echo's publisher sees our subscriber
+            self._send(b"hello")
+            time.sleep(0.05)
+            if self._sub.receive() is not None:
+                break
+        else:
+            raise TimeoutError("iceoryx2 peers did not connect within 10 s")
+        time.sleep(0.1)
+        while self._sub.receive() is not None:
+            pass
+
+    def _send(self, payload: bytes, stamp: bytes = b"") -> None:
+        import numpy as np
+
+        sample = self._pub.loan_slice_uninit(len(payload))
+        dst = _peers.iceoryx2_bytes(sample)
+        if stamp:
+            dst[: len(stamp)] = np.frombuffer(stamp, np.uint8)
+        else:
+            dst[:] = np.frombuffer(payload, np.uint8)
+        del dst
+        sample.assume_init().send()
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        clock, out, stamp_of = time.perf_counter_ns, [], struct.Struct("<Q").pack
+        size = len(payload)
+        for i in range(n):
+            stamp = stamp_of(i) if not self._copy else b""
+            t0 = clock()
+            self._send(payload, stamp)
+            reply = _peers.iceoryx2_receive(self._sub)
+            out.append((clock() - t0) / 1e3)
+            got = _peers.iceoryx2_bytes(reply)
+            if got.nbytes != size or (stamp and got[:8].tobytes() != stamp):
+                raise RuntimeError(f"{self.name} echo answered frame {i} with the wrong frame")
+            del got, reply
+        return out
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        t0 = time.perf_counter()
+        self._send(_count_frame(n))
+        stamp = b"" if self._copy else payload[:8]
+        for _ in range(n):
+            self._send(payload, stamp)
+        ack = _peers.iceoryx2_receive(self._sub)
+        assert _peers.iceoryx2_bytes(ack).tobytes() == b"ACK"
+        del ack
+        return n / (time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self._send(_peers.STOP)
+        self._proc.join(10)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(5)
+        del self._pub, self._sub, self._node
+
+
 def _make_client(kind: str) -> _Client:
+    if kind == "memcpy":
+        return _MemcpyFloor()
+    if kind in ("iceoryx2", "iceoryx2-loan"):
+        return _Iceoryx2Client(kind)
     if kind in OURS:
         return _UnirosClient(kind)
     if kind == "mp-pipe":
@@ -386,7 +506,13 @@ def _make_client(kind: str) -> _Client:
 
 def _available(kind: str) -> str | None:
     """None if ``kind`` can run here, else why not."""
-    mod = {"zmq-ipc": "zmq", "zmq-tcp": "zmq", "zenoh": "zenoh"}.get(kind)
+    mod = {
+        "zmq-ipc": "zmq",
+        "zmq-tcp": "zmq",
+        "zenoh": "zenoh",
+        "iceoryx2": "iceoryx2",
+        "iceoryx2-loan": "iceoryx2",
+    }.get(kind)
     if mod is None:
         return None
     try:
@@ -441,18 +567,18 @@ def main(config: TransportBenchConfig, *, log: Callable[[str], None] = print) ->
 
 def format_table(records: list[dict[str, Any]]) -> str:
     """A fixed-width table, one row per (payload, transport), ours and peers side by side per payload."""
-    head = f"{'payload':<8} {'transport':<10} {'rtt p50 us':>11} {'p90 us':>9} {'p99 us':>9} {'msgs/s one way':>15}"
+    head = f"{'payload':<8} {'transport':<13} {'rtt p50 us':>11} {'p90 us':>9} {'p99 us':>9} {'msgs/s one way':>15}"
     lines = [head, "-" * len(head)]
     for pname in PAYLOADS:
         rows = [r for r in records if r["payload"] == pname]
         for r in rows:
             lines.append(
-                f"{pname:<8} {r['transport']:<10} {r['rtt_p50_us']:>11.1f} {r['rtt_p90_us']:>9.1f} "
+                f"{pname:<8} {r['transport']:<13} {r['rtt_p50_us']:>11.1f} {r['rtt_p90_us']:>9.1f} "
                 f"{r['rtt_p99_us']:>9.1f} {r['throughput_msg_s']:>15,.0f}"
             )
         if rows:
             # shm competes with every same-machine peer; tcp with the peers that cross a network
-            for ours, peers in (("shm", PEERS), ("shm-loan", PEERS), ("tcp", NETWORK_PEERS)):
+            for ours, peers in (("shm", COPYING_PEERS), ("shm-loan", PEERS), ("tcp", NETWORK_PEERS)):
                 mine = next((r for r in rows if r["transport"] == ours), None)
                 best = min((r for r in rows if r["transport"] in peers), key=lambda r: r["rtt_p50_us"], default=None)
                 if mine and best:
@@ -460,6 +586,12 @@ def format_table(records: list[dict[str, Any]]) -> str:
                     verdict = f"{ratio:.2f}x lower" if ratio >= 1 else f"{1 / ratio:.2f}x HIGHER"
                     kind = "network peer" if ours == "tcp" else "peer"
                     lines.append(f"{'':<8} {ours} p50 vs fastest {kind} ({best['transport']}): {verdict}")
+            floor = next((r for r in rows if r["transport"] == "memcpy"), None)
+            for ours in ("shm", "shm-loan"):
+                mine = next((r for r in rows if r["transport"] == ours), None)
+                if floor and mine:
+                    x = mine["rtt_p50_us"] / floor["rtt_p50_us"]
+                    lines.append(f"{'':<8} {ours} p50 vs one memcpy of the payload: {x:.2f}x")
             tcp_row = next((r for r in rows if r["transport"] == "tcp"), None)
             tls_row = next((r for r in rows if r["transport"] == "tls"), None)
             if tcp_row and tls_row:
