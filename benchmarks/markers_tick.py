@@ -58,7 +58,7 @@ def main() -> None:
     i = 0
     while time.monotonic() < t_end:
         mode = order[i % len(order)]
-        task._markers.period_s = MODES[mode]
+        task._task_markers.period_s = MODES[mode]
         w_end = time.monotonic() + args.window
         while time.monotonic() < w_end:
             _, _, term, trunc, _ = env.step(env.action_space.sample() * 0.3)

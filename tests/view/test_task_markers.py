@@ -41,7 +41,7 @@ async def test_a_reach_env_publishes_its_markers_to_the_arms_domain() -> None:
                 env.reset(seed=1)
                 for _ in range(3):  # three 0.8 s action cycles: the step's markers are due again
                     env.step(env.action_space.sample())
-                return np.array(env.unwrapped.goal), env.unwrapped._markers.published
+                return np.array(env.unwrapped.goal), env.unwrapped._task_markers.published
             finally:
                 env.close()
 

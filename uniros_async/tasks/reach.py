@@ -201,7 +201,7 @@ class ReachEnv(TaskEnv):
         self.goal = np.zeros(3)
         self._prev_action = np.zeros(n, dtype=np.float32)
         self._limit_hit = False
-        self._markers = TaskMarkers()  # goal, EE and bounds on /<arm>/markers, from the step, never from the tick
+        self._task_markers = TaskMarkers()  # goal, EE and bounds on /<arm>/markers, from the step, never from the tick
         # before the loop starts: the IK of the goals' draws runs on this thread, never on the loop's
         self.goal_pool = self.draw_goal_pool(task.goal_pool)
         self._start()
@@ -227,7 +227,7 @@ class ReachEnv(TaskEnv):
 
     async def _join(self, domain: Any, transport: str, options: Any) -> None:
         await super()._join(domain, transport, options)
-        await self._markers.join(self._node)
+        await self._task_markers.join(self._node)
         if self._pixels is None:
             return
         try:
@@ -273,7 +273,7 @@ class ReachEnv(TaskEnv):
 
     def _on_action(self, action: np.ndarray) -> None:
         self._prev_action = action.astype(np.float32)
-        if self._markers.due():
+        if self._task_markers.due():
             self._publish_markers()
 
     def _on_reset(self, q_arm: np.ndarray) -> None:
@@ -290,7 +290,7 @@ class ReachEnv(TaskEnv):
         js = self._js.latest()
         ee = None if js is None else self.kin.ee_position(js.position[self._arm_idx])
         bounds = (self.safety.config.workspace_min_m, self.safety.config.workspace_max_m)
-        self._markers.publish(
+        self._task_markers.publish(
             reach_markers(
                 self._clock.now_ns(), self.goal, ee, bounds, (self.goal_min, self.goal_max), self.reach_tolerance
             )
