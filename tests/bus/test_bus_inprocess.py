@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import statistics
+import time
 
 import numpy as np
 import pytest
@@ -124,20 +124,36 @@ async def test_name_conflicts_and_type_mismatch(domain) -> None:  # type: ignore
 
 
 async def test_timer_fires_at_absolute_deadlines(domain) -> None:  # type: ignore[no-untyped-def]
+    """The deadlines are ``start + k * period`` whatever the host's load: a late fire delays neither the next
+    deadline nor the grid (no drift), and every deadline skipped after a late fire is counted in ``overruns``.
+    How late the fires are is the host's, and is measured by ``uniros bench``, not asserted here."""
+    period_ns = 20_000_000
+    n = 25
     async with open_node("n", domain=domain) as node:
-        period_s = 0.02
-        t = node.create_timer(period_s, lambda: None)
-        await asyncio.sleep(0.5)
+        start_ns = node.now_ns() + period_ns
+        done = asyncio.Event()
+        overruns_at_fire: list[int] = []
+
+        def tick() -> None:
+            overruns_at_fire.append(t.overruns)
+            if len(overruns_at_fire) == 5:
+                time.sleep(0.05)  # a stall of the loop, as a loaded host makes: two deadlines pass during it
+            if len(overruns_at_fire) == n:
+                done.set()
+
+        t = node.create_timer(period_ns / 1e9, tick, start_ns=start_ns)
+        async with asyncio.timeout(30):
+            await done.wait()
         t.cancel()
-        fires = list(t.fire_times_ns)
-        deadlines = list(t.deadlines_ns)
-    assert len(fires) >= 15
-    # absolute deadlines: exactly one period apart, no drift accumulates
-    assert all(b - a == 20_000_000 for a, b in zip(deadlines, deadlines[1:], strict=False))
-    lateness = [f - d for f, d in zip(fires, deadlines, strict=True)]
-    assert min(lateness) >= 0, "a timer never fires before its deadline"
-    # generous bound for a shared CI machine: performance figures live in the benchmark, not here
-    assert statistics.median(lateness) < 5_000_000
+        fires = list(t.fire_times_ns)[:n]
+        deadlines = list(t.deadlines_ns)[:n]
+    assert deadlines[0] == start_ns
+    # on the absolute grid: deadline k is start + (k + deadlines skipped before it) periods, exactly
+    assert [(d - start_ns) for d in deadlines] == [(k + overruns_at_fire[k]) * period_ns for k in range(n)]
+    assert all(f >= d for f, d in zip(fires, deadlines, strict=True)), "a timer never fires before its deadline"
+    # a skipped deadline is skipped, not fired late in a burst: each deadline lies after the previous fire
+    assert all(d > f for f, d in zip(fires, deadlines[1:], strict=False))
+    assert overruns_at_fire[5] >= 2, overruns_at_fire
 
 
 async def test_timer_overruns_are_counted_and_skipped(domain) -> None:  # type: ignore[no-untyped-def]
