@@ -3,6 +3,8 @@
     python _ros2_rclpy.py echo     # /uniros_ping -> /uniros_pong and /rclpy_ping -> /rclpy_pong
     python _ros2_rclpy.py client   # reads "go N" lines on stdin; for each, N round trips over /rclpy_ping,
                                    # printing one JSON line: the round trips in ns (_peer_loop.py)
+    python _ros2_rclpy.py image_client H W ENC  # the same with sensor_msgs/Image frames (H x W, ENC: rgb8 or
+                                   # mono8) over /rclpy_image_ping -> /rclpy_image_pong (uniros bench transport)
 
 rclpy at its fastest for one message at a time: the client publishes, then spins its own single-threaded
 executor once per wake-up until the echo is back (no executor thread to hand over to). Both topics use ROS's
@@ -16,7 +18,7 @@ from typing import TYPE_CHECKING
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Image, JointState
 
 if TYPE_CHECKING:
     from uniros_async.bench._peer_loop import answer_go_lines
@@ -33,6 +35,8 @@ def echo() -> None:
     for who in ("uniros", "rclpy"):
         pub = node.create_publisher(JointState, f"/{who}_pong", QOS)
         node.create_subscription(JointState, f"/{who}_ping", pub.publish, QOS)
+    image_pub = node.create_publisher(Image, "/rclpy_image_pong", QOS)
+    node.create_subscription(Image, "/rclpy_image_ping", image_pub.publish, QOS)
     print("ready", flush=True)
     try:
         rclpy.spin(node)
@@ -71,5 +75,39 @@ def client() -> None:
     answer_go_lines(arm, round_trip)
 
 
+def image_client() -> None:
+    height, width, encoding = int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+    channels = {"rgb8": 3, "mono8": 1}[encoding]
+    rclpy.init()
+    node = rclpy.create_node("uniros_bench_rclpy_image_client")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    want = [""]
+    got = [False]
+
+    def on_pong(msg: Image) -> None:
+        if msg.header.frame_id == want[0]:
+            got[0] = True
+
+    pub = node.create_publisher(Image, "/rclpy_image_ping", QOS)
+    node.create_subscription(Image, "/rclpy_image_pong", on_pong, QOS)
+    step = width * channels
+    msg = Image(height=height, width=width, encoding=encoding, step=step, data=bytes(height * step))
+
+    def arm(token: str) -> None:
+        want[0] = msg.header.frame_id = token
+        got[0] = False
+
+    def round_trip() -> bool:
+        pub.publish(msg)
+        deadline = time.monotonic() + 2.0
+        while not got[0] and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=2.0)
+        return got[0]
+
+    print("ready", flush=True)
+    answer_go_lines(arm, round_trip)
+
+
 if __name__ == "__main__":
-    {"echo": echo, "client": client}[sys.argv[1]]()
+    {"echo": echo, "client": client, "image_client": image_client}[sys.argv[1]]()

@@ -44,11 +44,12 @@ sides (``send``).
 
 tls: the tcp transport inside mutual TLS (``tls://``), with throw-away certificates written for the run
 (``uniros_async.testing.tls``, ``openssl`` needed); its row beside tcp's is the price of encryption."""
-PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh", "iceoryx2", "iceoryx2-loan")
+PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh", "iceoryx2", "iceoryx2-loan", "rclpy")
 """iceoryx2: its Python binding's publish-subscribe over shared memory, an echo answering on a second service; the
 reader polls for samples (as iceoryx2's own benchmark does). ``iceoryx2`` copies the payload into each loaned
-sample on both sides (as ``shm`` copies it); ``iceoryx2-loan`` writes only an 8-byte stamp, as ``shm-loan``."""
-COPYING_PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh", "iceoryx2")
+sample on both sides (as ``shm`` copies it); ``iceoryx2-loan`` writes only an 8-byte stamp, as ``shm-loan``.
+rclpy: ``sensor_msgs/Image`` through an rclpy echo, both in the rclpy venv (``_rclpy_frames``)."""
+COPYING_PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh", "iceoryx2", "rclpy")
 NETWORK_PEERS = ("zmq-tcp", "zenoh")
 FLOOR = ("memcpy",)
 """memcpy: one copy of the payload into a buffer of its size (numpy ``copyto``), timed as a round trip is: the
@@ -493,6 +494,10 @@ def _make_client(kind: str) -> _Client:
         return _MemcpyFloor()
     if kind in ("iceoryx2", "iceoryx2-loan"):
         return _Iceoryx2Client(kind)
+    if kind == "rclpy":
+        from uniros_async.bench._rclpy_frames import RclpyImageClient
+
+        return RclpyImageClient()  # type: ignore[return-value]  # the same methods, outside _Client
     if kind in OURS:
         return _UnirosClient(kind)
     if kind == "mp-pipe":
@@ -506,6 +511,10 @@ def _make_client(kind: str) -> _Client:
 
 def _available(kind: str) -> str | None:
     """None if ``kind`` can run here, else why not."""
+    if kind == "rclpy":
+        from uniros_async.bench._rclpy_frames import rclpy_missing
+
+        return rclpy_missing()
     mod = {
         "zmq-ipc": "zmq",
         "zmq-tcp": "zmq",
