@@ -12,10 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
+from PIL import Image as PILImage
 
 from uniros_async.bag import BagWriter
-from uniros_async.bus.messages import Header, JointCommand, JointState, Marker
+from uniros_async.bus.messages import MARKER_KINDS as KINDS
+from uniros_async.bus.messages import Header, Image, JointCommand, JointState, Marker
 from uniros_async.view.demo import free_port, reach_and_photograph
 
 pytestmark = pytest.mark.slow
@@ -48,7 +49,7 @@ async def test_the_rx200_moves_toward_its_goal_in_headless_chromium(tmp_path: Pa
     out, reach = await reach_and_photograph(shots, step_rad=0.03, first_after_s=12.0, every_s=4.0)
     assert "/rx200/joint_states" in out and "/rx200/markers" in out, out
     assert reach["ik"] and reach["steps"] >= 15, reach
-    a, b = (np.asarray(Image.open(io.BytesIO(p.read_bytes())).convert("RGB"), dtype=np.int16) for p in shots)
+    a, b = (np.asarray(PILImage.open(io.BytesIO(p.read_bytes())).convert("RGB"), dtype=np.int16) for p in shots)
     h, w, _ = a.shape
     scene_a, scene_b = a[40 : h * 2 // 3, : w * 3 // 5], b[40 : h * 2 // 3, : w * 3 // 5]  # the 3D view
     # not a blank canvas: the arm's dark links, the red goal and the viewer's light background are all there
@@ -72,11 +73,16 @@ async def test_a_bag_is_replayed_and_bad_input_is_named(tmp_path: Path) -> None:
             js = JointState(header=Header(stamp_ns=t), name=names, position=q, velocity=np.zeros(5), effort=np.zeros(5))
             w.put("/rx200/joint_states", js, t, t)
             w.put("/rx200/command", JointCommand(header=Header(stamp_ns=t), position=q + 0.01), t, t)
-            w.put("/rx200/markers", Marker(header=Header(stamp_ns=t), ns="goal", position=[0.3, 0, 0.2]), t, t)
+            kind = KINDS[i % len(KINDS)]
+            pts = np.random.default_rng(i).normal(size=(4, 3)) * 0.1
+            marker = Marker(header=Header(stamp_ns=t), ns=kind, kind=kind, position=[0.3, 0, 0.2], text=kind,
+                            points=pts, lifetime_s=0.5 * (i % 2))  # fmt: skip
+            w.put("/rx200/markers", marker, t, t)
+            w.put("/rx200/camera", Image(header=Header(stamp_ns=t), data=np.full((24, 32, 3), i, np.uint8)), t, t)
     rc, out = await uniros("view", "--bag", str(bag), "--port", str(free_port()), "--web-port", str(free_port()),
                            "--duration", "0.5")  # fmt: skip
     assert rc == 0, out
-    assert "drew 60 messages of 3 topic(s); arms: rx200" in out, out
+    assert "drew 80 messages of 4 topic(s); arms: rx200" in out, out
 
     not_a_bag = tmp_path / "notes.txt"
     not_a_bag.write_text("hello")
