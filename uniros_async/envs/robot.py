@@ -314,9 +314,9 @@ class RobotEnv(BaseEnv):
 
     def _transit_delay_ns(self, js: JointState, now: int) -> int:
         """How long the newest state spent on its way from the arm (``envs.transit``: against the quickest state
-        of the last minute, and half a round trip of the link when the arm echoes our commands). A new subscription
-        (the arm's domain joined again: perhaps a new arm, a new clock) or a restarted registry (a new domain id,
-        seen when the node rejoins it: the arm's process may be new, with another clock) starts afresh."""
+        of the last minute, and half a round trip of the link when the arm echoes our commands). A restarted registry
+        (a new domain id, seen when the env's node rejoins it by itself: the arm's process may be new, with another
+        clock) starts the estimate afresh."""
         sub = self._js
         self._transit.follow(sub, self._node.domain_id)
         return self._transit.transit_ns(js, sub.latest_recv_ns)
