@@ -48,23 +48,32 @@ async def test_command_over_the_bus_reaches_target(robot: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize(("robot", "rate_hz"), [("rx200", 10.0), ("ned2", 25.0)])
 async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: float) -> None:
-    """Wall clock. The median period error is below 0.1 ms: the timer fires at absolute deadlines, so a tick that a
-    busy machine delays lengthens one period and shortens the next, and the median over 3 s holds (the max is
-    printed, not asserted)."""
+    """Wall clock. One joint state per tick of the node's timer, and the ticks' deadlines are the multiples of the
+    hardware period (absolute, so a tick a busy machine delays shifts no later one). How late the ticks are is the
+    host's, printed only."""
+    period_ns = round(1e9 / rate_hz)
+    n = 8
     async with open_domain("memory://") as domain:
-        async with open_servo_sim(robot, domain=domain), open_node("env", domain=domain) as env:
+        async with open_servo_sim(robot, domain=domain) as sim_node, open_node("env", domain=domain) as env:
             states = await env.create_subscription(JointState, f"/{robot}/joint_states", qos=reliable(1000))
             stamps: list[int] = []
-            async with asyncio.timeout(10):
-                while len(stamps) < round(3 * rate_hz) + 1:  # 3 s: a median over 30-75 periods
+            async with asyncio.timeout(30):
+                while len(stamps) < n:
                     stamps.append((await states.receive()).header.stamp_ns)
-    periods_ms = np.diff(stamps) / 1e6
-    median = statistics.median(periods_ms)
+            deadlines = list(sim_node.timer.deadlines_ns)
+            fires = list(sim_node.timer.fire_times_ns)
+    assert sim_node.timer.period_ns == period_ns
+    assert all(d % period_ns == 0 for d in deadlines), "the ticks' deadlines are on the clock's grid of the period"
+    # one state per tick, none lost: each state is stamped during its own tick, after that tick's fire and before
+    # the next one's, and the states belong to consecutive ticks
+    first = max(i for i, f in enumerate(fires) if f <= stamps[0])
+    for k, stamp in enumerate(stamps):
+        assert fires[first + k] <= stamp, (k, stamps, fires)
+        assert first + k + 1 == len(fires) or stamp < fires[first + k + 1], (k, stamps, fires)
+    late_ms = [(f - d) / 1e6 for f, d in zip(fires, deadlines, strict=True)]
     print(
-        f"\n{robot} joint_states: median period {median:.4f} ms (nominal {1000 / rate_hz:.1f}), "
-        f"max {periods_ms.max():.3f} ms, n={len(periods_ms)}"
+        f"\n{robot} joint_states: ticks late by median {statistics.median(late_ms):.3f} ms, max {max(late_ms):.3f} ms"
     )
-    assert abs(median - 1000.0 / rate_hz) < 0.1
 
 
 async def test_env_polling_at_50hz_sees_each_state_repeated() -> None:
