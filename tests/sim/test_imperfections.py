@@ -233,3 +233,71 @@ def test_the_virtual_servo_bus_has_the_servo_side_knobs() -> None:
     assert abs(waist) > 2 * TICK_RAD
     assert plain.sim.qpos[0] - offset.sim.qpos[0] == pytest.approx(waist, abs=1e-4)
     assert offset.sim.model.actuator_gainprm[1, 0] < 0.3 * plain.sim.model.actuator_gainprm[1, 0]  # sag: softer
+
+
+RANGES = {"sag": (0.0, 2.0), "offsets": (0.5, 3.0), "noise": (0.0, 1.0), "dynamics": (0.0, 2.0), "latency": (0, 2)}
+
+
+def test_randomization_ranges_are_checked() -> None:
+    from uniros_async.sim.imperfections import Randomization
+
+    with pytest.raises(ConfigError, match=r"randomize.sag: expected low <= high, got \[2.0, 1.0\]"):
+        Randomization(ranges={"sag": (2.0, 1.0)})
+    with pytest.raises(ConfigError, match=r"randomize.sag: expected \[low, high\], got 1.0"):
+        Randomization(ranges={"sag": 1.0})  # type: ignore[dict-item]
+    with pytest.raises(ConfigError, match=r"randomize: unknown knob\(s\) \['sagg'\]"):
+        Randomization(ranges={"sagg": (0.0, 1.0)})
+
+
+async def test_randomized_per_reset_seeded_and_never_accumulated() -> None:
+    from uniros_async.sim.imperfections import Randomization
+
+    async def draws(seed: int) -> list[tuple[dict[str, float], int, np.ndarray, np.ndarray]]:
+        out = []
+        async with open_domain("memory://") as domain:
+            async with open_servo_sim(
+                "rx200",
+                domain=domain,
+                clock=SimClock(time_scale=None),
+                config=CFG,
+                randomize=Randomization(ranges=RANGES, seed=seed),
+            ) as node:
+                for _ in range(3):
+                    node.reset()
+                    imp = node.imperfections
+                    assert imp is not None
+                    m = node.sim.model
+                    out.append((dict(imp.strengths), imp.seed, m.actuator_gainprm[:5, 0].copy(), m.body_mass.copy()))
+                    assert node.drawn()["strengths"] == imp.strengths
+        return out
+
+    first, again, other = await draws(1), await draws(1), await draws(2)
+    for (strengths, seed, gains, masses), (s2, seed2, g2, m2) in zip(first, again, strict=True):
+        assert strengths == s2 and seed == seed2 and np.array_equal(gains, g2) and np.array_equal(masses, m2)
+        for knob, (lo, hi) in RANGES.items():
+            assert lo <= strengths[knob] <= hi
+        assert strengths["backlash"] == 0.0
+        # the model of this draw is the nominal one perturbed once: the same as a sim built with these strengths
+        imp = Imperfections.of(strengths, seed=seed)
+        fresh, _ = build_sim("rx200", CFG, imp.emulation(), imp)
+        assert np.allclose(fresh.model.actuator_gainprm[:5, 0], gains) and np.allclose(fresh.model.body_mass, masses)
+    assert len({tuple(d[0].values()) for d in first}) == 3  # a new draw every episode
+    assert [d[0] for d in first] != [d[0] for d in other]
+
+
+@pytest.mark.slow
+def test_env_keys_reach_the_sim() -> None:
+    """Two short episodes of a randomized env (about 2 s)."""
+    import gymnasium as gym
+
+    kwargs = {"reward_type": "dense", "action_mode": "delta", "robot": "sim", "clock": "sim"}
+    env = gym.make("uniros/Rx200Reach-v0", **kwargs, randomize={"sag": [0.0, 3.0], "latency": [1.0, 2.0]})
+    try:
+        for seed in (0, 1):
+            env.reset(seed=seed)
+            _, _, _, _, info = env.step(env.action_space.sample())
+            assert "is_success" in info
+    finally:
+        env.close()
+    with pytest.raises(ConfigError, match=r"randomize.sag: expected a list, got 2"):
+        gym.make("uniros/Rx200Reach-v0", **kwargs, randomize={"sag": 2})

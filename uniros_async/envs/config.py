@@ -86,6 +86,9 @@ class EnvConfig(ConfigModel):
     """With ``clock="sim"`` on ``robot="sim"`` or ``"emulated-real"``: servo-level imperfections
     (``uniros_async.sim.imperfections``): one strength in [0, 3] for every knob, or a dict knob -> strength (the
     others 0), seeded by ``emulation_seed``; on the emulated arm they replace its default emulation."""
+    randomize: dict[str, tuple[float, float]] | None = None
+    """With ``clock="sim"`` on ``robot="sim"``: a range [low, high] of strengths per imperfection knob, drawn
+    afresh at every reset of the sim (seeded by ``emulation_seed``); replaces ``imperfections``."""
     unsafe_action: Literal["hold", "project"] = "hold"
     """What the loop does with an action whose target fails a safety check: ``"hold"`` (UniROS: nothing of it is
     sent, the arm holds) or ``"project"`` (the safe part of it is sent: joint by joint, from the base, each joint

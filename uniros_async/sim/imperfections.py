@@ -54,7 +54,7 @@ if TYPE_CHECKING:
 
     from uniros_async.robots import RobotSpec
 
-__all__ = ["KNOBS", "MAX_STRENGTH", "Imperfections", "ServoEffects", "real_kp"]
+__all__ = ["KNOBS", "MAX_STRENGTH", "Imperfections", "Randomization", "ServoEffects", "real_kp"]
 
 KNOBS = (
     "backlash",
@@ -269,3 +269,37 @@ class ServoEffects:
             "velocity_factor": self.velocity_factor,
             "force_factor": LIMITS_FORCE_FACTOR**self.s_limits,
         }
+
+
+@dataclass(frozen=True, kw_only=True)
+class Randomization:
+    """A range of strengths per knob, drawn afresh for every episode (``draw``), seeded.
+
+    Attributes:
+        ranges: knob name -> (low, high), both in [0, 3], low <= high; a knob not named stays at 0.
+        seed: seeds the draws (episode after episode, the same sequence).
+    """
+
+    ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.ranges, Mapping) or not self.ranges:
+            raise ConfigError(f"randomize: expected a mapping of knob -> [low, high], got {self.ranges!r}")
+        unknown = sorted(set(self.ranges) - set(KNOBS))
+        if unknown:
+            raise ConfigError(f"randomize: unknown knob(s) {unknown}; expected some of {list(KNOBS)}")
+        out: dict[str, tuple[float, float]] = {}
+        for k, r in self.ranges.items():
+            if isinstance(r, str) or not hasattr(r, "__len__") or len(r) != 2:
+                raise ConfigError(f"randomize.{k}: expected [low, high], got {r!r}")
+            lo, hi = _check_strength(k, r[0]), _check_strength(k, r[1])
+            if lo > hi:
+                raise ConfigError(f"randomize.{k}: expected low <= high, got [{lo}, {hi}]")
+            out[k] = (lo, hi)
+        object.__setattr__(self, "ranges", out)
+
+    def draw(self, rng: np.random.Generator) -> Imperfections:
+        """One episode's strengths, each U(low, high); the Imperfections' own seed is drawn too."""
+        strengths = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in self.ranges.items()}
+        return Imperfections(strengths=strengths, seed=int(rng.integers(2**31)))

@@ -63,7 +63,7 @@ from uniros_async.clock import Clock, grid_after
 from uniros_async.errors import ConfigError
 from uniros_async.robots import RobotSpec, get_robot_spec
 from uniros_async.sim.emulated import DelayLine, EmulationConfig, add_sensor_noise, perturb_model
-from uniros_async.sim.imperfections import Imperfections
+from uniros_async.sim.imperfections import Imperfections, Randomization
 from uniros_async.sim.servo import ServoSim, ServoSimConfig, ServoStats, load_model
 from uniros_async.sim_clock import SimClock
 from uniros_async.transports.base import TransportOptions
@@ -89,6 +89,8 @@ class ServoSimNode:
         max_command_age_s: commands older than this when taken at a tick are dropped (None: none are).
         stale_commands: commands dropped for their age.
         repeated_states: ticks that sent the previous state again (``EmulationConfig.state_repeat``).
+        randomize: the ranges of imperfection strengths drawn at every reset, or None.
+        imperfections: this episode's drawn imperfections (with ``randomize``), or None.
         on_event: called with each command and watchdog event (see the module docstring), or None.
     """
 
@@ -102,6 +104,7 @@ class ServoSimNode:
         publish_markers: bool = False,
         max_command_age_s: float | None = None,
         on_event: Callable[[dict[str, Any]], None] | None = None,
+        randomize: Randomization | None = None,
     ) -> None:
         if max_command_age_s is not None and not max_command_age_s > 0:
             raise ConfigError(f"max_command_age_s: expected a value > 0 or None, got {max_command_age_s}")
@@ -125,6 +128,13 @@ class ServoSimNode:
         self.timer: Any = None
         self._tasks: list[asyncio.Task[Any]] = []
         self._clock_listener: Any = None
+        self.randomize = randomize
+        self.imperfections: Imperfections | None = None
+        self._draws = np.random.default_rng([0 if randomize is None else randomize.seed, 41])
+        if randomize is not None:
+            self.new_episode()
+            self.sim.reset()  # the arm at home as the first episode's servos read it
+            self.sim.stats.resets = 0
 
     @property
     def robot(self) -> RobotSpec:
@@ -144,13 +154,13 @@ class ServoSimNode:
         node, emu = self.node, self.emulation
         self.joint_states = await node.create_publisher(JointState, "joint_states", qos=latest())
         self.markers = await node.create_publisher(Marker, "markers", qos=latest())
-        if emu is not None and not emu.command_latency.is_zero:
+        if emu is not None and (not emu.command_latency.is_zero or self.randomize is not None):
             self._cmd_line = DelayLine(emu.command_latency, self._rng, node.clock)
             self._tasks.append(tg.create_task(self._cmd_line.run(self._on_delayed_command), name="command delay"))
             self.commands = await node.create_subscription(JointCommand, "command", self._cmd_line.push, qos=latest())
         else:
             self.commands = await node.create_subscription(JointCommand, "command", qos=latest())
-        if emu is not None and not emu.state_latency.is_zero:
+        if emu is not None and (not emu.state_latency.is_zero or self.randomize is not None):
             self._state_line = DelayLine(emu.state_latency, self._rng, node.clock)
             self._tasks.append(tg.create_task(self._state_line.run(self.joint_states.publish), name="state delay"))
         await node.create_subscription(Marker, "markers_in", self._on_marker_in, qos=latest())
@@ -307,12 +317,34 @@ class ServoSimNode:
     def stop(self) -> None:
         self.set_mode("stop")
 
+    def new_episode(self) -> None:
+        """Draw this episode's imperfections (``randomize``) and apply them to the sim and the emulated link; the
+        next ``reset`` starts the episode. Without ``randomize``, nothing."""
+        if self.randomize is None:
+            return
+        imp = self.randomize.draw(self._draws)
+        emu = imp.emulation()
+        ids = self.sim._act_ids
+        factors: dict[str, np.ndarray] = {}
+
+        def perturb(model: Any) -> None:
+            factors.update(perturb_model(model, emu, np.random.default_rng(emu.seed), actuator_ids=ids))
+
+        self.sim.set_effects(imp.servo_effects(self.robot), perturb)
+        self.imperfections, self.emulation, self.perturbation = imp, emu, factors
+        if self._state_line is not None:
+            self._state_line.latency = emu.state_latency
+        if self._cmd_line is not None:
+            self._cmd_line.latency = emu.command_latency
+
     def reset(self, q: ArrayLike | None = None) -> JointState:
-        """Teleport to ``q`` (default: home) at rest; commands in flight are dropped.
+        """Teleport to ``q`` (default: home) at rest; commands in flight are dropped. With ``randomize``, a new
+        episode's imperfections are drawn first.
 
         Raises:
             ConfigError: bad ``q``.
         """
+        self.new_episode()
         state = self.sim.reset(q)
         self._drop_pending()
         return state
@@ -353,6 +385,15 @@ class ServoSimNode:
             return Trigger(success=False, message=str(exc))
         return Trigger(success=True, message=f"reset to {self._q_text()}")
 
+    def drawn(self) -> dict[str, Any]:
+        """This episode's drawn imperfections (strengths, seed, the servo effects' values), or {}."""
+        if self.imperfections is None:
+            return {}
+        out = self.imperfections.as_dict()
+        if self.sim.effects is not None:
+            out["servo"] = self.sim.effects.drawn()
+        return out
+
     def _srv_stats(self, req: Empty) -> Data:
         out: dict[str, Any] = dataclasses.asdict(self.sim.stats)
         out["mode"] = self.sim.mode
@@ -363,6 +404,8 @@ class ServoSimNode:
             out["command_lost"] = self._cmd_line.lost
         out["stale_commands"] = self.stale_commands
         out["repeated_states"] = self.repeated_states
+        if self.imperfections is not None:
+            out["imperfections"] = self.drawn()
         return Data(value=out)
 
 
@@ -401,6 +444,7 @@ async def open_servo_sim(
     clock: Clock | None = None,
     emulation: EmulationConfig | None = None,
     imperfections: Imperfections | None = None,
+    randomize: Randomization | None = None,
     publish_markers: bool = False,
     node_name: str = "servo_sim",
     transport: str = "auto",
@@ -419,6 +463,8 @@ async def open_servo_sim(
         emulation: make it an emulated real arm (perturbed, noisy, delayed).
         imperfections: servo-level imperfections with a strength (``uniros_async.sim.imperfections``); without
             ``emulation``, its bus-side knobs give the emulation.
+        randomize: draw the imperfections afresh at every reset from these ranges (seeded); replaces
+            ``emulation`` and ``imperfections``.
         publish_markers: publish the EE marker every tick and goal markers on ``markers``.
         node_name: the node's name within the namespace.
         transport: the node's transport choice (``auto``, ``memory``, ``shm``, ``tcp``).
@@ -435,9 +481,13 @@ async def open_servo_sim(
         SimulationError: (inside an ExceptionGroup, from the node's tasks) physics diverged.
     """
     spec = get_robot_spec(robot) if isinstance(robot, str) else robot
-    if imperfections is not None and emulation is None:
-        emulation = imperfections.emulation()
-    sim, factors = build_sim(spec, config, emulation, imperfections)
+    if randomize is not None:  # the nominal model, perturbed afresh at every reset
+        emulation, imperfections = Imperfections().emulation(), None
+        sim, factors = build_sim(spec, config)
+    else:
+        if imperfections is not None and emulation is None:
+            emulation = imperfections.emulation()
+        sim, factors = build_sim(spec, config, emulation, imperfections)
     ns = namespace if namespace is not None else f"/{spec.name}"
     async with open_node(
         node_name, domain=domain, namespace=ns, clock=clock, transport=transport, options=options
@@ -450,6 +500,7 @@ async def open_servo_sim(
             publish_markers=publish_markers,
             max_command_age_s=max_command_age_s,
             on_event=on_event,
+            randomize=randomize,
         )
         async with unwrap_task_group() as tg:
             await sim_node._start(tg)

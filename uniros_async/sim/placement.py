@@ -23,17 +23,23 @@ async def _open_in_process_sim(request: PlacementRequest, *, emulated: bool) -> 
     """The servo sim (``emulated``: the emulated real arm's model) in the env's process, on its clock, over memory."""
     from uniros_async.bus import open_domain
     from uniros_async.sim.emulated import EmulationConfig
+    from uniros_async.sim.imperfections import Imperfections, Randomization
     from uniros_async.sim.node import open_servo_sim
-
-    from uniros_async.sim.imperfections import Imperfections
 
     cfg = request.config
     imperfections = None if cfg.imperfections is None else Imperfections.of(cfg.imperfections, cfg.emulation_seed)
-    emulation = EmulationConfig(seed=cfg.emulation_seed) if emulated and imperfections is None else None
+    randomize = None if cfg.randomize is None else Randomization(ranges=cfg.randomize, seed=cfg.emulation_seed)
+    custom = imperfections is not None or randomize is not None
+    emulation = EmulationConfig(seed=cfg.emulation_seed) if emulated and not custom else None
     async with (
         open_domain("memory://") as domain,
         open_servo_sim(
-            request.robot, domain=domain, clock=request.clock, emulation=emulation, imperfections=imperfections
+            request.robot,
+            domain=domain,
+            clock=request.clock,
+            emulation=emulation,
+            imperfections=imperfections,
+            randomize=randomize,
         ),
     ):
         yield ArmLink(domain=domain)
@@ -47,10 +53,10 @@ async def _open_sim_process(request: PlacementRequest, *, emulated: bool) -> Asy
     from uniros_async.sim.emulated import EmulationConfig
     from uniros_async.sim.serve import open_servo_sim_process
 
-    if request.config.imperfections is not None:
+    if request.config.imperfections is not None or request.config.randomize is not None:
         raise ConfigError(
-            f"imperfections: expected clock='sim' (the arm in the env's process), got clock={request.config.clock!r} "
-            f"on robot={request.config.robot!r}"
+            "imperfections and randomize: expected clock='sim' (the arm in the env's process), got "
+            f"clock={request.config.clock!r} on robot={request.config.robot!r}"
         )
     transport = "tcp" if emulated else "auto"
     emulation = EmulationConfig(seed=request.config.emulation_seed) if emulated else None

@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, cast
 
@@ -66,6 +67,17 @@ _DIVERGENCE_WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADQACC,
 )
 _WARN_IDX = np.array([int(w) for w in _DIVERGENCE_WARNINGS])
+# the model fields that emulation and imperfections change (ServoSim.set_effects restores them)
+_PERTURBED = (
+    "body_mass",
+    "body_inertia",
+    "dof_damping",
+    "dof_frictionloss",
+    "actuator_gainprm",
+    "actuator_biasprm",
+    "actuator_forcerange",
+    "actuator_forcelimited",
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -229,6 +241,8 @@ class ServoSim:
         self.lower = np.where(limited, np.maximum(self.lower, ctrl_lo), self.lower)
         self.upper = np.where(limited, np.minimum(self.upper, ctrl_hi), self.upper)
         self.vmax = np.asarray(spec.velocity_limits_rad_s, dtype=np.float64)
+        self._vmax0 = self.vmax.copy()
+        self._nominal = {name: getattr(m, name).copy() for name in _PERTURBED}
         self.effects = effects
         if effects is not None:
             effects.perturb(m, self._act_ids)
@@ -261,6 +275,24 @@ class ServoSim:
         self._episode_ticks = 0
         self.reset()
         self.stats.resets = 0
+
+    def set_effects(
+        self, effects: ServoEffects | None, perturb: Callable[[mujoco.MjModel], object] | None = None
+    ) -> None:
+        """Start the model over from the one this sim was built with, ``perturb`` it (e.g. ``perturb_model``),
+        then apply ``effects`` (None: none); for a new episode, before ``reset``."""
+        m = self.model
+        for name, nominal in self._nominal.items():
+            getattr(m, name)[:] = nominal
+        if perturb is not None:
+            perturb(m)
+        self.effects = effects
+        if effects is not None:
+            effects.perturb(m, self._act_ids)
+        mujoco.mj_setConst(m, self.data)
+        self.vmax = self._vmax0 * (1.0 if effects is None else effects.velocity_factor)
+        if self._profile_kind == "velocity":
+            self._prof_vmax = np.minimum(np.asarray(self.robot.servo_profile.max_velocity_rad_s), self.vmax)
 
     # ---- state
 
