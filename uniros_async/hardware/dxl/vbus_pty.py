@@ -116,10 +116,10 @@ class VbusServer:
         pending = b""
         try:
             while self._running:
-                now = time.monotonic()
-                self.bus.advance(now)
                 wake = min(self.bus.next_due_s(), self.bus.next_watchdog_s() + _WATCHDOG_SLACK_S)
                 timeout = min(_MAX_WAIT_S, max(0.0, wake - time.monotonic()))
+                # the bytes that came in are read before the watchdogs are checked: a servo's UART takes them as
+                # they come, even when this process was late to run
                 for key, _ in sel.select(timeout):
                     if key.data == "bus":
                         self._on_bus()
@@ -134,6 +134,7 @@ class VbusServer:
                             line = raw.decode(errors="replace").strip()
                             if line:
                                 self.emit(self.command(line))
+                self.bus.advance(time.monotonic())
         finally:
             sel.close()
 
@@ -152,7 +153,7 @@ class VbusServer:
         for packet in self._parser.feed(data):
             if packet.is_status:
                 continue
-            self.bus.advance(arrived)
+            self.bus.advance(arrived, watchdogs=False)  # this packet is the host's sign of life
             # the wire carries one packet at a time: an instruction that came right after another (a sync write,
             # then a sync read) starts when the one before it, and its status packets, have passed
             due = max(arrived, self._wire_free_at) + len(packet.raw) * byte_s
