@@ -24,7 +24,9 @@ from uniros_async.errors import CodecError
 
 __all__ = [
     "MESSAGE_TYPES",
+    "CompressedImage",
     "Float64MultiArray",
+    "Image",
     "JointGroupCommand",
     "JointState",
     "JointTrajectory",
@@ -535,7 +537,81 @@ class JointGroupCommand(Ros1Message):
         return cls(name=r.string("name"), cmd=r.array(_F32, "cmd"))
 
 
+_IMAGE_SIZE = struct.Struct("<II")  # height, width
+_IMAGE_STEP = struct.Struct("<BI")  # is_bigendian, step
+_U8 = np.dtype(np.uint8)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Image(Ros1Message):
+    """sensor_msgs/Image: ``height`` rows of ``step`` bytes in ``data``, pixels in ``encoding`` (e.g. ``rgb8``)."""
+
+    _type: ClassVar[str] = "sensor_msgs/Image"
+    _md5sum: ClassVar[str] = "060021388200f6f0f447d0fcd9c64743"
+    _full_text: ClassVar[str] = (
+        "Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\n"
+        "uint8[] data\n" + _SEPARATOR + "MSG: std_msgs/Header\n" + _HEADER_TEXT
+    )
+
+    header: RosHeader
+    height: int
+    width: int
+    encoding: str
+    is_bigendian: int
+    step: int
+    data: np.ndarray
+
+    def _encode(self, out: list[bytes]) -> None:
+        self.header._encode(out)
+        _pack(out, _IMAGE_SIZE, "height/width", self.height, self.width)
+        _string(out, self.encoding, "encoding")
+        _pack(out, _IMAGE_STEP, "is_bigendian/step", self.is_bigendian, self.step)
+        _array(out, self.data, _U8, "data")
+
+    @classmethod
+    def _decode(cls, r: _Reader) -> Self:
+        header = RosHeader._decode(r)
+        height, width = r.unpack(_IMAGE_SIZE, "height/width")
+        encoding = r.string("encoding")
+        big, step = r.unpack(_IMAGE_STEP, "is_bigendian/step")
+        data = r.array(_U8, "data")
+        return cls(header=header, height=height, width=width, encoding=encoding, is_bigendian=big, step=step, data=data)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CompressedImage(Ros1Message):
+    """sensor_msgs/CompressedImage: an image in ``format`` (``jpeg`` or ``png``, image_transport's words)."""
+
+    _type: ClassVar[str] = "sensor_msgs/CompressedImage"
+    _md5sum: ClassVar[str] = "8f7a12909da2c9d3332d540a0977563f"
+    _full_text: ClassVar[str] = (
+        "Header header\nstring format\nuint8[] data\n" + _SEPARATOR + "MSG: std_msgs/Header\n" + _HEADER_TEXT
+    )
+
+    header: RosHeader
+    format: str
+    data: np.ndarray
+
+    def _encode(self, out: list[bytes]) -> None:
+        self.header._encode(out)
+        _string(out, self.format, "format")
+        _array(out, self.data, _U8, "data")
+
+    @classmethod
+    def _decode(cls, r: _Reader) -> Self:
+        return cls(header=RosHeader._decode(r), format=r.string("format"), data=r.array(_U8, "data"))
+
+
 MESSAGE_TYPES: dict[str, type[Ros1Message]] = {
     cls._type: cls
-    for cls in (RosHeader, JointState, Float64MultiArray, JointTrajectoryPoint, JointTrajectory, JointGroupCommand)
+    for cls in (
+        RosHeader,
+        JointState,
+        Float64MultiArray,
+        JointTrajectoryPoint,
+        JointTrajectory,
+        JointGroupCommand,
+        Image,
+        CompressedImage,
+    )
 }
