@@ -320,6 +320,26 @@ async def check_loaned_frames(uri: str) -> None:
             assert a.stats.frames_sent == 3 * len(sizes) + 1
 
 
+async def check_loans_wait_for_a_slow_reader(uri: str) -> None:
+    """``loan`` beside a slow reader: a loan waits for room rather than write over a frame the reader still holds
+    (a received view stays as sent until the next ``receive``), and every loaned frame arrives, in order."""
+    async with open_pair(uri, TransportOptions(ring_bytes=64 * 1024, max_frame_bytes=1 << 20)) as (a, b, _):
+        async with asyncio.timeout(T_S):
+            n, size = 12, 30_000  # two frames fill the ring: every loan after them waits for the reader
+
+            async def slow_reader() -> None:
+                for i in range(n):
+                    got = await b.receive()
+                    await asyncio.sleep(0.005)  # holding the view while the writer wants room
+                    assert got.nbytes == size and bytes(got[:1]) == bytes(got[-1:]) == bytes([i + 1]), i
+
+            task = asyncio.ensure_future(slow_reader())
+            for i in range(n):
+                async with a.loan(size) as buf:
+                    buf[:] = bytes([i + 1]) * size
+            await task
+
+
 CHECKS: list[Callable[[str], Awaitable[None]]] = [
     check_round_trip_small,
     check_order_and_backpressure,
@@ -333,6 +353,7 @@ CHECKS: list[Callable[[str], Awaitable[None]]] = [
     check_both_directions_at_once,
     check_several_peers,
     check_loaned_frames,
+    check_loans_wait_for_a_slow_reader,
 ]
 AUTH_CHECKS: list[Callable[[str], Awaitable[None]]] = [check_auth_accepts_right_key, check_auth_rejects_wrong_key]
 
