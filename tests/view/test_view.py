@@ -7,7 +7,9 @@ from __future__ import annotations
 import asyncio
 import io
 import socket
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +65,7 @@ async def test_the_rx200_moves_toward_its_goal_in_headless_chromium(tmp_path: Pa
     assert changed > 0.002, f"only {changed:.4f} of the 3D view changed in 4 s"
 
 
-async def test_a_bag_is_replayed_and_bad_input_is_named(tmp_path: Path) -> None:
-    bag = tmp_path / "reach.mcap"
+def write_bag(bag: Path) -> None:
     names = ("waist", "shoulder", "elbow", "wrist_angle", "wrist_rotate")
     with BagWriter(bag) as w:
         for i in range(20):
@@ -79,6 +80,11 @@ async def test_a_bag_is_replayed_and_bad_input_is_named(tmp_path: Path) -> None:
                             points=pts, lifetime_s=0.5 * (i % 2))  # fmt: skip
             w.put("/rx200/markers", marker, t, t)
             w.put("/rx200/camera", Image(header=Header(stamp_ns=t), data=np.full((24, 32, 3), i, np.uint8)), t, t)
+
+
+async def test_a_bag_is_replayed_and_bad_input_is_named(tmp_path: Path) -> None:
+    bag = tmp_path / "reach.mcap"
+    write_bag(bag)
     rc, out = await uniros("view", "--bag", str(bag), "--port", str(free_port()), "--web-port", str(free_port()),
                            "--duration", "0.5")  # fmt: skip
     assert rc == 0, out
@@ -108,3 +114,41 @@ async def test_a_bag_is_replayed_and_bad_input_is_named(tmp_path: Path) -> None:
         rc, out = await uniros("view", "--domain", domain.uri, "--arm-wait", "1", "--port", str(free_port()),
                                "--web-port", str(free_port()))  # fmt: skip
     assert rc == 2 and f"no arm in the domain {domain.uri}" in out and "/chatter" in out, out
+
+
+def test_a_killed_view_leaves_no_viewer_server(tmp_path: Path) -> None:
+    bag = tmp_path / "reach.mcap"
+    write_bag(bag)
+    grpc, web = free_port(), free_port()
+    view = subprocess.Popen(
+        [sys.executable, "-m", "uniros_async.cli", "view", "--bag", str(bag), "--port", str(grpc), "--web-port",
+         str(web)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    assert view.stdout is not None
+    try:
+        lines = []
+        while not (line := view.stdout.readline()).startswith("# drew"):
+            lines.append(line)
+            assert line, f"uniros view ended before drawing the bag: {''.join(lines)}"
+        children = [int(c) for c in Path(f"/proc/{view.pid}/task/{view.pid}/children").read_text().split()]
+        assert children, "the viewer's server is not a child of the view"
+    finally:
+        view.kill()
+        view.wait()
+        view.stdout.close()
+    deadline = time.monotonic() + 10
+    while any(_alive(c) for c in children):
+        assert time.monotonic() < deadline, f"the viewer's server {children} outlived the killed view"
+        time.sleep(0.05)
+    for port in (grpc, web):
+        with socket.socket() as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # connections in TIME_WAIT own no port
+            s.bind(("127.0.0.1", port))  # free again: no listener left
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from uniros_async.view import ViewError
+from uniros_async.view.server import die_with_parent
 
 __all__ = ["Browser", "headless_chromium"]
 
@@ -94,6 +95,7 @@ def headless_chromium(width: int = 1280, height: int = 720, start_timeout_s: flo
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
+        preexec_fn=die_with_parent,
     )
     try:
         port_file = profile / "DevToolsActivePort"

@@ -7,18 +7,22 @@ another with ``allow_remote=True``: the proxy has no authentication.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import ipaddress
 import os
+import signal
 import socket
 import subprocess
 import time
 import urllib.parse
 from pathlib import Path
 from types import TracebackType
+from typing import IO
 
 from uniros_async.view import ViewError
 
-__all__ = ["ViewerServer", "rerun_program"]
+__all__ = ["ViewerServer", "die_with_parent", "rerun_program"]
 
 
 def rerun_program() -> Path:
@@ -37,9 +41,16 @@ def rerun_program() -> Path:
     return path
 
 
+def die_with_parent() -> None:
+    """In a child before its exec: a SIGKILL when its parent dies, so a killed view leaves no server or browser."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+
+
 def _check_free(host: str, port: int, what: str) -> None:
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is no owner
         try:
             s.bind((host, port))
         except OSError as exc:
@@ -92,7 +103,7 @@ class ViewerServer:
         self.host, self.grpc_port, self.web_port = host, grpc_port, web_port
         self.memory_limit, self.start_timeout_s = memory_limit, start_timeout_s
         self._proc: subprocess.Popen[bytes] | None = None
-        self._log: Path | None = None
+        self._log: IO[bytes] | None = None
 
     @property
     def _url_host(self) -> str:
@@ -115,8 +126,7 @@ class ViewerServer:
         _check_free(self.host, self.web_port, "web")
         import tempfile
 
-        fd, log = tempfile.mkstemp(prefix="uniros_view_", suffix=".log")
-        self._log = Path(log)
+        self._log = tempfile.TemporaryFile()  # no name: nothing is left behind, whatever ends this process
         env = dict(os.environ, RERUN_ANALYTICS="0")  # no usage reports from this machine
         # the viewer's own program: serving is all it does here, and a child keeps its threads off the caller's
         self._proc = subprocess.Popen(
@@ -134,18 +144,19 @@ class ViewerServer:
                 self.memory_limit,
             ],  # fmt: skip
             stdin=subprocess.DEVNULL,
-            stdout=fd,
-            stderr=fd,
+            stdout=self._log,
+            stderr=self._log,
             env=env,
+            preexec_fn=die_with_parent,
         )
-        os.close(fd)
         deadline = time.monotonic() + self.start_timeout_s
         waiting = [self.grpc_port, self.web_port]
         while waiting:
-            if self._proc.poll() is not None:
+            rc = self._proc.poll()
+            if rc is not None:
                 out = self._output()
                 self.close()
-                raise ViewError(f"the viewer's server exited with {self._proc.returncode}: {out}")
+                raise ViewError(f"the viewer's server exited with {rc}: {out}")
             if time.monotonic() > deadline:
                 out = self._output()
                 self.close()
@@ -159,9 +170,10 @@ class ViewerServer:
                 time.sleep(0.05)
 
     def _output(self) -> str:
-        if self._log is None or not self._log.exists():
+        if self._log is None:
             return ""
-        return self._log.read_text(errors="replace")[-2000:].strip()
+        self._log.seek(0)
+        return self._log.read().decode(errors="replace")[-2000:].strip()
 
     def close(self) -> None:
         """Stop the server (SIGTERM, then SIGKILL after 5 s)."""
@@ -174,7 +186,7 @@ class ViewerServer:
                 proc.kill()
                 proc.wait()
         if self._log is not None:
-            self._log.unlink(missing_ok=True)
+            self._log.close()
             self._log = None
 
     def __enter__(self) -> ViewerServer:
