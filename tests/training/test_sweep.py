@@ -45,3 +45,41 @@ def test_sweep_bad_input_is_named() -> None:
 def test_env_key_checks_the_knobs() -> None:
     with pytest.raises(ConfigError, match=r"unknown knob\(s\) \['backlsh'\]"):
         gym.make("uniros/Rx200Reach-v0", **{**KWARGS, "imperfections": {"backlsh": 1.0}})
+
+
+def test_train_config_randomize_reaches_every_training_env() -> None:
+    from uniros_async.training.config import TrainConfig
+
+    cfg = TrainConfig(
+        envs=["uniros/Rx200Reach-v0", {"id": "uniros/Ned2Reach-v0", "kwargs": {"randomize": {"noise": [0, 1]}}}],
+        randomize={"sag": [0.0, 2.0]},
+    )
+    (_, _, rx), (_, _, ned) = cfg.env_specs()
+    assert rx["randomize"] == {"sag": (0.0, 2.0)} and rx["clock"] == "sim"
+    assert ned["randomize"] == {"noise": [0, 1]}  # an env's own setting wins
+
+
+@pytest.mark.slow
+def test_randomized_envs_in_make_vec_workers() -> None:
+    """Two rx200s in worker processes, the same goals and actions: randomized, their arms differ (a few s)."""
+    import numpy as np
+
+    import uniros_async
+
+    def run(randomize: dict[str, list[float]] | None) -> np.ndarray:
+        specs = [
+            ("uniros/Rx200Reach-v0", {**KWARGS, "emulation_seed": i, **({"randomize": randomize} if randomize else {})})
+            for i in (0, 1)
+        ]
+        venv = uniros_async.make_vec(specs, envs_per_worker=1)
+        try:
+            venv.reset(seed=[0, 0])
+            obs, *_ = venv.step(np.full((2, 5), 0.5, np.float32))
+            obs, *_ = venv.step(np.full((2, 5), 0.5, np.float32))
+            return np.asarray(obs)
+        finally:
+            venv.close()
+
+    nominal, randomized = run(None), run({"sag": [1.0, 3.0], "offsets": [1.0, 3.0]})
+    assert np.array_equal(nominal[0], nominal[1])
+    assert not np.allclose(randomized[0], randomized[1])

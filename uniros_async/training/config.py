@@ -217,6 +217,10 @@ class TrainConfig(ConfigModel):
     observations and actions padded to the largest sizes). Each is an id or ``{id, kwargs, name}``."""
     env_defaults: dict[str, Any] = Field(default_factory=lambda: {"clock": "sim"})
     """Keyword arguments given to every env unless it sets them."""
+    randomize: dict[str, tuple[float, float]] | None = None
+    """Domain randomization: a range [low, high] of strengths per imperfection knob (uniros_async/sim/
+    imperfections.py), drawn afresh at every reset of each training env's sim (``robot: sim``, ``clock: sim``),
+    seeded by its ``emulation_seed``; given to every training env that does not set ``randomize`` itself."""
     placement: Literal["inprocess", "workers", "ray"] = "inprocess"
     """``inprocess`` (envs in the agent's process: fastest with accelerated sim), ``workers`` (each env in a
     worker process through ``uniros_async.make``) or ``ray`` (each env's worker placed by Ray on a node of the
@@ -309,7 +313,8 @@ class TrainConfig(ConfigModel):
 
     def env_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
         """(label, id, kwargs with env_defaults filled in) of every training env."""
-        return [(e.label(self.env_defaults), e.id, {**self.env_defaults, **e.kwargs}) for e in self.envs]
+        extra = {} if self.randomize is None else {"randomize": self.randomize}
+        return [(e.label(self.env_defaults), e.id, {**self.env_defaults, **extra, **e.kwargs}) for e in self.envs]
 
     def eval_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
         """(label, id, kwargs) of every evaluation env (the training envs unless ``eval.envs`` is set)."""

@@ -60,6 +60,7 @@ def sweep_checkpoint(
     _check(curves, strengths)
     if "imperfections" in kwargs:
         raise ConfigError("--sweep sets imperfections itself: leave it out of --env-kwargs")
+    kwargs = {k: v for k, v in kwargs.items() if k != "randomize"}  # fixed strengths, not a training range
     zero: dict[str, Any] | None = None
     out: dict[str, list[dict[str, Any]]] = {}
     for curve in curves:
