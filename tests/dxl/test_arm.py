@@ -164,8 +164,11 @@ async def test_a_bus_silent_past_the_watchdog_is_a_robot_error(vbus: Vbus) -> No
     async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, RX200)
         await arm.start()
-        await arm.read_state(0)
-        await _sleep(0.25)  # this host stalls: the servos' 100 ms watchdog stops them
+        await _sleep(0.25)  # before the first command: the watchdog's stop held the servos where start-up put them
+        await arm.read_state(0)  # armed again, no error
+        state = await arm.read_state(0)
+        await arm.write_goals(state.joint_state.position[:5])
+        await _sleep(0.25)  # this host stalls while it commands the arm: the servos' 100 ms watchdog stops them
         with pytest.raises(RobotError, match=r"the bus was silent for \d+ ms, longer than the servos' Bus Watchdog"):
             await arm.read_state(0)
     assert vbus.expect(("watchdog id=1",), 2.0)

@@ -135,6 +135,7 @@ class DxlArm:
         self._crc_ticks = 0
         self._last_io_s: float | None = None  # when the last tick's bus I/O ended (the watchdog's clock, host side)
         self._watchdog_s = servos.bus_watchdog_ms / 1e3
+        self._commanded = False  # a goal other than start-up's was written
         self.started = False
         self.last_q: np.ndarray | None = None
         self.firmware: dict[int, int] = {}
@@ -212,8 +213,7 @@ class DxlArm:
             await self._sync_write(
                 "torque_enable", {s.id: 1 for s in primaries if (g := self.map.group_of(s)) is None or g.torque_enable}
             )
-            watchdog = round(self.map.bus_watchdog_ms / 1e3 / BUS_WATCHDOG_UNIT_S)
-            await self._sync_write("bus_watchdog", {s.id: watchdog for s in self.map.servos})
+            await self._arm_watchdog()
         except DxlError as exc:
             raise self._error("start-up", exc) from exc
         self.started = True
@@ -226,6 +226,12 @@ class DxlArm:
             self.bus.baud,
             self.map.bus_watchdog_ms,
         )
+
+    async def _arm_watchdog(self) -> None:
+        """Clear any Bus Watchdog error, then set the map's watchdog time in every servo."""
+        await self._sync_write("bus_watchdog", dict.fromkeys(self.map.ids, 0))
+        watchdog = round(self.map.bus_watchdog_ms / 1e3 / BUS_WATCHDOG_UNIT_S)
+        await self._sync_write("bus_watchdog", dict.fromkeys(self.map.ids, watchdog))
 
     async def _configure(self) -> None:
         for servo in self.map.servos:
@@ -263,6 +269,12 @@ class DxlArm:
         """
         now = time.monotonic()
         if self.started and self._last_io_s is not None and now - self._last_io_s > self._watchdog_s:
+            if not self._commanded:
+                # nothing was commanded since start-up: the stop held the servos where start-up put them
+                await self._arm_watchdog()
+                self._last_io_s = time.monotonic()
+                logger.info("%s: the bus watchdog fired before the first command; armed again", self.robot.name)
+                return await self.read_state(stamp_ns)
             raise RobotError(
                 f"{self.robot.name}: the bus was silent for {(now - self._last_io_s) * 1e3:.0f} ms, longer than the "
                 f"servos' Bus Watchdog ({self.map.bus_watchdog_ms} ms): they stopped and hold, and refuse goals. This "
@@ -319,6 +331,7 @@ class DxlArm:
             RobotError: a non-finite goal, or the bus failed.
         """
         q = np.asarray(q_arm, dtype=np.float64)
+        self._commanded = True
         if q.shape != (len(self.arm_servos),) or not np.isfinite(q).all():
             raise RobotError(
                 f"{self.robot.name}: expected {len(self.arm_servos)} finite goals {self.arm_joints}, got {q.tolist()}"
