@@ -63,7 +63,8 @@ def test_make_reset_and_step_on_the_users_placement() -> None:
     from acme_arms.placement import OPENED
 
     opened = len(OPENED)
-    env = gym.make(ENV_ID, robot="acme-sim", clock="sim")
+    # goal_pool=0: the goal is drawn at reset from the seed, so the IK check below runs on the same goal every time
+    env = gym.make(ENV_ID, robot="acme-sim", clock="sim", goal_pool=0)
     try:
         u = env.unwrapped
         assert u.robot_spec.name == "acme5" and u.placement.name == "acme-sim"
