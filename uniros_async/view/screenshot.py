@@ -36,6 +36,7 @@ CHROMIUM_FLAGS = (
     "--no-first-run",
     "--disable-background-networking",
     "--disable-component-update",
+    "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",  # no name resolves: nothing beyond this host
     "--remote-debugging-address=127.0.0.1",
     "--remote-debugging-port=0",
 )

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ipaddress
+import json
 import os
 import signal
 import socket
@@ -45,6 +46,22 @@ def die_with_parent() -> None:
     """In a child before its exec: a SIGKILL when its parent dies, so a killed view leaves no server or browser."""
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+
+
+def _quiet_rerun_home(program: Path) -> Path:
+    """A config home for the viewer's program in which its usage reports are off (``rerun analytics disable``, run
+    once there), so the view sends nothing beyond this machine."""
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "uniros_async" / "rerun_home"
+    config = base / "rerun" / "analytics.json"
+    with contextlib.suppress(OSError, ValueError):
+        if json.loads(config.read_text()).get("analytics_enabled") is False:
+            return base
+    base.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, XDG_CONFIG_HOME=str(base), XDG_DATA_HOME=str(base))
+    done = subprocess.run([str(program), "analytics", "disable"], env=env, capture_output=True, text=True, timeout=30)
+    if done.returncode != 0:
+        raise ViewError(f"could not turn the viewer's usage reports off in {base}: {done.stderr.strip()}")
+    return base
 
 
 def _check_free(host: str, port: int, what: str) -> None:
@@ -127,7 +144,8 @@ class ViewerServer:
         import tempfile
 
         self._log = tempfile.TemporaryFile()  # no name: nothing is left behind, whatever ends this process
-        env = dict(os.environ, RERUN_ANALYTICS="0")  # no usage reports from this machine
+        home = _quiet_rerun_home(program)
+        env = dict(os.environ, XDG_CONFIG_HOME=str(home), XDG_DATA_HOME=str(home))
         # the viewer's own program: serving is all it does here, and a child keeps its threads off the caller's
         self._proc = subprocess.Popen(
             [
