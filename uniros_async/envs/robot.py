@@ -40,6 +40,7 @@ import numpy as np
 
 from uniros_async.bus import open_node
 from uniros_async.bus.messages import Data, Header, JointCommand, JointState, Trigger
+from uniros_async.bus.timer import Timer
 from uniros_async.clock import Clock, grid_after, wall_clock
 from uniros_async.envs.base import BaseEnv
 from uniros_async.envs.config import EnvConfig
@@ -127,6 +128,7 @@ class RobotEnv(BaseEnv):
         self._action_t_ns: int | None = None
         self._cache: tuple[int, Returns] | None = None
         self._deadline_ns = 0
+        self._loop_timer: Timer | None = None
         self._first_step = True  # the next step is the first after a reset (see _step_deadline)
         self.loop_phase_ns = 0
         """How much later than ``TICK_OFFSET_NS`` this env's loop ticks and its steps return, on the same grids (at
@@ -245,7 +247,7 @@ class RobotEnv(BaseEnv):
     def _start_timer(self) -> None:
         if not self._wall_turn_based:  # a real arm's turn-based env has no loop: step commands once
             start = grid_after(self._clock.now_ns(), self._period_ns, TICK_OFFSET_NS + self._phase_ns)
-            self._node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
+            self._loop_timer = self._node.create_timer(self._period_ns / 1e9, self._tick, start_ns=start)
 
     @property
     def _relative_action(self) -> bool:
@@ -257,6 +259,8 @@ class RobotEnv(BaseEnv):
     def _tick(self) -> None:
         now = self._clock.now_ns()
         self.timing.tick_ns.append(now)
+        if self._loop_timer is not None:
+            self.timing.tick_deadline_ns.append(self._loop_timer.deadlines_ns[-1])
         js = self._js.latest()
         if js is None or self._ended:
             return
@@ -471,6 +475,7 @@ class RobotEnv(BaseEnv):
         stamp, (obs, reward, terminated, info) = self._cache
         end = clock.now_ns()
         self.timing.step_ns.append(end)
+        self.timing.step_deadline_ns.append(deadline)
         self.timing.observation_age_ns.append(end - stamp)
         if isinstance(clock, SimClock):
             clock.pause()

@@ -13,9 +13,11 @@ __all__ = ["Timing"]
 class Timing:
     """Time stamps (ns of the env's clock) of the env loop and the agent's steps; bounded histories.
 
-    - ``tick_ns``: every env-loop tick; ``command_ns``: ticks that sent a command (the actuator cycle is their
+    - ``tick_ns``: every env-loop tick; ``tick_deadline_ns``: the deadline each tick was scheduled for (the loop's
+      absolute grid); ``command_ns``: ticks that sent a command (the actuator cycle is their
       difference);
-    - ``step_ns``: when each ``step`` returned (the action cycle is their difference);
+    - ``step_ns``: when each ``step`` returned (the action cycle is their difference); ``step_deadline_ns``: the
+      deadline each ``step`` returned at (a point of the action-cycle grid);
     - ``action_ns``: when each action reached the loop (with ``clock="sim"`` and a modelled agent latency, that
       latency after the previous ``step`` returned);
     - ``observation_age_ns``: how old the returned observation was when ``step`` returned;
@@ -25,14 +27,25 @@ class Timing:
 
     history: int = 100_000
     tick_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    tick_deadline_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     command_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     step_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
+    step_deadline_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     action_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     observation_age_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     action_latency_ns: collections.deque[int] = dataclasses.field(default_factory=collections.deque)
     step_overruns: int = 0
     stale_ticks: int = 0
-    _SERIES = ("tick_ns", "command_ns", "step_ns", "action_ns", "observation_age_ns", "action_latency_ns")
+    _SERIES = (
+        "tick_ns",
+        "tick_deadline_ns",
+        "command_ns",
+        "step_ns",
+        "step_deadline_ns",
+        "action_ns",
+        "observation_age_ns",
+        "action_latency_ns",
+    )
 
     def __post_init__(self) -> None:
         for f in self._SERIES:
