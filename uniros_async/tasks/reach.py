@@ -78,6 +78,10 @@ WORKSPACE_BOXES = {
 GOAL_SPACES = {"uniros-box": GOAL_BOXES, "workspace": WORKSPACE_BOXES}
 GOAL_POOL_SEED = 0
 """The seed the goal pool is drawn with (see the module docstring)."""
+_GOAL_POOLS: dict[tuple[Any, ...], np.ndarray] = {}
+"""The pools drawn in this process, by arm, model, box, safety config and size (read-only arrays): the envs of one
+configuration built in one process draw theirs once."""
+_GOAL_POOLS_KEPT = 32
 REWARD_TYPES = ("dense", "sparse")
 ACTION_MODES = ("absolute", "delta")
 
@@ -297,16 +301,32 @@ class ReachEnv(TaskEnv):
         )
 
     def draw_goal_pool(self, size: int) -> np.ndarray | None:
-        """``size`` reachable goals (``sample_goal``) drawn with ``GOAL_POOL_SEED``, as a (size, 3) array; None for
-        a size of 0.
+        """``size`` reachable goals (``sample_goal``) drawn with ``GOAL_POOL_SEED``, as a read-only (size, 3) array;
+        None for a size of 0. Drawn once per process for one arm, model, box and safety config.
 
         Raises:
             ConfigError: the goal box is out of reach (``sample_goal``).
         """
         if size == 0:
             return None
-        rng = np.random.default_rng(GOAL_POOL_SEED)
-        return np.array([self.sample_goal(rng) for _ in range(size)])
+        spec = self.robot_spec
+        key = (
+            spec.name,
+            str(spec.mjcf_path),
+            self.goal_min.tobytes(),
+            self.goal_max.tobytes(),
+            repr(self.safety.config),
+            size,
+        )
+        pool = _GOAL_POOLS.get(key)
+        if pool is None:
+            rng = np.random.default_rng(GOAL_POOL_SEED)
+            pool = np.array([self.sample_goal(rng) for _ in range(size)])
+            pool.flags.writeable = False
+            if len(_GOAL_POOLS) >= _GOAL_POOLS_KEPT:
+                del _GOAL_POOLS[next(iter(_GOAL_POOLS))]
+            _GOAL_POOLS[key] = pool
+        return pool
 
     def sample_goal(self, rng: np.random.Generator, max_tries: int = 200) -> np.ndarray:
         """A goal uniform in the goal box that the arm can reach (IK succeeds, EE inside the workspace).
