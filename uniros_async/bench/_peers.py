@@ -219,6 +219,7 @@ def serve_iceoryx2(addr: str, ready: Connection, copy: bool, max_len: int) -> No
     import iceoryx2 as iox2
     import numpy as np
 
+    iox2.set_log_level_from_env_or(iox2.LogLevel.Warn)
     node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
     pub, sub = iceoryx2_ports(node, addr, max_len, send="pong", receive="ping")
     ready.send(addr)

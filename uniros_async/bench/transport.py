@@ -546,14 +546,24 @@ def main(config: TransportBenchConfig, *, log: Callable[[str], None] = print) ->
             skipped.append(f"{kind}: {why}")
             bar(len(config.payloads))
             continue
-        client = _make_client(kind)
+        try:
+            client = _make_client(kind)
+        except Exception as exc:  # noqa: BLE001 - a peer that cannot start is reported, the others still run
+            skipped.append(f"{kind}: could not start: {exc}")
+            bar(len(config.payloads))
+            continue
         try:
             for pname in config.payloads:
                 payload = os.urandom(PAYLOADS[pname])
                 n = config.n_rtt(pname)
-                client.rtt(payload, max(10, n // 10))  # warm-up, discarded
-                rtts = client.rtt(payload, n)
-                tput = client.throughput(payload, config.n_tput(pname))
+                try:
+                    client.rtt(payload, max(10, n // 10))  # warm-up, discarded
+                    rtts = client.rtt(payload, n)
+                    tput = client.throughput(payload, config.n_tput(pname))
+                except Exception as exc:  # noqa: BLE001 - a peer failing one case is reported; the run goes on
+                    skipped.append(f"{kind} {pname}: failed: {exc}")
+                    bar(1)
+                    continue
                 s = summary(rtts)
                 records.append(
                     {
