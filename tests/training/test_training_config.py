@@ -114,7 +114,8 @@ def test_bad_value_names_its_key_path(data: dict, message: str) -> None:
     [
         (
             {"envs": [RX], "bogus": 1},
-            "bogus: unknown key (valid keys: name, seed, total_steps, envs, env_defaults, placement, learner, "
+            "bogus: unknown key (valid keys: name, seed, total_steps, envs, env_defaults, randomize, placement, "
+            "learner, "
             "concurrent, replay_buffer, task_id_in_obs, drop_observation, normalize_obs, td3, her, async_learner, "
             "eval, checkpoint, max_wall_s, torch_threads, run_dir, progress_bar, record)",
         ),
