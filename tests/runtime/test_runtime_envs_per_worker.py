@@ -158,3 +158,26 @@ def test_a_real_time_env_in_a_shared_process_is_refused_with_what_to_do() -> Non
     with pytest.raises(WorkerError, match=r"runs on the wall clock .* make_vec\(envs_per_worker=1\)"):
         make_vec(["uniros/Rx200Reach-v0"] * 2, envs_per_worker=2, clock="wall")
     assert live_workers() == []  # the process is stopped
+
+
+def _slow_to_build(delay_s: float) -> object:
+    import time
+
+    import gymnasium as gym
+
+    time.sleep(delay_s)  # holds the worker's event loop, as an import of torch under load does
+    return gym.make(CART)
+
+
+def test_an_env_slow_to_build_does_not_cost_its_process_mates_their_connections() -> None:
+    """Every env of a process is accepted before any is built: a build that holds the loop past the listeners'
+    handshake deadline (``connect_timeout_s``, 5 s) no longer drops a mate's handshake mid-way."""
+    import functools
+
+    venv = make_vec([functools.partial(_slow_to_build, 6.0), functools.partial(_slow_to_build, 0.0)], envs_per_worker=2)
+    try:
+        assert venv.pids[0] == venv.pids[1]
+        obs, _ = venv.reset(seed=0)
+        assert obs.shape == (2, 4)
+    finally:
+        venv.close()

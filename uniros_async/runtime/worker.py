@@ -280,24 +280,31 @@ async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connect
             listeners.append(await listen(s.listen_uri, TransportOptions(auth_key=s.auth_key)))
             conn.send(listeners[-1].uri)
         builds = asyncio.Lock()  # one env built at a time: the threads each build starts are told apart
+        # every connection accepted before any env is built: a build holds this loop, and a handshake held past
+        # its listener's deadline is dropped
+        accepted = asyncio.Barrier(len(hosted))
         async with asyncio.TaskGroup() as tg:
             for s, listener in zip(hosted, listeners, strict=True):
-                tg.create_task(_host(s, listener, builds, shared_loop=len(hosted) > 1))
+                tg.create_task(_host(s, listener, builds, accepted, shared_loop=len(hosted) > 1))
     finally:
         for listener in listeners:
             await listener.aclose()
 
 
-async def _host(spec: WorkerSpec, listener: Any, builds: asyncio.Lock, *, shared_loop: bool) -> None:
-    """Accept the supervisor on ``listener``, build ``spec``'s env and serve it until it is closed or the
-    supervisor goes away. ``shared_loop``: other envs are served on this loop too; no poll for the next request
-    then (it would hold the loop that steps them)."""
+async def _host(
+    spec: WorkerSpec, listener: Any, builds: asyncio.Lock, accepted: asyncio.Barrier, *, shared_loop: bool
+) -> None:
+    """Accept the supervisor on ``listener``, wait until every env of this process is accepted (``accepted``),
+    build ``spec``'s env and serve it until it is closed or the supervisor goes away. ``shared_loop``: other envs
+    are served on this loop too; no poll for the next request then (it would hold the loop that steps them)."""
     transport = None
     server = _Server(spec)
     try:
         async with asyncio.timeout(spec.accept_timeout_s):
             transport = await listener.accept()
         await listener.aclose()
+        async with asyncio.timeout(spec.accept_timeout_s):
+            await accepted.wait()
         from uniros_async.priority import thread_ids
 
         async with builds:
