@@ -9,7 +9,7 @@ knob            what it does at strength s                             strength 
 backlash        a play of width s * b between the servo setpoint and   b = 0.25 deg (15 arcmin, ROBOTIS X-series)
                 the joint: the joint settles b/2 short of a target
                 on the side it came from (a hysteresis of width b)
-offsets         a per-joint calibration offset U(-s o, s o) on the     o = 0.5 deg (the AS5045 encoder's INL)
+offsets         a per-joint calibration offset U(-s o, s o) on the     o = 0.5 deg (estimate)
                 encoder: the servo reaches goal - offset and reports
                 the true angle + offset
 quantization    goal and present position in steps of s * 2 pi/4096;   4096 ticks/turn, 1 tick of deadband,
