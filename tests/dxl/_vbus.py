@@ -128,3 +128,12 @@ def read(ph: sdk.PacketHandler, port: sdk.PortHandler, servo_id: int, address: i
     raise AssertionError(
         f"servo {servo_id}: reading {size} bytes at {address} failed 5 times: {ph.getTxRxResult(result)}"
     )
+
+
+def ping_ok(ph: sdk.PacketHandler, port: sdk.PortHandler, servo_id: int) -> tuple[int, int]:
+    """dynamixel-sdk's ping of a servo that must answer: ``(model number, error byte)``, retried as ``read`` is."""
+    for _ in range(5):
+        model, result, error = ph.ping(port, servo_id)
+        if result == sdk.COMM_SUCCESS:
+            return model, error
+    raise AssertionError(f"servo {servo_id}: ping failed 5 times: {ph.getTxRxResult(result)}")

@@ -17,7 +17,7 @@ import pytest
 from uniros_async.hardware.dxl.control_table import MODELS, rad_to_ticks
 from uniros_async.hardware.dxl.servo_map import servo_map
 
-from ._vbus import MARGIN_MS, Vbus, pty_gone, read, running_vbus, sdk_port
+from ._vbus import MARGIN_MS, Vbus, ping_ok, pty_gone, read, running_vbus, sdk_port
 
 pytestmark = pytest.mark.slow
 
@@ -126,14 +126,14 @@ def test_faults_on_command(vbus: Vbus) -> None:
     with sdk_port(vbus.path) as (port, ph):
         assert vbus.send("crc 5 1") == "ok crc 5 1"
         assert ph.ping(port, 5)[1] == sdk.COMM_RX_CORRUPT
-        assert ph.ping(port, 5)[1:] == (sdk.COMM_SUCCESS, 0)
+        assert ping_ok(ph, port, 5)[1] == 0
         assert vbus.send("drop 5") == "ok drop 5"
         assert ph.ping(port, 5)[1] == sdk.COMM_RX_TIMEOUT
-        assert ph.ping(port, 5)[1] == sdk.COMM_SUCCESS
+        ping_ok(ph, port, 5)
         assert vbus.send("silent 6") == "ok silent 6"
         assert ph.ping(port, 6)[1] == sdk.COMM_RX_TIMEOUT
         assert vbus.send("answer 6") == "ok answer 6"
-        assert ph.ping(port, 6)[1] == sdk.COMM_SUCCESS
+        ping_ok(ph, port, 6)
         # a hardware error: the alert bit in every status, the bits in Hardware_Error_Status, torque off
         assert ph.write1ByteTxRx(port, 1, TORQUE_ENABLE, 1) == (sdk.COMM_SUCCESS, 0)
         assert vbus.send("error 1 0x20") == "ok error 1 0x20"
@@ -146,12 +146,12 @@ def test_faults_on_command(vbus: Vbus) -> None:
         assert vbus.send("stop") == "ok stop"
         assert ph.ping(port, 1)[1] == sdk.COMM_RX_TIMEOUT
         assert vbus.send("start") == "ok start"
-        assert ph.ping(port, 1)[1] == sdk.COMM_SUCCESS
+        ping_ok(ph, port, 1)
         # bad control lines are answered, and the bus goes on
         assert vbus.send("crc 99").startswith("error: 'crc 99': no servo ID 99")
         assert vbus.send("wobble").startswith("error: 'wobble': expected one of")
         assert vbus.send("clear") == "ok clear"
-        assert ph.ping(port, 1)[1] == sdk.COMM_SUCCESS
+        ping_ok(ph, port, 1)
 
 
 _HOST = textwrap.dedent(
@@ -211,7 +211,7 @@ def test_watchdog_stops_and_holds_the_servo_after_its_host_is_killed(tmp_path: o
 def test_vbus_stops_on_sigint_and_leaves_no_pty() -> None:
     with running_vbus("--emulate-real", "--seed", "2") as vbus:
         with sdk_port(vbus.path) as (port, ph):
-            assert ph.ping(port, 1)[1] == sdk.COMM_SUCCESS
+            ping_ok(ph, port, 1)
         assert vbus.stop() == 0
         assert pty_gone(vbus.path), f"{vbus.path} is still there after the vbus ended"
 
