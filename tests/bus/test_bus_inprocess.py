@@ -126,7 +126,7 @@ async def test_name_conflicts_and_type_mismatch(domain) -> None:  # type: ignore
 async def test_timer_fires_at_absolute_deadlines(domain) -> None:  # type: ignore[no-untyped-def]
     """The deadlines are ``start + k * period`` whatever the host's load: a late fire delays neither the next
     deadline nor the grid (no drift), and every deadline skipped after a late fire is counted in ``overruns``.
-    How late the fires are is the host's, and is measured by ``uniros bench``, not asserted here."""
+    How late the fires are is the host's, measured by ``uniros bench timers``, not asserted here."""
     period_ns = 20_000_000
     n = 25
     async with open_node("n", domain=domain) as node:

@@ -50,7 +50,7 @@ async def test_command_over_the_bus_reaches_target(robot: str) -> None:
 async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: float) -> None:
     """Wall clock. One joint state per tick of the node's timer, and the ticks' deadlines are the multiples of the
     hardware period (absolute, so a tick a busy machine delays shifts no later one). How late the ticks are is the
-    host's, printed only."""
+    host's, printed only (``uniros bench timers`` measures it)."""
     period_ns = round(1e9 / rate_hz)
     n = 8
     async with open_domain("memory://") as domain:
