@@ -60,7 +60,9 @@ def test_the_latency_scenario_runs_its_env_placed_by_ray(cluster: dict[str, Any]
 def test_repeat_runs_the_ray_placed_rows_beside_the_local_ones(
     cluster: dict[str, Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(throughput, "MAX_TIGHT_STEPS", 20)  # the interval's goal would take hundreds of steps
+    from uniros_async.bench import _stepmeter
+
+    monkeypatch.setattr(_stepmeter, "MAX_TIGHT_STEPS", 20)  # the interval's goal would take hundreds of steps
     lines: list[str] = []
     config = throughput.ThroughputBenchConfig(
         n_envs=(4,), steps=5, repeat=1, backend="ray", ray_address=cluster["address"], progress=False
