@@ -15,7 +15,9 @@ from hypothesis import strategies as st
 from uniros_async.adapters.ros1 import msgs
 from uniros_async.adapters.ros1.msgs import (
     MESSAGE_TYPES,
+    CompressedImage,
     Float64MultiArray,
+    Image,
     JointGroupCommand,
     JointState,
     JointTrajectory,
@@ -54,12 +56,14 @@ CASES: dict[str, Ros1Message] = {
         [_point([1.0, 2.0], 1_500_000_000), _point([3.0, 4.0], -250_000_000)],
     ),
     "group_command": JointGroupCommand("arm", np.array([0.5, -1.25, 3.0], np.float32)),
+    "image": Image(RosHeader(3, 5 * NS + 6, "cam"), 2, 3, "rgb8", 0, 10, np.arange(20, dtype=np.uint8)),
+    "compressed": CompressedImage(RosHeader(3, 5 * NS + 6, "cam"), "jpeg", np.arange(7, dtype=np.uint8)),
 }
 
 GENPY_SCRIPT = r"""
 import io, json, sys
 import genmsg, genmsg.msg_loader, genpy, genpy.dynamic, rospy
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import CompressedImage, Image, JointState
 from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -88,6 +92,9 @@ cases = {
     "trajectory": JointTrajectory(header=hdr(1, 5, 6, ""), joint_names=["a", "b"],
                                   points=[point([1.0, 2.0], 1, 500000000), point([3.0, 4.0], 0, -250000000)]),
     "group_command": JointGroupCommand(name="arm", cmd=[0.5, -1.25, 3.0]),
+    "image": Image(header=hdr(3, 5, 6, "cam"), height=2, width=3, encoding="rgb8", is_bigendian=0, step=10,
+                   data=bytes(range(20))),
+    "compressed": CompressedImage(header=hdr(3, 5, 6, "cam"), format="jpeg", data=bytes(range(7))),
 }
 cases["multiarray"].layout.dim = [MultiArrayDimension("x", 3, 1), MultiArrayDimension("", 0, 0)]
 cases["multiarray"].layout.data_offset = 2
@@ -97,7 +104,8 @@ for name, msg in cases.items():
     buf = io.BytesIO()
     msg.serialize(buf)
     out["bytes"][name] = buf.getvalue().hex()
-for cls in (Header, JointState, Float64MultiArray, JointTrajectoryPoint, JointTrajectory, JointGroupCommand):
+for cls in (Header, JointState, Float64MultiArray, JointTrajectoryPoint, JointTrajectory, JointGroupCommand, Image,
+            CompressedImage):
     out["classes"][cls._type] = {"md5": cls._md5sum, "full_text": cls._full_text}
 out["jgc_md5_genmsg"] = genmsg.compute_md5(ctx, spec)
 # genpy reads our bytes back
@@ -171,6 +179,8 @@ def test_message_types_are_keyed_by_type() -> None:
         "trajectory_msgs/JointTrajectoryPoint",
         "trajectory_msgs/JointTrajectory",
         "interbotix_xs_msgs/JointGroupCommand",
+        "sensor_msgs/Image",
+        "sensor_msgs/CompressedImage",
     }
     assert all(cls._type == key for key, cls in MESSAGE_TYPES.items())
 

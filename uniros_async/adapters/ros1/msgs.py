@@ -549,8 +549,36 @@ class Image(Ros1Message):
     _type: ClassVar[str] = "sensor_msgs/Image"
     _md5sum: ClassVar[str] = "060021388200f6f0f447d0fcd9c64743"
     _full_text: ClassVar[str] = (
-        "Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\n"
-        "uint8[] data\n" + _SEPARATOR + "MSG: std_msgs/Header\n" + _HEADER_TEXT
+        "# This message contains an uncompressed image\n"
+        "# (0, 0) is at top-left corner of image\n"
+        "#\n"
+        "\n"
+        "Header header        # Header timestamp should be acquisition time of image\n"
+        "                     # Header frame_id should be optical frame of camera\n"
+        "                     # origin of frame should be optical center of camera\n"
+        "                     # +x should point to the right in the image\n"
+        "                     # +y should point down in the image\n"
+        "                     # +z should point into to plane of the image\n"
+        "                     # If the frame_id here and the frame_id of the CameraInfo\n"
+        "                     # message associated with the image conflict\n"
+        "                     # the behavior is undefined\n"
+        "\n"
+        "uint32 height         # image height, that is, number of rows\n"
+        "uint32 width          # image width, that is, number of columns\n"
+        "\n"
+        "# The legal values for encoding are in file src/image_encodings.cpp\n"
+        "# If you want to standardize a new string format, join\n"
+        "# ros-users@lists.sourceforge.net and send an email proposing a new encoding.\n"
+        "\n"
+        "string encoding       # Encoding of pixels -- channel meaning, ordering, size\n"
+        "                      # taken from the list of strings in include/sensor_msgs/image_encodings.h\n"
+        "\n"
+        "uint8 is_bigendian    # is this data bigendian?\n"
+        "uint32 step           # Full row length in bytes\n"
+        "uint8[] data          # actual matrix data, size is (step * rows)\n"
+        + _SEPARATOR
+        + "MSG: std_msgs/Header\n"
+        + _HEADER_TEXT
     )
 
     header: RosHeader
@@ -585,7 +613,19 @@ class CompressedImage(Ros1Message):
     _type: ClassVar[str] = "sensor_msgs/CompressedImage"
     _md5sum: ClassVar[str] = "8f7a12909da2c9d3332d540a0977563f"
     _full_text: ClassVar[str] = (
-        "Header header\nstring format\nuint8[] data\n" + _SEPARATOR + "MSG: std_msgs/Header\n" + _HEADER_TEXT
+        "# This message contains a compressed image\n"
+        "\n"
+        "Header header        # Header timestamp should be acquisition time of image\n"
+        "                     # Header frame_id should be optical frame of camera\n"
+        "                     # origin of frame should be optical center of camera\n"
+        "                     # +x should point to the right in the image\n"
+        "                     # +y should point down in the image\n"
+        "                     # +z should point into to plane of the image\n"
+        "\n"
+        "string format        # Specifies the format of the data\n"
+        "                     #   Acceptable values:\n"
+        "                     #     jpeg, png\n"
+        "uint8[] data         # Compressed image buffer\n" + _SEPARATOR + "MSG: std_msgs/Header\n" + _HEADER_TEXT
     )
 
     header: RosHeader
