@@ -86,7 +86,6 @@ def test_the_loan_echo_answers_in_place_with_the_stamp_only() -> None:
 def test_frame_payloads_beside_the_memcpy_floor_and_iceoryx2() -> None:
     """image and hd frames through shm, shm-loan and iceoryx2's Python binding (a real echo in another process,
     which the client checks answers each frame), with one memcpy of the frame timed in the same run."""
-    pytest.importorskip("iceoryx2", reason="iceoryx2 is in the bench extra")
     import os
 
     kinds = ("memcpy", "shm", "shm-loan", "iceoryx2", "iceoryx2-loan")
