@@ -426,8 +426,8 @@ def attribute_docs(cls: type) -> dict[str, str]:
     """The docstring under each annotated attribute of ``cls`` and its bases (read from the source, for docs).
 
     The models document each key this way rather than with pydantic's ``use_attribute_docstrings``, which parses
-    the source whenever a model class is created, i.e. in every process that imports one (~70 ms once per process
-    here); the docs need it only when they are generated.
+    the source whenever a model class is created, i.e. in every process that imports one (a noticeable start-up cost
+    per process); the docs need it only when they are generated.
     """
     out: dict[str, str] = {}
     for klass in reversed(cls.__mro__):

@@ -259,7 +259,7 @@ class Kinematics:
         """One DLS attempt from ``q_start``; returns (q, error).
 
         The per-iteration arithmetic on 3-vectors and n <= 7 joints runs on Python floats: numpy's per-call
-        overhead (2-15 us per op on these machines) would otherwise dominate the 5 us of pinocchio work.
+        overhead on such small arrays would otherwise dominate the pinocchio work.
         """
         lo, hi = self._lower_list, self._upper_list
         n = self.n_joints

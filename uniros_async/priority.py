@@ -1,8 +1,8 @@
 """Scheduling priority of real-time loops (env loops on the wall clock, servo sims, an agent's acting thread).
 
 On a shared 2-core machine the env loop's timer fires on time only if its thread gets a core when it wakes; a
-learner, a test suite or another env loop beside it delays that by a scheduler slice (1-3 ms measured here, even
-at nice -10). As ros2_control does for its control loops, such a loop asks for a real-time scheduling class,
+learner, a test suite or another env loop beside it delays that by a scheduler slice, even at
+nice -10. As ros2_control does for its control loops, such a loop asks for a real-time scheduling class,
 ``SCHED_RR`` at a low priority (10): it then preempts every ordinary thread when its timer fires. These loops
 sleep between ticks (a tick is well under a millisecond of work, physics included), and the kernel's real-time
 throttling (``sched_rt_runtime_us``) keeps 5 % of every core for ordinary threads even if one misbehaved.
@@ -16,8 +16,8 @@ The class belongs to the thread that runs the loop, from the moment the loop is 
   servo sim once it serves): start-up is seconds of flat-out CPU (imports, the MuJoCo model, the arm's own
   process). In the real-time class it would run above every ordinary thread and, at the priority of an equal-rank
   loop, take turns with that loop in ``SCHED_RR``'s 100 ms slices: with the class taken at process start, four
-  workers starting on this host kept the lowest-ranked env loop of a running vector env off its core for up to
-  88 ms (kernel scheduler trace; docs/reliability.md).
+  workers starting kept the lowest-ranked env loop of a running vector env off its core for tens of milliseconds
+  (a kernel scheduler trace; docs/reliability.md).
 - **Not inherited** (``SCHED_RESET_ON_FORK``): threads and processes a real-time thread starts (a learner thread,
   torch's intra-op pool, a servo sim process, a test's subprocess) begin in the ordinary class. Without the flag
   a thread pool that a real-time acting thread creates with its first parallel operation runs its workers at the
@@ -27,7 +27,7 @@ The class belongs to the thread that runs the loop, from the moment the loop is 
   by id and get the loop's class too (``thread_ids`` before and after).
 
 A loop's thread also runs its process's cyclic garbage collector whenever an allocation triggers it, and a full
-collection walks every object the process holds (~66,000 for a reach env's process, ~15 ms here): a tick due
+collection walks every object the process holds (tens of thousands for a reach env's process): a tick due
 meanwhile waits, whatever the class. Loop processes call ``freeze_heap`` once start-up is done, so that full
 collections walk only what was made since.
 
@@ -93,8 +93,8 @@ ACTOR_RT_PRIORITY = LOOP_RT_PRIORITY + MAX_LOOP_RANK + 1
 """The acting thread's SCHED_RR priority (``real_time_thread``): above every loop process."""
 MODES = ("rt", "nice", "off")
 STEP_SLICE_NS = 20_000_000
-"""The scheduler slice ``run_steps_through`` asks for: longer than an accelerated rx200 or ned2 step (4-12 ms of
-physics here), so a worker runs its step in one go."""
+"""The scheduler slice ``run_steps_through`` asks for: longer than an accelerated rx200 or ned2 step, so a worker runs
+its step in one go."""
 _SCHED_SETATTR = {"x86_64": 314, "aarch64": 274}
 """``sched_setattr``'s syscall number (no Python wrapper); elsewhere only the policy is changed."""
 RESET_ON_FORK: int = getattr(os, "SCHED_RESET_ON_FORK", 0)
@@ -210,7 +210,7 @@ def run_steps_through(slice_ns: int = STEP_SLICE_NS) -> str | None:
     shares its core with others of its kind (the workers of a vector env with more workers than cores):
     ``SCHED_BATCH``, whose wake-ups do not preempt the thread that runs, and, on a kernel whose EEVDF scheduler takes
     a slice per thread (Linux 6.12 on), a slice of ``slice_ns``. Two workers on one core then run one after the
-    other instead of in turns of a default slice (0.75-3 ms, shorter than a step): fewer context switches, each of
+    other instead of in turns of a default slice (shorter than a step): fewer context switches, each of
     which costs the next one a cold cache, and a worker still waiting for its core has not run yet this step, so a
     core whose own workers are done can take it over (a worker that ran within the last half millisecond counts as
     cache-hot and stays where it is, and with turns every worker of a crowded core ran that recently). Keeps the

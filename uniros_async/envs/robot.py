@@ -60,14 +60,14 @@ logger = logging.getLogger(__name__)
 
 Returns = tuple[Any, float, bool, dict[str, Any]]
 TICK_ALIGN_NS = 1_000_000
-"""Step deadlines fall this long after an env-loop tick: time for the tick's own work (~0.2 ms here)."""
+"""Step deadlines fall this long after an env-loop tick: time for the tick's own work."""
 TICK_OFFSET_NS = 5_000_000
 """Env-loop ticks fall this long after the points of the clock's grid of their period (``clock.grid_after``), where
-the servo sims publish their joint states: the tick sees the state of the same instant, 5 ms old, not one a
-period old (5 ms: an in-process sim's physics for the period, ~1 ms, runs at the grid point in the same loop and
-must be done first, also on a loaded machine). Every env starts on the same grid, so arms in one vector env (and
-action cycles that are multiples of their periods) keep one phase, give or take each member's
-``RobotEnv.loop_phase_ns`` of a few ms: the agent gets every member's returns about equally fresh."""
+the servo sims publish their joint states: the tick sees the state of the same instant, this offset old, not one
+a period old (the offset leaves room for an in-process sim's physics for the period, which runs at the grid
+point in the same loop and must be done first, also on a loaded machine). Every env starts on the same grid, so
+arms in one vector env (and action cycles that are multiples of their periods) keep one phase, give or take
+each member's ``RobotEnv.loop_phase_ns``: the agent gets every member's returns about equally fresh."""
 LOOP_PHASE_MAX_FRACTION = 4
 """``RobotEnv.loop_phase_ns`` is capped at a quarter of the loop's period, so a tick still sees the state its servo
 published at the period's start."""
@@ -453,7 +453,7 @@ class RobotEnv(BaseEnv):
         deadline = self._step_deadline(now)
         # no spin: the returns were built by the tick just before, and a few tens of microseconds later matter
         # less than a core held: ranked workers spinning for their deadlines kept lower-ranked ones from their
-        # ticks (with 4 workers on 2 cores the ned2 ticks before a deadline started 1.4-1.7 ms late)
+        # ticks (more workers than cores made the lower-ranked ticks before a deadline start late)
         while True:  # until the deadline, or until the newest joint state turns older than robot_timeout_s
             await clock.sleep_until(min(deadline, self._stale_at_ns()), spin=False)
             if self._state_age_s() > cfg.robot_timeout_s:
@@ -595,8 +595,9 @@ class RobotEnv(BaseEnv):
         grid), plus this env's ``loop_phase_ns``.
 
         When the action cycle is a multiple of the loop period, every step returns just after a tick, so its
-        returns are ~1 ms old instead of up to a period; and every env on the same clock (the members of a vector
-        env, at 10 or 25 Hz) returns at the same instant, so the agent gets all of them that fresh.
+        returns are about ``TICK_ALIGN_NS`` old instead of up to a period; and every env on the same clock (the
+        members of a vector env, at 10 or 25 Hz) returns at the same instant, so the agent gets all of them that
+        fresh.
         """
         cycle = round(self.config.action_cycle_s * 1e9)
         point = grid_after(now + (cycle // 2 if lead_ns is None else lead_ns), cycle, TICK_OFFSET_NS + TICK_ALIGN_NS)

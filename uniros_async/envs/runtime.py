@@ -127,7 +127,7 @@ class LoopThread:
 
         The result is handed over from inside the coroutine's last step, not from the task's done callbacks: those
         run only after everything the same event woke (in a sim, the servo tick's physics for the next period), so
-        the caller would otherwise wait for work that does not belong to its call (~0.5 ms per step measured).
+        the caller would otherwise wait for work that does not belong to its call.
 
         Raises:
             TimeoutError: no result within ``timeout_s`` (the coroutine is cancelled).

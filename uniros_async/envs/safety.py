@@ -203,7 +203,7 @@ class SafetyChecker:
     def project(self, q_from: np.ndarray, q_target: np.ndarray) -> np.ndarray | None:
         """The safe part of a move from ``q_from`` (safe) toward an unsafe ``q_target``: joint by joint from the
         base, each joint takes its target value if the configuration stays safe. None when no joint can move.
-        At most one check per joint (~25 us each, warm)."""
+        At most one check per joint."""
         q = np.array(q_from, dtype=np.float64)
         moved = False
         for j in range(len(q)):
