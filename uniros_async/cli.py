@@ -161,8 +161,9 @@ def _build_parser() -> argparse.ArgumentParser:
         nargs="+",
         default=None,
         metavar="K",
-        help="envs per worker process in make_vec's rows: a count, or 'cores' for one process per core where the"
-        " envs outnumber the cores; with --repeat a row per value, runs interleaved (default: 1)",
+        help="envs per worker process in make_vec's rows: 'auto' (make_vec's default rule), a count, or 'cores' for"
+        " one process per core where the envs outnumber the cores; with --repeat a row per value, runs interleaved"
+        " (default: auto)",
     )
     bth.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
 
@@ -431,7 +432,7 @@ def _run_bench(args: argparse.Namespace) -> int:
                 ray_address=args.ray_address,
                 repeat=args.repeat,
                 shared_cores=tuple(args.shared_cores or ()),
-                envs_per_worker=tuple(args.envs_per_worker or ("1",)),
+                envs_per_worker=tuple(args.envs_per_worker or ("auto",)),
             )
         )
     elif args.scenario == "ros1":

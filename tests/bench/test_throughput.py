@@ -16,6 +16,7 @@ import pytest
 
 from uniros_async.bench import _stepmeter, throughput
 from uniros_async.errors import ConfigError
+from uniros_async.runtime.cores import usable_cpus
 
 pytestmark = pytest.mark.slow
 
@@ -197,8 +198,13 @@ def test_per_worker_counts_envs_per_process() -> None:
     assert throughput.per_worker("cores", 5, 2) == 3
     assert throughput.per_worker("cores", 2, 2) == 1  # no more envs than cores: a process each
     assert throughput.per_worker("3", 8, 2) == 3
+    # auto: what make_vec's default decides for the bench's accelerated rx200 on this machine's cores
+    cores = len(usable_cpus())
+    for n in (1, cores, 2 * cores, 4 * cores):
+        assert throughput.per_worker("auto", n, cores) == (-(-n // cores) if n > cores else 1)
+    assert throughput.ThroughputBenchConfig().envs_per_worker == ("auto",)  # the bench measures the default
     for bad in ("0", "two", "-1", ""):
-        with pytest.raises(ConfigError, match="envs_per_worker: expected a count >= 1 or 'cores', got"):
+        with pytest.raises(ConfigError, match="envs_per_worker: expected a count >= 1, 'cores' or 'auto', got"):
             throughput.ThroughputBenchConfig(envs_per_worker=(bad,))
 
 

@@ -130,10 +130,11 @@ class ThroughputBenchConfig:
     shared_cores: tuple[str, ...] = ()
     """With ``repeat``: one row per ``UNIROS_SHARED_CORES`` mode (``worker.shared_cores_mode``) for each N and
     backend, their runs interleaved (empty: as this process has it)."""
-    envs_per_worker: tuple[str, ...] = ("1",)
-    """How many envs one worker process of ``make_vec`` hosts in its rows (local and Ray-placed), per N: a count, or
-    ``cores`` for one process per core where the envs outnumber the cores (``per_worker``). The first value for the
-    full bench; with ``repeat``, one row per value, runs interleaved."""
+    envs_per_worker: tuple[str, ...] = ("auto",)
+    """How many envs one worker process of ``make_vec`` hosts in its rows (local and Ray-placed), per N: ``auto``
+    (make_vec's default, decided by its own rule), a count, or ``cores`` for one process per core where the envs
+    outnumber the cores (``per_worker``). The first value for the full bench; with ``repeat``, one row per value,
+    runs interleaved."""
     repeat: int = 0
     """> 0: measure only the make_vec rows at ``CROWDED_N`` or more sub-envs (and the Ray-placed ones with
     ``backend="ray"``), ``repeat`` runs of each, every run with new workers, and print each run's % of the physics
@@ -158,16 +159,22 @@ class ThroughputBenchConfig:
 
 
 def per_worker(value: str, n: int, cores: int) -> int:
-    """Envs per worker process for ``n`` sub-envs on ``cores`` cores: ``value`` a count >= 1, or ``cores``: as many
-    as make one process per core when the envs outnumber the cores (ceil(n / cores)), else 1.
+    """Envs per worker process for ``n`` sub-envs on ``cores`` cores: ``value`` a count >= 1; ``cores``: as many
+    as make one process per core when the envs outnumber the cores (ceil(n / cores)), else 1; or ``auto``: what
+    make_vec's default decides for ``n`` of the bench's accelerated envs (``runtime.specs.plan_envs_per_worker``,
+    the function make_vec itself calls).
 
     Raises:
-        ConfigError: neither a count >= 1 nor ``cores``.
+        ConfigError: none of these.
     """
+    if value == "auto":
+        from uniros_async.runtime.specs import plan_envs_per_worker
+
+        return plan_envs_per_worker([(ENV_ID, dict(ENV_KW))] * n, [False] * n, "auto")[0]
     if value == "cores":
         return -(-n // cores) if n > cores else 1
     if not value.isdigit() or int(value) < 1:
-        raise ConfigError(f"envs_per_worker: expected a count >= 1 or 'cores', got {value!r}")
+        raise ConfigError(f"envs_per_worker: expected a count >= 1, 'cores' or 'auto', got {value!r}")
     return int(value)
 
 
