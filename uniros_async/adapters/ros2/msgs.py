@@ -9,9 +9,8 @@ the hashes and serializes; ``idl_type`` builds the matching ``cyclonedds`` IDL s
 cyclonedds needs to create a topic (its type name and XTypes type information), while the bytes on the wire are
 rosbags' own.
 
-Measured on this host (JointState with 6 joints, one sample): rosbags serializes in 6 us and deserializes in
-10 us, as fast as a hand-written ``struct`` / numpy reader of the same layout (10 us), so rosbags does all of it
-(docs/howto/real-robots.md has the comparison with cyclonedds' own serializer).
+rosbags serializes and deserializes a JointState as fast as a hand-written ``struct`` / numpy reader of the same
+layout, so rosbags does all of it (docs/howto/real-robots.md has the comparison with cyclonedds' own serializer).
 """
 
 from __future__ import annotations
