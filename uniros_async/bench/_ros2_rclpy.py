@@ -44,24 +44,24 @@ def echo() -> None:
         pass
 
 
-def client() -> None:
+def _answer_round_trips(name: str, msg_type: type, ping: str, pong: str, msg: object) -> None:
+    """Time round trips of ``msg`` over ``ping`` -> ``pong``, one at a time, as ``_peer_loop`` asks on stdin."""
     rclpy.init()
-    node = rclpy.create_node("uniros_bench_rclpy_client")
+    node = rclpy.create_node(name)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     want = [""]
     got = [False]
 
-    def on_pong(msg: JointState) -> None:
-        if msg.header.frame_id == want[0]:
+    def on_pong(reply: object) -> None:
+        if reply.header.frame_id == want[0]:  # type: ignore[attr-defined]
             got[0] = True
 
-    pub = node.create_publisher(JointState, "/rclpy_ping", QOS)
-    node.create_subscription(JointState, "/rclpy_pong", on_pong, QOS)
-    msg = JointState(name=NAMES, position=[0.1] * 8, velocity=[0.0] * 8, effort=[0.0] * 8)
+    pub = node.create_publisher(msg_type, ping, QOS)
+    node.create_subscription(msg_type, pong, on_pong, QOS)
 
     def arm(token: str) -> None:
-        want[0] = msg.header.frame_id = token
+        want[0] = msg.header.frame_id = token  # type: ignore[attr-defined]
         got[0] = False
 
     def round_trip() -> bool:
@@ -73,40 +73,18 @@ def client() -> None:
 
     print("ready", flush=True)
     answer_go_lines(arm, round_trip)
+
+
+def client() -> None:
+    msg = JointState(name=NAMES, position=[0.1] * 8, velocity=[0.0] * 8, effort=[0.0] * 8)
+    _answer_round_trips("uniros_bench_rclpy_client", JointState, "/rclpy_ping", "/rclpy_pong", msg)
 
 
 def image_client() -> None:
     height, width, encoding = int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
-    channels = {"rgb8": 3, "mono8": 1}[encoding]
-    rclpy.init()
-    node = rclpy.create_node("uniros_bench_rclpy_image_client")
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    want = [""]
-    got = [False]
-
-    def on_pong(msg: Image) -> None:
-        if msg.header.frame_id == want[0]:
-            got[0] = True
-
-    pub = node.create_publisher(Image, "/rclpy_image_ping", QOS)
-    node.create_subscription(Image, "/rclpy_image_pong", on_pong, QOS)
-    step = width * channels
+    step = width * {"rgb8": 3, "mono8": 1}[encoding]
     msg = Image(height=height, width=width, encoding=encoding, step=step, data=bytes(height * step))
-
-    def arm(token: str) -> None:
-        want[0] = msg.header.frame_id = token
-        got[0] = False
-
-    def round_trip() -> bool:
-        pub.publish(msg)
-        deadline = time.monotonic() + 2.0
-        while not got[0] and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=2.0)
-        return got[0]
-
-    print("ready", flush=True)
-    answer_go_lines(arm, round_trip)
+    _answer_round_trips("uniros_bench_rclpy_image_client", Image, "/rclpy_image_ping", "/rclpy_image_pong", msg)
 
 
 if __name__ == "__main__":
