@@ -19,9 +19,13 @@ if str(EXTENSION_DIR) not in sys.path:
 TESTS_DIR = Path(__file__).resolve().parent
 """Holds ``rig``, the suite's own test rig. Processes the tests start run its modules as ``python -m rig.<module>``
 (inside network namespaces too), so tests/ goes on their ``PYTHONPATH``."""
-_pythonpath = os.environ.get("PYTHONPATH", "")
-if str(TESTS_DIR) not in _pythonpath.split(os.pathsep):
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(TESTS_DIR), _pythonpath) if p)
+TREE_DIR = TESTS_DIR.parent
+"""The checkout under test. It goes first on the started processes' ``PYTHONPATH`` too, so that they import this
+tree's ``uniros_async`` even when another checkout is the one ``pip install -e`` points at."""
+_pythonpath = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    [str(TREE_DIR), str(TESTS_DIR)] + [p for p in _pythonpath if p not in (str(TREE_DIR), str(TESTS_DIR))]
+)
 
 
 @pytest.fixture(scope="session", autouse=True)
