@@ -83,12 +83,15 @@ class EnvConfig(ConfigModel):
     emulation_seed: Int = 0
     """Seed of the emulated real arm's perturbations and noise."""
     imperfections: float | dict[str, float] | None = None
-    """With ``clock="sim"`` on ``robot="sim"`` or ``"emulated-real"``: servo-level imperfections
-    (``uniros_async.sim.imperfections``): one strength in [0, 3] for every knob, or a dict knob -> strength (the
-    others 0), seeded by ``emulation_seed``; on the emulated arm they replace its default emulation."""
+    """On the sim placements (``robot="sim"``, ``"sim-process"``, ``"emulated-real"``, either clock): servo-level
+    imperfections (``uniros_async.sim.imperfections``): one strength in [0, 3] for every knob, or a dict knob ->
+    strength (the others 0), seeded by ``emulation_seed``; on the emulated arm they replace its default emulation."""
     randomize: dict[str, tuple[float, float]] | None = None
-    """With ``clock="sim"`` on ``robot="sim"``: a range [low, high] of strengths per imperfection knob, drawn
-    afresh at every reset of the sim (seeded by ``emulation_seed``); replaces ``imperfections``."""
+    """On the sim placements: a range [low, high] of strengths per imperfection knob, drawn afresh by the sim at
+    every reset from a seed of the env's ``np_random`` (so from the reset's seed) and ``emulation_seed``; the draw is
+    in the reset's ``info["imperfections"]`` (knob -> strength) and ``info["imperfections_seed"]``. Replaces
+    ``imperfections``. With ``sag``, an arm that walks home (``"emulated-real"``) can rest further from
+    home than ``settle_tol_rad`` under gravity: raise that to match."""
     unsafe_action: Literal["hold", "project"] = "hold"
     """What the loop does with an action whose target fails a safety check: ``"hold"`` (UniROS: nothing of it is
     sent, the arm holds) or ``"project"`` (the safe part of it is sent: joint by joint, from the base, each joint

@@ -235,6 +235,7 @@ class RobotEnv(BaseEnv):
             self._js = await node.create_subscription(JointState, "joint_states")
             self._cmd = await node.create_publisher(JointCommand, "command")
             self._reset_cli = node.create_client(Data, Trigger, "reset")
+            self._episode_cli = node.create_client(Data, Data, "new_episode") if self.config.randomize else None
         except BaseException:
             await stack.aclose()
             raise
@@ -514,6 +515,12 @@ class RobotEnv(BaseEnv):
         # no reset on a state older than robot_timeout_s: an arm that went silent is reported, not settled on its
         # last known pose (RobotError within robot_timeout_s, or at once when the state is already that old)
         await self._wait_for_fresh_state("reset")
+        drawn: dict[str, Any] = {}
+        if self._episode_cli is not None:  # this episode's imperfections, drawn by the sim before the arm moves home
+            from uniros_async.sim.imperfections import draw_episode
+
+            seed = int(self.np_random.spawn(1)[0].integers(2**31))  # follows the reset seed; goals' draws untouched
+            drawn = await draw_episode(self._episode_cli, seed, min(cfg.reset_timeout_s, cfg.robot_timeout_s))
         if self.placement.can_teleport:  # a nominal sim can be teleported home: exact and fast
             # a teleport answers within a tick: an arm that does not answer within robot_timeout_s is not there
             timeout_s = min(cfg.reset_timeout_s, cfg.robot_timeout_s)
@@ -540,7 +547,7 @@ class RobotEnv(BaseEnv):
         if isinstance(clock, SimClock):
             clock.pause()
         self._last_return_wall_ns = time.monotonic_ns()
-        return obs, dict(info)
+        return obs, {**info, **drawn}
 
     def _step_deadline(self, now: int) -> int:
         """When the step whose action arrived at ``now`` returns: one action cycle after the previous deadline.

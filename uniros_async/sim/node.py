@@ -6,7 +6,10 @@ In namespace ``/<robot name>`` (configurable) the node
 - publishes ``joint_states`` (JointState) at the hardware rate (rx200 10 Hz, ned2 25 Hz) from a node timer, so
   it follows the domain's clock (a WallClock, or a SimClock that this node then drives);
 - serves ``hold`` and ``stop`` (Empty -> Trigger), ``set_mode`` (Text -> Trigger), ``reset`` (Data -> Trigger:
-  ``Data()`` teleports home, ``Data(value={"q": [...]})`` to a pose) and ``stats`` (Empty -> Data);
+  ``Data()`` teleports home, ``Data(value={"q": [...]})`` to a pose), ``new_episode`` (Data -> Data: with
+  ``randomize``, draw the next episode's imperfections, from ``Data(value={"seed": N})`` when given; the reply holds
+  ``{"strengths": {knob: strength}, "seed": N}``, ``{}`` without ``randomize``, ``{"error": ...}`` on bad input)
+  and ``stats`` (Empty -> Data);
 - publishes Marker messages on ``markers`` when asked (``publish_markers=True``): the goal marker given by
   ``set_goal_marker(pos)`` or received on ``markers_in``, and the EE marker at every tick.
 
@@ -131,10 +134,12 @@ class ServoSimNode:
         self.randomize = randomize
         self.imperfections: Imperfections | None = None
         self._draws = np.random.default_rng([0 if randomize is None else randomize.seed, 41])
+        self._episode_drawn = False  # new_episode drew the next episode's imperfections: reset keeps them
         if randomize is not None:
             self.new_episode()
             self.sim.reset()  # the arm at home as the first episode's servos read it
             self.sim.stats.resets = 0
+            self._episode_drawn = False
 
     @property
     def robot(self) -> RobotSpec:
@@ -168,6 +173,7 @@ class ServoSimNode:
         await node.create_service(Empty, Trigger, "stop", self._srv_stop)
         await node.create_service(Text, Trigger, "set_mode", self._srv_set_mode)
         await node.create_service(Data, Trigger, "reset", self._srv_reset)
+        await node.create_service(Data, Data, "new_episode", self._srv_new_episode)
         await node.create_service(Empty, Data, "stats", self._srv_stats)
         clock = node.clock
         if isinstance(clock, SimClock) and not clock.follower and not clock.running:
@@ -317,12 +323,18 @@ class ServoSimNode:
     def stop(self) -> None:
         self.set_mode("stop")
 
-    def new_episode(self) -> None:
-        """Draw this episode's imperfections (``randomize``) and apply them to the sim and the emulated link; the
-        next ``reset`` starts the episode. Without ``randomize``, nothing."""
+    def new_episode(self, seed: int | None = None) -> None:
+        """Draw the next episode's imperfections (``randomize``) and apply them to the sim and the emulated link;
+        the next ``reset`` keeps them. Without ``randomize``, nothing.
+
+        Args:
+            seed: draw from this seed (with ``randomize.seed``): the same seed, the same draw; None: the next draw
+                of the node's own sequence.
+        """
         if self.randomize is None:
             return
-        imp = self.randomize.draw(self._draws)
+        rng = self._draws if seed is None else np.random.default_rng([self.randomize.seed, seed, 41])
+        imp = self.randomize.draw(rng)
         emu = imp.emulation()
         ids = self.sim._act_ids
         factors: dict[str, np.ndarray] = {}
@@ -336,15 +348,18 @@ class ServoSimNode:
             self._state_line.latency = emu.state_latency
         if self._cmd_line is not None:
             self._cmd_line.latency = emu.command_latency
+        self._episode_drawn = True
 
     def reset(self, q: ArrayLike | None = None) -> JointState:
         """Teleport to ``q`` (default: home) at rest; commands in flight are dropped. With ``randomize``, a new
-        episode's imperfections are drawn first.
+        episode's imperfections are drawn first, unless ``new_episode`` drew them since the last reset.
 
         Raises:
             ConfigError: bad ``q``.
         """
-        self.new_episode()
+        if not self._episode_drawn:
+            self.new_episode()
+        self._episode_drawn = False
         state = self.sim.reset(q)
         self._drop_pending()
         return state
@@ -384,6 +399,20 @@ class ServoSimNode:
         except (ConfigError, TypeError, ValueError) as exc:
             return Trigger(success=False, message=str(exc))
         return Trigger(success=True, message=f"reset to {self._q_text()}")
+
+    def _srv_new_episode(self, req: Data) -> Data:
+        value = req.value
+        seed = value.get("seed") if isinstance(value, dict) else None
+        if value is not None and (
+            not isinstance(value, dict)
+            or set(value) - {"seed"}
+            or (seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0))
+        ):
+            return Data(value={"error": f"new_episode: expected None or {{'seed': int >= 0}}, got {value!r:.80}"})
+        self.new_episode(seed)
+        if self.imperfections is None:
+            return Data(value={})
+        return Data(value=self.imperfections.as_dict())
 
     def drawn(self) -> dict[str, Any]:
         """This episode's drawn imperfections (strengths, seed, the servo effects' values), or {}."""

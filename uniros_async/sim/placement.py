@@ -11,26 +11,40 @@ from __future__ import annotations
 import contextlib
 from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager
+from typing import TYPE_CHECKING
 
-from uniros_async.errors import ConfigError
 from uniros_async.placements import ArmLink, PlacementRequest
+
+if TYPE_CHECKING:
+    from uniros_async.sim.emulated import EmulationConfig
+    from uniros_async.sim.imperfections import Imperfections, Randomization
 
 __all__ = ["open_emulated_real", "open_sim", "open_sim_process"]
 
 
-@contextlib.asynccontextmanager
-async def _open_in_process_sim(request: PlacementRequest, *, emulated: bool) -> AsyncIterator[ArmLink]:
-    """The servo sim (``emulated``: the emulated real arm's model) in the env's process, on its clock, over memory."""
-    from uniros_async.bus import open_domain
+def _sim_settings(
+    request: PlacementRequest, emulated: bool
+) -> tuple[EmulationConfig | None, Imperfections | None, Randomization | None]:
+    """The (emulation, imperfections, randomize) of the env's config: ``imperfections`` or ``randomize`` replace an
+    emulated arm's default emulation."""
     from uniros_async.sim.emulated import EmulationConfig
     from uniros_async.sim.imperfections import Imperfections, Randomization
-    from uniros_async.sim.node import open_servo_sim
 
     cfg = request.config
     imperfections = None if cfg.imperfections is None else Imperfections.of(cfg.imperfections, cfg.emulation_seed)
     randomize = None if cfg.randomize is None else Randomization(ranges=cfg.randomize, seed=cfg.emulation_seed)
     custom = imperfections is not None or randomize is not None
     emulation = EmulationConfig(seed=cfg.emulation_seed) if emulated and not custom else None
+    return emulation, imperfections, randomize
+
+
+@contextlib.asynccontextmanager
+async def _open_in_process_sim(request: PlacementRequest, *, emulated: bool) -> AsyncIterator[ArmLink]:
+    """The servo sim (``emulated``: the emulated real arm's model) in the env's process, on its clock, over memory."""
+    from uniros_async.bus import open_domain
+    from uniros_async.sim.node import open_servo_sim
+
+    emulation, imperfections, randomize = _sim_settings(request, emulated)
     async with (
         open_domain("memory://") as domain,
         open_servo_sim(
@@ -50,20 +64,21 @@ async def _open_sim_process(request: PlacementRequest, *, emulated: bool) -> Asy
     """The servo sim in a child process of a tcp domain this env opens; the emulated arm is reached over tcp only,
     as a physical arm on the network would be, the nominal sim over shm."""
     from uniros_async.bus import open_domain
-    from uniros_async.sim.emulated import EmulationConfig
     from uniros_async.sim.serve import open_servo_sim_process
 
-    if request.config.imperfections is not None or request.config.randomize is not None:
-        raise ConfigError(
-            "imperfections and randomize: expected clock='sim' (the arm in the env's process), got "
-            f"clock={request.config.clock!r} on robot={request.config.robot!r}"
-        )
     transport = "tcp" if emulated else "auto"
-    emulation = EmulationConfig(seed=request.config.emulation_seed) if emulated else None
+    emulation, imperfections, randomize = _sim_settings(request, emulated)
     async with (
         open_domain("tcp://127.0.0.1:0") as domain,
         # the spec itself, not its name: the child then finds a robot registered by user code too
-        open_servo_sim_process(request.robot, domain=domain, emulation=emulation, transport=transport) as process,
+        open_servo_sim_process(
+            request.robot,
+            domain=domain,
+            emulation=emulation,
+            imperfections=imperfections,
+            randomize=randomize,
+            transport=transport,
+        ) as process,
     ):
         yield ArmLink(domain=domain, transport=transport, process=process)
 

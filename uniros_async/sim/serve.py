@@ -38,6 +38,7 @@ from uniros_async.clock import Clock
 from uniros_async.errors import ConfigError, RobotError
 from uniros_async.robots.spec import RobotSpec
 from uniros_async.sim.emulated import EmulationConfig
+from uniros_async.sim.imperfections import Imperfections, Randomization
 from uniros_async.sim.servo import ServoSimConfig
 from uniros_async.sim_clock import SimClock
 from uniros_async.transports.base import TransportOptions, options_from_environ
@@ -65,6 +66,8 @@ class ServeConfig:
         node_name: the node's name.
         servo: servo settings.
         emulation: an emulated real arm's perturbations, or None for the nominal sim.
+        imperfections: servo-level imperfections with a strength (``open_servo_sim``), or None.
+        randomize: imperfections drawn afresh for every episode (``open_servo_sim``), or None.
         clock: ``"wall"`` or ``"sim"`` (a SimClock source publishing ``/clock``).
         time_scale: the SimClock's time scale (None: unbounded); only with ``clock="sim"``.
         transport: the node's transport choice; ``auto`` uses shm to peers on the same machine.
@@ -87,6 +90,8 @@ class ServeConfig:
     node_name: str = "servo_sim"
     servo: ServoSimConfig = dataclasses.field(default_factory=ServoSimConfig)
     emulation: EmulationConfig | None = None
+    imperfections: Imperfections | None = None
+    randomize: Randomization | None = None
     clock: str = "wall"
     time_scale: float | None = 1.0
     transport: str = "auto"
@@ -170,6 +175,8 @@ async def serve_servo_sim(config: ServeConfig, *, on_ready: Callable[[str], Any]
                 config=config.servo,
                 clock=config.make_clock(),
                 emulation=config.emulation,
+                imperfections=config.imperfections,
+                randomize=config.randomize,
                 publish_markers=config.publish_markers,
                 node_name=config.node_name,
                 transport=transport,
@@ -277,6 +284,8 @@ async def open_servo_sim_process(
     namespace: str | None = None,
     config: ServoSimConfig | None = None,
     emulation: EmulationConfig | None = None,
+    imperfections: Imperfections | None = None,
+    randomize: Randomization | None = None,
     clock: str = "wall",
     time_scale: float | None = 1.0,
     publish_markers: bool = False,
@@ -295,6 +304,8 @@ async def open_servo_sim_process(
         namespace: topic namespace; default ``/<robot>``.
         config: servo settings.
         emulation: run the emulated real arm instead of the nominal sim.
+        imperfections: servo-level imperfections with a strength (``open_servo_sim``).
+        randomize: imperfections drawn afresh for every episode (``open_servo_sim``).
         clock: ``"wall"`` or ``"sim"`` (the child drives a SimClock and publishes ``/clock``).
         time_scale: with ``clock="sim"``: sim seconds per wall second (None: unbounded).
         publish_markers: publish EE and goal markers.
@@ -318,6 +329,8 @@ async def open_servo_sim_process(
         namespace=namespace,
         servo=config or ServoSimConfig(),
         emulation=emulation,
+        imperfections=imperfections,
+        randomize=randomize,
         clock=clock,
         time_scale=time_scale,
         publish_markers=publish_markers,
