@@ -12,8 +12,9 @@ import pytest
 
 from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data
+from uniros_async.envs.randomize import draw_episode
 from uniros_async.errors import RobotError
-from uniros_async.sim.imperfections import KNOBS, Randomization, draw_episode
+from uniros_async.sim.imperfections import KNOBS, Randomization
 from uniros_async.sim.node import open_servo_sim
 from uniros_async.sim.servo import ServoSimConfig
 from uniros_async.sim_clock import SimClock

@@ -517,7 +517,7 @@ class RobotEnv(BaseEnv):
         await self._wait_for_fresh_state("reset")
         drawn: dict[str, Any] = {}
         if self._episode_cli is not None:  # this episode's imperfections, drawn by the sim before the arm moves home
-            from uniros_async.sim.imperfections import draw_episode
+            from uniros_async.envs.randomize import draw_episode
 
             seed = int(self.np_random.spawn(1)[0].integers(2**31))  # follows the reset seed; goals' draws untouched
             drawn = await draw_episode(self._episode_cli, seed, min(cfg.reset_timeout_s, cfg.robot_timeout_s))

@@ -31,10 +31,10 @@ dynamics        EmulationConfig's mass, damping, friction and gain     +-10 %, +
                 ranges x s (capped at 0.9)
 ==============  =====================================================  ===========================================
 
-``Randomization`` draws the strengths afresh for every episode; an env with ``randomize`` asks its servo sim for
-the next episode's draw at every reset (``draw_episode``, the sim node's ``new_episode`` service) with a seed from
-its own ``np_random``, so the draws follow the env's reset seed, and reports them in the reset's ``info``:
-``info["imperfections"]`` (knob -> strength) and ``info["imperfections_seed"]`` (with the strengths,
+``Randomization`` draws the strengths afresh for every episode. An env with ``randomize`` has its servo sim draw
+the next episode at every reset (the sim node's ``new_episode`` service, ``uniros_async.envs.randomize``) from a
+seed of its own ``np_random``, so the draws follow the env's reset seed, and reports the draw in the reset's
+``info``: ``info["imperfections"]`` (knob -> strength) and ``info["imperfections_seed"]`` (with the strengths,
 ``Imperfections(strengths=..., seed=...)`` rebuilds the episode's arm).
 
 ``Imperfections.of(1.0)`` sets every knob to 1; ``Imperfections.of({"backlash": 2.0})`` one knob (the others 0).
@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from uniros_async.errors import ConfigError, RobotError
+from uniros_async.errors import ConfigError
 from uniros_async.sim.emulated import EmulationConfig, LatencyModel
 
 if TYPE_CHECKING:
@@ -60,7 +60,7 @@ if TYPE_CHECKING:
 
     from uniros_async.robots import RobotSpec
 
-__all__ = ["KNOBS", "MAX_STRENGTH", "Imperfections", "Randomization", "ServoEffects", "draw_episode", "real_kp"]
+__all__ = ["KNOBS", "MAX_STRENGTH", "Imperfections", "Randomization", "ServoEffects", "real_kp"]
 
 KNOBS = (
     "backlash",
@@ -309,34 +309,3 @@ class Randomization:
         """One episode's strengths, each U(low, high); the Imperfections' own seed is drawn too."""
         strengths = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in self.ranges.items()}
         return Imperfections(strengths=strengths, seed=int(rng.integers(2**31)))
-
-
-async def draw_episode(client: Any, seed: int, timeout_s: float) -> dict[str, Any]:
-    """Have a servo sim draw the next episode's imperfections from ``seed`` (its ``new_episode`` service).
-
-    Args:
-        client: a client of the sim node's ``new_episode`` service (Data -> Data).
-        seed: the episode's seed (>= 0).
-        timeout_s: bound on the call.
-
-    Returns:
-        The reset's ``info`` entries: ``{"imperfections": {knob: strength}, "imperfections_seed": seed}``.
-
-    Raises:
-        RobotError: no such service or no reply within ``timeout_s`` (no servo sim serves the arm), or the sim
-            drew nothing.
-    """
-    from uniros_async.bus.messages import Data
-    from uniros_async.errors import DomainError
-
-    expected = "expected a servo sim placement (robot='sim', 'sim-process' or 'emulated-real') that draws them"
-    try:
-        reply = await client.call(Data(value={"seed": seed}), timeout_s=timeout_s)
-    except TimeoutError:
-        raise RobotError(f"randomize: no reply from {client.name} within {timeout_s} s; {expected}") from None
-    except DomainError as exc:
-        raise RobotError(f"randomize: {exc}; {expected}") from None
-    value = reply.value
-    if not isinstance(value, dict) or "error" in value or "strengths" not in value:
-        raise RobotError(f"randomize: {client.name} drew no imperfections: {value!r:.200}")
-    return {"imperfections": dict(value["strengths"]), "imperfections_seed": value["seed"]}
