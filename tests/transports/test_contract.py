@@ -8,7 +8,9 @@ import os
 
 import pytest
 
+from uniros_async.errors import ConfigError
 from uniros_async.testing import transport_contract as contract
+from uniros_async.testing import transport_contract_loans as loans
 from uniros_async.testing.tls import TlsFiles, write_test_certs
 from uniros_async.transports._shm_ring import PURE_PYTHON_ENV, compiled_ring_end
 from uniros_async.transports.base import TransportOptions, connect
@@ -89,3 +91,19 @@ async def test_cross_process_auth(kind: str) -> None:
             await t.send(b"hello")
             assert bytes(await t.receive()) == b"hello"
             await t.aclose()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", list(URIS))
+async def test_publisher_loan_contract(kind: str) -> None:
+    """Publisher.loan over each transport, its reader in another process (testing/transport_contract_loans.py)."""
+    await loans.check_publisher_loans(kind.removesuffix("-python"))
+
+
+def test_in_place_loans_on_a_transport_that_copies_are_refused_naming_the_ones_that_lend() -> None:
+    loans.require_lending("shm")
+    for kind in ("memory", "tcp", "tls"):
+        with pytest.raises(ConfigError, match=rf"transport '{kind}' does not lend memory.*\['shm'\]"):
+            loans.require_lending(kind)
+    with pytest.raises(ConfigError, match="unknown transport 'zmq'"):
+        loans.require_lending("zmq")
