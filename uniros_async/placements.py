@@ -34,14 +34,13 @@ import dataclasses
 import re
 from collections.abc import AsyncIterator, Callable
 from contextlib import AbstractAsyncContextManager
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 from uniros_async.errors import ConfigError
 from uniros_async.registry import Registry, load_entry_point
 
 if TYPE_CHECKING:
     from uniros_async.clock import Clock
-    from uniros_async.envs.config import EnvConfig
     from uniros_async.robots.spec import RobotSpec
 
 __all__ = [
@@ -58,18 +57,32 @@ __all__ = [
 _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*")
 
 
+class PlacedConfig(Protocol):
+    """What this module reads of an env's config: its ``robot=`` string. An env passes its whole
+    ``uniros_async.envs.config.EnvConfig``; this registry sits below the envs and needs nothing more of it."""
+
+    @property
+    def robot(self) -> str: ...
+
+
+ConfigT = TypeVar("ConfigT", bound=PlacedConfig, covariant=True)
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class PlacementRequest:
+class PlacementRequest(Generic[ConfigT]):
     """What a placement factory gets: which arm, for which env.
+
+    A factory annotates the config it reads: ``request: PlacementRequest[EnvConfig]``.
 
     Attributes:
         robot: the arm's spec (its name is also the topic namespace, ``/<name>``).
-        config: the env's config; ``config.robot`` is the placement string (with its URI, for a scheme).
+        config: the env's config (an ``EnvConfig``); ``config.robot`` is the placement string (with its URI, for
+            a scheme).
         clock: the env's clock (a ``SimClock`` with ``clock="sim"``); an in-process sim must run on it.
     """
 
     robot: RobotSpec
-    config: EnvConfig
+    config: ConfigT
     clock: Clock
 
     @property
@@ -96,12 +109,13 @@ class ArmLink:
     process: Any = None
 
 
-PlacementFactory = Callable[[PlacementRequest], AbstractAsyncContextManager[ArmLink]]
+PlacementFactory = Callable[[PlacementRequest[Any]], AbstractAsyncContextManager[ArmLink]]
 """A placement: called with the request, returns an async context manager that yields the ``ArmLink`` while the
 arm is reachable and releases everything it started on exit (``contextlib.asynccontextmanager`` makes one)."""
 
-ConfigCheck = Callable[[str, "EnvConfig"], None]
-"""A placement's own check of an env config (its URI, its settings); raises ConfigError."""
+ConfigCheck = Callable[[str, Any], None]
+"""A placement's own check of an env config (its URI, and the ``EnvConfig`` for its settings); raises
+ConfigError."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -149,7 +163,7 @@ class PlacementSpec:
             raise ConfigError(f"placement {self.name!r}: {self.entry_point!r} is {what}, not callable")
         return factory
 
-    def check_config(self, config: EnvConfig) -> None:
+    def check_config(self, config: PlacedConfig) -> None:
         """Run the placement's own check of ``config`` (its URI, its settings); a no-op without one.
 
         Raises:
@@ -162,7 +176,7 @@ class PlacementSpec:
             check = load_entry_point(check, f"placement {self.name!r} check")
         check(config.robot, config)
 
-    def open(self, request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
+    def open(self, request: PlacementRequest[Any]) -> AbstractAsyncContextManager[ArmLink]:
         """Open the placement for ``request``: ``async with spec.open(request) as link:``."""
         return self.factory()(request)
 
@@ -257,7 +271,7 @@ def placement_spec(robot: str) -> PlacementSpec:
     return _PLACEMENTS.get(key)
 
 
-def open_placement(robot: str, request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
+def open_placement(robot: str, request: PlacementRequest[Any]) -> AbstractAsyncContextManager[ArmLink]:
     """Open the placement registered for ``robot`` (e.g. ``"sim"``) for ``request``; a placement of your own can
     wrap a built-in one this way.
 
@@ -271,13 +285,13 @@ def open_placement(robot: str, request: PlacementRequest) -> AbstractAsyncContex
 
 
 @contextlib.asynccontextmanager
-async def open_tcp(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+async def open_tcp(request: PlacementRequest[Any]) -> AsyncIterator[ArmLink]:
     """``robot="tcp://HOST:PORT"``: the domain of an arm served elsewhere (``uniros robot serve``/``bridge``)."""
     yield ArmLink(domain=request.uri, transport="tcp")
 
 
 @contextlib.asynccontextmanager
-async def open_tls(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+async def open_tls(request: PlacementRequest[Any]) -> AsyncIterator[ArmLink]:
     """``robot="tls://HOST:PORT"``: the domain of an arm served elsewhere on tls (``uniros robot serve --tls``); the
     env's node needs a certificate signed by the domain's CA (``$UNIROS_TLS_CERT``, ``KEY``, ``CA``)."""
     yield ArmLink(domain=request.uri, transport="tls")
@@ -291,7 +305,7 @@ def _check_host_port(robot: str, scheme: str) -> None:
         )
 
 
-def check_tcp(robot: str, config: EnvConfig) -> None:
+def check_tcp(robot: str, config: PlacedConfig) -> None:
     """A ``tcp://HOST:PORT`` URI with a port.
 
     Raises:
@@ -300,7 +314,7 @@ def check_tcp(robot: str, config: EnvConfig) -> None:
     _check_host_port(robot, "tcp")
 
 
-def check_tls(robot: str, config: EnvConfig) -> None:
+def check_tls(robot: str, config: PlacedConfig) -> None:
     """A ``tls://HOST:PORT`` URI with a port.
 
     Raises:

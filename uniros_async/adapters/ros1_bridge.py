@@ -436,7 +436,7 @@ def check_ros1_placement(robot: str, config: EnvConfig) -> None:
 
 
 @contextlib.asynccontextmanager
-async def open_ros1_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+async def open_ros1_placement(request: PlacementRequest[EnvConfig]) -> AsyncIterator[ArmLink]:
     """``robot="ros1://HOST:PORT"``: the bridge in the env's process, on a memory domain the env joins as it joins
     an in-process sim; the bridge's settings are the env's ``ros1`` dict over the driver's defaults."""
     from uniros_async.placements import ArmLink

@@ -447,7 +447,7 @@ def check_ros2_placement(robot: str, config: EnvConfig) -> None:
 
 
 @contextlib.asynccontextmanager
-async def open_ros2_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+async def open_ros2_placement(request: PlacementRequest[EnvConfig]) -> AsyncIterator[ArmLink]:
     """``robot="ros2://..."``: the bridge in the env's process, on a memory domain the env joins as it joins an
     in-process sim; the bridge's settings are the URI's over the driver's defaults."""
     from uniros_async.placements import ArmLink

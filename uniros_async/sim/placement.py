@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 from uniros_async.placements import ArmLink, PlacementRequest
 
 if TYPE_CHECKING:
+    from uniros_async.envs.config import EnvConfig
     from uniros_async.sim.emulated import EmulationConfig
     from uniros_async.sim.imperfections import Imperfections, Randomization
 
@@ -23,7 +24,7 @@ __all__ = ["open_emulated_real", "open_sim", "open_sim_process"]
 
 
 def _sim_settings(
-    request: PlacementRequest, emulated: bool
+    request: PlacementRequest[EnvConfig], emulated: bool
 ) -> tuple[EmulationConfig | None, Imperfections | None, Randomization | None]:
     """The (emulation, imperfections, randomize) of the env's config: ``imperfections`` or ``randomize`` replace an
     emulated arm's default emulation."""
@@ -39,7 +40,7 @@ def _sim_settings(
 
 
 @contextlib.asynccontextmanager
-async def _open_in_process_sim(request: PlacementRequest, *, emulated: bool) -> AsyncIterator[ArmLink]:
+async def _open_in_process_sim(request: PlacementRequest[EnvConfig], *, emulated: bool) -> AsyncIterator[ArmLink]:
     """The servo sim (``emulated``: the emulated real arm's model) in the env's process, on its clock, over memory."""
     from uniros_async.bus import open_domain
     from uniros_async.sim.node import open_servo_sim
@@ -60,7 +61,7 @@ async def _open_in_process_sim(request: PlacementRequest, *, emulated: bool) -> 
 
 
 @contextlib.asynccontextmanager
-async def _open_sim_process(request: PlacementRequest, *, emulated: bool) -> AsyncIterator[ArmLink]:
+async def _open_sim_process(request: PlacementRequest[EnvConfig], *, emulated: bool) -> AsyncIterator[ArmLink]:
     """The servo sim in a child process of a tcp domain this env opens; the emulated arm is reached over tcp only,
     as a physical arm on the network would be, the nominal sim over shm."""
     from uniros_async.bus import open_domain
@@ -83,17 +84,17 @@ async def _open_sim_process(request: PlacementRequest, *, emulated: bool) -> Asy
         yield ArmLink(domain=domain, transport=transport, process=process)
 
 
-def open_sim(request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
+def open_sim(request: PlacementRequest[EnvConfig]) -> AbstractAsyncContextManager[ArmLink]:
     """``robot="sim"``: the nominal servo sim in the env's process (memory transport, the env's clock)."""
     return _open_in_process_sim(request, emulated=False)
 
 
-def open_sim_process(request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
+def open_sim_process(request: PlacementRequest[EnvConfig]) -> AbstractAsyncContextManager[ArmLink]:
     """``robot="sim-process"``: the nominal servo sim in its own process (shm)."""
     return _open_sim_process(request, emulated=False)
 
 
-def open_emulated_real(request: PlacementRequest) -> AbstractAsyncContextManager[ArmLink]:
+def open_emulated_real(request: PlacementRequest[EnvConfig]) -> AbstractAsyncContextManager[ArmLink]:
     """``robot="emulated-real"``: the emulated real arm as a tcp service in its own process; with ``clock="sim"``
     the same emulation model (perturbed dynamics, sensor noise, latencies) in sim time in the env's process."""
     if request.config.clock == "sim":

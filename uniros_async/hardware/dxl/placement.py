@@ -1,14 +1,16 @@
 """The ``dxl://`` placement: an env's arm on its Dynamixel bus, driven from the env's own process.
 
     robot="dxl:///dev/ttyUSB0"                                  # the robot's servo map, at the map's baud rate
-    robot="dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=rest&margin_ms=35"
+    robot="dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=rest&margin_ms=35&profile_ms=0"
 
 The path is the serial device (a pty of ``uniros robot vbus`` too). The query may set ``baud`` (default: the
 map's), ``map`` (a registered servo map; default: the one named as the env's robot), ``rate`` (the bus loop in Hz;
 default the env's loop rate, ``env_loop_rate_hz``, else the robot's hardware rate, raised to at least two ticks
 per Bus Watchdog window), ``shutdown`` (``hold``, the default, or ``rest``) and ``margin_ms`` (the host-side slack
 of every transaction's timeout; default 10 ms, for a USB adapter whose latency timer is 1 ms: an FTDI adapter left
-at its 16 ms default needs about 35).
+at its 16 ms default needs about 35) and ``profile_ms`` (the arm servos' profile, ``ServoMap.with_arm_profile``:
+with the rx200's time profile the move time of each goal in ms; default the map's, Interbotix's 2000 ms; 0 runs
+each goal at the servos' full speed, as the sim a policy trained on moves its servos to an env's commands).
 
 The placement opens a memory domain in the env's process and runs ``DxlArmNode`` on it: a node in the robot's
 namespace that publishes ``joint_states`` and takes ``command`` as every other placement's arm does, and serves
@@ -61,7 +63,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_KEYS = ("baud", "map", "rate", "shutdown", "margin_ms")
+_KEYS = ("baud", "map", "rate", "shutdown", "margin_ms", "profile_ms")
 TEMPERATURE_PERIOD_S = 1.0
 """How often the bus loop reads the servos' temperatures (one sync read of its own)."""
 
@@ -76,6 +78,7 @@ class DxlUri:
     rate_hz: float | None
     shutdown: str
     margin_s: float | None = None
+    profile_ms: int | None = None
 
 
 def parse_dxl_uri(uri: str) -> DxlUri:
@@ -84,7 +87,7 @@ def parse_dxl_uri(uri: str) -> DxlUri:
     Raises:
         ConfigError: no device path, an unknown key, or a value of the wrong kind.
     """
-    form = "dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=hold"
+    form = "dxl:///dev/ttyUSB0?baud=1000000&map=rx200&rate=20&shutdown=hold&profile_ms=0"
     parts = urllib.parse.urlsplit(uri)
     if parts.scheme != "dxl" or parts.netloc or not parts.path.startswith("/"):
         raise ConfigError(f"robot={uri!r}: expected a serial device path after dxl://, e.g. {form}")
@@ -103,10 +106,19 @@ def parse_dxl_uri(uri: str) -> DxlUri:
         ) from None
     if any(v is not None and not v > 0 for v in (baud, rate, margin)):
         raise ConfigError(f"robot={uri!r}: baud, rate and margin_ms must be > 0")
+    profile_ms = None
+    if "profile_ms" in one:
+        text = one["profile_ms"]
+        if not (text.isdigit() and int(text) <= 32767):
+            raise ConfigError(
+                f"robot={uri!r}: profile_ms must be an integer in 0..32767 (the arm's move time per goal in ms; "
+                f"0: none), got {text!r}"
+            )
+        profile_ms = int(text)
     shutdown = one.get("shutdown", "hold")
     if shutdown not in ("hold", "rest"):
         raise ConfigError(f"robot={uri!r}: shutdown must be 'hold' or 'rest', got {shutdown!r}")
-    return DxlUri(parts.path, baud, one.get("map"), rate, shutdown, margin)
+    return DxlUri(parts.path, baud, one.get("map"), rate, shutdown, margin, profile_ms)
 
 
 def check_dxl_placement(robot: str, config: EnvConfig) -> None:
@@ -322,12 +334,14 @@ async def open_dxl_arm(
 
 
 @contextlib.asynccontextmanager
-async def open_dxl_placement(request: PlacementRequest) -> AsyncIterator[ArmLink]:
+async def open_dxl_placement(request: PlacementRequest[EnvConfig]) -> AsyncIterator[ArmLink]:
     """``robot="dxl://..."``: the arm on its bus in the env's process (see the module docstring)."""
     from uniros_async.hardware.dxl.servo_map import servo_map
 
     uri = parse_dxl_uri(request.uri)
     servos = servo_map(uri.map_name or request.robot.name)
+    if uri.profile_ms is not None:
+        servos = servos.with_arm_profile(uri.profile_ms)
     async with (
         open_domain("memory://") as domain,
         open_dxl_arm(
@@ -358,6 +372,7 @@ async def serve_dxl_arm(
     rate_hz: float | None = None,
     margin_s: float | None = None,
     shutdown: str = "hold",
+    profile_ms: int | None = None,
     namespace: str | None = None,
     options: TransportOptions | None = None,
     on_ready: Callable[[str], Any] | None = None,
@@ -373,6 +388,8 @@ async def serve_dxl_arm(
 
     spec = get_robot_spec(robot)
     servos = servo_map(servo_map_name or spec.name)
+    if profile_ms is not None:
+        servos = servos.with_arm_profile(profile_ms)
     node_options = dataclasses.replace(options or options_from_environ(), bind_host=host)
     scheme = "tls" if tls else "tcp"
     async with (
