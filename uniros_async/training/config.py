@@ -219,9 +219,10 @@ class TrainConfig(ConfigModel):
     """Keyword arguments given to every env unless it sets them."""
     randomize: dict[str, tuple[float, float]] | None = None
     """Domain randomization: a range [low, high] of strengths per imperfection knob
-    (``uniros_async.sim.imperfections``), drawn afresh at every reset of each training env's sim (``robot: sim``,
-    ``clock: sim``), seeded by its ``emulation_seed``; given to every training env that does not set ``randomize``
-    itself."""
+    (``uniros_async.sim.imperfections``), drawn afresh at every reset of each training env's sim (the sim
+    placements, either clock, in the agent's process or in workers) from the env's reset seed and its
+    ``emulation_seed``, the draw in the reset's ``info["imperfections"]``; given to every training env that does not
+    set ``randomize`` itself."""
     placement: Literal["inprocess", "workers", "ray"] = "inprocess"
     """``inprocess`` (envs in the agent's process: fastest with accelerated sim), ``workers`` (each env in a
     worker process through ``uniros_async.make``) or ``ray`` (each env's worker placed by Ray on a node of the
