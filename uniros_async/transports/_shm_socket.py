@@ -11,17 +11,27 @@ import logging
 import os
 import secrets
 import socket
-from typing import TYPE_CHECKING
+from typing import Generic, Protocol, TypeVar
 
 from uniros_async.backoff import Backoff
 from uniros_async.errors import ConfigError, TransportBrokenError, TransportClosedError
 from uniros_async.transports import _shm_handshake
 from uniros_async.transports.base import Listener, Transport, TransportOptions, split_uri
 
-if TYPE_CHECKING:
-    from uniros_async.transports.shm import ShmTransport
+_T = TypeVar("_T", bound=Transport)
+_T_co = TypeVar("_T_co", bound=Transport, covariant=True)
 
-__all__ = ["ShmListener", "open_shm_connection", "open_shm_listener", "open_transport"]
+
+class ShmEnd(Protocol[_T_co]):
+    """What makes one end over a finished handshake: ``shm.ShmTransport`` (its class), passed in so that this
+    module knows nothing of the ring it maps."""
+
+    def __call__(
+        self, *, name: str, sock: socket.socket, setup: _shm_handshake.Setup, options: TransportOptions
+    ) -> _T_co: ...
+
+
+__all__ = ["ShmEnd", "ShmListener", "open_shm_connection", "open_shm_listener", "open_transport"]
 
 _ADDRESS_PREFIX = "\0uniros-shm-"
 _MAX_NAME_BYTES = 100  # sun_path holds 108 bytes, the prefix included
@@ -29,17 +39,15 @@ _MAX_NAME_BYTES = 100  # sun_path holds 108 bytes, the prefix included
 logger = logging.getLogger("uniros_async.transports.shm")
 
 
-class ShmListener(Listener):
+class ShmListener(Listener, Generic[_T]):
     """Accepts ``shm://NAME`` connections on an abstract Unix socket; handshakes run in the background."""
 
-    def __init__(
-        self, name: str, sock: socket.socket, options: TransportOptions, transport_class: type[ShmTransport]
-    ) -> None:
+    def __init__(self, name: str, sock: socket.socket, options: TransportOptions, transport_class: ShmEnd[_T]) -> None:
         self._name = name
         self._transport_class = transport_class
         self._sock = sock
         self._options = options
-        self._ready: asyncio.Queue[ShmTransport | None] = asyncio.Queue()
+        self._ready: asyncio.Queue[_T | None] = asyncio.Queue()
         self._rejected = 0
         self._closed = False
         self._serving = asyncio.get_running_loop().create_task(self._serve(), name=f"shm://{name} listener")
@@ -105,8 +113,8 @@ class ShmListener(Listener):
 
 
 def open_transport(
-    cls: type[ShmTransport], name: str, sock: socket.socket, setup: _shm_handshake.Setup, options: TransportOptions
-) -> ShmTransport:
+    cls: ShmEnd[_T], name: str, sock: socket.socket, setup: _shm_handshake.Setup, options: TransportOptions
+) -> _T:
     """A ``cls`` end over a finished handshake's ``setup``; on failure its descriptors and mapping are closed."""
     try:
         return cls(name=name, sock=sock, setup=setup, options=options)
@@ -126,7 +134,7 @@ def _name(uri: str) -> str:
     return name
 
 
-async def open_shm_listener(uri: str, options: TransportOptions, cls: type[ShmTransport]) -> ShmListener:
+async def open_shm_listener(uri: str, options: TransportOptions, cls: ShmEnd[_T]) -> ShmListener[_T]:
     """``shm.listen`` for ``cls``."""
     name = _name(uri) or f"{os.getpid()}-{secrets.token_hex(6)}"
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -142,7 +150,7 @@ async def open_shm_listener(uri: str, options: TransportOptions, cls: type[ShmTr
     return ShmListener(name, sock, options, cls)
 
 
-async def open_shm_connection(uri: str, options: TransportOptions, cls: type[ShmTransport]) -> ShmTransport:
+async def open_shm_connection(uri: str, options: TransportOptions, cls: ShmEnd[_T]) -> _T:
     """``shm.connect`` for ``cls``."""
     name = _name(uri)
     if not name:

@@ -582,7 +582,7 @@ class _RingStats(TransportStats):
 # --------------------------------------------------------------------------------------------- entry points
 
 
-async def listen(uri: str, options: TransportOptions) -> ShmListener:
+async def listen(uri: str, options: TransportOptions) -> ShmListener[ShmTransport]:
     """Listen at ``shm://NAME`` (an empty NAME picks a unique one).
 
     Raises:
