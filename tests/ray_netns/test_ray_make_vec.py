@@ -118,3 +118,27 @@ def test_envs_grouped_in_one_ray_placed_process_each_over_its_own_connection(clu
     finally:
         venv.close()
     assert not any(pid_alive(p) for p in pids)
+
+
+def test_pixel_envs_on_the_arm_node_and_placed_by_ray_batch_their_frames(cluster: dict[str, Any]) -> None:
+    pix = "uniros/Rx200ReachPixels-v0"  # each env renders its arm's scene camera where Ray placed it
+    venv = make_vec([(pix, ARM), pix], backend="ray", clock="sim", image_size=(48, 48))
+    try:
+        workers = venv._sup.workers
+        assert workers[0].process.node_id == cluster["arm_id"]
+        for w in workers:
+            expected = "shm://" if w.process.node_id == cluster["head_id"] else "tcp://"
+            assert w.process.worker_uri.startswith(expected)
+        obs, info = venv.reset(seed=[1, 2])
+        assert obs["pixels"].shape == (2, 48, 48, 3) and obs["pixels"].dtype == np.uint8
+        assert obs["state"].shape == (2, 24)
+        px = obs["pixels"].astype(int)
+        red = (px[..., 0] > 150) & (px[..., 1] < 80) & (px[..., 2] < 80)
+        assert red.reshape(2, -1).sum(axis=1).min() > 2  # each frame shows its episode's target
+        assert not np.array_equal(obs["pixels"][0], obs["pixels"][1])  # two goals, two pictures
+        for _ in range(3):
+            obs, rewards, terminated, truncated, info = venv.step(venv.action_space.sample())
+        assert obs["pixels"].shape == (2, 48, 48, 3) and np.isfinite(rewards).all()
+        assert np.all(info["frame_age_s"] <= 0.1) and not np.any(info["frame_stale"])
+    finally:
+        venv.close()
