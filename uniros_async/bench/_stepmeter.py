@@ -38,8 +38,8 @@ CI_GOAL = 0.025
 interval is within."""
 MIN_TIGHT_STEPS = 400
 """The fewest steps the back-to-back phase of such a row takes (or ``--steps`` if more): rows of 3 chunks (147
-steps) scattered from run to run by more than their intervals said, 91-98 % of the bound where rows of 9 chunks gave
-97-101 % in the same hour (docs/performance.md, "More envs than cores")."""
+steps) scattered from run to run by more than their intervals said (91-98 % of the bound where rows of 9 chunks
+gave 97-101 % in the same hour, on the 2-core host of docs/performance.md)."""
 MAX_TIGHT_STEPS = 2000
 """The most steps the back-to-back phase of such a row takes (~40 s at N = 8 on 2 cores)."""
 TIGHT_CHUNK = 50
