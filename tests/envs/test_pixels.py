@@ -191,3 +191,23 @@ def test_a_real_cameras_frames_are_converted_to_the_observations_size_and_rgb() 
     out = src._rgb(Image(header=Header(), encoding="mono8", data=mono))
     assert out is not None and out.shape == (8, 12, 3) and (out == 77).all()
     assert src._rgb(Image(header=Header(), encoding="rgb8", data=np.zeros((8, 12, 4), np.uint8))) is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("env_id", "obs_mode"), [("uniros/Rx200ReachPixels-v0", "pixels"), ("uniros/Ned2Reach-v0", "pixels+state")]
+)
+def test_gymnasium_and_sb3_checkers_pass_the_other_pixel_modes(env_id: str, obs_mode: str) -> None:
+    # the pixel task's default (pixels+state) is in tests/envs/test_reach_env.py's sweep of every id; 48x64: SB3 warns
+    # below 36x36 (its CnnPolicy's smallest)
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = gym.make(env_id, clock="sim", obs_mode=obs_mode, image_size=(48, 64))
+    try:
+        check_env(env.unwrapped, skip_render_check=True)
+        sb3_check_env(env.unwrapped, warn=True)
+        obs, _ = env.reset(seed=0)
+        assert obs["pixels"].shape == (48, 64, 3) and ("state" in obs) is (obs_mode == "pixels+state")
+    finally:
+        env.close()
