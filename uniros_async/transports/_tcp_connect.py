@@ -6,22 +6,34 @@ from __future__ import annotations
 
 import asyncio
 import ssl
-from typing import TYPE_CHECKING
+from typing import Protocol, TypeVar
 
 from uniros_async.backoff import Backoff
 from uniros_async.errors import AuthenticationError, ConfigError, TransportBrokenError
 from uniros_async.transports._tcp_listener import parse_host_port
+from uniros_async.transports._tcp_receive import TcpReceiving
 from uniros_async.transports.base import TransportOptions
 
-if TYPE_CHECKING:
-    from uniros_async.transports.tcp import TcpTransport
+_E = TypeVar("_E", bound=TcpReceiving)
+_E_co = TypeVar("_E_co", bound=TcpReceiving, covariant=True)
 
-__all__ = ["open_connection"]
+
+class ConnectingEnd(Protocol[_E_co]):
+    """The class of the end ``open_connection`` makes (``tcp.TcpTransport``, ``tls.TlsTransport``), passed in so
+    that this module does not import the transport that imports it."""
+
+    @property
+    def scheme(self) -> str: ...
+
+    def __call__(self, options: TransportOptions, *, uri: str) -> _E_co: ...
+
+
+__all__ = ["ConnectingEnd", "open_connection"]
 
 
 async def open_connection(
-    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
-) -> TcpTransport:
+    uri: str, options: TransportOptions, cls: ConnectingEnd[_E], ssl_context: ssl.SSLContext | None = None
+) -> _E:
     """``connect`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.connect`` uses it)."""
     host, port = parse_host_port(uri, "", cls.scheme)
     if not host or not port:

@@ -15,25 +15,37 @@ import collections
 import logging
 import ssl
 from collections.abc import Callable
-from typing import TYPE_CHECKING, cast
+from typing import Any, Generic, Protocol, TypeVar, cast
 from urllib.parse import urlsplit
 
 from uniros_async._log_throttle import LogThrottle
 from uniros_async.errors import ConfigError, TransportBrokenError, TransportClosedError
+from uniros_async.transports._tcp_receive import TcpReceiving
 from uniros_async.transports.base import Listener, TransportOptions, split_uri
 from uniros_async.transports.exposure import check_exposure
 
-if TYPE_CHECKING:
-    from uniros_async.transports.tcp import TcpTransport
+_E = TypeVar("_E", bound=TcpReceiving)
+_E_co = TypeVar("_E_co", bound=TcpReceiving, covariant=True)
 
-__all__ = ["TcpListener", "format_uri", "open_listener", "parse_host_port"]
+
+class AcceptedEnd(Protocol[_E_co]):
+    """The class of the ends a listener hands out (``tcp.TcpTransport``, ``tls.TlsTransport``), passed to
+    ``open_listener`` so that this module does not import the transport that imports it."""
+
+    @property
+    def scheme(self) -> str: ...
+
+    def __call__(self, options: TransportOptions, *, listener: TcpListener[Any]) -> _E_co: ...
+
+
+__all__ = ["AcceptedEnd", "TcpListener", "format_uri", "open_listener", "parse_host_port"]
 
 logger = logging.getLogger("uniros_async.transports.tcp")  # one name for the whole transport, as users filter it
 
 _EVICT_AFTER_S = 1.0  # beyond max_handshakes, an unfinished handshake this old gives way to a newcomer
 
 
-class TcpListener(Listener):
+class TcpListener(Listener, Generic[_E]):
     """Accepts TCP connections; each peer that passes the handshake is handed out by ``accept``.
 
     Caps (``TransportOptions``): at most ``max_connections`` open at once (a connection beyond it is closed as soon
@@ -48,9 +60,9 @@ class TcpListener(Listener):
         self._server: asyncio.Server | None = None
         self._uri = ""
         self._address: tuple[str, int] = ("", 0)
-        self._ready: collections.deque[TcpTransport] = collections.deque()
+        self._ready: collections.deque[_E] = collections.deque()
         self._accept_waiter: asyncio.Future[None] | None = None
-        self._handshaking: dict[TcpTransport, None] = {}  # insertion order: the oldest is evicted first
+        self._handshaking: dict[_E, None] = {}  # insertion order: the oldest is evicted first
         self._open = 0  # connections made and not yet lost, accepted ones included
         self._rejected = 0
         self._closed = False
@@ -79,7 +91,7 @@ class TcpListener(Listener):
         """Connections whose handshake is unfinished."""
         return len(self._handshaking)
 
-    async def accept(self) -> TcpTransport:
+    async def accept(self) -> _E:
         """Wait for the next peer that completed the handshake. Cancelling loses no peer.
 
         Raises:
@@ -115,7 +127,7 @@ class TcpListener(Listener):
         for t in pending:
             await t.aclose()
 
-    def _protocol(self, make: Callable[[], TcpTransport]) -> asyncio.BaseProtocol:
+    def _protocol(self, make: Callable[[], _E]) -> asyncio.BaseProtocol:
         """The protocol for a connection just accepted: a transport, or a refusal once ``max_connections`` are
         open."""
         if self._open >= self._options.max_connections:
@@ -123,7 +135,7 @@ class TcpListener(Listener):
         self._open += 1
         return make()
 
-    def _handshake_started(self, t: TcpTransport) -> bool:
+    def _handshake_started(self, t: _E) -> bool:
         """Admit ``t`` among the unfinished handshakes; False: refuse it (the caller drops it before its HELLO).
 
         Beyond ``max_handshakes`` the oldest unfinished one is evicted if it has waited at least
@@ -145,7 +157,7 @@ class TcpListener(Listener):
         handshaking[t] = None
         return True
 
-    def _handshake_succeeded(self, t: TcpTransport) -> None:
+    def _handshake_succeeded(self, t: _E) -> None:
         self._handshaking.pop(t, None)
         if self._closed:
             t._tr.close()  # type: ignore[union-attr]
@@ -154,7 +166,7 @@ class TcpListener(Listener):
         if self._accept_waiter is not None and not self._accept_waiter.done():
             self._accept_waiter.set_result(None)
 
-    def _handshake_rejected(self, t: TcpTransport, reason: str) -> None:
+    def _handshake_rejected(self, t: _E, reason: str) -> None:
         self._handshaking.pop(t, None)
         if not self._closed:
             self._count_rejection(t.peer, reason)
@@ -167,7 +179,7 @@ class TcpListener(Listener):
 class _Refusal(asyncio.Protocol):
     """Closes a connection over ``max_connections`` as soon as it is made: no buffer, no handshake, no timer."""
 
-    def __init__(self, listener: TcpListener) -> None:
+    def __init__(self, listener: TcpListener[Any]) -> None:
         self._listener = listener
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -202,8 +214,8 @@ def format_uri(host: str, port: int, scheme: str = "tcp") -> str:
 
 
 async def open_listener(
-    uri: str, options: TransportOptions, cls: type[TcpTransport], ssl_context: ssl.SSLContext | None = None
-) -> TcpListener:
+    uri: str, options: TransportOptions, cls: AcceptedEnd[_E], ssl_context: ssl.SSLContext | None = None
+) -> TcpListener[_E]:
     """``listen`` for ``cls``'s scheme, with TLS when ``ssl_context`` is given (``tls.listen`` uses it)."""
     host, port = parse_host_port(uri, options.bind_host, cls.scheme)
     if ssl_context is None:
@@ -215,7 +227,7 @@ async def open_listener(
             how="Set an auth_key (TransportOptions(auth_key=...); `uniros robot serve`: $UNIROS_AUTH_KEY or "
             "--auth-key-env) or use tls:// with client certificates",
         )
-    lst = TcpListener(options)
+    lst = TcpListener[_E](options)
     loop = asyncio.get_running_loop()
     server = await loop.create_server(
         lambda: lst._protocol(lambda: cls(options, listener=lst)),

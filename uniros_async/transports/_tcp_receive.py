@@ -31,7 +31,7 @@ import os
 import select
 import struct
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Protocol, cast
 
 from uniros_async._log_throttle import LogThrottle
 from uniros_async.transports._spin import (
@@ -45,12 +45,12 @@ from uniros_async.transports._spin import (
     spin_yield,
     this_cpu,
 )
+from uniros_async.transports.base import Transport
 
 if TYPE_CHECKING:
-    from uniros_async.transports._tcp_listener import TcpListener
     from uniros_async.transports.base import TransportStats
 
-__all__ = ["TcpReceiving"]
+__all__ = ["RejectionCounter", "TcpReceiving"]
 
 logger = logging.getLogger("uniros_async.transports.tcp")
 
@@ -89,7 +89,14 @@ def _unexported(buf: bytearray) -> bool:
     return True
 
 
-class TcpReceiving(SpinCredit, asyncio.BufferedProtocol):
+class RejectionCounter(Protocol):
+    """What a connection tells the listener that accepted it (``_tcp_listener.TcpListener``) when it refuses
+    its peer."""
+
+    def _count_rejection(self, peer: str, reason: str) -> None: ...
+
+
+class TcpReceiving(SpinCredit, asyncio.BufferedProtocol, Transport):
     """The receive side of ``TcpTransport`` (its base): the asyncio protocol's reading callbacks, ``receive`` and
     ``receive_blocking``. The connection (handshake, sending, life cycle) is ``TcpTransport``'s."""
 
@@ -112,7 +119,10 @@ class TcpReceiving(SpinCredit, asyncio.BufferedProtocol):
     stats: TransportStats
     _loop: asyncio.AbstractEventLoop
     _tr: asyncio.Transport | None
-    _listener: TcpListener | None
+    _listener: RejectionCounter | None
+    _ready: asyncio.Future[None]  # the handshake done (client side)
+    _hs_started_s: float  # when the listener admitted the handshake (server side)
+    _hs_dropped: bool  # the peer hung up during the handshake
     _peer: str
     _recv_limit: int
     _state: int
@@ -151,6 +161,9 @@ class TcpReceiving(SpinCredit, asyncio.BufferedProtocol):
         raise NotImplementedError
 
     def _handshake_data(self) -> None:
+        raise NotImplementedError
+
+    def _handshake_failed(self, exc: Exception, cause: BaseException | None = None) -> None:
         raise NotImplementedError
 
     async def receive(self) -> memoryview:

@@ -48,7 +48,7 @@ import struct
 import sys
 import time
 from collections.abc import Sequence
-from typing import cast
+from typing import Any, cast
 
 from uniros_async.errors import AuthenticationError, FrameTooLargeError, TransportBrokenError, TransportClosedError
 from uniros_async.transports._tcp_connect import open_connection
@@ -144,8 +144,9 @@ class TcpTransport(TcpReceiving, Transport):
     delivery = Delivery.RELIABLE
     scheme = "tcp"
     _encrypted = False  # TlsTransport: True (the socket carries ciphertext; receive never reads it itself)
+    _listener: TcpListener[Any] | None
 
-    def __init__(self, options: TransportOptions, *, listener: TcpListener | None = None, uri: str = "") -> None:
+    def __init__(self, options: TransportOptions, *, listener: TcpListener[Any] | None = None, uri: str = "") -> None:
         Transport.__init__(self)
         self._options = options
         self._key = bytes(options.auth_key) if options.auth_key is not None else None
@@ -565,7 +566,7 @@ def _consume_exception(fut: asyncio.Future[None]) -> None:
         fut.exception()
 
 
-async def listen(uri: str, options: TransportOptions) -> TcpListener:
+async def listen(uri: str, options: TransportOptions) -> TcpListener[TcpTransport]:
     """Listen at ``tcp://HOST:PORT``; port 0 picks a free port and ``uri`` of the result reports it.
 
     HOST is the interface bound; without one (``tcp://:0``), ``options.bind_host`` (loopback by default). A

@@ -90,7 +90,7 @@ def client_context(options: TransportOptions) -> ssl.SSLContext:
     return ctx
 
 
-async def listen(uri: str, options: TransportOptions) -> TcpListener:
+async def listen(uri: str, options: TransportOptions) -> TcpListener[TlsTransport]:
     """Listen at ``tls://HOST:PORT`` (port 0: a free one). Client certificates authenticate, so a non-loopback
     HOST needs no ``auth_key``; one may still be set (then peers prove both).
 
