@@ -36,9 +36,20 @@ from uniros_async.training.checkpoint import write_atomic
 from uniros_async.training.pixel_drq import DrQConfig, PixelTD3
 from uniros_async.training.run_state import EPISODE_FIELDS, EVAL_FIELDS, CsvLog
 
-__all__ = ["PixelReplay", "PixelTrainConfig", "evaluate", "main", "train"]
+__all__ = [
+    "POLICY_FILE",
+    "PixelReplay",
+    "PixelTrainConfig",
+    "evaluate",
+    "export_policy",
+    "load_policy",
+    "main",
+    "train",
+]
 
 logger = logging.getLogger(__name__)
+
+POLICY_FILE = "policy.pt"
 
 
 class PixelEvalConfig(ConfigModel):
@@ -190,6 +201,61 @@ def make_env(cfg: PixelTrainConfig) -> gym.Env[Any, Any]:
     return gym.make(cfg.env_id, **{"obs_mode": "pixels+state", **cfg.env_kwargs})
 
 
+def agent_config(cfg: PixelTrainConfig, env: gym.Env[Any, Any]) -> DrQConfig:
+    """The agent's sizes from ``env``'s spaces and its hyperparameters from ``cfg``."""
+    space = env.observation_space
+    assert isinstance(space, gym.spaces.Dict) and space["pixels"].shape is not None
+    h, w = space["pixels"].shape[:2]
+    return DrQConfig(
+        image_size=(int(h), int(w)),
+        state_dim=int(np.prod(space["state"].shape or (1,))),
+        action_dim=int(np.prod(env.action_space.shape or (1,))),
+        channels=cfg.channels,
+        hidden=cfg.hidden,
+        lr=cfg.learning_rate,
+        gamma=cfg.gamma,
+        tau=cfg.tau,
+        encoder_tau=cfg.encoder_tau,
+        policy_delay=cfg.policy_delay,
+        target_noise=cfg.target_noise,
+        target_noise_clip=cfg.target_noise_clip,
+        pad=cfg.pad,
+    )
+
+
+def export_policy(run_dir: Path, out_dir: Path) -> Path:
+    """Write the newest checkpoint's encoder and actor (what acting needs) to ``out_dir/policy.pt``.
+
+    Raises:
+        ConfigError: ``run_dir`` has no complete checkpoint.
+    """
+    ckpt = _newest_checkpoint(run_dir)
+    if ckpt is None:
+        raise ConfigError(f"{run_dir}: no complete checkpoint (checkpoints/step_N/done)")
+    state = torch.load(ckpt / "agent.pt", weights_only=False)
+    keep = ("encoder.", "actor.")
+    weights = {k: v for k, v in state["model"].items() if k.startswith(keep)}
+    cfg = json.loads((run_dir / "config.json").read_text())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.save({"weights": weights, "config": cfg, "step": int(state["step"])}, out_dir / POLICY_FILE)
+    return out_dir / POLICY_FILE
+
+
+def load_policy(path: Path) -> tuple[PixelTD3, PixelTrainConfig, int]:
+    """The agent of a ``policy.pt`` written by ``export_policy`` (encoder and actor loaded), its run's config and
+    the step it was taken at; act with ``agent.act(pixels, state)``."""
+    saved = torch.load(path, weights_only=False)
+    cfg = PixelTrainConfig.from_data(saved["config"])
+    env = make_env(cfg)
+    try:
+        agent = PixelTD3(agent_config(cfg, env))
+    finally:
+        env.close()
+    missing = agent.load_state_dict(saved["weights"], strict=False).missing_keys
+    assert not [k for k in missing if k.startswith(("encoder.", "actor."))], missing
+    return agent, cfg, int(saved["step"])
+
+
 def evaluate(agent: PixelTD3, env: gym.Env[Any, Any], episodes: int, seed: int) -> dict[str, float]:
     """The deterministic policy over ``episodes`` fresh episodes: success rate, mean return and length."""
     successes, returns, lengths = [], [], []
@@ -253,28 +319,9 @@ def _train(
     resume: bool,
     max_minutes: float | None,
 ) -> dict[str, Any]:
-    space = env.observation_space
-    assert isinstance(space, gym.spaces.Dict)
-    pix_shape, state_dim = space["pixels"].shape, int(np.prod(space["state"].shape or (1,)))
-    action_dim = int(np.prod(env.action_space.shape or (1,)))
-    assert pix_shape is not None
-    agent = PixelTD3(
-        DrQConfig(
-            image_size=(int(pix_shape[0]), int(pix_shape[1])),
-            state_dim=state_dim,
-            action_dim=action_dim,
-            channels=cfg.channels,
-            hidden=cfg.hidden,
-            lr=cfg.learning_rate,
-            gamma=cfg.gamma,
-            tau=cfg.tau,
-            encoder_tau=cfg.encoder_tau,
-            policy_delay=cfg.policy_delay,
-            target_noise=cfg.target_noise,
-            target_noise_clip=cfg.target_noise_clip,
-            pad=cfg.pad,
-        )
-    )
+    agent = PixelTD3(agent_config(cfg, env))
+    pix_shape = agent.cfg.image_size + (3,)
+    state_dim, action_dim = agent.cfg.state_dim, agent.cfg.action_dim
     buf = PixelReplay(cfg.buffer_size, tuple(pix_shape), state_dim, action_dim)
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
@@ -370,13 +417,17 @@ def _train(
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m uniros_async.training.pixel_train CONFIG [--resume] [--max-minutes M] [--runs DIR]``."""
+    """``python -m uniros_async.training.pixel_train CONFIG [--resume] [--max-minutes M] [--runs DIR] [--export DIR]
+    [--evaluate POLICY --episodes N]``."""
     p = argparse.ArgumentParser(prog="python -m uniros_async.training.pixel_train", description=__doc__)
     p.add_argument("config")
     p.add_argument("--resume", action="store_true", help="go on from the newest complete checkpoint")
     p.add_argument("--max-minutes", type=float, default=None, help="checkpoint and stop after this long")
     p.add_argument("--runs", default="runs", help="parent directory of the run's directory")
     p.add_argument("--total-steps", type=int, default=None, help="override total_steps")
+    p.add_argument("--export", metavar="DIR", help="write the newest checkpoint's policy to DIR/policy.pt and stop")
+    p.add_argument("--evaluate", metavar="POLICY", help="evaluate a policy.pt (--episodes of them) and stop")
+    p.add_argument("--episodes", type=int, default=100, help="episodes of --evaluate")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
@@ -386,6 +437,19 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    torch.set_num_threads(cfg.torch_threads)
+    if args.export:
+        print(export_policy(Path(args.runs) / cfg.name, Path(args.export)))
+        return 0
+    if args.evaluate:
+        agent, pcfg, step = load_policy(Path(args.evaluate))
+        env = make_env(pcfg)
+        try:
+            res = evaluate(agent, env, args.episodes, 40_000_000)
+        finally:
+            env.close()
+        print(json.dumps({"policy_step": step, **res}))
+        return 0
     final = train(cfg, Path(args.runs) / cfg.name, resume=args.resume, max_minutes=args.max_minutes)
     print(json.dumps(final))
     return 0
