@@ -12,7 +12,9 @@ status packets the reader callback parses (``protocol.PacketParser``). One trans
 Each transaction's timeout comes from the wire: the instruction's bytes and the expected status packets' bytes at
 10 bits a byte and the baud rate, plus each answering servo's return delay, plus ``margin_s`` for the host side
 (the USB adapter's latency timer, scheduling). A status packet with a bad CRC, or a servo missing at the
-timeout, is retried within the same call for the servos still missing (up to ``retries`` times); then
+timeout, is retried within the same call for the servos still missing (up to ``retries`` times); an answer to an
+earlier attempt that comes during a later one counts (the port's input is dropped only before the first attempt:
+a status held up on its way in, by a busy host or a pty's kernel worker, is still the answer asked for); then
 ``DxlCrcError`` or ``DxlTimeoutError`` names them. Both are ``RobotError``s. A status packet whose error byte
 holds an error number raises ``DxlStatusError``; its alert bit (a hardware error) only marks the servo in
 ``alerts``, which the caller reads (Hardware Error Status, address 70, says which error).
@@ -160,7 +162,8 @@ class DxlBus:
         self._lock = asyncio.Lock()
         self._parser = PacketParser(max_length=65535)
         self._rx: list[Packet] = []
-        self._need = 0
+        self._want: dict[int, int] = {}  # servo id -> the params its status must carry, for the attempt waited on
+        self._have: set[int] = set()
         self._crc_base = 0
         self._waiter: asyncio.Future[None] | None = None
         self._read_error: OSError | None = None
@@ -215,10 +218,14 @@ class DxlBus:
             self._parser.clear()  # bytes outside a transaction: late answers, noise
             return
         if data:
-            self._rx += self._parser.feed(data)
+            for pkt in self._parser.feed(data):
+                self._rx.append(pkt)
+                if pkt.is_status and self._want.get(pkt.servo_id, -1) == len(pkt.params):
+                    self._have.add(pkt.servo_id)
         waiter = self._waiter
         if not waiter.done() and (
-            self._read_error is not None or len(self._rx) + self._parser.crc_errors - self._crc_base >= self._need
+            self._read_error is not None
+            or len(self._have) + self._parser.crc_errors - self._crc_base >= len(self._want)
         ):
             waiter.set_result(None)
 
@@ -272,10 +279,11 @@ class DxlBus:
                 if attempt:
                     self.stats.retries += 1
                 packet = make(missing)
-                if missing:
+                if missing and not attempt:
                     self._drain_input()
-                self._rx = []
-                self._need = len(missing)
+                    self._rx = []
+                self._want = {i: n_params[i] for i in missing}
+                self._have = set()
                 self._crc_base = self._parser.crc_errors
                 self._read_error = None
                 waiter = self._waiter = self._loop.create_future()
