@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from uniros_async.errors import ConfigError, DxlCrcError, RobotError
-from uniros_async.hardware.dxl.arm import DxlArm
+from uniros_async.hardware.dxl.arm import LIMIT_CLAMP_RAD, DxlArm
 from uniros_async.hardware.dxl.bus import open_dxl_bus
-from uniros_async.hardware.dxl.control_table import rad_to_ticks
+from uniros_async.hardware.dxl.control_table import rad_to_ticks, ticks_to_rad
 from uniros_async.hardware.dxl.placement import parse_dxl_uri
 from uniros_async.hardware.dxl.servo_map import servo_map
 
@@ -122,20 +122,34 @@ async def test_a_servo_that_stops_answering_and_bad_crcs(vbus: Vbus) -> None:
             await arm.read_state(0)
 
 
-async def test_goals_past_a_limit_are_clamped_in_ticks_and_said_once(
+async def test_goals_past_a_limit_are_clamped_or_refused_as_the_bridges_do_and_said_once(
     vbus: Vbus, caplog: pytest.LogCaptureFixture
 ) -> None:
+    elbow_max = ticks_to_rad(3106)  # rx200.yaml's elbow limit
     async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
         arm = DxlArm(bus, SLACK)
         await arm.start()
         with caplog.at_level(logging.WARNING, logger="uniros_async.hardware.dxl.arm"):
-            for _ in range(3):
-                await arm.write_goals(np.array([0.0, 0.0, 2.5, 0.0, 0.0]))  # elbow past its 3106 ticks
-        said = [r for r in caplog.records if "clamped" in r.getMessage()]
-        assert len(said) == 1 and "elbow" in said[0].getMessage()
-        assert arm.clamped == 3
+            for _ in range(3):  # a hair past the limit: clamped to it, as the bridges and the servo sim clip it
+                await arm.write_goals(np.array([0.0, 0.0, elbow_max + 0.04, 0.0, 0.0]))
+            assert _present(vbus.path, (4,))[4][1] == 3106  # the goal on the wire is the limit's ticks
+            for _ in range(3):  # far past it: refused, and the arm keeps the goal it had
+                await arm.write_goals(np.array([0.3, 0.0, 2.5, 0.0, 0.0]))
+        clamped = [r.getMessage() for r in caplog.records if "clamped" in r.getMessage()]
+        refused = [r.getMessage() for r in caplog.records if "not sent" in r.getMessage()]
+        assert len(clamped) == 1 and "elbow" in clamped[0]
+        assert len(refused) == 1 and "beyond the joint limits (by more than 0.05 rad)" in refused[0]
+        assert "'elbow': '2.5000 not in [" in refused[0]
+        assert (arm.clamped, arm.refused) == (3, 3)
+        goals = _present(vbus.path, (1, 4))
+        assert goals[4][1] == 3106 and goals[1][1] == 2048  # the waist's 0.3 rad went with the refused goal
         await arm.close()
-        assert _present(vbus.path, (4,))[4][1] <= 3106
+
+
+def test_the_clamp_margin_is_the_ros_bridges() -> None:
+    from uniros_async.adapters._bridge import LIMIT_CLAMP_RAD as BRIDGES
+
+    assert LIMIT_CLAMP_RAD == BRIDGES
 
 
 async def test_shutdown_rest_moves_to_the_rest_pose_before_torque_off(vbus: Vbus) -> None:
@@ -161,6 +175,33 @@ def test_dxl_uri_forms_and_errors() -> None:
         parse_dxl_uri("dxl://host/dev/ttyUSB0")
     with pytest.raises(ConfigError, match="shutdown must be 'hold' or 'rest'"):
         parse_dxl_uri("dxl:///dev/ttyUSB0?shutdown=drop")
+    assert parse_dxl_uri("dxl:///dev/ttyUSB0?profile_ms=0").profile_ms == 0
+    assert parse_dxl_uri("dxl:///dev/ttyUSB0").profile_ms is None  # the map's
+    for bad in ("-5", "fast", "40000"):
+        with pytest.raises(ConfigError, match=rf"profile_ms must be an integer in 0\.\.32767 .*got '{bad}'"):
+            parse_dxl_uri(f"dxl:///dev/ttyUSB0?profile_ms={bad}")
+
+
+async def test_the_map_profile_sets_how_fast_a_goal_is_reached(vbus: Vbus) -> None:
+    """Interbotix's 2 s time profile spreads each goal over 2 s (renewed every tick, the arm crawls); with the
+    profile at 0 the servos run to each goal at full speed, as the servo sim the policies trained on does."""
+    reached = {}
+    for profile_ms in (2000, 0):
+        async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
+            arm = DxlArm(bus, SLACK.with_arm_profile(profile_ms))
+            await arm.start()
+            with sdk_port(vbus.path) as (port, ph):
+                assert read(ph, port, 1, 112, 4) == profile_ms  # Profile_Velocity: ms with a time profile
+            q0 = (await arm.read_state(0)).joint_state.position[:5]
+            goal = q0 + np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+            for _ in range(12):  # 0.6 s of 20 Hz ticks
+                await arm.write_goals(goal)
+                await _sleep(0.05)
+            q = (await arm.read_state(0)).joint_state.position[:5]
+            reached[profile_ms] = float(q[0] - q0[0])
+            await arm.close()
+    assert reached[0] > 0.25, reached  # there within 0.6 s
+    assert reached[2000] < 0.15, reached  # a third of the way or less
 
 
 async def test_a_bus_silent_past_the_watchdog_is_a_robot_error(vbus: Vbus) -> None:

@@ -55,6 +55,20 @@ def test_the_rx200_map_is_rx200_yaml() -> None:
     assert RX200.primary("shoulder").id == 2
 
 
+def test_the_arm_profile_is_a_map_setting() -> None:
+    assert (RX200.arm.profile, RX200.arm.profile_velocity, RX200.arm.profile_acceleration) == ("time", 2000, 300)
+    none = RX200.with_arm_profile(0)  # each goal at the servos' full speed, as the servo sim moves to a command
+    assert (none.arm.profile, none.arm.profile_velocity, none.arm.profile_acceleration) == ("time", 0, 0)
+    assert none.groups[1:] == RX200.groups[1:] and none.servos == RX200.servos
+    assert none.eeprom(none.by_id(1)) == RX200.eeprom(RX200.by_id(1))  # the profile is RAM: no EEPROM write
+    half = RX200.with_arm_profile(500)
+    assert (half.arm.profile_velocity, half.arm.profile_acceleration) == (500, 250)  # acceleration <= half
+    assert RX200.arm.profile_velocity == 2000  # the registered map is untouched
+    for bad in (-1, 40000, 1.5, True):
+        with pytest.raises(ConfigError, match=r"profile_ms must be an integer in 0\.\.32767"):
+            RX200.with_arm_profile(bad)  # type: ignore[arg-type]
+
+
 def test_lookups_that_miss_name_the_closest() -> None:
     with pytest.raises(
         ConfigError, match=r"unknown servo map 'rx20' \(did you mean 'rx200'\?\); registered: .*'rx200'"

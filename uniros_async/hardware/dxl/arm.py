@@ -14,8 +14,9 @@ Start-up (``start``), in the order that keeps the arm still:
 Each tick (``read_state`` and ``write_goals``) is one sync read of the contiguous present current (load on the
 XL430), velocity and position block of every answering servo, and one sync write of the arm's goal positions; the
 gripper, a group of its own in PWM mode, gets its own sync write when its command changes. The temperatures are a
-sync read of their own (``read_temperatures``), taken far less often. Goals are clamped to
-the servos' position limits in ticks before they reach the wire, and each clamped joint is said once in the log.
+sync read of their own (``read_temperatures``), taken far less often. Goals meet the servos' position limits in
+ticks before they reach the wire, by the ROS bridges' policy: at most ``LIMIT_CLAMP_RAD`` past a limit, clamped to
+it; further out, refused (the arm keeps its last goal). Each joint's clamp and refusal is said once in the log.
 
 Errors are ``RobotError``s that name the joint, the ID and what happened: a servo whose status has the alert bit
 (its Hardware_Error_Status names the error bits; the arm holds, and the servo is rebooted only when asked,
@@ -44,6 +45,7 @@ from uniros_async.hardware.dxl.bus import DxlBus
 from uniros_async.hardware.dxl.control_table import (
     BUS_WATCHDOG_UNIT_S,
     MODELS,
+    TICKS_PER_TURN,
     ControlTable,
     rad_to_ticks,
     ticks_to_rad,
@@ -52,7 +54,7 @@ from uniros_async.hardware.dxl.control_table import (
 from uniros_async.hardware.dxl.servo_map import OPERATING_MODES, ServoConfig, ServoMap
 from uniros_async.robots import RobotSpec, get_robot_spec
 
-__all__ = ["HARDWARE_ERROR_BITS", "MIN_FIRMWARE", "ArmState", "DxlArm", "describe_hardware_error"]
+__all__ = ["HARDWARE_ERROR_BITS", "LIMIT_CLAMP_RAD", "MIN_FIRMWARE", "ArmState", "DxlArm", "describe_hardware_error"]
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +73,10 @@ STATE_BLOCK = (126, 10)
 GRIPPER_PWM = 350
 """Goal_PWM of the gripper while it opens or closes (of 885), Interbotix's default gripper pressure."""
 _CRANK_R, _CRANK_L = 0.014, 0.024  # the rx200 gripper's horn radius and arm length (rx200.yaml)
+LIMIT_CLAMP_RAD = 0.05
+"""How far past a joint limit a goal may be and still be sent, clamped to the limit; one further out is refused.
+The ROS bridges' policy (``adapters/_bridge.py``), so an env meets the same arm behind either."""
+RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_TURN
 _STALL_TORQUE_NM = {"XM430-W350": 4.1, "XL430-W250": 1.4, "XL330-M288": 0.52}
 _TORQUE_CONSTANT_NM_A = {"XM430-W350": 4.1 / 2.3, "XL330-M288": 0.52 / 1.47}
 
@@ -130,7 +136,12 @@ class DxlArm:
         self._upper = np.array([s.max_position for s in self.arm_servos])
         self._offset = np.array([s.homing_offset for s in self.arm_servos])
         self._clamp_said: set[str] = set()
+        self._refuse_said: set[str] = set()
         self.clamped = 0
+        """Goal writes with a joint clamped to its limit (at most ``LIMIT_CLAMP_RAD`` past it)."""
+        self.refused = 0
+        """Goals refused (a joint more than ``LIMIT_CLAMP_RAD`` past its limit): the arm kept its last goal."""
+        self._goal: np.ndarray | None = None  # the last goal written, in ticks
         self._gripper_pwm = 0
         self._crc_ticks = 0
         self._last_io_s: float | None = None  # when the last tick's bus I/O ended (the watchdog's clock, host side)
@@ -208,6 +219,7 @@ class DxlArm:
             primaries = [s for s in self.map.servos if not s.is_shadow]
             # goal := present before torque on, so nothing moves (a shadow follows its primary's goal)
             await self._sync_write("goal_position", {s.id: present[s.id] for s in primaries})
+            self._goal = np.array([present[s.id] for s in self.arm_servos])
             if self.gripper is not None:
                 await self._write_reg(self.gripper, "goal_pwm", 0)
             await self._sync_write(
@@ -324,8 +336,8 @@ class DxlArm:
         return ArmState(joint_state=state, current_a=current)
 
     async def write_goals(self, q_arm: np.ndarray, gripper_m: float | None = None) -> None:
-        """One sync write of the arm's goal positions, clamped to the servos' limits; the gripper's PWM when its
-        command changed (``gripper_m``: the finger's target distance from the centre line).
+        """One sync write of the arm's goal positions (clamped or refused at the servos' limits, ``_goal_ticks``);
+        the gripper's PWM when its command changed (``gripper_m``: the finger's target distance from the centre line).
 
         Raises:
             RobotError: a non-finite goal, or the bus failed.
@@ -336,21 +348,7 @@ class DxlArm:
             raise RobotError(
                 f"{self.robot.name}: expected {len(self.arm_servos)} finite goals {self.arm_joints}, got {q.tolist()}"
             )
-        ticks = np.array([rad_to_ticks(float(x)) for x in q]) + self._offset
-        clamped = np.clip(ticks, self._lower, self._upper)
-        if (clamped != ticks).any():
-            self.clamped += 1
-            for j, t, c in zip(self.arm_joints, ticks, clamped, strict=True):
-                if t != c and j not in self._clamp_said:
-                    self._clamp_said.add(j)
-                    logger.warning(
-                        "%s: goal of %s (%d ticks, %.4f rad) clamped to its limit %d ticks; said once per joint",
-                        self.robot.name,
-                        j,
-                        t,
-                        ticks_to_rad(t),
-                        c,
-                    )
+        clamped = self._goal_ticks(q)
         try:
             await self._sync_write(
                 "goal_position", {s.id: int(c) for s, c in zip(self.arm_servos, clamped, strict=True)}
@@ -360,6 +358,52 @@ class DxlArm:
             self._last_io_s = time.monotonic()
         except DxlError as exc:
             raise self._error("writing goals", exc) from exc
+
+    def _goal_ticks(self, q: np.ndarray) -> np.ndarray:
+        """The goal ticks to write for ``q``, by the ROS bridges' policy: a goal at most ``LIMIT_CLAMP_RAD`` past a
+        limit is clamped to it; one further out is refused, and the arm keeps its last goal (start-up's: where
+        it was). Each joint's clamp, and each joint's refusal, is said once in the log; both are counted."""
+        ticks = np.array([rad_to_ticks(float(x)) for x in q]) + self._offset
+        clamped: np.ndarray = np.clip(ticks, self._lower, self._upper)
+        past_rad = np.abs(ticks - clamped) * RAD_PER_TICK
+        refused = past_rad > LIMIT_CLAMP_RAD
+        if refused.any():
+            self.refused += 1
+            new = [j for j, r in zip(self.arm_joints, refused, strict=True) if r and j not in self._refuse_said]
+            if new:
+                self._refuse_said.update(new)
+                bad = {
+                    j: f"{v:.4f} not in [{ticks_to_rad(lo - o):.4f}, {ticks_to_rad(hi - o):.4f}]"
+                    for j, v, lo, hi, o, r in zip(
+                        self.arm_joints, q, self._lower, self._upper, self._offset, refused, strict=True
+                    )
+                    if r
+                }
+                logger.warning(
+                    "%s: goal not sent to the servos: beyond the joint limits (by more than %s rad): %s; said once "
+                    "per joint",
+                    self.robot.name,
+                    LIMIT_CLAMP_RAD,
+                    bad,
+                )
+            if self._goal is None:
+                raise RobotError(f"{self.robot.name}: a goal before start-up read where the arm is")
+            return self._goal
+        if (clamped != ticks).any():
+            self.clamped += 1
+            for j, t, c, o in zip(self.arm_joints, ticks, clamped, self._offset, strict=True):
+                if t != c and j not in self._clamp_said:
+                    self._clamp_said.add(j)
+                    logger.warning(
+                        "%s: goal of %s (%d ticks, %.4f rad) clamped to its limit %d ticks; said once per joint",
+                        self.robot.name,
+                        j,
+                        t,
+                        ticks_to_rad(t - o),
+                        c,
+                    )
+        self._goal = clamped
+        return clamped
 
     async def _gripper(self, target_m: float) -> None:
         assert self.gripper is not None

@@ -61,6 +61,13 @@ def add_serve_arguments(serve: argparse.ArgumentParser) -> None:
         "whose latency timer is left at 16 ms)",
     )
     serve.add_argument(
+        "--dxl-profile-ms",
+        type=int,
+        default=None,
+        help="with --dxl: the arm servos' profile, the move time of each goal in ms for a time profile (default: "
+        "the map's, 2000 for the rx200; 0: none, the servos' full speed, as the sim moves to an env's commands)",
+    )
+    serve.add_argument(
         "--dxl-shutdown",
         choices=("hold", "rest"),
         default="hold",
@@ -93,6 +100,7 @@ def serve(
         baud=args.dxl_baud,
         margin_s=args.dxl_margin_ms / 1e3 if args.dxl_margin_ms else None,
         shutdown=args.dxl_shutdown,
+        profile_ms=args.dxl_profile_ms,
         namespace=args.namespace,
         options=options,
         on_ready=on_ready,

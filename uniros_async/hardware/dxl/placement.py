@@ -237,6 +237,7 @@ class DxlArmNode:
             "cycle_p99_us": round(cycles[min(len(cycles) - 1, len(cycles) * 99 // 100)] * 1e6) if cycles else None,
             "late_ticks": self.late_ticks,
             "clamped": self.arm.clamped,
+            "refused": self.arm.refused,
             "transactions": bus.transactions,
             "crc_errors": bus.crc_errors,
             "timeouts": bus.timeouts,

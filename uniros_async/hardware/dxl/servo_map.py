@@ -23,6 +23,7 @@ A lookup that misses raises ConfigError naming the registered maps and the close
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from dataclasses import dataclass, field
 from typing import Literal
@@ -270,6 +271,26 @@ class ServoMap:
             raise ConfigError(
                 f"servo map {self.name!r} has no servo for joint {joint!r}; joints: {list(self._primary)}"
             ) from None
+
+    def with_arm_profile(self, profile_ms: int) -> ServoMap:
+        """This map with the arm group's profile set to ``profile_ms``: Profile_Velocity := ``profile_ms`` and
+        Profile_Acceleration := the map's, at most half of it (0 and 0 with ``profile_ms`` 0: no profile, so
+        each servo runs at its full speed to every goal, as the servo sim with a 0 s command duration does).
+
+        With a time profile (the rx200's), ``profile_ms`` is the move time of each goal in ms; with a velocity
+        profile it is in the register's velocity units.
+
+        Raises:
+            ConfigError: ``profile_ms`` is not an integer in 0..32767.
+        """
+        if isinstance(profile_ms, bool) or not isinstance(profile_ms, int) or not 0 <= profile_ms <= 32767:
+            raise ConfigError(f"servo map {self.name!r}: profile_ms must be an integer in 0..32767, got {profile_ms!r}")
+        arm = dataclasses.replace(
+            self.arm,
+            profile_velocity=profile_ms,
+            profile_acceleration=min(self.arm.profile_acceleration, profile_ms // 2),
+        )
+        return dataclasses.replace(self, groups=(arm, *self.groups[1:]))
 
     def group_of(self, servo: ServoConfig) -> ServoGroup | None:
         """The group whose joints include the servo's joint, or None."""
