@@ -22,12 +22,12 @@ The arm itself is a ``ServoSim`` stepped on the wall clock (``advance(now_s)``, 
 Faults are set per servo (``ServoFaults``): corrupted status CRCs, dropped status packets, a silent servo, and
 Hardware_Error_Status bits (the alert bit in every status; torque off where the Shutdown register says).
 
-The pty, timing and command channel around it are ``vbus_pty.py``.
+One servo's register memory and access rules are ``vbus_servo.py``; the pty, timing and command channel around
+the bus are ``vbus_pty.py``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections.abc import Callable
@@ -36,16 +36,21 @@ import numpy as np
 
 from uniros_async.bus.messages import Header, JointCommand
 from uniros_async.errors import ConfigError
-from uniros_async.hardware.dxl.control_table import MODELS, ControlTable, Register, rad_to_ticks, ticks_to_rad
+from uniros_async.hardware.dxl.control_table import MODELS, rad_to_ticks, ticks_to_rad
 from uniros_async.hardware.dxl.protocol import (
-    ALERT_BIT,
     BROADCAST_ID,
     Instruction,
     Packet,
     encode_fast_sync_read_status,
     encode_status,
 )
-from uniros_async.hardware.dxl.servo_map import DRIVE_MODE_TIME_PROFILE, OPERATING_MODES, ServoConfig, ServoMap
+from uniros_async.hardware.dxl.servo_map import DRIVE_MODE_TIME_PROFILE, OPERATING_MODES, ServoMap
+from uniros_async.hardware.dxl.vbus_servo import (
+    ERR_DATA_LENGTH,
+    ERR_INSTRUCTION,
+    ServoFaults,
+    VirtualServo,
+)
 from uniros_async.robots import get_robot_spec
 from uniros_async.sim.emulated import EmulationConfig, add_sensor_noise
 from uniros_async.sim.imperfections import Imperfections
@@ -55,13 +60,6 @@ from uniros_async.sim.servo import ServoSimConfig
 __all__ = ["ServoFaults", "VirtualBus", "VirtualServo"]
 
 logger = logging.getLogger(__name__)
-
-ERR_RESULT_FAIL = 0x01
-ERR_INSTRUCTION = 0x02
-ERR_DATA_RANGE = 0x04
-ERR_DATA_LENGTH = 0x05
-ERR_DATA_LIMIT = 0x06
-ERR_ACCESS = 0x07
 
 SIM_STEP_S = 0.01
 """The sim's step on the wall clock (5 physics steps of 2 ms)."""
@@ -74,171 +72,12 @@ TORQUE_CONSTANT_NM_A = {"XM430-W350": 4.1 / 2.3, "XL430-W250": 1.4 / 1.3, "XL330
 STALL_TORQUE_NM = {"XM430-W350": 4.1, "XL430-W250": 1.4, "XL330-M288": 0.52}
 _CRANK_R, _CRANK_L = 0.014, 0.024  # the rx200 gripper's horn radius and arm length (rx200.yaml)
 _FINGER_RANGE = (0.015, 0.037)
-FIRMWARE_VERSION = 46
-"""What the virtual servos report as Firmware_Version."""
-_GOAL_NAMES = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")
 
 
 def _horn_to_finger(theta: float) -> float:
     """The finger's distance from the centre line for a gripper horn angle (the crank-slider law of rx200.xml)."""
     d = _CRANK_R * math.sin(theta) + math.sqrt(_CRANK_L**2 - (_CRANK_R * math.cos(theta)) ** 2)
     return min(max(d, _FINGER_RANGE[0]), _FINGER_RANGE[1])
-
-
-@dataclasses.dataclass
-class ServoFaults:
-    """Faults a test sets on one servo.
-
-    Attributes:
-        corrupt_crc: the next this many status packets carry a wrong CRC (-1: every one).
-        drop_status: the next this many status packets are not sent (-1: none is).
-        silent: the servo neither obeys nor answers anything.
-    """
-
-    corrupt_crc: int = 0
-    drop_status: int = 0
-    silent: bool = False
-
-    def take(self, what: str) -> bool:
-        """Whether the next status packet gets fault ``what`` (``"corrupt_crc"`` or ``"drop_status"``)."""
-        n = getattr(self, what)
-        if n == 0:
-            return False
-        if n > 0:
-            setattr(self, what, n - 1)
-        return True
-
-
-class VirtualServo:
-    """One servo's register memory and access rules.
-
-    Args:
-        config: its entry in the servo map.
-        table: its model's control table.
-        preset: EEPROM values set at power-up (register names to values), as left by an earlier configuration.
-    """
-
-    def __init__(self, config: ServoConfig, table: ControlTable, preset: dict[str, int]) -> None:
-        self.config = config
-        self.table = table
-        self.registers = tuple(table.registers.values())
-        self.mem = bytearray(max(r.address + r.size for r in self.registers))
-        for reg in self.registers:
-            if reg.default is not None:
-                self._store(reg, reg.default)
-        self.put("model_number", table.model_number)
-        self.put("firmware_version", FIRMWARE_VERSION)
-        self.put("id", config.id)
-        self.put("present_input_voltage", 120)
-        self.put("present_temperature", 30)
-        for name, value in preset.items():
-            self.put(name, value)
-        self.faults = ServoFaults()
-        self.last_instruction_s: float | None = None
-        self.watchdog_tripped = False
-        self.pending_write: tuple[int, bytes] | None = None
-
-    # ---- raw access
-
-    def _store(self, reg: Register, value: int) -> None:
-        self.mem[reg.address : reg.address + reg.size] = int(value).to_bytes(reg.size, "little", signed=value < 0)
-
-    def get(self, name: str) -> int:
-        """A register's value (signed where the register is)."""
-        reg = self.table.register(name)
-        raw = self.mem[reg.address : reg.address + reg.size]
-        return int.from_bytes(raw, "little", signed=reg.signed)
-
-    def put(self, name: str, value: int) -> None:
-        """Set a register, bypassing the access rules (the servo's own updates)."""
-        self._store(self.table.register(name), value)
-
-    @property
-    def id(self) -> int:
-        return self.mem[self.table.register("id").address]
-
-    @property
-    def secondary_id(self) -> int | None:
-        """The Secondary_ID register, or None when it is off (above 252)."""
-        value = self.get("secondary_id")
-        return None if value > 252 else value
-
-    @property
-    def torque_on(self) -> bool:
-        return self.get("torque_enable") == 1
-
-    @property
-    def hardware_error(self) -> int:
-        return self.get("hardware_error_status")
-
-    @property
-    def error_byte(self) -> int:
-        """The error byte of a status packet without an instruction error: the alert bit when in hardware error."""
-        return ALERT_BIT if self.hardware_error else 0
-
-    def watchdog_s(self) -> float:
-        """The Bus Watchdog time in seconds (0: off, or tripped)."""
-        value = self.get("bus_watchdog")
-        return value * 0.020 if value > 0 else 0.0
-
-    # ---- instructions
-
-    def read(self, address: int, length: int) -> tuple[int, bytes]:
-        """READ: the error number and the bytes (empty on error)."""
-        if length <= 0 or address < 0 or address + length > len(self.mem):
-            return ERR_DATA_RANGE, b""
-        return 0, bytes(self.mem[address : address + length])
-
-    def check_write(self, address: int, data: bytes) -> int:
-        """The error number a WRITE of ``data`` at ``address`` gets (0: allowed)."""
-        end = address + len(data)
-        if not data or address < 0 or end > len(self.mem):
-            return ERR_DATA_RANGE
-        for reg in self.registers:
-            if reg.address >= end or reg.address + reg.size <= address:
-                continue
-            if reg.address < address or reg.address + reg.size > end:
-                return ERR_DATA_LENGTH  # a register written in part
-            if not reg.writable:
-                return ERR_ACCESS
-            if reg.area == "EEPROM" and self.torque_on:
-                return ERR_ACCESS
-            if self.watchdog_tripped and reg.name in _GOAL_NAMES:
-                return ERR_ACCESS
-            raw = data[reg.address - address : reg.address - address + reg.size]
-            value = reg.decode(raw)
-            if (reg.min is not None and value < reg.min) or (reg.max is not None and value > reg.max):
-                return ERR_DATA_LIMIT
-            if reg.name == "goal_position" and self.get("operating_mode") == OPERATING_MODES["position"]:
-                if not self.get("min_position_limit") <= value <= self.get("max_position_limit"):
-                    return ERR_DATA_LIMIT
-        return 0
-
-    def write(self, address: int, data: bytes) -> tuple[int, set[str]]:
-        """WRITE: the error number and the names of the registers written."""
-        error = self.check_write(address, data)
-        if error:
-            return error, set()
-        end = address + len(data)
-        written = {r.name for r in self.registers if address <= r.address and r.address + r.size <= end}
-        before_torque = self.torque_on
-        self.mem[address:end] = data
-        if "bus_watchdog" in written and self.get("bus_watchdog") == 0:
-            self.watchdog_tripped = False
-        if "torque_enable" in written and self.torque_on and not before_torque:
-            if self.hardware_error:  # a servo in hardware error keeps its torque off until rebooted
-                self.put("torque_enable", 0)
-                return ERR_RESULT_FAIL, written
-        return 0, written
-
-    def reboot(self, ram_defaults: dict[str, int]) -> None:
-        """REBOOT: hardware error cleared, torque off, RAM back to its defaults (Goal_Position := present)."""
-        present = self.get("present_position")
-        for name, value in ram_defaults.items():
-            self.put(name, value)
-        self.put("hardware_error_status", 0)
-        self.put("goal_position", present)
-        self.watchdog_tripped = False
 
 
 class VirtualBus:
