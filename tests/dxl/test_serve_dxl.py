@@ -32,6 +32,8 @@ def test_serve_dxl_serves_the_bus_arm_over_tcp_until_sigint() -> None:
             "0",
             "--dxl-margin-ms",
             str(MARGIN_MS),
+            "--dxl-profile-ms",
+            "0",
         ]
         server = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
@@ -63,3 +65,4 @@ def test_serve_dxl_serves_the_bus_arm_over_tcp_until_sigint() -> None:
             # the server's shutdown held the arm: torque on, goal where it was (a moving arm stops a hair past it)
             assert read(ph, port, 1, 64, 1) == 1
             assert abs(read(ph, port, 1, 116, 4) - read(ph, port, 1, 132, 4)) <= 10
+            assert read(ph, port, 1, 112, 4) == 0  # --dxl-profile-ms 0: no profile (the map's is 2000 ms)
