@@ -101,7 +101,7 @@ def test_four_arms_train_at_once_in_real_time(tmp_path: Path, learner: str) -> N
 
 
 def test_evaluation_alongside_training_does_not_pause_it(tmp_path: Path) -> None:
-    """eval.alongside: the periodic evaluations step a second set of the envs on a thread while training goes on."""
+    """eval.alongside: the periodic evaluations step a second set of the envs in a process while training goes on."""
     run = tmp_path / "alongside"
     steps = 4 * VECTOR_STEPS
     result = train(
@@ -133,7 +133,7 @@ def test_evaluation_alongside_training_does_not_pause_it(tmp_path: Path) -> None
     # the evaluation envs' action cycles are recorded beside the training envs'
     timing = json.loads((run / "timing.json").read_text())
     assert timing["eval_alongside"] is True
-    # the evaluation thread acted in the real-time class, as the acting thread of training does (where permitted)
+    # the evaluation process acted in the real-time class, as the acting thread of training does (where permitted)
     with real_time_thread() as permitted:
         pass
     assert timing["eval_real_time"] is permitted

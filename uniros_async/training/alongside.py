@@ -1,143 +1,154 @@
-"""The evaluation of ``eval.alongside``: a second set of a concurrent run's envs, evaluated on a thread of its own
-with a frozen copy of the policy while training goes on, so that the arms that train never stand still for an
-evaluation."""
+"""The evaluation of ``eval.alongside``: a second set of a concurrent run's envs, evaluated in a process of its own
+(eval_process.py) with a copy of the policy taken at the evaluation's step, while training goes on, so that the arms
+that train never stand still for an evaluation and no learner update delays an evaluation arm's action."""
 
 from __future__ import annotations
 
 import contextlib
-import threading
 import time
-from typing import TYPE_CHECKING, Any
-
-import numpy as np
+from collections.abc import Sequence
+from typing import Any
 
 from uniros_async.errors import UnirosError
-from uniros_async.priority import real_time_thread
-from uniros_async.training.evaluate import EvalResult, evaluate_vec_policy, frozen_obs_stats
+from uniros_async.training.concurrent import TIMING_METRICS
+from uniros_async.training.eval_process import EvalProcess, EvalReply, EvalRequest, open_eval_process
+from uniros_async.training.evaluate import EvalResult, frozen_obs_stats
 
-if TYPE_CHECKING:
-    from uniros_async.training.concurrent import ConcurrentVecEnv
-
-__all__ = ["JOIN_S", "Alongside", "FrozenPolicy"]
-
-# how long closing waits for the evaluation thread of eval.alongside: it checks its stop event before every step,
-# and a step waits at most for its action cycle or the workers' step deadline
-JOIN_S = 60.0
+__all__ = ["Alongside", "open_alongside", "policy_request"]
 
 
-class FrozenPolicy:
-    """A copy of a model's policy (and observation statistics) at one step, for an evaluation on another thread:
-    the learner goes on updating the model's networks while it acts."""
-
-    def __init__(self, model: Any) -> None:
-        import copy
-
-        paused = getattr(model, "learner_paused", contextlib.nullcontext)
-        with paused():  # AsyncTD3: between two updates, so the copy is one consistent set of weights
-            self.policy = copy.deepcopy(model.policy)
-        self.policy.set_training_mode(False)
-        live = model.get_vec_normalize_env()
-        self.stats = None if live is None else frozen_obs_stats(live)
-
-    def predict(self, observation: Any, deterministic: bool = True) -> tuple[np.ndarray, None]:
-        """The copied policy's actions (SB3's ``predict``)."""
-        actions, _ = self.policy.predict(observation, deterministic=deterministic)
-        return actions, None
-
-    def get_vec_normalize_env(self) -> Any:
-        """The observation statistics at the copy's step (frozen), or None."""
-        return self.stats
+def policy_request(model: Any, episodes: int, seed: int, *, with_skeleton: bool) -> EvalRequest:
+    """An evaluation request with ``model``'s policy as it is now: the weights of its actor (of the policy if it has
+    none) as numpy arrays, copied between two updates of an ``AsyncTD3`` learner (``learner_paused``), and the
+    observation statistics frozen at the same step; with ``with_skeleton``, also the policy's class and constructor
+    arguments (SB3's own ``BasePolicy.save`` keeps the same two)."""
+    policy = model.policy
+    module = getattr(policy, "actor", policy)
+    paused = getattr(model, "learner_paused", contextlib.nullcontext)
+    with paused():  # one consistent set of weights
+        weights = {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()}
+    live = model.get_vec_normalize_env()
+    skeleton = (type(policy), policy._get_constructor_parameters()) if with_skeleton else None
+    return EvalRequest(
+        weights=weights,
+        skeleton=skeleton,
+        obs_stats=None if live is None else frozen_obs_stats(live),
+        episodes=episodes,
+        seed=seed,
+    )
 
 
 class Alongside:
-    """The periodic evaluation of ``eval.alongside``: a second ConcurrentVecEnv of the training envs, stepped by a
-    thread of its own (one evaluation at a time) while training goes on. ``request`` starts an evaluation with a
-    copy of the policy (or, while one runs, marks the next as due), ``take`` hands over a finished one's results,
-    ``close`` stops a running one (within one action cycle) and closes the envs.
+    """The periodic evaluation of ``eval.alongside`` over an evaluation process (one evaluation at a time).
+    ``request`` starts an evaluation with the policy as it is (or, while one runs, marks the next as due), ``take``
+    hands over a finished one's results, ``cancel`` stops a running one (within one action cycle), ``evaluate``
+    runs one to its end (the final evaluation), ``close`` stops the process and its envs.
 
-    With ``real_time`` (envs on the wall clock, as the acting thread of training has it) the thread that steps the
-    evaluation envs runs in the real-time class for the evaluation (``priority.real_time_thread``, at the acting
-    thread's priority, above every env loop): without it a learner, torch or the training thread delays the
-    evaluation's actions by scheduler slices, and its arms' action cycles spread. ``real_time_class`` says whether
-    the last evaluation's thread had the class (it may not be permitted)."""
+    With ``real_time`` (envs on the wall clock, as the acting thread of training has it) the process evaluates in
+    the real-time class (``priority.real_time_thread``, at the acting thread's priority, above every env loop);
+    ``real_time_class`` says whether the last evaluation had it (it may not be permitted). ``samples`` holds every
+    evaluation's action-cycle timing per env label and metric (ms), as ``ConcurrentVecEnv.samples`` does.
+    """
 
-    def __init__(self, venv: ConcurrentVecEnv, env_ids: list[str], *, real_time: bool = False) -> None:
-        self.venv = venv
-        self.env_ids = env_ids
-        self.real_time = real_time
+    def __init__(self, process: EvalProcess) -> None:
+        self.process = process
+        self.labels = list(process.labels)
         self.real_time_class = False
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._outcome: tuple[int, float, list[EvalResult] | BaseException] | None = None
+        self.samples: dict[str, dict[str, list[float]]] = {lab: {m: [] for m in TIMING_METRICS} for lab in self.labels}
+        self._rid: int | None = None
+        self._step = 0
+        self._t0 = 0.0
+        self._policy_sent: Any = None  # the policy whose skeleton the process holds
         self._due = False  # an evaluation fell due while another ran
 
     def busy(self) -> bool:
         """Whether an evaluation runs (or has ended and waits for ``take``)."""
-        return self._thread is not None
+        return self._rid is not None
 
     def request(self, model: Any, step: int, episodes: int, seed: int) -> None:
-        """Evaluate the policy as it is at ``step``, now or (one running) when the running one ends."""
+        """Evaluate the policy as it is at ``step``, now or (one running) when the running one ends.
+
+        Raises:
+            UnirosError: the evaluation process has exited.
+        """
         if self.busy():
             self._due = True
             return
-        policy = FrozenPolicy(model)
-        t0 = time.monotonic()
-
-        def run() -> None:
-            try:
-                out: list[EvalResult] | BaseException = self.evaluate(policy, episodes, seed, self._stop)
-            except BaseException as exc:  # noqa: BLE001 - handed to the training thread by take()
-                out = exc
-            self._outcome = (step, time.monotonic() - t0, out)
-
-        self._thread = threading.Thread(target=run, name=f"eval-alongside-{step}", daemon=True)
-        self._thread.start()
-
-    def evaluate(self, policy: Any, episodes: int, seed: int, stop: threading.Event | None = None) -> list[EvalResult]:
-        """One evaluation of ``policy`` on the envs (in the calling thread, in the real-time class with
-        ``real_time``), their action-cycle timing kept."""
-        with real_time_thread() if self.real_time else contextlib.nullcontext(False) as rt:
-            self.real_time_class = rt
-            results = evaluate_vec_policy(
-                policy, self.venv, episodes, self.venv.labels, seed=seed, env_ids=self.env_ids, stop=stop
-            )
-        self.venv.timing_window()  # the evaluation's action cycles, kept in venv.samples for timing.json
-        return results
+        self._rid = self._submit(model, episodes, seed)
+        self._step, self._t0 = step, time.monotonic()
 
     def take(self, model: Any, step: int, episodes: int, seed: int) -> tuple[int, float, list[EvalResult]] | None:
         """A finished evaluation's (step, seconds it took, results), or None; starts the one that fell due meanwhile
-        (with the policy at ``step``). Raises what the evaluation raised (e.g. WorkerError)."""
-        thread = self._thread
-        if thread is None or thread.is_alive():
+        (with the policy at ``step``).
+
+        Raises:
+            WorkerError: an evaluation env's worker failed (what the evaluation raised, raised again here).
+            UnirosError: the evaluation process exited, or made no progress for ``eval_process.STALL_S``.
+        """
+        if self._rid is None:
             return None
-        thread.join()
-        self._thread = None
-        assert self._outcome is not None
-        done_step, took_s, out = self._outcome
-        self._outcome = None
-        if isinstance(out, BaseException):
-            raise out
+        reply = self.process.poll(self._rid)
+        if reply is None:
+            return None
+        self._rid = None
+        results = self._results(reply)
+        done = (self._step, time.monotonic() - self._t0, results)
         if self._due:
             self._due = False
             self.request(model, step, episodes, seed)
-        return done_step, took_s, out
+        return done
+
+    def evaluate(self, model: Any, episodes: int, seed: int) -> list[EvalResult]:
+        """One evaluation of ``model``'s policy as it is, to its end (``cancel`` a running one first).
+
+        Raises:
+            UnirosError: one runs already; or as ``take``.
+        """
+        if self.busy():
+            raise UnirosError("an evaluation alongside training is still running: cancel it first")
+        rid = self._submit(model, episodes, seed)
+        return self._results(self.process.wait(rid))
 
     def cancel(self) -> None:
         """Stop a running evaluation (it ends before its next step, within an action cycle) and drop it."""
         self._due = False
-        thread = self._thread
-        if thread is not None:
-            self._stop.set()
-            thread.join(JOIN_S)
-            if thread.is_alive():
-                raise UnirosError(f"the evaluation alongside training did not stop within {JOIN_S:.0f} s")
-            self._thread = None
-            self._outcome = None
-            self._stop.clear()
+        rid, self._rid = self._rid, None
+        if rid is not None:
+            self.process.stop(rid)
 
     def close(self) -> None:
-        """``cancel`` and close the envs."""
+        """``cancel`` and close the evaluation process (its envs with it)."""
         try:
             self.cancel()
         finally:
-            self.venv.close()
+            self.process.close()
+
+    def _submit(self, model: Any, episodes: int, seed: int) -> int:
+        fresh = model.policy is not self._policy_sent
+        rid = self.process.submit(policy_request(model, episodes, seed, with_skeleton=fresh))
+        self._policy_sent = model.policy
+        return rid
+
+    def _results(self, reply: EvalReply) -> list[EvalResult]:
+        if reply.error is not None:
+            raise reply.error
+        if reply.stopped:
+            raise UnirosError("the evaluation alongside training was stopped")
+        self.real_time_class = reply.real_time
+        for label, metrics in reply.window.items():
+            for metric, samples in metrics.items():
+                self.samples[label][metric].extend(samples)
+        return list(reply.results)
+
+
+def open_alongside(
+    specs: Sequence[tuple[str, str, dict[str, Any]]], *, real_time: bool, torch_threads: int = 1
+) -> Alongside:
+    """The evaluation of ``eval.alongside`` on a second set of the envs ``specs`` ((label, id, kwargs), the run's
+    training envs), in an evaluation process of its own that is ready when this returns.
+
+    Raises:
+        ConfigError, WorkerError: the envs could not be opened.
+        UnirosError: the evaluation process did not start.
+    """
+    return Alongside(open_eval_process(specs, real_time=real_time, torch_threads=torch_threads))

@@ -12,7 +12,8 @@ ended an episode, and on ``timing_window()`` reads every env's timing records fr
 read) and turns them into the action-cycle statistics of ``uniros bench latency`` (``stats.loop_metrics``): the
 period between the agent's actions reaching each env loop, periods spanning a reset left out. The evaluation
 (``evaluate.evaluate_vec_policy``) steps the same envs, all four at once, between two training windows; with
-``eval.alongside`` a second ConcurrentVecEnv of the same envs is evaluated on a thread while training goes on.
+``eval.alongside`` a second ConcurrentVecEnv of the same envs is evaluated in a process of its own while training
+goes on (alongside.py).
 """
 
 from __future__ import annotations

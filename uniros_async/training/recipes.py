@@ -20,7 +20,7 @@ Every env goes through ``TaskSamplerEnv`` (multitask.py): with one env it only t
 paper's Algorithm 1 (an env sampled per episode, one replay buffer, one policy). With ``concurrent: true`` the envs
 instead run as one vector env over worker processes (concurrent.py): every env acts in every step, and the
 evaluation steps them all at once, between two training steps, or, with ``eval.alongside``, on a second set of the
-envs, on a thread of its own with a copy of the policy, while training goes on (``alongside.Alongside``).
+envs, in a process of its own with a copy of the policy, while training goes on (``alongside.Alongside``).
 
 Interruption (Ctrl-C, SIGTERM, a dead worker) stops the run and leaves the last checkpoint intact;
 ``train(cfg, resume=True)`` continues from it (model, optimisers, step counter, action noise and replay buffer; the
@@ -54,7 +54,7 @@ import yaml
 
 from uniros_async.errors import ConfigError, TrainingInterrupted
 from uniros_async.priority import freeze_heap
-from uniros_async.training.alongside import Alongside
+from uniros_async.training.alongside import Alongside, open_alongside
 from uniros_async.training.build import (
     EnvLayout,
     algo_class,
@@ -331,8 +331,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
         if not cfg.concurrent:
             eval_envs = build_eval_envs(cfg, layout)
         elif cfg.eval.alongside:
-            eval_venv, _ = build_concurrent_env(cfg)
-            alongside = Alongside(eval_venv, [i for _, i, _ in cfg.env_specs()], real_time=real_time_actor(cfg))
+            alongside = open_alongside(cfg.env_specs(), real_time=real_time_actor(cfg), torch_threads=cfg.torch_threads)
         if ckpt is not None:
             meta = read_meta(ckpt)
             check_sizes(meta, layout.obs_size, layout.action_size, layout.goal_env, f"the envs of {cfg.name}")

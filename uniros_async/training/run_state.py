@@ -194,7 +194,7 @@ class Run:
             "env_steps_per_training_hour": round(step / train_s * 3600, 1) if train_s > 0 else None,
             "learner": self.cfg.learner,
             "eval_alongside": self.alongside is not None,
-            # whether the last evaluation alongside ran its thread in the real-time class (Alongside.real_time)
+            # whether the last evaluation alongside ran in the real-time class (Alongside.real_time_class)
             "eval_real_time": self.alongside is not None and self.alongside.real_time_class,
             "envs": {
                 label: {"step_overruns": self.concurrent.step_overruns[label], **metrics}
@@ -202,11 +202,11 @@ class Run:
             },
         }
         if self.alongside is not None:  # the evaluation envs' timing, over every evaluation
-            out["eval_envs"] = timing_summaries(self.alongside.venv)
+            out["eval_envs"] = timing_summaries(self.alongside)
         (self.run_dir / "timing.json").write_text(json.dumps(out, indent=2))
 
 
-def timing_summaries(venv: ConcurrentVecEnv) -> dict[str, dict[str, dict[str, float | None]]]:
+def timing_summaries(venv: ConcurrentVecEnv | Alongside) -> dict[str, dict[str, dict[str, float | None]]]:
     """Every env's timing samples so far (``ConcurrentVecEnv.samples``) as summaries (median, IQR, p99, ... in ms)."""
     from uniros_async.stats import summary
 
