@@ -62,3 +62,21 @@ def test_bench_dxl_writes_its_rows(tmp_path: Path, capsys: pytest.CaptureFixture
     codec = [r for r in records if r.get("case") == "codec alone"]
     assert {(r["impl"], r["servos"]) for r in codec} == {(i, n) for i in ("uniros", "dynamixel-sdk") for n in (5, 7)}
     assert "p50/floor" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_bench_dxl_envloop_runs_the_env_loop_on_the_bus_at_its_rate(tmp_path: Path) -> None:
+    from uniros_async.bench import dxl_envloop
+
+    out = tmp_path / "envloop.json"
+    lines: list[str] = []
+    config = dxl_envloop.DxlEnvLoopConfig(rates_hz=(50.0,), duration_s=2.0, json_path=str(out))
+    records = dxl_envloop.main(config, log=lines.append)
+    assert json.loads(out.read_text()) == records
+    (actuator,) = [r for r in records if r["metric"] == "actuator_cycle"]
+    assert actuator["env"] == "rx200 dxl 50 Hz" and actuator["count"] > 40
+    assert abs(actuator["median_ms"] - 20.0) < 1.0  # the loop ran at its rate, commanding the bus every tick
+    text = "\n".join(lines)
+    assert "20 +- 0.1, IQR < 0.5" in text and "50 Hz: load average" in text and "ended early" not in text
+    with pytest.raises(dxl_envloop.ConfigError, match="rates_hz"):
+        dxl_envloop.DxlEnvLoopConfig(rates_hz=(0.0,))
