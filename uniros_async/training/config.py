@@ -173,10 +173,13 @@ class EvalConfig(ConfigModel):
     envs: EnvList = ()
     """Evaluation envs (as ``envs``); empty: the training envs."""
     alongside: Bool = False
-    """(``concurrent`` runs) Evaluate on a second set of the training envs, in worker processes of their own (an
-    emulated real arm gets its own arm), on a thread beside training, so training never pauses for an evaluation:
-    each periodic evaluation acts with a copy of the policy taken at its step, and its rows are written when it
-    ends (one falling due while another runs starts when that one ends). The final evaluation runs on them too."""
+    """(``concurrent`` runs) Evaluate on a second set of the training envs (an emulated real arm gets its own arm)
+    in an evaluation process of its own, their workers its children, so that training never pauses for an
+    evaluation and no learner update delays an evaluation arm's action (docs/performance.md, "The agent process in
+    real time"). Each periodic evaluation acts with the policy's weights and observation statistics as they were at
+    its step, sent to the process, in the real-time class when the training envs run on the wall clock; its rows are
+    written when it ends (one falling due while another runs starts when that one ends). The final evaluation runs
+    there too. The process closes with the run, also on Ctrl-C or SIGTERM."""
 
 
 class CheckpointConfig(ConfigModel):
