@@ -1,45 +1,56 @@
-"""The agent process of `uniros train` in real time: the evaluation thread of `eval.alongside` in the real-time
-class, and the heap frozen after set-up, each against its absence in the same run.
+"""The agent process of `uniros train` in real time: the evaluation arms of `eval.alongside` evaluated in a process
+of their own (as `train` runs them) against on a thread of the agent process, and the heap frozen after set-up
+against unfrozen, each in the same run.
 
 Four arms train (rx200 and ned2, sim and emulated real, on the wall clock, as configs/realtime_multitask_async.yaml
 has them, at a shorter action cycle so that a run gathers enough cycles) with the asynchronous learner, and four more
 are evaluated alongside, almost without a pause (short episodes, an evaluation every few vector steps).
 
-- **Evaluation thread**: the evaluations alternate, one with the thread in the real-time class (as `train` runs
-  it), the next without it (`alongside.real_time_thread` answered by a no-op for that evaluation: how `train` ran
-  before), so both see the same moments of the host's load. Printed per evaluation arm and class: the action
-  cycle's median and IQR over those evaluations (goal: IQR < 1 ms with the class).
+- **Evaluation arms**: the evaluations alternate between two sets of four evaluation arms: one in the evaluation
+  process (`training/eval_process.py`, what `train` does), the other in worker processes of the agent process,
+  stepped by a thread of the agent process in the real-time class with a frozen copy of the policy (`_InThread`
+  below: the path `train` had before, kept here for the comparison). Both see the same moments of the host's load
+  and of the learner's updates. Printed per evaluation arm and path: the action cycle's median and IQR over those
+  evaluations (goal: IQR < 1 ms in the evaluation process), beside the training arms' over the run.
 - **Frozen heap**: when the learner starts (the set-up done, the heap frozen by `train`), one full collection is
   timed with the heap frozen and one with it unfrozen (then frozen again), back to back; and the full (generation
   2) collections while the learner learns are counted and timed (`gc.callbacks`).
 
-    python benchmarks/agent_realtime.py                 # one 150 s run: about 3 minutes
-    python benchmarks/agent_realtime.py --seconds 100 --runs 2
+    python benchmarks/agent_realtime.py                 # one 150 s run: about 4 minutes
+    python benchmarks/agent_realtime.py --seconds 300 --runs 2 --json out.json
+
+`--json` writes the action-cycle rows of `uniros bench report`'s latency table (every run's samples pooled per arm
+and path), the load average seen during the runs, and every run's raw figures.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import gc
 import json
+import os
 import platform
 import statistics
 import tempfile
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from uniros_async.priority import real_time_thread
-from uniros_async.training import alongside as _alongside
+from uniros_async.stats import summary
 from uniros_async.training import recipes
 from uniros_async.training.async_td3 import AsyncTD3
+from uniros_async.training.concurrent import TIMING_METRICS, open_concurrent_env
 from uniros_async.training.config import train_config_from_dict
+from uniros_async.training.evaluate import EvalResult, evaluate_vec_policy, frozen_obs_stats
 
-alongside: Any = _alongside  # its real_time_thread is answered per evaluation (_alternating)
 CYCLE_S = 0.4
 EPISODE_STEPS = 10
+PROCESS, THREAD, TRAINING = "eval process (rt)", "eval thread (rt)", "training (acting thread, rt)"
 
 
 def _config(run_dir: Path, seconds: float) -> Any:
@@ -76,32 +87,162 @@ def _config(run_dir: Path, seconds: float) -> Any:
     )
 
 
+class _InThread:
+    """The evaluation arms in worker processes of the agent process, evaluated on a thread of it in the real-time
+    class with a copy of the policy taken between two learner updates (``Alongside``'s API, one at a time)."""
+
+    def __init__(self, specs: Sequence[tuple[str, str, dict[str, Any]]], real_time: bool) -> None:
+        self.venv = open_concurrent_env(specs)
+        self.env_ids = [env_id for _, env_id, _ in specs]
+        self.real_time = real_time
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._outcome: tuple[int, float, list[EvalResult] | BaseException] | None = None
+
+    def request(self, model: Any, step: int, episodes: int, seed: int) -> None:
+        with model.learner_paused():
+            policy = copy.deepcopy(model.policy)
+        policy.set_training_mode(False)
+        live = model.get_vec_normalize_env()
+        frozen = _Frozen(policy, None if live is None else frozen_obs_stats(live))
+        t0 = time.monotonic()
+
+        def run() -> None:
+            out: list[EvalResult] | BaseException
+            try:
+                with real_time_thread() if self.real_time else contextlib.nullcontext(False):
+                    out = evaluate_vec_policy(
+                        frozen, self.venv, episodes, self.venv.labels, seed=seed, env_ids=self.env_ids, stop=self._stop
+                    )
+                self.venv.timing_window()
+            except BaseException as exc:  # noqa: BLE001 - handed over by take()
+                out = exc
+            self._outcome = (step, time.monotonic() - t0, out)
+
+        self._thread = threading.Thread(target=run, name=f"eval-in-thread-{step}", daemon=True)
+        self._thread.start()
+
+    def take(self, model: Any, step: int, episodes: int, seed: int) -> tuple[int, float, list[EvalResult]] | None:
+        if self._thread is None or self._thread.is_alive():
+            return None
+        self._thread.join()
+        self._thread = None
+        assert self._outcome is not None
+        done_step, took_s, out = self._outcome
+        if isinstance(out, BaseException):
+            raise out
+        return done_step, took_s, out
+
+    def cancel(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join(60.0)
+            self._thread = None
+            self._stop.clear()
+
+    def close(self) -> None:
+        try:
+            self.cancel()
+        finally:
+            self.venv.close()
+
+
+class _Frozen:
+    def __init__(self, policy: Any, stats: Any) -> None:
+        self.policy, self.stats = policy, stats
+
+    def predict(self, observation: Any, deterministic: bool = True) -> tuple[Any, None]:
+        return self.policy.predict(observation, deterministic=deterministic)[0], None
+
+    def get_vec_normalize_env(self) -> Any:
+        return self.stats
+
+
+class _Alternating:
+    """``Alongside``'s API over the evaluation process and the in-thread path: the periodic evaluations take turns,
+    the final one runs in the evaluation process; the load average is read at every ``take``."""
+
+    def __init__(self, process: Any, in_thread: _InThread, loads: list[float]) -> None:
+        self.process, self.in_thread, self.loads = process, in_thread, loads
+        self.labels = process.labels
+        self.samples = process.samples  # timing.json's eval_envs: the evaluation process's arms
+        self._turn = 0
+        self._active: Any = None
+        self._due = False
+
+    @property
+    def real_time_class(self) -> bool:
+        return bool(self.process.real_time_class)
+
+    def busy(self) -> bool:
+        return self._active is not None
+
+    def request(self, model: Any, step: int, episodes: int, seed: int) -> None:
+        if self.busy():
+            self._due = True
+            return
+        self._active = (self.process, self.in_thread)[self._turn % 2]
+        self._turn += 1
+        self._active.request(model, step, episodes, seed)
+
+    def take(self, model: Any, step: int, episodes: int, seed: int) -> tuple[int, float, list[EvalResult]] | None:
+        self.loads.append(os.getloadavg()[0])
+        if self._active is None:
+            return None
+        done = self._active.take(model, step, episodes, seed)
+        if done is None:
+            return None
+        self._active = None
+        if self._due:
+            self._due = False
+            self.request(model, step, episodes, seed)
+        return done  # type: ignore[no-any-return]
+
+    def evaluate(self, model: Any, episodes: int, seed: int) -> list[EvalResult]:
+        return self.process.evaluate(model, episodes, seed)  # type: ignore[no-any-return]
+
+    def cancel(self) -> None:
+        self._due = False
+        if self._active is not None:
+            self._active.cancel()
+            self._active = None
+
+    def close(self) -> None:
+        try:
+            self.process.close()
+        finally:
+            self.in_thread.close()
+
+
 @contextlib.contextmanager
-def _alternating(cycles: dict[bool, dict[str, list[float]]]) -> Iterator[None]:
-    """Evaluations alternate between the real-time class and none; each one's action cycles go to ``cycles[its
-    class]`` per env label."""
-    calls = [0]
+def _both_paths(out: dict[str, Any]) -> Iterator[None]:
+    """``train`` opens an ``_Alternating`` instead of its evaluation process alone; it lands in ``out["paths"]``, the
+    training envs (their ``ConcurrentVecEnv``) in ``out["training"]``."""
+    open_alongside = recipes.open_alongside
+    build_concurrent_env = recipes.build_concurrent_env
 
-    def every_other() -> Any:
-        calls[0] += 1
-        return real_time_thread() if calls[0] % 2 else contextlib.nullcontext(False)
+    def kept(cfg: Any) -> Any:
+        venv, layout = build_concurrent_env(cfg)
+        out["training"] = venv
+        return venv, layout
 
-    evaluate = alongside.Alongside.evaluate
+    def both(specs: Sequence[tuple[str, str, dict[str, Any]]], *, real_time: bool, torch_threads: int = 1) -> Any:
+        process = open_alongside(specs, real_time=real_time, torch_threads=torch_threads)
+        try:
+            in_thread = _InThread(specs, real_time)
+        except BaseException:
+            process.close()
+            raise
+        out["paths"] = _Alternating(process, in_thread, out.setdefault("loads", []))
+        return out["paths"]
 
-    def recorded(self: Any, *a: Any, **k: Any) -> Any:
-        had = {label: len(m["action_cycle"]) for label, m in self.venv.samples.items()}
-        out = evaluate(self, *a, **k)
-        for label, m in self.venv.samples.items():
-            cycles[self.real_time_class].setdefault(label, []).extend(m["action_cycle"][had.get(label, 0) :])
-        return out
-
-    alongside.real_time_thread = every_other
-    alongside.Alongside.evaluate = recorded
+    recipes.open_alongside = both  # type: ignore[assignment]
+    recipes.build_concurrent_env = kept
     try:
         yield
     finally:
-        alongside.real_time_thread = real_time_thread
-        alongside.Alongside.evaluate = evaluate
+        recipes.open_alongside = open_alongside
+        recipes.build_concurrent_env = build_concurrent_env
 
 
 @contextlib.contextmanager
@@ -149,43 +290,73 @@ def _collections(out: dict[str, Any]) -> Iterator[None]:
 
 
 def _run(seconds: float, run_dir: Path) -> dict[str, Any]:
-    cycles: dict[bool, dict[str, list[float]]] = {True: {}, False: {}}
     heap: dict[str, Any] = {}
-    with _alternating(cycles), _collections(heap):
+    both: dict[str, Any] = {}
+    with _both_paths(both), _collections(heap):
         recipes.train(_config(run_dir, seconds))
+    paths = both["paths"]
+    samples = {PROCESS: paths.process.samples, THREAD: paths.in_thread.venv.samples, TRAINING: both["training"].samples}
     timing = json.loads((run_dir / "timing.json").read_text())
-    return {"cycles": {str(k): v for k, v in cycles.items()}, "heap": heap, "timing": timing}
+    return {
+        "samples": samples,
+        "loads": both.get("loads", []),
+        "real_time_class": paths.real_time_class,
+        "heap": heap,
+        "timing": timing,
+    }
 
 
-def _iqr(samples: list[float]) -> float:
-    q = statistics.quantiles(samples, n=4)
-    return q[2] - q[0]
+def _rows(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per evaluation arm and path (every run's samples pooled), and the training arms: the latency table's rows."""
+    rows = []
+    for path in (PROCESS, THREAD, TRAINING):
+        for label in results[0]["samples"][path]:
+            for metric in TIMING_METRICS:
+                pooled = [x for r in results for x in r["samples"][path][label][metric]]
+                rows.append(_row(label, path, metric, summary(pooled)))
+    return rows
+
+
+def _row(label: str, learner: str, metric: str, s: dict[str, float]) -> dict[str, Any]:
+    def num(key: str) -> float | None:
+        v = s[key]
+        return None if v != v else round(float(v), 3)  # NaN: no samples
+
+    return {
+        "env": label,
+        "learner": learner,
+        "metric": metric,
+        "median_ms": num("p50"),
+        "iqr_ms": num("iqr"),
+        "p99_ms": num("p99"),
+        "max_ms": num("max"),
+        "count": int(s["count"]),
+    }
 
 
 def _print(results: list[dict[str, Any]], seconds: float) -> None:
+    loads = [x for r in results for x in r["loads"]]
+    load = f"load average (1 min) {min(loads):.1f}-{max(loads):.1f}" if loads else "load average unknown"
     print(
         f"\nhost {platform.node()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; four arms training and four"
-        f" evaluated alongside on the wall clock, action cycle {CYCLE_S} s, {seconds:g} s per run"
+        f" evaluated alongside on the wall clock, action cycle {CYCLE_S} s, {seconds:g} s per run; {load}"
     )
-    print("\nevaluation arms' action cycle (ms), evaluations alternating between the real-time class and none")
-    head = f"{'run':>3} {'env':<11} {'class':<9} {'median':>8} {'IQR':>7} {'p99':>8} {'n':>5}"
+    print(
+        "\naction cycle (ms): the evaluation arms, evaluations alternating between the evaluation process and a thread"
+        " of the agent process, and the training arms"
+    )
+    head = f"{'run':>3} {'env':<11} {'path':<28} {'median':>8} {'IQR':>7} {'p99':>8} {'n':>5}"
     print(head + "\n" + "-" * len(head))
     for i, r in enumerate(results, 1):
-        for rt in ("False", "True"):
-            for label, samples in sorted(r["cycles"][rt].items()):
-                if len(samples) < 4:
+        for path in (PROCESS, THREAD, TRAINING):
+            for label, metrics in r["samples"][path].items():
+                cyc = metrics["action_cycle"]
+                if len(cyc) < 4:
+                    print(f"{i:>3} {label:<11} {path:<28} {'(fewer than 4 cycles)':>30}")
                     continue
-                p99 = statistics.quantiles(samples, n=100)[98]
-                cls = "real-time" if rt == "True" else "ordinary"
-                med, iqr = statistics.median(samples), _iqr(samples)
-                print(f"{i:>3} {label:<11} {cls:<9} {med:>8.2f} {iqr:>7.2f} {p99:>8.2f} {len(samples):>5}")
-    print("\nthe training arms' action cycle over the run (ms, timing.json): median / IQR")
-    for i, r in enumerate(results, 1):
-        envs = r["timing"]["envs"]
-        print(
-            f"{i:>3} "
-            + ", ".join(f"{k} {v['action_cycle']['p50']:.1f} / {v['action_cycle']['iqr']:.2f}" for k, v in envs.items())
-        )
+                s = summary(cyc)
+                print(f"{i:>3} {label:<11} {path:<28} {s['p50']:>8.2f} {s['iqr']:>7.2f} {s['p99']:>8.2f} {len(cyc):>5}")
+        print(f"    real-time class in the evaluation process: {r['real_time_class']}")
     print("\nthe agent process's heap when the learner starts: one full collection, frozen and unfrozen")
     for i, r in enumerate(results, 1):
         h = r["heap"]
@@ -206,14 +377,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=150.0, help="wall time of each training run")
     parser.add_argument("--runs", type=int, default=1)
-    parser.add_argument("--json", help="write every run's records here")
+    parser.add_argument("--json", help="write the rows, the load and every run's records here")
     args = parser.parse_args()
     results = []
     with tempfile.TemporaryDirectory(prefix="agent_rt_") as tmp:
         for k in range(1, args.runs + 1):
             results.append(_run(args.seconds, Path(tmp) / f"run_{k}"))
             if args.json:
-                Path(args.json).write_text(json.dumps(results, indent=1))
+                loads = [x for r in results for x in r["loads"]]
+                out = {
+                    "rows": _rows(results),
+                    "load_average": [min(loads), statistics.median(loads), max(loads)] if loads else None,
+                    "runs": results,
+                }
+                Path(args.json).write_text(json.dumps(out, indent=1))
     _print(results, args.seconds)
 
 
