@@ -64,8 +64,8 @@ class DxlBenchConfig:
 
 
 @contextlib.contextmanager
-def _vbus(servo_map: str, baud: int | None, rt: bool = False) -> Iterator[str]:
-    argv = [sys.executable, "-m", "uniros_async.cli", "robot", "vbus", servo_map]
+def _vbus(servo_map: str, baud: int | None, rt: bool = False, extra: Sequence[str] = ()) -> Iterator[str]:
+    argv = [sys.executable, "-m", "uniros_async.cli", "robot", "vbus", servo_map, *extra]
     if baud:
         argv += ["--baud", str(baud)]
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, text=True)
