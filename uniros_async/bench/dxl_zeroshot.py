@@ -10,8 +10,9 @@ actors' (``priority.real_time_thread``), and the heap is frozen, as a worker pro
 Episode ``k`` resets with seed ``seed * 100_000 + k``, so every episode's goal is fixed whatever happened before
 it. An episode that a ``RobotError`` ends (the arm's bus silent past the servos' watchdog, or servos that did not
 answer within the bus's retries: a stalled host) counts as failed and is reported as aborted; the env is then
-built again (a new start-up on the same bus) and the run goes on. The result: successes of ``episodes``, the 95 % Wilson interval, mean return and length, the aborted
-episodes and their errors, the host's load average; ``--json`` writes it.
+built again (a new start-up on the same bus) and the run goes on. The result: successes of ``episodes``, the 95 %
+Wilson interval, mean return and length, the aborted episodes and their errors, the host's load average; ``--json``
+writes it.
 """
 
 from __future__ import annotations
