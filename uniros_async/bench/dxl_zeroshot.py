@@ -4,8 +4,8 @@ virtual Dynamixel bus with the emulated real arm's perturbations.
 A ``uniros robot vbus rx200 --emulate-real`` process (in the real-time class above every loop, as the servos answer
 whatever the host runs) and, in this process, the reach env with ``robot="dxl://PTY?profile_ms=0&..."`` on the wall
 clock, driven by the weights-only policy (``training.weights.load_policy``: NumPy, no torch). Once the env has
-started, the threads it started go into the loops' real-time class (rank ``rank``) and this thread into the
-actors' (``priority.real_time_thread``), and the heap is frozen, as a worker process and a real-time agent do.
+started the heap is frozen, as a worker process does; with ``rank`` the threads it started go into the loops'
+real-time class at that rank and this thread into the actors' (``priority.real_time_thread``).
 
 Episode ``k`` resets with seed ``seed * 100_000 + k``, so every episode's goal is fixed whatever happened before
 it. An episode that a ``RobotError`` ends (the arm's bus silent past the servos' watchdog, or servos that did not
@@ -18,6 +18,7 @@ writes it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import gc
 import json
@@ -45,9 +46,10 @@ class ZeroShotConfig:
     emulation_seed: int = 0
     query: str = "profile_ms=0&margin_ms=100&rate=50"
     """The ``dxl://`` query after the pty's path (``placement.parse_dxl_uri``)."""
-    rank: int = 14
-    """The env loop's real-time rank (``priority.raise_loop_priority``): below the servos (the vbus), above the
-    ordinary loops of other vector envs on the host."""
+    rank: int | None = None
+    """The env loop's real-time rank (``priority.raise_loop_priority``), and this thread in the actors' class; None:
+    both stay in the ordinary class. On a pty the bytes between its two ends are moved by a kernel worker of the
+    ordinary class, which real-time threads that keep the cores busy hold up."""
     json_path: str | None = None
 
     def __post_init__(self) -> None:
@@ -84,7 +86,8 @@ def main(config: ZeroShotConfig, *, log: Callable[[str], None] = print) -> dict[
     aborted: list[dict[str, Any]] = []
     t_start = time.monotonic()
     extra = ["--emulate-real", "--seed", str(config.emulation_seed)]
-    with _vbus("rx200", None, rt=True, extra=extra) as path, real_time_thread() as rt:
+    actor = real_time_thread() if config.rank is not None else contextlib.nullcontext(False)
+    with _vbus("rx200", None, rt=True, extra=extra) as path, actor as rt:
         env: Any = None
         try:
             for ep in range(config.episodes):
@@ -94,8 +97,9 @@ def main(config: ZeroShotConfig, *, log: Callable[[str], None] = print) -> dict[
                 try:
                     obs, _ = env.reset(seed=config.seed * 100_000 + ep)
                     if before:
-                        for tid in thread_ids() - before:
-                            raise_loop_priority(config.rank, thread_id=tid)
+                        if config.rank is not None:
+                            for tid in thread_ids() - before:
+                                raise_loop_priority(config.rank, thread_id=tid)
                         before = set()
                         freeze_heap()
                     done = False
@@ -163,6 +167,7 @@ def _parse(argv: Sequence[str] | None) -> ZeroShotConfig:
     p.add_argument("--seed", type=int, default=0, help="episode k resets with seed SEED * 100000 + k")
     p.add_argument("--emulation-seed", type=int, default=0, help="the emulated arm's seed (vbus --seed)")
     p.add_argument("--query", default=ZeroShotConfig.query, help="the dxl:// query (default %(default)s)")
+    p.add_argument("--rank", type=int, default=None, help="the env loop's real-time rank (default: ordinary class)")
     p.add_argument("--json", dest="json_path", default=None, metavar="PATH")
     a = p.parse_args(argv)
     return ZeroShotConfig(
@@ -171,6 +176,7 @@ def _parse(argv: Sequence[str] | None) -> ZeroShotConfig:
         seed=a.seed,
         emulation_seed=a.emulation_seed,
         query=a.query,
+        rank=a.rank,
         json_path=a.json_path,
     )
 
