@@ -87,7 +87,7 @@ def main(config: ZeroShotConfig, *, log: Callable[[str], None] = print) -> dict[
     t_start = time.monotonic()
     extra = ["--emulate-real", "--seed", str(config.emulation_seed)]
     actor = real_time_thread() if config.rank is not None else contextlib.nullcontext(False)
-    with _vbus("rx200", None, rt=True, extra=extra) as path, actor as rt:
+    with _vbus("rx200", None, rt=False, extra=extra) as path, actor as rt:  # the vbus takes the servos' class itself
         env: Any = None
         try:
             for ep in range(config.episodes):
