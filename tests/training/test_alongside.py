@@ -257,3 +257,35 @@ def test_ctrl_c_of_uniros_train_leaves_no_evaluation_process(tmp_path: Path) -> 
     while [p for p in family if _running(p)] and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not [p for p in family if _running(p)], "".join(lines[-30:])
+
+
+AGENT_SCRIPT = """
+import time
+from uniros_async.training.alongside import open_alongside
+alongside = open_alongside({specs!r}, real_time=False)
+print("ready", alongside.process.pid, flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.mark.slow
+def test_an_agent_killed_leaves_no_evaluation_process(tmp_path: Path) -> None:
+    """A script with no ``if __name__ == "__main__":`` opens an evaluation process (it is not re-imported there),
+    then dies by SIGKILL: the evaluation process sees the agent's end of the connection close, closes its envs and
+    exits, its workers with it."""
+    script = tmp_path / "agent.py"
+    script.write_text(AGENT_SCRIPT.format(specs=SPECS))
+    with subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True) as agent:
+        try:
+            assert agent.stdout is not None
+            line = agent.stdout.readline()  # the script's only line, or "" if it died
+            assert line.startswith("ready"), line
+            family = _descendants(agent.pid)
+            assert int(line.split()[1]) in family and len(family) >= 2, family  # the process and its worker
+        finally:
+            agent.kill()
+            agent.wait(10.0)
+    deadline = time.monotonic() + 30.0
+    while [p for p in family if _running(p)] and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [p for p in family if _running(p)]

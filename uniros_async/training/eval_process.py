@@ -11,8 +11,10 @@ would leave it little time to learn. In a process of its own the evaluation has 
 step can hold its GIL. ``benchmarks/agent_realtime.py`` measures both ways in one run (docs/performance.md,
 "The agent process in real time").
 
-The process (``open_eval_process``): spawned (no threads or torch state inherited), it ignores SIGINT (the agent's
-Ctrl-C is the agent's business, which closes it) and closes its envs on SIGTERM; it opens the envs with
+The process (``open_eval_process``) is a fresh interpreter, started as the env workers are (runtime/launch.py: not
+multiprocessing's spawn, which would re-import the agent's main script), its spec and the agent's ``sys.path`` read
+from its stdin. It ignores SIGINT (the agent's Ctrl-C is the agent's business, which closes it) and closes its envs
+on SIGTERM; it opens the envs with
 ``open_concurrent_env`` (their workers are its children and stop when it exits), sets torch to the agent's thread
 count, freezes its heap once set up (``priority.freeze_heap``) and then evaluates one request at a time, on its
 main thread, in the real-time class when asked (``priority.real_time_thread``, as the agent's acting thread). A
@@ -20,7 +22,7 @@ second thread only reads the pipe (blocked in ``recv`` without the GIL) and wake
 request, a stop or the close. When the agent's end of the pipe closes (the agent died), it stops the evaluation and
 closes the envs; if that has not ended the process within ``ORPHAN_EXIT_S``, it exits anyway.
 
-Messages (pickled tuples on one duplex pipe)::
+Messages (pickled tuples on one socket pair, ``multiprocessing.connection.Connection`` at both ends)::
 
     child:  ("ready", labels) | ("failed", error)                                   start-up
     agent:  ("evaluate", rid, EvalRequest) | ("stop", rid) | ("close",)
@@ -28,28 +30,36 @@ Messages (pickled tuples on one duplex pipe)::
 
 A request carries the policy's weights as numpy arrays (its actor's, for TD3's policies), the policy's class and
 constructor arguments when the process has not seen that policy yet, and the observation statistics frozen at the
-same step (``normalize_obs``). Progress is a step counter in shared memory (a ``RawValue``: no file left behind),
-raised after every vector step and reset: every wait of the agent on the process ends when the process exits, or
-when the counter has not moved for ``STALL_S``.
+same step (``normalize_obs``). Progress is a step counter in shared memory (8 bytes of a memfd both map: no file
+left behind), raised after every vector step and reset: every wait of the agent on the process ends when the process
+exits, or when the counter has not moved for ``STALL_S``. An evaluation process still running when the agent's
+interpreter exits is closed then (``atexit``).
 """
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import logging
-import multiprocessing
+import mmap
 import multiprocessing.connection
 import os
 import pickle
 import queue
 import signal
+import socket
+import struct
+import subprocess
+import sys
 import threading
 import time
 import traceback
+import weakref
 from collections.abc import Sequence
 from typing import Any
 
+import uniros_async
 from uniros_async.errors import EvaluationStopped, UnirosError, WorkerError
 
 __all__ = [
@@ -73,6 +83,10 @@ ORPHAN_EXIT_S = 30.0
 """How long the process, once the agent is gone, gives its envs to close before it exits anyway."""
 READY_MARGIN_S = 60.0
 """Added to the envs' start timeout for the process's own start-up (imports) when waiting for it to be ready."""
+
+_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(uniros_async.__file__)))
+"""First on the process's PYTHONPATH, so that it imports this copy of ``uniros_async`` (as the workers do)."""
+_LIVE: weakref.WeakSet[EvalProcess] = weakref.WeakSet()
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -109,6 +123,25 @@ class _Spec:
     real_time: bool
     torch_threads: int
     start_timeout_s: float
+    sys_path: tuple[str, ...]
+
+
+class _Counter:
+    """The progress counter: one signed 64-bit integer in a shared mapping of a memfd."""
+
+    def __init__(self, fd: int) -> None:
+        self._map = mmap.mmap(fd, 8)
+
+    @property
+    def value(self) -> int:
+        return int(struct.unpack_from("q", self._map, 0)[0])
+
+    @value.setter
+    def value(self, n: int) -> None:
+        struct.pack_into("q", self._map, 0, n)
+
+    def close(self) -> None:
+        self._map.close()
 
 
 # ---------------------------------------------------------------- errors across the pipe
@@ -218,16 +251,31 @@ def _load(policy: Any, request: EvalRequest) -> Any:
     return policy
 
 
-def _child_main(spec: _Spec, conn: multiprocessing.connection.Connection, progress: Any) -> None:
-    """Process target: open the envs, then evaluate requests until closed (see the module docstring)."""
+def serve() -> None:
+    """The process's entry point (``python -c``, argv: the connection's and the counter's descriptors): read the
+    spec from stdin, then ``_child_main``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def on_term(signum: int, frame: Any) -> None:
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, on_term)
-    # multiprocessing forbids children of daemon processes; the envs' workers are ours, and exit with us
-    multiprocessing.current_process()._config["daemon"] = False  # type: ignore[attr-defined]
+    spec = pickle.load(sys.stdin.buffer)
+    if not isinstance(spec, _Spec):
+        raise RuntimeError(f"expected the evaluation process's spec on stdin, got {type(spec).__name__}")
+    for path in reversed(spec.sys_path):  # a "module:Id" env beside the agent's script is found
+        if path not in sys.path:
+            sys.path.insert(0, path)
+    conn = multiprocessing.connection.Connection(int(sys.argv[1]))
+    progress = _Counter(int(sys.argv[2]))
+    try:
+        _child_main(spec, conn, progress)
+    finally:
+        progress.close()
+
+
+def _child_main(spec: _Spec, conn: multiprocessing.connection.Connection, progress: _Counter) -> None:
+    """Open the envs, then evaluate requests until closed (see the module docstring)."""
     import torch
     from stable_baselines3.common.vec_env import VecEnvWrapper
 
@@ -302,7 +350,7 @@ class EvalProcess:
     """The agent's handle on an evaluation process (``open_eval_process``): one request at a time."""
 
     def __init__(
-        self, process: multiprocessing.process.BaseProcess, conn: multiprocessing.connection.Connection, progress: Any
+        self, process: subprocess.Popen[bytes], conn: multiprocessing.connection.Connection, progress: _Counter
     ) -> None:
         self.process = process
         self.labels: list[str] = []
@@ -310,9 +358,11 @@ class EvalProcess:
         self._progress = progress
         self._rid = 0
         self._seen = (-1, time.monotonic())  # the progress counter's last value and when it was first seen
+        self._closed = False
+        _LIVE.add(self)
 
     @property
-    def pid(self) -> int | None:
+    def pid(self) -> int:
         """The process's id."""
         return self.process.pid
 
@@ -375,20 +425,24 @@ class EvalProcess:
     def close(self) -> None:
         """Ask the process to close its envs and exit; terminate it if it has not within ``CLOSE_S`` (then kill it
         if SIGTERM did not end it). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        _LIVE.discard(self)
         with contextlib.suppress(OSError):
             self._conn.send(("close",))
-        self.process.join(CLOSE_S)
-        if self.process.is_alive():
-            logger.warning("the evaluation process did not exit within %.0f s; terminating it", CLOSE_S)
-            self.process.terminate()
-            self.process.join(10.0)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join(5.0)
+        for stop, wait_s in ((None, CLOSE_S), (self.process.terminate, 10.0), (self.process.kill, 5.0)):
+            if stop is not None:
+                logger.warning("the evaluation process did not exit; %s", stop.__name__)
+                stop()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.process.wait(wait_s)
+                break
         self._conn.close()
+        self._progress.close()
 
     def _check_alive(self) -> None:
-        if not self.process.is_alive():
+        if self.process.poll() is not None:
             raise self._gone()
         value, since = self._seen
         now = time.monotonic()
@@ -398,8 +452,17 @@ class EvalProcess:
             raise UnirosError(f"the evaluation process made no progress (no step, no reset) for {STALL_S:.0f} s")
 
     def _gone(self) -> UnirosError:
-        self.process.join(1.0)
-        return UnirosError(f"the evaluation process exited (exit code {self.process.exitcode})")
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.process.wait(1.0)
+        return UnirosError(f"the evaluation process exited (exit code {self.process.returncode})")
+
+
+@atexit.register
+def _close_live() -> None:
+    """Close the evaluation processes still running when the interpreter exits."""
+    for handle in list(_LIVE):
+        with contextlib.suppress(Exception):
+            handle.close()
 
 
 def open_eval_process(
@@ -422,27 +485,55 @@ def open_eval_process(
         ConfigError, WorkerError: what opening the envs raised in the process.
         UnirosError: the process exited, or was not ready within ``start_timeout_s`` + ``READY_MARGIN_S``.
     """
-    ctx = multiprocessing.get_context("spawn")
     spec = _Spec(
         specs=tuple((label, env_id, dict(kw)) for label, env_id, kw in specs),
         env_ids=tuple(env_id for _, env_id, _ in specs),
         real_time=real_time,
         torch_threads=torch_threads,
         start_timeout_s=start_timeout_s,
+        sys_path=tuple(p for p in sys.path if isinstance(p, str)),
     )
-    ours, theirs = ctx.Pipe()
-    progress = ctx.RawValue("q", 0)
-    # daemon: multiprocessing ends it at the agent's exit if close() was never reached
-    proc = ctx.Process(target=_child_main, args=(spec, theirs, progress), name="uniros-eval-alongside", daemon=True)
-    proc.start()
-    theirs.close()
-    handle = EvalProcess(proc, ours, progress)
+    ours, theirs = socket.socketpair()
+    counter_fd = os.memfd_create("uniros-eval-progress")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (_PACKAGE_ROOT, env.get("PYTHONPATH", "")) if p)
+    progress: _Counter | None = None
     try:
+        os.ftruncate(counter_fd, 8)
+        progress = _Counter(counter_fd)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                "from uniros_async.training.eval_process import serve; serve()",
+                str(theirs.fileno()),
+                str(counter_fd),
+            ],
+            stdin=subprocess.PIPE,
+            pass_fds=(theirs.fileno(), counter_fd),
+            env=env,
+        )
+    except BaseException:
+        ours.close()
+        if progress is not None:
+            progress.close()
+        raise
+    finally:
+        theirs.close()
+        os.close(counter_fd)
+    handle = EvalProcess(proc, multiprocessing.connection.Connection(ours.detach()), progress)
+    try:
+        assert proc.stdin is not None
+        with contextlib.suppress(BrokenPipeError):  # it exited at once: told below
+            proc.stdin.write(pickle.dumps(spec))
+        with contextlib.suppress(BrokenPipeError):
+            proc.stdin.close()
+        conn = handle._conn
         wait_s = start_timeout_s + READY_MARGIN_S
-        if not ours.poll(wait_s):
+        if not conn.poll(wait_s):
             raise UnirosError(f"the evaluation process was not ready within {wait_s:.0f} s")
         try:
-            msg = ours.recv()
+            msg = conn.recv()
         except (EOFError, OSError) as exc:
             raise handle._gone() from exc
         if msg[0] == "failed":
