@@ -6,21 +6,20 @@ observations arrive. On a thread of the agent process it shares the GIL with the
 (async_td3.py), whose update steps run Python between torch's kernels: when the arms' observations arrive during
 an update, the evaluation thread waits for the GIL whatever its OS priority (the real-time class decides who gets
 a core, not who gets the GIL), and its arms' action cycles spread by up to a switch interval and more. The learner
-already yields to the acting thread of training; making it also yield to a second, independently timed actor
-would leave it little time to learn. In a process of its own the evaluation has its own interpreter: no learner
-step can hold its GIL. ``benchmarks/agent_realtime.py`` measures both ways in one run (docs/performance.md,
-"The agent process in real time").
+yields to the acting thread of training (async_td3.py), whose cycle it can see; yielding to a second actor on a
+cycle of its own as well would need the learner to keep clear of both. In a process of its own the evaluation has
+its own interpreter and needs no such coordination: no learner step can hold its GIL. ``benchmarks/agent_realtime.py``
+measures the process against the thread in one run (docs/performance.md, "The agent process in real time").
 
 The process (``open_eval_process``) is a fresh interpreter, started as the env workers are (runtime/launch.py: not
 multiprocessing's spawn, which would re-import the agent's main script), its spec and the agent's ``sys.path`` read
 from its stdin. It ignores SIGINT (the agent's Ctrl-C is the agent's business, which closes it) and closes its envs
-on SIGTERM; it opens the envs with
-``open_concurrent_env`` (their workers are its children and stop when it exits), sets torch to the agent's thread
-count, freezes its heap once set up (``priority.freeze_heap``) and then evaluates one request at a time, on its
-main thread, in the real-time class when asked (``priority.real_time_thread``, as the agent's acting thread). A
-second thread only reads the pipe (blocked in ``recv`` without the GIL) and wakes only when the agent writes: for a
-request, a stop or the close. When the agent's end of the pipe closes (the agent died), it stops the evaluation and
-closes the envs; if that has not ended the process within ``ORPHAN_EXIT_S``, it exits anyway.
+on SIGTERM; it opens the envs with ``open_concurrent_env`` (their workers are its children and stop when it exits),
+sets torch to the agent's thread count, freezes its heap once set up (``priority.freeze_heap``) and then evaluates
+one request at a time, on its main thread, in the real-time class when asked (``priority.real_time_thread``, as the
+agent's acting thread). A second thread only reads the connection (blocked in ``recv`` without the GIL) and wakes
+only when the agent writes: a request, a stop or the close. When the agent's end closes (the agent died), it stops
+the evaluation and closes the envs; if that has not ended the process within ``ORPHAN_EXIT_S``, it exits anyway.
 
 Messages (pickled tuples on one socket pair, ``multiprocessing.connection.Connection`` at both ends)::
 
@@ -70,6 +69,7 @@ __all__ = [
     "EvalReply",
     "EvalRequest",
     "open_eval_process",
+    "serve",
 ]
 
 logger = logging.getLogger(__name__)
