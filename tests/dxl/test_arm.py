@@ -218,6 +218,23 @@ async def test_a_bus_silent_past_the_watchdog_is_a_robot_error(vbus: Vbus) -> No
     assert vbus.expect(("watchdog id=1",), 2.0)
 
 
+async def test_servos_stopped_by_their_watchdog_are_found_even_when_the_host_saw_no_silence(vbus: Vbus) -> None:
+    async with await open_dxl_bus(vbus.path, margin_s=MARGIN_MS / 1e3) as bus:
+        arm = DxlArm(bus, RX200)
+        await arm.start()
+        await _sleep(0.25)  # before the first command the stop held the servos where start-up put them: armed again
+        await arm.check_watchdogs()
+        with sdk_port(vbus.path) as (port, ph):
+            assert read(ph, port, 1, 98, 1) == 5  # 100 ms in 20 ms units, armed again
+        state = await arm.read_state(0)
+        await arm.write_goals(state.joint_state.position[:5])
+        # the host's packets held up past the watchdog (here: none sent), seen by the servos and not by the host
+        await _sleep(0.25)
+        with pytest.raises(RobotError, match=r"'waist' \(servo ID 1\).*stopped on the Bus Watchdog \(100 ms\)"):
+            await arm.check_watchdogs()
+    assert vbus.expect(("watchdog id=1",), 2.0)
+
+
 def test_the_bus_loop_keeps_two_ticks_per_watchdog_window() -> None:
     from uniros_async.hardware.dxl.placement import _rate
 

@@ -14,9 +14,11 @@ Start-up (``start``), in the order that keeps the arm still:
 Each tick (``read_state`` and ``write_goals``) is one sync read of the contiguous present current (load on the
 XL430), velocity and position block of every answering servo, and one sync write of the arm's goal positions; the
 gripper, a group of its own in PWM mode, gets its own sync write when its command changes. The temperatures are a
-sync read of their own (``read_temperatures``), taken far less often. Goals meet the servos' position limits in
-ticks before they reach the wire, by the ROS bridges' policy: at most ``LIMIT_CLAMP_RAD`` past a limit, clamped to
-it; further out, refused (the arm keeps its last goal). Each joint's clamp and refusal is said once in the log.
+sync read of their own (``read_temperatures``), taken far less often, and so are the Bus Watchdogs
+(``check_watchdogs``: a servo stopped by its watchdog refuses goals, which no sync write reports). Goals meet the
+servos' position limits in ticks before they reach the wire, by the ROS bridges' policy: at most ``LIMIT_CLAMP_RAD``
+past a limit, clamped to it; further out, refused (the arm keeps its last goal). Each joint's clamp and refusal is
+said once in the log.
 
 Errors are ``RobotError``s that name the joint, the ID and what happened: a servo whose status has the alert bit
 (its Hardware_Error_Status names the error bits; the arm holds, and the servo is rebooted only when asked,
@@ -429,6 +431,33 @@ class DxlArm:
         except DxlError as exc:
             raise self._error("reading the temperatures", exc) from exc
         return {s.joint: float(raw[s.id][0]) for s in self.read_servos}
+
+    async def check_watchdogs(self) -> None:
+        """One sync read of Bus_Watchdog (98) of every arm and gripper servo: a servo whose watchdog stopped it
+        refuses goals, and a sync write has no status to say so, so this is how a stop the host did not see
+        itself (its packets held up on the way to the servos past the watchdog time) comes out.
+
+        Raises:
+            RobotError: a servo stopped on its Bus Watchdog after the arm was commanded (naming it; the arm
+                holds, as the stopped servos do), or the bus failed.
+        """
+        try:
+            raw = await self.bus.sync_read(98, 1, self.read_ids)
+        except DxlError as exc:
+            raise self._error("reading the bus watchdogs", exc) from exc
+        stopped = [s for s in self.read_servos if int.from_bytes(raw[s.id], "little", signed=True) < 0]
+        if not stopped:
+            return
+        if not self._commanded:
+            await self._arm_watchdog()  # the stop held the servos where start-up put them
+            return
+        await self._hold_quietly()
+        names = ", ".join(f"{s.joint!r} (servo ID {s.id})" for s in stopped)
+        raise RobotError(
+            f"{self.robot.name}: {names} stopped on the Bus Watchdog ({self.map.bus_watchdog_ms} ms) and refuse "
+            "goals, though this host's last tick was in time: its packets were held up on the way to the servos "
+            "(a stalled link or host); start the env again"
+        )
 
     # ------------------------------------------------------------------------------------------ errors
 

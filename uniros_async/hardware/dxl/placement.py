@@ -15,8 +15,9 @@ each goal at the servos' full speed, as the sim a policy trained on moves its se
 The placement opens a memory domain in the env's process and runs ``DxlArmNode`` on it: a node in the robot's
 namespace that publishes ``joint_states`` and takes ``command`` as every other placement's arm does, and serves
 ``hold`` and ``stats`` (the bus's counters and cycle time, the present current and, read once a second, the
-temperature of each servo). Its loop is one task: each tick one sync read (published as the joint state) and one
-sync write of the newest command's goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
+temperature of each servo; the servos' Bus Watchdogs are read once a second too, ``DxlArm.check_watchdogs``). Its
+loop is one task: each tick one sync read (published as the joint state) and one sync write of the newest command's
+goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
 A ``RobotError`` of the arm (hardware error, a silent servo: the bus's timeouts are milliseconds, well within the
 env's ``robot_timeout_s``) ends the node's task and, with it, the env's loop: the env's next call raises that
 RobotError, which names the joint, the servo's ID and what happened.
@@ -205,6 +206,7 @@ class DxlArmNode:
         self.ticks += 1
         if self.ticks % max(1, round(self.rate_hz * TEMPERATURE_PERIOD_S)) == 1:
             self.temperature_c = await self.arm.read_temperatures()
+            await self.arm.check_watchdogs()
         sub = self.commands
         if sub.received != self._seen:
             self._seen = sub.received
