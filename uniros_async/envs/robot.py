@@ -71,6 +71,9 @@ each member's ``RobotEnv.loop_phase_ns``: the agent gets every member's returns 
 LOOP_PHASE_MAX_FRACTION = 4
 """``RobotEnv.loop_phase_ns`` is capped at a quarter of the loop's period, so a tick still sees the state its servo
 published at the period's start."""
+_SIM_WALL_BACKSTOP_S = 60.0
+"""On a sim clock, how long in wall time a wait for the arm's first joint state lasts at most (the wait's own
+timeout counts sim time)."""
 
 
 def _local_host_toward(uri: str) -> str:
@@ -371,16 +374,23 @@ class RobotEnv(BaseEnv):
         raise self._stale_error(what)
 
     async def _wait_for_state(self, after_ns: int | None, timeout_s: float | None = None) -> JointState:
-        """The first joint state stamped after ``after_ns`` (any, when None), waiting on the env's clock."""
+        """The first joint state stamped after ``after_ns`` (any, when None), waiting on the env's clock.
+
+        On a sim clock the arm runs in this process on the same clock, so its states are due within ``timeout_s``
+        of sim time, however slowly a loaded host runs the sim; ``_SIM_WALL_BACKSTOP_S`` of wall time catches a
+        sim clock that stopped."""
         timeout_s = timeout_s or self.config.robot_timeout_s * 5
         deadline = time.monotonic() + timeout_s
+        sim_deadline_ns: int | None = None
         if isinstance(self._clock, SimClock):
             self._clock.resume()
+            sim_deadline_ns = self._clock.now_ns() + int(timeout_s * 1e9)
+            deadline = time.monotonic() + max(timeout_s, _SIM_WALL_BACKSTOP_S)
         while True:
             js = self._js.latest()
             if js is not None and (after_ns is None or js.header.stamp_ns > after_ns):
                 return js
-            if time.monotonic() > deadline:
+            if time.monotonic() > deadline or (sim_deadline_ns is not None and self._clock.now_ns() > sim_deadline_ns):
                 raise RobotError(
                     f"{self.robot_spec.name}: no joint state on {self._js.topic} within {timeout_s} s;"
                     " is the arm running?"
