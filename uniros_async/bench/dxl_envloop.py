@@ -4,8 +4,8 @@ For each rate (default 10 Hz, the paper's, and 100 Hz): a ``uniros robot vbus rx
 class above every loop, as the servos answer whatever the host runs), and in this process the rx200 reach env with
 ``robot="dxl://PTY?profile_ms=0"`` and ``env_loop_rate_hz`` at the rate (the bus loop follows the env loop's rate,
 raised to two ticks per Bus Watchdog window), on the wall clock, driven for ``duration_s`` by the scripted reach
-agent of ``uniros bench envloop``. Once the env has started, the threads it started are put in the loops' real-time
-class and the heap is frozen, as a worker process does for its env.
+agent of ``uniros bench envloop``. The heap is frozen before the env starts, and once it has started the threads it
+started are put in the loops' real-time class, as a worker process does for its env.
 
 Reports the env loop's actuator cycle, action cycle, observation age and action latency (``looptiming``) against
 the main job's goals (actuator median within 0.1 ms of the period, IQR < 0.5 ms), with the host's load average
@@ -65,7 +65,9 @@ def _row(rate_hz: float, cfg: DxlEnvLoopConfig, log: Callable[[str], None]) -> t
 
     agent = ScriptedReachAgent("rx200", think_ms=cfg.think_ms, seed=cfg.seed)
     load_before = _load()
-    with _vbus("rx200", None, rt=True) as path:
+    with _vbus("rx200", None, rt=False) as path:  # the vbus takes the servos' real-time class itself
+        # frozen before the env starts: a full collection once the bus runs would hold its loop past the watchdog
+        freeze_heap()
         before = thread_ids()
         env = gym.make(
             "uniros/Rx200Reach-v0",
@@ -81,7 +83,6 @@ def _row(rate_hz: float, cfg: DxlEnvLoopConfig, log: Callable[[str], None]) -> t
             env.reset(seed=cfg.seed)
             for tid in thread_ids() - before:
                 raise_loop_priority(thread_id=tid)
-            freeze_heap()
             u: Any = env.unwrapped
             u.timing.clear()  # after the reset, which aligned the step deadlines to the loop's ticks
             reset_after: set[int] = set()

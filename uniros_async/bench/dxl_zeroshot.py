@@ -4,7 +4,8 @@ virtual Dynamixel bus with the emulated real arm's perturbations.
 A ``uniros robot vbus rx200 --emulate-real`` process (in the real-time class above every loop, as the servos answer
 whatever the host runs) and, in this process, the reach env with ``robot="dxl://PTY?profile_ms=0&..."`` on the wall
 clock, driven by the weights-only policy (``training.weights.load_policy``: NumPy, no torch). Once the env has
-started the heap is frozen, as a worker process does; with ``rank`` the threads it started go into the loops'
+started the heap is frozen (before each start of the env, as a full collection once the bus runs would hold its
+loop past the servos' watchdog); with ``rank`` the threads it started go into the loops'
 real-time class at that rank and this thread into the actors' (``priority.real_time_thread``).
 
 Episode ``k`` resets with seed ``seed * 100_000 + k``, so every episode's goal is fixed whatever happened before
@@ -92,6 +93,9 @@ def main(config: ZeroShotConfig, *, log: Callable[[str], None] = print) -> dict[
         try:
             for ep in range(config.episodes):
                 if env is None:
+                    # frozen before the env starts: a full collection once the bus runs would hold its loop past
+                    # the servos' watchdog
+                    freeze_heap()
                     env, before = _make_env(path, config)
                 ret, length, ok = 0.0, 0, False
                 try:
@@ -101,7 +105,6 @@ def main(config: ZeroShotConfig, *, log: Callable[[str], None] = print) -> dict[
                             for tid in thread_ids() - before:
                                 raise_loop_priority(config.rank, thread_id=tid)
                         before = set()
-                        freeze_heap()
                     done = False
                     while not done:
                         obs, reward, terminated, truncated, info = env.step(policy(obs))
