@@ -135,7 +135,7 @@ def test_the_concurrent_trainer_runs_randomized(tmp_path: Path) -> None:
         "randomize": {"latency": [0, 2], "noise": [0, 2], "dynamics": [0, 1], "backlash": [0, 2]},
         "placement": "workers",
         "concurrent": True,
-        "learner": "async",
+        "learner": "sync",
         "td3": {"learning_starts": 4, "buffer_size": 1000, "batch_size": 8, "net_arch": [16, 16]},
         "eval": {"every_steps": 0, "episodes": 1, "final_episodes": 1},
         "checkpoint": {"every_steps": 0},
