@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from uniros_async.errors import ConfigError, UnirosError
+from uniros_async.priority import LOOP_RT_PRIORITY, RESET_ON_FORK
 from uniros_async.training.alongside import open_alongside, policy_request
 from uniros_async.training.eval_process import _load, _PolicyCopy
 
@@ -55,6 +56,14 @@ def _descendants(pid: int) -> list[int]:
             out += kids
             todo += kids
     return out
+
+
+def _rr_priorities(pids: list[int]) -> set[int]:
+    """The SCHED_RR priorities of the threads of ``pids`` (a worker's env loop is its only real-time thread)."""
+    from uniros_async.priority import thread_scheduling
+
+    threads = [t for pid in pids for t in thread_scheduling(pid).values()]
+    return {prio for policy, prio in threads if policy & ~RESET_ON_FORK == os.SCHED_RR}
 
 
 def _uniros_shm() -> set[str]:
@@ -133,6 +142,10 @@ def test_alongside_evaluates_in_its_own_process_while_the_learner_learns() -> No
         assert pid is not None and pid != os.getpid() and _running(pid)
         pids = [pid, *_descendants(pid)]
         assert len(pids) > 1, "the evaluation arms' workers are the evaluation process's children"
+        if os.geteuid() == 0:  # SCHED_RR needs root or CAP_SYS_NICE (CI runs as root): the loops' ranks
+            training_workers = [p for p in _descendants(os.getpid()) if p not in pids]
+            assert _rr_priorities(training_workers) == {LOOP_RT_PRIORITY}
+            assert _rr_priorities(pids[1:]) == {LOOP_RT_PRIORITY + 1}, "the evaluation arm's loop ranks above"
         model = AsyncTD3(
             "MlpPolicy",
             train_venv,
@@ -182,6 +195,15 @@ def test_alongside_evaluates_in_its_own_process_while_the_learner_learns() -> No
     assert not [p for p in pids if _running(p)], "a process of the evaluation outlived close()"
     assert _uniros_shm() <= shm_before
     alongside.close()  # idempotent
+
+
+def test_a_negative_rank_base_is_refused_before_anything_starts() -> None:
+    from uniros_async.runtime import make_vec
+
+    before = set(_descendants(os.getpid()))
+    with pytest.raises(ConfigError, match="rt_rank_base must be an int >= 0, got -1"):
+        make_vec(["CartPole-v1"], rt_rank_base=-1)
+    assert set(_descendants(os.getpid())) <= before
 
 
 @pytest.mark.slow

@@ -86,6 +86,10 @@ class Supervisor(StepExchange):
         envs_per_worker: how many envs one worker process hosts (``worker_groups``): consecutive specs with the same
             placement, each with its own connection, stepped on the process's one event loop; ``"auto"``: as
             ``specs.plan_envs_per_worker`` decides.
+        rt_rank_base: added to each worker's real-time rank (``WorkerSpec.rt_rank``: its loop's SCHED_RR priority
+            above the base and its tick phase, ``worker.LOOP_PHASE_STEP_NS`` a rank), capped at ``MAX_LOOP_RANK``:
+            a second vector env of real-time envs beside a first (``eval.alongside``) starts above the first's
+            ranks, so their loops neither tick on the same instants nor tie for a core.
     """
 
     def __init__(
@@ -97,6 +101,7 @@ class Supervisor(StepExchange):
         close_timeout_s: float = 3.0,
         transport: str = "shm",
         envs_per_worker: int | str = 1,
+        rt_rank_base: int = 0,
     ) -> None:
         if not specs:
             raise ConfigError("expected at least one env spec, got none")
@@ -105,6 +110,9 @@ class Supervisor(StepExchange):
         ):
             raise ConfigError(f"envs_per_worker must be an int >= 1 or 'auto', got {envs_per_worker!r}")
         self.envs_per_worker = envs_per_worker
+        if isinstance(rt_rank_base, bool) or not isinstance(rt_rank_base, int) or rt_rank_base < 0:
+            raise ConfigError(f"rt_rank_base must be an int >= 0, got {rt_rank_base!r}")
+        self.rt_rank_base = rt_rank_base
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
         # The local workers' interpreters start now and import while the env arguments are checked here; none is
@@ -147,7 +155,9 @@ class Supervisor(StepExchange):
         placements = [p for p, _ in split]
         for group in _groups(specs, placements, self.envs_per_worker):
             # the first worker the highest real-time priority: the order in which a step's requests are sent
-            members = [(i, specs[i][0], split[i][1], min(len(specs) - 1 - i, MAX_LOOP_RANK)) for i in group]
+            members = [
+                (i, specs[i][0], split[i][1], min(self.rt_rank_base + len(specs) - 1 - i, MAX_LOOP_RANK)) for i in group
+            ]
             self.workers += self._new_group(members, placements[group[0]], timeout_s)
         uris = self._launch(self.workers, deadline)
         remaining = max(0.1, deadline - time.monotonic())

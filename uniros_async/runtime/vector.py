@@ -587,6 +587,7 @@ def make_vec(
     autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     backend: str = "local",
     envs_per_worker: int | str = AUTO,
+    rt_rank_base: int = 0,
     **common_kwargs: Any,
 ) -> UnirosVectorEnv:
     """A gymnasium VectorEnv over worker processes: one per env, or one per core where accelerated envs outnumber
@@ -625,6 +626,9 @@ def make_vec(
             process then fails to start with a WorkerError that says so. A process that dies takes its envs with
             it: the first is reported, or all are restarted together (each step truncated,
             ``info["worker_restarted"]``).
+        rt_rank_base: the lowest real-time rank of these envs' loops (``Supervisor``): above another vector env's
+            real-time envs on the same host (the evaluation envs beside the training envs), so they do not share
+            its loops' priorities and tick phases.
         **common_kwargs: passed to every env given by id (a spec's own kwargs win), e.g. ``clock="sim"``; not
             with factories.
 
@@ -650,6 +654,7 @@ def make_vec(
         call_timeout_s=call_timeout_s,
         transport=transport,
         envs_per_worker=envs_per_worker,
+        rt_rank_base=rt_rank_base,
     )
     try:
         return UnirosVectorEnv(

@@ -145,10 +145,12 @@ def open_alongside(
     specs: Sequence[tuple[str, str, dict[str, Any]]], *, real_time: bool, torch_threads: int = 1
 ) -> Alongside:
     """The evaluation of ``eval.alongside`` on a second set of the envs ``specs`` ((label, id, kwargs), the run's
-    training envs), in an evaluation process of its own that is ready when this returns.
+    training envs), in an evaluation process of its own that is ready when this returns; the envs' loops rank above
+    the training envs' (``make_vec``'s ``rt_rank_base``).
 
     Raises:
         ConfigError, WorkerError: the envs could not be opened.
         UnirosError: the evaluation process did not start.
     """
-    return Alongside(open_eval_process(specs, real_time=real_time, torch_threads=torch_threads))
+    process = open_eval_process(specs, real_time=real_time, torch_threads=torch_threads, rt_rank_base=len(specs))
+    return Alongside(process)

@@ -33,9 +33,10 @@ TIMING_METRICS = ("action_cycle", "actuator_cycle", "observation_age")
 
 
 def open_concurrent_env(
-    specs: Sequence[tuple[str, str, dict[str, Any]]], *, start_timeout_s: float = 120.0
+    specs: Sequence[tuple[str, str, dict[str, Any]]], *, start_timeout_s: float = 120.0, rt_rank_base: int = 0
 ) -> ConcurrentVecEnv:
-    """The envs ``specs`` (label, id, kwargs) as one ``ConcurrentVecEnv`` over worker processes (padded).
+    """The envs ``specs`` (label, id, kwargs) as one ``ConcurrentVecEnv`` over worker processes (padded; their
+    loops' real-time ranks from ``rt_rank_base`` up, ``make_vec``).
 
     Raises:
         ConfigError: an unknown id or keyword argument, or spaces that cannot be padded together.
@@ -43,7 +44,12 @@ def open_concurrent_env(
     """
     from uniros_async.runtime import make_vec
 
-    vec = make_vec([(env_id, dict(kw)) for _, env_id, kw in specs], pad=True, start_timeout_s=start_timeout_s)
+    vec = make_vec(
+        [(env_id, dict(kw)) for _, env_id, kw in specs],
+        pad=True,
+        start_timeout_s=start_timeout_s,
+        rt_rank_base=rt_rank_base,
+    )
     try:
         return ConcurrentVecEnv(vec.as_sb3(), [label for label, _, _ in specs])
     except BaseException:

@@ -17,9 +17,12 @@ from its stdin. It ignores SIGINT (the agent's Ctrl-C is the agent's business, w
 on SIGTERM; it opens the envs with ``open_concurrent_env`` (their workers are its children and stop when it exits),
 sets torch to the agent's thread count, freezes its heap once set up (``priority.freeze_heap``) and then evaluates
 one request at a time, on its main thread, in the real-time class when asked (``priority.real_time_thread``, as the
-agent's acting thread). A second thread only reads the connection (blocked in ``recv`` without the GIL) and wakes
-only when the agent writes: a request, a stop or the close. When the agent's end closes (the agent died), it stops
-the evaluation and closes the envs; if that has not ended the process within ``ORPHAN_EXIT_S``, it exits anyway.
+agent's acting thread). Its envs' loops rank above the training envs' (``make_vec``'s ``rt_rank_base``): with the
+same ranks, an evaluation arm's loop and a training arm's tick and return on the same instants at the same priority,
+and on a shared host one waits for the other. A second thread only reads the connection (blocked in ``recv`` without
+the GIL) and wakes only when the agent writes: a request, a stop or the close. When the agent's end closes (the
+agent died), it stops the evaluation and closes the envs; if that has not ended the process within
+``ORPHAN_EXIT_S``, it exits anyway.
 
 Messages (pickled tuples on one socket pair, ``multiprocessing.connection.Connection`` at both ends)::
 
@@ -123,6 +126,7 @@ class _Spec:
     real_time: bool
     torch_threads: int
     start_timeout_s: float
+    rt_rank_base: int
     sys_path: tuple[str, ...]
 
 
@@ -297,7 +301,7 @@ def _child_main(spec: _Spec, conn: multiprocessing.connection.Connection, progre
             return out
 
     try:
-        venv = open_concurrent_env(spec.specs, start_timeout_s=spec.start_timeout_s)
+        venv = open_concurrent_env(spec.specs, start_timeout_s=spec.start_timeout_s, rt_rank_base=spec.rt_rank_base)
     except BaseException as exc:  # noqa: BLE001 - reported to the agent
         with contextlib.suppress(OSError):
             conn.send(("failed", _portable(exc)))
@@ -471,6 +475,7 @@ def open_eval_process(
     real_time: bool,
     torch_threads: int = 1,
     start_timeout_s: float = 120.0,
+    rt_rank_base: int = 0,
 ) -> EvalProcess:
     """Start an evaluation process over the envs ``specs`` ((label, id, kwargs), as ``open_concurrent_env``) and
     wait until its envs are up.
@@ -480,6 +485,7 @@ def open_eval_process(
         real_time: evaluate in the real-time class (``priority.real_time_thread``).
         torch_threads: torch's thread count in the process.
         start_timeout_s: the envs' start timeout (``make_vec``).
+        rt_rank_base: the lowest real-time rank of the envs' loops (``make_vec``).
 
     Raises:
         ConfigError, WorkerError: what opening the envs raised in the process.
@@ -491,6 +497,7 @@ def open_eval_process(
         real_time=real_time,
         torch_threads=torch_threads,
         start_timeout_s=start_timeout_s,
+        rt_rank_base=rt_rank_base,
         sys_path=tuple(p for p in sys.path if isinstance(p, str)),
     )
     ours, theirs = socket.socketpair()
