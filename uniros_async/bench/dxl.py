@@ -26,6 +26,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
@@ -69,6 +70,7 @@ def _vbus(servo_map: str, baud: int | None, rt: bool = False, extra: Sequence[st
     if baud:
         argv += ["--baud", str(baud)]
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, text=True)
+    drain: threading.Thread | None = None
     try:
         assert proc.stdout is not None
         path = proc.stdout.readline().strip()
@@ -78,6 +80,9 @@ def _vbus(servo_map: str, baud: int | None, rt: bool = False, extra: Sequence[st
             from uniros_async.priority import raise_loop_priority
 
             raise_loop_priority(thread_id=proc.pid)  # its serving thread is its main thread
+        # its event lines (watchdog stops, ...) are read and dropped: a full pipe would stall the servos' answers
+        drain = threading.Thread(target=proc.stdout.read, name="vbus stdout", daemon=True)
+        drain.start()
         yield path
     finally:
         if proc.poll() is None:
@@ -87,6 +92,8 @@ def _vbus(servo_map: str, baud: int | None, rt: bool = False, extra: Sequence[st
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        if drain is not None:
+            drain.join(timeout=5)  # it reads to the end of the exited process's output
         if proc.stdout is not None:
             proc.stdout.close()
 
