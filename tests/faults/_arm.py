@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 from rig.netfault import EventPeer, NetnsPair
 
-from uniros_async.bench.ros1_peers import ros1_missing, ros_env, rosmaster_bin
+from uniros_async.bench.ros1_peers import ros1_missing, ros1_python, ros_env, rosmaster_bin
 
 ROBOT_TIMEOUT_S = 0.5
 COMMAND_TIMEOUT_S = 0.5
@@ -153,6 +153,40 @@ def start_rosmaster(pair: NetnsPair, peers: list[EventPeer], home: Path) -> tupl
     env = {**ros_env(master_uri, home=home), "ROS_HOSTNAME": pair.arm_ip}
     peers.append(EventPeer(pair.popen("arm", [rosmaster_bin(), "--core", "-p", str(MASTER_PORT)], env=env)))
     return master_uri, env
+
+
+_ROS1_PROBE = """
+import json, sys, time
+import rospy
+from sensor_msgs.msg import JointState
+t0 = time.monotonic()
+rospy.init_node("fault_probe", anonymous=True, disable_signals=True)
+topics = sorted(name for name, _ in rospy.get_published_topics())
+first = None
+try:
+    rospy.wait_for_message(sys.argv[1], JointState, timeout=20.0)
+    first = time.monotonic() - t0
+except rospy.ROSException:
+    pass
+print(json.dumps({"topics": topics, "first_message_s": first}))
+rospy.signal_shutdown("probed")
+"""
+
+
+def probe_ros1(pair: NetnsPair, master_uri: str, home: Path, topic: str) -> dict[str, Any]:
+    """What a new rospy process in the env's namespace sees of the ROS 1 graph at ``master_uri``: the published
+    topics (the master's list) and how long the first ``sensor_msgs/JointState`` on ``topic`` took (None: none came
+    within 20 s)."""
+    env = {**ros_env(master_uri, home=home), "ROS_HOSTNAME": pair.env_ip}
+    proc = pair.popen("env", [ros1_python(), "-c", _ROS1_PROBE, topic], env=env, stderr=subprocess.STDOUT)
+    try:
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, f"the rospy probe failed ({proc.returncode}): {out}"
+    return dict(json.loads(out.strip().splitlines()[-1]))
 
 
 def start_ros1_driver(pair: NetnsPair, peers: list[EventPeer], master_uri: str, extra: Sequence[str] = ()) -> EventPeer:

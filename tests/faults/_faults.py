@@ -9,11 +9,12 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from rig.netfault import EventPeer, NetnsPair, fault_figures
 
-from ._arm import probe_domain, report, uncaught
+from ._arm import probe_domain, probe_ros1, report, uncaught
 
 DURATIONS_S = (0.5, 5.0, 30.0)
 """How long each fault lasts: shorter than the robot timeout and a reset; past them; past every lease and keepalive
@@ -36,9 +37,10 @@ the arm's own ticks, exactly."""
 @dataclass
 class Link:
     """One arm and one agent, and what a fault needs of them: ``domain`` (the arm's bus domain, for a new process to
-    look at after each fault; None for a ROS 1 arm), ``env`` (the processes' environment) and ``restart_registry``
-    (kills the domain's registry process and returns what starts it again at the same URI; None when the registry
-    lives in the arm's process)."""
+    look at after each fault; None for a ROS 1 arm), ``ros1_master`` and ``ros1_home`` (a ROS 1 arm's master, for a
+    new rospy process to look at instead), ``env`` (the processes' environment) and ``restart_registry`` (kills the
+    domain's registry process and returns what starts it again at the same URI; None when the registry lives in the
+    arm's process)."""
 
     pair: NetnsPair
     arm: EventPeer
@@ -46,6 +48,8 @@ class Link:
     domain: str | None = None
     env: dict[str, str] = field(default_factory=dict)
     restart_registry: Callable[[], Callable[[], None]] | None = None
+    ros1_master: str | None = None
+    ros1_home: Path | None = None
 
 
 def _freeze(link: Link) -> Callable[[], None]:
@@ -211,11 +215,15 @@ def _judge(
             seen["services_listed"].get("/rx200/reset")
         )
         row["new_process_first_state_s"] = seen["first_message_s"]["/rx200/joint_states"]
+    elif link.ros1_master is not None and link.ros1_home is not None:
+        seen = probe_ros1(link.pair, link.ros1_master, link.ros1_home, "/rx200/joint_states")
+        row["new_process_sees_arm"] = "/rx200/joint_states" in seen["topics"]
+        row["new_process_first_state_s"] = seen["first_message_s"]
     report(row)
     assert link.arm.proc.poll() is None and link.agent.proc.poll() is None, "no process restarted: both still run"
     # the goal: the next good step within the robot timeout and RECOVER_GOAL_S of the link's return
     assert row["recovery_after_clear_s"] <= robot_timeout_s + RECOVER_GOAL_S, row
-    if link.domain is not None:
+    if "new_process_sees_arm" in row:
         assert row["new_process_sees_arm"], seen
         assert row["new_process_first_state_s"] is not None, seen
     errors = uncaught(agent)

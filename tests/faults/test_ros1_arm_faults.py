@@ -57,7 +57,7 @@ def ros1_rigs(netfault_ready: None, tmp_path_factory: pytest.TempPathFactory) ->
             master_uri, _ = start_rosmaster(pair, peers, home)
             arm = start_ros1_driver(pair, peers, master_uri, ["--command-timeout", str(COMMAND_TIMEOUT_S), "--trace"])
             agent = start_agent(pair, peers, f"ros1://{pair.arm_ip}:{MASTER_PORT}", ros_host=pair.env_ip)
-            links.append(Link(pair, arm, agent))
+            links.append(Link(pair, arm, agent, ros1_master=master_uri, ros1_home=home))
         for link in links:
             link.agent.wait_for(0, "step", START_S, "the agent's first step")
         yield links
