@@ -82,3 +82,25 @@ def test_bench_dxl_envloop_runs_the_env_loop_on_the_bus_at_its_rate(tmp_path: Pa
     assert "20 +- 0.1, IQR < 0.5" in text and "50 Hz: load average" in text
     with pytest.raises(dxl_envloop.ConfigError, match="rates_hz"):
         dxl_envloop.DxlEnvLoopConfig(rates_hz=(0.0,))
+
+
+@pytest.mark.slow
+def test_bench_dxl_zeroshot_runs_the_committed_policy_on_the_emulated_bus_arm(tmp_path: Path) -> None:
+    from uniros_async.bench import dxl_zeroshot
+
+    out = tmp_path / "zeroshot.json"
+    lines: list[str] = []
+    policy = Path(__file__).resolve().parents[2] / dxl_zeroshot.DENSE_POLICY  # the checkout's committed weights
+    config = dxl_zeroshot.ZeroShotConfig(policy=str(policy), episodes=2, json_path=str(out))
+    result = dxl_zeroshot.main(config, log=lines.append)
+    assert json.loads(out.read_text()) == result
+    assert result["episodes"] == 2 and result["bus"].endswith("--emulate-real --seed 0")
+    assert result["successes"] + len(result["aborted"]) <= 2
+    low, high = result["wilson95"]
+    assert 0.0 <= low <= result["success_rate"] <= high <= 1.0
+    assert [line.split(":")[0] for line in lines if line.startswith("episode ") and "/2:" in line] == [
+        "episode 1/2",
+        "episode 2/2",
+    ]
+    with pytest.raises(dxl_zeroshot.ConfigError, match="episodes must be >= 1"):
+        dxl_zeroshot.ZeroShotConfig(episodes=0)
