@@ -90,3 +90,20 @@ def test_a_short_run_stops_resumes_exports_and_evaluates(tmp_path: Path, capsys:
     assert main([str(cfg), "--evaluate", str(tmp_path / "policy/policy.pt"), "--episodes", "1"]) == 0
     got = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert got["policy_step"] == 60 and got["episodes"] == 1 and got["mean_length"] <= 10
+
+
+@pytest.mark.slow
+def test_the_committed_pixel_policy_still_reaches_the_targets_it_sees() -> None:
+    # docs/results.md section 10: 85-99 % over 100 episodes (6 of these first 10, replayed exactly on the sim clock);
+    # a policy that no longer sees the target reaches none, as the run's evaluations before 20k steps
+    from uniros_async.training.pixel_train import evaluate, load_policy, make_env
+
+    policy = Path(__file__).resolve().parents[2] / "docs/results/checkpoints/rx200_reach_pixels_drq/policy.pt"
+    agent, cfg, step = load_policy(policy)
+    assert step == 65_000 and cfg.env_kwargs["image_size"] == [48, 48]
+    env = make_env(cfg)
+    try:
+        got = evaluate(agent, env, 10, 40_000_000)
+    finally:
+        env.close()
+    assert got["success_rate"] >= 0.5, got

@@ -418,7 +418,7 @@ def _train(
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m uniros_async.training.pixel_train CONFIG [--resume] [--max-minutes M] [--runs DIR] [--export DIR]
-    [--evaluate POLICY --episodes N]``."""
+    [--evaluate POLICY --episodes N --seed S]``."""
     p = argparse.ArgumentParser(prog="python -m uniros_async.training.pixel_train", description=__doc__)
     p.add_argument("config")
     p.add_argument("--resume", action="store_true", help="go on from the newest complete checkpoint")
@@ -428,6 +428,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--export", metavar="DIR", help="write the newest checkpoint's policy to DIR/policy.pt and stop")
     p.add_argument("--evaluate", metavar="POLICY", help="evaluate a policy.pt (--episodes of them) and stop")
     p.add_argument("--episodes", type=int, default=100, help="episodes of --evaluate")
+    p.add_argument("--seed", type=int, default=40_000_000, help="reset seed of --evaluate's first episode")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
@@ -445,7 +446,7 @@ def main(argv: list[str] | None = None) -> int:
         agent, pcfg, step = load_policy(Path(args.evaluate))
         env = make_env(pcfg)
         try:
-            res = evaluate(agent, env, args.episodes, 40_000_000)
+            res = evaluate(agent, env, args.episodes, args.seed)
         finally:
             env.close()
         print(json.dumps({"policy_step": step, **res}))
