@@ -21,7 +21,7 @@ import yaml
 
 from uniros_async.errors import ConfigError, UnirosError
 from uniros_async.priority import LOOP_RT_PRIORITY, RESET_ON_FORK
-from uniros_async.training.alongside import open_alongside, policy_request
+from uniros_async.training.alongside import open_alongside, policy_request, rank_bases
 from uniros_async.training.eval_process import _load, _PolicyCopy
 
 CYCLE_S = 0.2
@@ -134,8 +134,9 @@ def test_alongside_evaluates_in_its_own_process_while_the_learner_learns() -> No
     from uniros_async.training.concurrent import open_concurrent_env
 
     shm_before = _uniros_shm()
-    train_venv = open_concurrent_env(SPECS)
-    alongside = open_alongside(SPECS, real_time=True)
+    train_base, eval_base = rank_bases("training", len(SPECS))  # eval.alongside_rank's default, as train opens them
+    train_venv = open_concurrent_env(SPECS, rt_rank_base=train_base)
+    alongside = open_alongside(SPECS, real_time=True, rank="training")
     pids: list[int] = []
     try:
         pid = alongside.process.pid
@@ -144,8 +145,8 @@ def test_alongside_evaluates_in_its_own_process_while_the_learner_learns() -> No
         assert len(pids) > 1, "the evaluation arms' workers are the evaluation process's children"
         if os.geteuid() == 0:  # SCHED_RR needs root or CAP_SYS_NICE (CI runs as root): the loops' ranks
             training_workers = [p for p in _descendants(os.getpid()) if p not in pids]
-            assert _rr_priorities(training_workers) == {LOOP_RT_PRIORITY}
-            assert _rr_priorities(pids[1:]) == {LOOP_RT_PRIORITY + 1}, "the evaluation arm's loop ranks above"
+            assert _rr_priorities(training_workers) == {LOOP_RT_PRIORITY + 1}, "the training arm's loop ranks above"
+            assert _rr_priorities(pids[1:]) == {LOOP_RT_PRIORITY}
         model = AsyncTD3(
             "MlpPolicy",
             train_venv,
@@ -195,6 +196,33 @@ def test_alongside_evaluates_in_its_own_process_while_the_learner_learns() -> No
     assert not [p for p in pids if _running(p)], "a process of the evaluation outlived close()"
     assert _uniros_shm() <= shm_before
     alongside.close()  # idempotent
+
+
+def test_alongside_rank_sets_which_arms_loops_rank_higher() -> None:
+    from uniros_async.training.config import train_config_from_dict
+
+    def order(**eval_cfg: Any) -> str:
+        cfg = {
+            "envs": [{"id": "CartPole-v1"}],
+            "placement": "workers",
+            "concurrent": True,
+            "eval": {"alongside": True, **eval_cfg},
+        }
+        return str(train_config_from_dict(cfg).eval.alongside_rank)
+
+    # (training, evaluation) rt_rank_base: the set ranked higher starts above the other's n_envs loops
+    assert order() == "training" and rank_bases(order(), 4) == (4, 0)
+    assert rank_bases(order(alongside_rank="evaluation"), 4) == (0, 4)
+    with pytest.raises(ConfigError, match="eval.alongside_rank: expected one of 'training', 'evaluation', got 'eval'"):
+        order(alongside_rank="eval")
+    with pytest.raises(ConfigError, match="eval.alongside_rank must be one of training, evaluation, got 'both'"):
+        rank_bases("both", 4)
+    with pytest.raises(ConfigError, match="the number of envs must be an int >= 1, got 0"):
+        rank_bases("training", 0)
+    before = set(_descendants(os.getpid()))
+    with pytest.raises(ConfigError, match="alongside_rank must be one of"):
+        open_alongside(SPECS, real_time=False, rank="both")
+    assert set(_descendants(os.getpid())) <= before, "a bad rank started a process"
 
 
 def test_a_negative_rank_base_is_refused_before_anything_starts() -> None:

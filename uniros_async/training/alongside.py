@@ -9,12 +9,15 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from uniros_async.errors import UnirosError
+from uniros_async.errors import ConfigError, UnirosError
 from uniros_async.training.concurrent import TIMING_METRICS
 from uniros_async.training.eval_process import EvalProcess, EvalReply, EvalRequest, open_eval_process
 from uniros_async.training.evaluate import EvalResult, frozen_obs_stats
 
-__all__ = ["Alongside", "open_alongside", "policy_request"]
+__all__ = ["RANKS", "Alongside", "open_alongside", "policy_request", "rank_bases"]
+
+RANKS = ("training", "evaluation")
+"""The values of ``eval.alongside_rank``: which set of arms' env loops ranks higher in the real-time class."""
 
 
 def policy_request(model: Any, episodes: int, seed: int, *, with_skeleton: bool) -> EvalRequest:
@@ -141,16 +144,37 @@ class Alongside:
         return list(reply.results)
 
 
-def open_alongside(
-    specs: Sequence[tuple[str, str, dict[str, Any]]], *, real_time: bool, torch_threads: int = 1
-) -> Alongside:
-    """The evaluation of ``eval.alongside`` on a second set of the envs ``specs`` ((label, id, kwargs), the run's
-    training envs), in an evaluation process of its own that is ready when this returns; the envs' loops rank above
-    the training envs' (``make_vec``'s ``rt_rank_base``).
+def rank_bases(rank: str, n_envs: int) -> tuple[int, int]:
+    """The lowest real-time ranks (``make_vec``'s ``rt_rank_base``) of the training envs' loops and of the
+    evaluation envs' loops, ``n_envs`` of each, with ``rank`` (``eval.alongside_rank``) the set that ranks higher.
 
     Raises:
+        ConfigError: ``rank`` is not one of ``RANKS``, or ``n_envs`` is below 1.
+    """
+    if rank not in RANKS:
+        raise ConfigError(f"eval.alongside_rank must be one of {', '.join(RANKS)}, got {rank!r}")
+    if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+        raise ConfigError(f"the number of envs must be an int >= 1, got {n_envs!r}")
+    return (n_envs, 0) if rank == "training" else (0, n_envs)
+
+
+def open_alongside(
+    specs: Sequence[tuple[str, str, dict[str, Any]]],
+    *,
+    real_time: bool,
+    torch_threads: int = 1,
+    rank: str = "training",
+) -> Alongside:
+    """The evaluation of ``eval.alongside`` on a second set of the envs ``specs`` ((label, id, kwargs), the run's
+    training envs), in an evaluation process of its own that is ready when this returns; the envs' loops rank below
+    the training envs' with ``rank`` "training" (the training envs opened with ``rank_bases``' training base),
+    above them with "evaluation" (``make_vec``'s ``rt_rank_base``).
+
+    Raises:
+        ConfigError: ``rank`` is not one of ``RANKS``.
         ConfigError, WorkerError: the envs could not be opened.
         UnirosError: the evaluation process did not start.
     """
-    process = open_eval_process(specs, real_time=real_time, torch_threads=torch_threads, rt_rank_base=len(specs))
+    base = rank_bases(rank, len(specs))[1]
+    process = open_eval_process(specs, real_time=real_time, torch_threads=torch_threads, rt_rank_base=base)
     return Alongside(process)

@@ -180,6 +180,11 @@ class EvalConfig(ConfigModel):
     its step, sent to the process, in the real-time class when the training envs run on the wall clock; its rows are
     written when it ends (one falling due while another runs starts when that one ends). The final evaluation runs
     there too. The process closes with the run, also on Ctrl-C or SIGTERM."""
+    alongside_rank: Literal["training", "evaluation"] = "training"
+    """(``alongside``) Which set of arms' env loops ranks higher in the real-time class: ``training``, the arms
+    whose steps the policy learns from, or ``evaluation``, the arms of the evaluation process. The set ranked higher
+    holds its action cycle closer to its period when the loops of both sets fall due on the same instants
+    (docs/performance.md, "The agent process in real time", has both orders measured)."""
 
 
 class CheckpointConfig(ConfigModel):

@@ -17,9 +17,10 @@ from its stdin. It ignores SIGINT (the agent's Ctrl-C is the agent's business, w
 on SIGTERM; it opens the envs with ``open_concurrent_env`` (their workers are its children and stop when it exits),
 sets torch to the agent's thread count, freezes its heap once set up (``priority.freeze_heap``) and then evaluates
 one request at a time, on its main thread, in the real-time class when asked (``priority.real_time_thread``, as the
-agent's acting thread). Its envs' loops rank above the training envs' (``make_vec``'s ``rt_rank_base``): with the
-same ranks, an evaluation arm's loop and a training arm's tick and return on the same instants at the same priority,
-and on a shared host one waits for the other. A second thread only reads the connection (blocked in ``recv`` without
+agent's acting thread). Its envs' loops rank below the training envs' or above them, as ``eval.alongside_rank``
+says (``make_vec``'s ``rt_rank_base``, ``alongside.rank_bases``): with the same ranks, an evaluation arm's loop and a
+training arm's tick and return on the same instants at the same priority, and on a shared host one waits for the
+other. A second thread only reads the connection (blocked in ``recv`` without
 the GIL) and wakes only when the agent writes: a request, a stop or the close. When the agent's end closes (the
 agent died), it stops the evaluation and closes the envs; if that has not ended the process within
 ``ORPHAN_EXIT_S``, it exits anyway.

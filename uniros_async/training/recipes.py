@@ -54,7 +54,7 @@ import yaml
 
 from uniros_async.errors import ConfigError, TrainingInterrupted
 from uniros_async.priority import freeze_heap
-from uniros_async.training.alongside import Alongside, open_alongside
+from uniros_async.training.alongside import Alongside, open_alongside, rank_bases
 from uniros_async.training.build import (
     EnvLayout,
     algo_class,
@@ -314,7 +314,8 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
 
     env: Any
     if cfg.concurrent:
-        env, layout = build_concurrent_env(cfg)
+        alongside_ranks = rank_bases(cfg.eval.alongside_rank, len(cfg.env_specs())) if cfg.eval.alongside else (0, 0)
+        env, layout = build_concurrent_env(cfg, rt_rank_base=alongside_ranks[0])
     else:
         env, layout = build_train_env(cfg)
         if cfg.record is not None:  # every training step to MCAP (bag/episodes.py)
@@ -331,7 +332,12 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
         if not cfg.concurrent:
             eval_envs = build_eval_envs(cfg, layout)
         elif cfg.eval.alongside:
-            alongside = open_alongside(cfg.env_specs(), real_time=real_time_actor(cfg), torch_threads=cfg.torch_threads)
+            alongside = open_alongside(
+                cfg.env_specs(),
+                real_time=real_time_actor(cfg),
+                torch_threads=cfg.torch_threads,
+                rank=cfg.eval.alongside_rank,
+            )
         if ckpt is not None:
             meta = read_meta(ckpt)
             check_sizes(meta, layout.obs_size, layout.action_size, layout.goal_env, f"the envs of {cfg.name}")
