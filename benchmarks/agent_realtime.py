@@ -1,6 +1,6 @@
 """The agent process of `uniros train` in real time: the evaluation arms of `eval.alongside` evaluated in a process
 of their own (as `train` runs them) against on a thread of the agent process, and the heap frozen after set-up
-against unfrozen, each in the same run.
+against unfrozen, each in the same run; the runs alternate which set of arms ranks higher (`eval.alongside_rank`).
 
 Four arms train (rx200 and ned2, sim and emulated real, on the wall clock, as configs/realtime_multitask_async.yaml
 has them, at a shorter action cycle so that a run gathers enough cycles) with the asynchronous learner, and four more
@@ -12,15 +12,18 @@ are evaluated alongside, almost without a pause (short episodes, an evaluation e
   below: the path `train` had before, kept here for the comparison). Both see the same moments of the host's load
   and of the learner's updates. Printed per evaluation arm and path: the action cycle's median and IQR over those
   evaluations (goal: IQR < 1 ms in the evaluation process), beside the training arms' over the run.
+- **Which arms rank higher**: the runs alternate `eval.alongside_rank`: `training` (the training arms' env loops
+  ranked above the evaluation process's, `train`'s default) and `evaluation` (the reverse); every row names its
+  order. The in-thread path's arms rank as the lower set in both.
 - **Frozen heap**: when the learner starts (the set-up done, the heap frozen by `train`), one full collection is
   timed with the heap frozen and one with it unfrozen (then frozen again), back to back; and the full (generation
   2) collections while the learner learns are counted and timed (`gc.callbacks`).
 
-    python benchmarks/agent_realtime.py                 # one 150 s run: about 4 minutes
+    python benchmarks/agent_realtime.py                 # one 150 s run per order: about 7 minutes
     python benchmarks/agent_realtime.py --seconds 300 --runs 2 --json out.json
 
-`--json` writes the action-cycle rows of `uniros bench report`'s latency table (every run's samples pooled per arm
-and path), the load average seen during the runs, and every run's raw figures.
+`--json` writes the action-cycle rows of `uniros bench report`'s latency table (every run's samples pooled per arm,
+path and order), the load average seen during the runs, and every run's raw figures.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from typing import Any
 from uniros_async.priority import real_time_thread
 from uniros_async.stats import summary
 from uniros_async.training import recipes
+from uniros_async.training.alongside import RANKS
 from uniros_async.training.async_td3 import AsyncTD3
 from uniros_async.training.concurrent import TIMING_METRICS, open_concurrent_env
 from uniros_async.training.config import train_config_from_dict
@@ -51,9 +55,10 @@ from uniros_async.training.evaluate import EvalResult, evaluate_vec_policy, froz
 CYCLE_S = 0.4
 EPISODE_STEPS = 10
 PROCESS, THREAD, TRAINING = "eval process (rt)", "eval thread (rt)", "training (acting thread, rt)"
+ORDERS = RANKS  # eval.alongside_rank: which set of arms' loops ranks higher
 
 
-def _config(run_dir: Path, seconds: float) -> Any:
+def _config(run_dir: Path, seconds: float, order: str) -> Any:
     return train_config_from_dict(
         {
             "name": run_dir.name,
@@ -79,7 +84,7 @@ def _config(run_dir: Path, seconds: float) -> Any:
             "async_learner": {"updates_per_step": 1.0},
             "td3": {"learning_rate": 1.0e-3, "batch_size": 100, "learning_starts": 40, "action_noise_std": 0.01},
             # an evaluation every 4 vector steps: one episode per env, EPISODE_STEPS cycles, then the next is due
-            "eval": {"every_steps": 16, "episodes": 1, "final_episodes": 1, "alongside": True},
+            "eval": {"every_steps": 16, "episodes": 1, "final_episodes": 1, "alongside": True, "alongside_rank": order},
             "checkpoint": {"every_steps": 0},
             "torch_threads": 1,
             "progress_bar": False,
@@ -221,13 +226,15 @@ def _both_paths(out: dict[str, Any]) -> Iterator[None]:
     open_alongside = recipes.open_alongside
     build_concurrent_env = recipes.build_concurrent_env
 
-    def kept(cfg: Any) -> Any:
-        venv, layout = build_concurrent_env(cfg)
+    def kept(cfg: Any, **kwargs: Any) -> Any:
+        venv, layout = build_concurrent_env(cfg, **kwargs)
         out["training"] = venv
         return venv, layout
 
-    def both(specs: Sequence[tuple[str, str, dict[str, Any]]], *, real_time: bool, torch_threads: int = 1) -> Any:
-        process = open_alongside(specs, real_time=real_time, torch_threads=torch_threads)
+    def both(
+        specs: Sequence[tuple[str, str, dict[str, Any]]], *, real_time: bool, torch_threads: int = 1, rank: str
+    ) -> Any:
+        process = open_alongside(specs, real_time=real_time, torch_threads=torch_threads, rank=rank)
         try:
             in_thread = _InThread(specs, real_time)
         except BaseException:
@@ -289,15 +296,16 @@ def _collections(out: dict[str, Any]) -> Iterator[None]:
         AsyncTD3.learn = learn  # type: ignore[method-assign]
 
 
-def _run(seconds: float, run_dir: Path) -> dict[str, Any]:
+def _run(seconds: float, run_dir: Path, order: str) -> dict[str, Any]:
     heap: dict[str, Any] = {}
     both: dict[str, Any] = {}
     with _both_paths(both), _collections(heap):
-        recipes.train(_config(run_dir, seconds))
+        recipes.train(_config(run_dir, seconds, order))
     paths = both["paths"]
     samples = {PROCESS: paths.process.samples, THREAD: paths.in_thread.venv.samples, TRAINING: both["training"].samples}
     timing = json.loads((run_dir / "timing.json").read_text())
     return {
+        "order": order,
         "samples": samples,
         "loads": both.get("loads", []),
         "real_time_class": paths.real_time_class,
@@ -307,13 +315,18 @@ def _run(seconds: float, run_dir: Path) -> dict[str, Any]:
 
 
 def _rows(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per evaluation arm and path (every run's samples pooled), and the training arms: the latency table's rows."""
+    """Per order, evaluation arm and path (the order's runs' samples pooled), and the training arms: the latency
+    table's rows, the learner column naming the path and which set of arms ranked higher."""
     rows = []
-    for path in (PROCESS, THREAD, TRAINING):
-        for label in results[0]["samples"][path]:
-            for metric in TIMING_METRICS:
-                pooled = [x for r in results for x in r["samples"][path][label][metric]]
-                rows.append(_row(label, path, metric, summary(pooled)))
+    for order in ORDERS:
+        runs = [r for r in results if r["order"] == order]
+        if not runs:
+            continue
+        for path in (PROCESS, THREAD, TRAINING):
+            for label in runs[0]["samples"][path]:
+                for metric in TIMING_METRICS:
+                    pooled = [x for r in runs for x in r["samples"][path][label][metric]]
+                    rows.append(_row(label, f"{path}, {order} ranked higher", metric, summary(pooled)))
     return rows
 
 
@@ -339,15 +352,16 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
     load = f"load average (1 min) {min(loads):.1f}-{max(loads):.1f}" if loads else "load average unknown"
     print(
         f"\nhost {platform.node()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; four arms training and four"
-        f" evaluated alongside on the wall clock, action cycle {CYCLE_S} s, {seconds:g} s per run; {load}"
+        f" evaluated alongside on the wall clock, action cycle {CYCLE_S} s, {seconds:g} s per run, the runs alternating"
+        f" which set of arms ranks higher; {load}"
     )
     print(
         "\naction cycle (ms): the evaluation arms, evaluations alternating between the evaluation process and a thread"
         " of the agent process, and the training arms"
     )
     head = f"{'run':>3} {'env':<11} {'path':<28} {'median':>8} {'IQR':>7} {'p99':>8} {'n':>5}"
-    print(head + "\n" + "-" * len(head))
     for i, r in enumerate(results, 1):
+        print(f"\nrun {i}: the {r['order']} arms' loops ranked higher\n{head}\n" + "-" * len(head))
         for path in (PROCESS, THREAD, TRAINING):
             for label, metrics in r["samples"][path].items():
                 cyc = metrics["action_cycle"]
@@ -357,6 +371,11 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
                 s = summary(cyc)
                 print(f"{i:>3} {label:<11} {path:<28} {s['p50']:>8.2f} {s['iqr']:>7.2f} {s['p99']:>8.2f} {len(cyc):>5}")
         print(f"    real-time class in the evaluation process: {r['real_time_class']}")
+    print("\naction cycle (ms) per order, its runs pooled: median / IQR of each evaluation-process and training arm")
+    for order in ORDERS:
+        for row in _rows([r for r in results if r["order"] == order]):
+            if row["metric"] == "action_cycle" and not row["learner"].startswith(THREAD):
+                print(f"  {row['env']:<11} {row['learner']:<52} {row['median_ms']} / {row['iqr_ms']}")
     print("\nthe agent process's heap when the learner starts: one full collection, frozen and unfrozen")
     for i, r in enumerate(results, 1):
         h = r["heap"]
@@ -376,13 +395,13 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=150.0, help="wall time of each training run")
-    parser.add_argument("--runs", type=int, default=1)
+    parser.add_argument("--runs", type=int, default=1, help="runs per order (the orders alternate)")
     parser.add_argument("--json", help="write the rows, the load and every run's records here")
     args = parser.parse_args()
     results = []
     with tempfile.TemporaryDirectory(prefix="agent_rt_") as tmp:
-        for k in range(1, args.runs + 1):
-            results.append(_run(args.seconds, Path(tmp) / f"run_{k}"))
+        for k in range(1, 2 * args.runs + 1):
+            results.append(_run(args.seconds, Path(tmp) / f"run_{k}", ORDERS[(k - 1) % 2]))
             if args.json:
                 loads = [x for r in results for x in r["loads"]]
                 out = {
