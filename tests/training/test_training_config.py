@@ -231,11 +231,24 @@ def test_missing_and_malformed_files(tmp_path: Path) -> None:
         load_train_config(listy)
 
 
-@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.yaml")), ids=lambda p: p.name)
+PIXEL_CONFIGS = sorted(CONFIGS.glob("*_pixels_drq*.yaml"))
+"""The pixel recipe's configs (``python -m uniros_async.training.pixel_train``), checked by its own loader."""
+
+
+@pytest.mark.parametrize("path", sorted(set(CONFIGS.glob("*.yaml")) - set(PIXEL_CONFIGS)), ids=lambda p: p.name)
 def test_shipped_configs_load_and_check(path: Path) -> None:
     cfg = load_train_config(path)
     assert isinstance(cfg, TrainConfig)
     cfg.check_envs()
+
+
+@pytest.mark.parametrize("path", PIXEL_CONFIGS, ids=lambda p: p.name)
+def test_shipped_pixel_configs_load(path: Path) -> None:
+    from uniros_async.config import load_config
+    from uniros_async.training.pixel_train import PixelTrainConfig
+
+    cfg = load_config(path, PixelTrainConfig)
+    assert cfg.total_steps > 0 and cfg.env_id.startswith("uniros/")
 
 
 def test_drop_observation_removes_entries() -> None:
