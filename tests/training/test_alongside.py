@@ -266,9 +266,12 @@ def _train_config(run_dir: Path) -> dict[str, Any]:
 def test_ctrl_c_of_uniros_train_leaves_no_evaluation_process(tmp_path: Path) -> None:
     """Ctrl-C while an evaluation alongside runs: SIGINT to the whole process group, so the evaluation process and
     its workers get it too (they ignore it: `train` closes them). train stops, and every process it started ends.
-    (SIGTERM to `train` alone takes the same way out: its handler raises KeyboardInterrupt in `train`.)"""
+    (SIGTERM to `train` alone takes the same way out: its handler raises KeyboardInterrupt in `train`.) With
+    ``eval.alongside_rank: evaluation`` (not the default), the evaluation arm's loop ranks above the training arm's."""
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text(yaml.safe_dump(_train_config(tmp_path / "run")))
+    config = _train_config(tmp_path / "run")
+    config["eval"]["alongside_rank"] = "evaluation"
+    cfg.write_text(yaml.safe_dump(config))
     proc = subprocess.Popen(
         [sys.executable, "-m", "uniros_async.cli", "train", str(cfg)],
         stderr=subprocess.PIPE,
@@ -293,6 +296,12 @@ def test_ctrl_c_of_uniros_train_leaves_no_evaluation_process(tmp_path: Path) -> 
         assert evaluated.wait(180.0), "".join(lines[-30:])
         family = _descendants(proc.pid)
         assert len(family) >= 3, family  # the training worker, the evaluation process and its worker at least
+        if os.geteuid() == 0:  # SCHED_RR needs root or CAP_SYS_NICE (CI runs as root): the order train gave them
+            children = [int(c) for c in Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()]
+            evaluation = [p for c in children for p in _descendants(c)]  # the evaluation process's workers
+            training = [c for c in children if not _descendants(c)]
+            assert _rr_priorities(evaluation) == {LOOP_RT_PRIORITY + 1}, "the evaluation arm's loop ranks above"
+            assert _rr_priorities(training) == {LOOP_RT_PRIORITY}
         os.killpg(proc.pid, signal.SIGINT)
         code = proc.wait(120.0)
     finally:
