@@ -179,6 +179,23 @@ def _latency(rows: list[Row]) -> list[str]:
     return _table(header, out, right_from=2)
 
 
+def _action_cycle(rows: list[Row]) -> list[str]:
+    """The action cycle's IQR (ms) per arm, a row per setting and a column per path: learners labelled
+    ``"PATH, SETTING"`` (e.g. ``"eval process (rt), training ranked higher"``)."""
+    labels = [learner for (learner,) in _keys(rows, "learner")]
+    paths = list(dict.fromkeys(label.rsplit(", ", 1)[0] for label in labels))
+    settings = list(dict.fromkeys(label.rsplit(", ", 1)[-1] for label in labels))
+    envs = [e for (e,) in _keys(rows, "env")]
+    out = []
+    for setting in settings:
+        cells = [setting]
+        for path in paths:
+            ms = [_metric(rows, e, f"{path}, {setting}", "action_cycle") for e in envs]
+            cells.append(", ".join(_f(m["iqr_ms"], 2) if m and m["count"] else "-" for m in ms))
+        out.append(cells)
+    return _table(["setting", *[f"{path}: IQR per arm" for path in paths]], out)
+
+
 def _actuator_by_load(rows: list[Row]) -> list[str]:
     """Per load and scheduling class (the learner's label): each env's actuator-cycle p99 / max (ms)."""
     envs = [e for (e,) in _keys(rows, "env")]
@@ -262,6 +279,7 @@ def _roundtrip(rows: list[Row]) -> list[str]:
 
 KINDS: dict[str, Callable[[list[Row]], list[str]]] = {
     "latency": _latency,
+    "action_cycle": _action_cycle,
     "actuator_by_load": _actuator_by_load,
     "transport": _transport,
     "timers": _timers,
