@@ -8,7 +8,7 @@ from pathlib import Path
 from rig.fault_tables import load, summary, tables
 
 
-def _run(fault: str, link: str, duration_s: float, recovery_s: float, **extra: object) -> dict[str, object]:
+def _line(fault: str, link: str, duration_s: float, recovery_s: float, **extra: object) -> dict[str, object]:
     row: dict[str, object] = {
         "fault": fault, "link": link, "duration_s": duration_s, "hold_after_fault_s": 0.637,
         "hold_after_last_command_s": 0.6, "hold_ticks_after_last_command": 6, "notice_after_fault_s": None,
@@ -23,10 +23,10 @@ def _run(fault: str, link: str, duration_s: float, recovery_s: float, **extra: o
 def test_one_section_per_fault_in_order_with_the_last_line_of_a_rerun(tmp_path: Path) -> None:
     report = tmp_path / "faults.jsonl"
     lines = [
-        _run("tcp reset", "ros1", 5, 0.5, new_process_sees_arm=True, new_process_first_state_s=0.21),
-        _run("partition", "tcp", 30, 9.9, new_process_sees_arm=True, new_process_first_state_s=0.05),
-        _run("partition", "tcp", 30, 1.2, new_process_sees_arm=True, new_process_first_state_s=0.08),  # the rerun
-        _run("partition", "tcp", 0.5, 0.19, new_process_sees_arm=False, new_process_first_state_s=None),
+        _line("tcp reset", "ros1", 5, 0.5, new_process_sees_arm=True, new_process_first_state_s=0.21),
+        _line("partition", "tcp", 30, 9.9, new_process_sees_arm=True, new_process_first_state_s=0.05),
+        _line("partition", "tcp", 30, 1.2, new_process_sees_arm=True, new_process_first_state_s=0.08),  # the rerun
+        _line("partition", "tcp", 0.5, 0.19, new_process_sees_arm=False, new_process_first_state_s=None),
     ]
     report.write_text("".join(json.dumps(r) + "\n" for r in lines))
     runs = load(report)
