@@ -335,6 +335,46 @@ def _serve_ros2(args: argparse.Namespace) -> int:
     return _run_until_signal(serve_ros2_driver(cfg, emulation=emulation, servo=servo, on_ready=_print_ready))
 
 
+def _serve_dxl(args: argparse.Namespace) -> int:
+    """``serve --dxl PATH``: the bus arm in a tcp/tls domain, or with ``--ros2`` as a ROS 2 driver (and no uniros
+    domain: a ROS 2 stack is then the arm's one commander)."""
+    from uniros_async.errors import ConfigError
+    from uniros_async.hardware.dxl import cli as dxl_cli
+
+    sim_only = {
+        "--emulate-real": args.emulate_real,
+        "--seed": args.seed != 0,
+        "--sim-time": args.sim_time,
+        "--time-scale": args.time_scale != 1.0,
+        "--command-timeout": args.command_timeout != 1.0,
+        "--markers": args.markers,
+        "--trace": args.trace,
+        "--max-command-age": bool(args.max_command_age),
+    }
+    given = [flag for flag, on in sim_only.items() if on]
+    if given:
+        raise ConfigError(f"--dxl serves the arm on its bus: {', '.join(given)} apply to the servo sim only")
+    if args.ros1_master is not None:
+        raise ConfigError(
+            "--ros1-master: --dxl serves the bus arm in a uniros domain, or with --ros2 as a ROS 2 driver, not on ROS 1"
+        )
+    if args.ros2 is None:
+        return _run_until_signal(dxl_cli.serve(args, auth_key=_auth_key(args), on_ready=_print_ready))
+    from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig
+
+    domain_flags = {
+        "--host": args.host != "127.0.0.1",
+        "--port": args.port != 0,
+        "--auth-key-env": args.auth_key_env is not None,
+        "--namespace (give it in the ros2:// URI)": args.namespace is not None,
+    }
+    given = [flag for flag, on in domain_flags.items() if on]
+    if given:
+        raise ConfigError(f"--dxl with --ros2 serves the arm on a ROS 2 domain, not a uniros one: {', '.join(given)}")
+    cfg = Ros2BridgeConfig.from_uri(args.robot, _ros2_uri(args.ros2), insecure=args.insecure or None)
+    return _run_until_signal(dxl_cli.serve_ros2(args, cfg, on_ready=_print_ready))
+
+
 _THREADS_BEFORE_SERVING: set[int] = set()
 
 
@@ -409,9 +449,7 @@ def _serve(args: argparse.Namespace) -> int:
     other = "--ros2" if args.ros2 is not None else "--ros1-master" if args.ros1_master is not None else None
     _check_tls_flags(args, other)
     if args.dxl is not None:
-        from uniros_async.hardware.dxl import cli as dxl_cli
-
-        return _run_until_signal(dxl_cli.serve(args, auth_key=_auth_key(args), on_ready=_print_ready))
+        return _serve_dxl(args)
     if args.ros2 is not None:
         return _serve_ros2(args)
     if args.ros1_master is not None:

@@ -2,6 +2,7 @@
 
 uniros robot vbus rx200                        # a virtual servo bus on a pty; prints its path first
 uniros robot serve rx200 --dxl /dev/ttyUSB0    # the arm on its bus, served in a tcp (--tls: tls) domain
+uniros robot serve rx200 --dxl /dev/ttyUSB0 --ros2 0   # or as a ROS 2 driver in domain 0 (adapters/ros2_driver.py)
 """
 
 from __future__ import annotations
@@ -9,9 +10,12 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable, Coroutine
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["add_parser", "add_serve_arguments", "run", "serve"]
+if TYPE_CHECKING:
+    from uniros_async.adapters.ros2_bridge import Ros2BridgeConfig
+
+__all__ = ["add_parser", "add_serve_arguments", "run", "serve", "serve_ros2"]
 
 
 def add_parser(actions: Any) -> argparse.ArgumentParser:
@@ -49,7 +53,8 @@ def add_serve_arguments(serve: argparse.ArgumentParser) -> None:
         "--dxl",
         default=None,
         metavar="PATH",
-        help="serve the real arm on its Dynamixel bus at PATH (/dev/ttyUSB0; a vbus pty) instead of a sim",
+        help="serve the real arm on its Dynamixel bus at PATH (/dev/ttyUSB0; a vbus pty) instead of a sim, in a tcp "
+        "(--tls: tls) domain, or with --ros2 as a ROS 2 driver (no uniros domain then)",
     )
     serve.add_argument("--dxl-map", default=None, help="with --dxl: the servo map (default: the robot's)")
     serve.add_argument("--dxl-baud", type=int, default=None, help="with --dxl: the baud rate (default: the map's)")
@@ -103,5 +108,31 @@ def serve(
         profile_ms=args.dxl_profile_ms,
         namespace=args.namespace,
         options=options,
+        on_ready=on_ready,
+    )
+
+
+def serve_ros2(
+    args: argparse.Namespace, config: Ros2BridgeConfig, *, on_ready: Callable[[str], Any]
+) -> Coroutine[Any, Any, None]:
+    """The coroutine that serves ``uniros robot serve ROBOT --dxl PATH --ros2 [URI]`` until cancelled: the arm as a
+    ROS 2 driver on the topics of ``config``, and no uniros domain.
+
+    Raises:
+        ConfigError: an unknown servo map.
+    """
+    from uniros_async.adapters.ros2_driver import serve_ros2_dxl_driver
+    from uniros_async.hardware.dxl.servo_map import servo_map
+
+    servos = servo_map(args.dxl_map or config.spec.name)
+    if args.dxl_profile_ms is not None:
+        servos = servos.with_arm_profile(args.dxl_profile_ms)
+    return serve_ros2_dxl_driver(
+        config,
+        args.dxl,
+        servos,
+        baud=args.dxl_baud,
+        margin_s=args.dxl_margin_ms / 1e3 if args.dxl_margin_ms else None,
+        shutdown=args.dxl_shutdown,
         on_ready=on_ready,
     )
