@@ -96,6 +96,8 @@ class ArmState:
     joint_state: JointState
     current_a: dict[str, float] = field(default_factory=dict)
     """Present current per joint in A (servos that sense current)."""
+    load_pct: dict[str, float] = field(default_factory=dict)
+    """Present load per joint in % of the stall torque (servos that report load instead, the XL430)."""
 
 
 class DxlArm:
@@ -309,6 +311,7 @@ class DxlArm:
         n = len(self.read_servos)
         pos, vel, eff = np.empty(n), np.empty(n), np.empty(n)
         current: dict[str, float] = {}
+        load_pct: dict[str, float] = {}
         for k, servo in enumerate(self.read_servos):
             raw = block[servo.id]
             load = int.from_bytes(raw[0:2], "little", signed=True)
@@ -321,6 +324,7 @@ class DxlArm:
                 current[servo.joint] = amps
                 eff[k] = amps * _TORQUE_CONSTANT_NM_A.get(servo.model, 1.0)
             else:
+                load_pct[servo.joint] = load / 10.0  # Present_Load's unit is 0.1 %
                 eff[k] = load / 1000.0 * _STALL_TORQUE_NM.get(servo.model, 1.0)
         self.last_q = pos[: len(self.arm_servos)].copy()
         alerts = [i for i in self.read_ids if self.bus.alerts.get(i)]
@@ -335,7 +339,7 @@ class DxlArm:
         state = JointState(
             header=Header(stamp_ns=stamp_ns), name=names, position=position, velocity=velocity, effort=effort
         )
-        return ArmState(joint_state=state, current_a=current)
+        return ArmState(joint_state=state, current_a=current, load_pct=load_pct)
 
     async def write_goals(self, q_arm: np.ndarray, gripper_m: float | None = None) -> None:
         """One sync write of the arm's goal positions (clamped or refused at the servos' limits, ``_goal_ticks``);

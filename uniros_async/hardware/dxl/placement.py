@@ -18,6 +18,10 @@ namespace that publishes ``joint_states`` and takes ``command`` as every other p
 temperature of each servo; the servos' Bus Watchdogs are read once a second too, ``DxlArm.check_watchdogs``). Its
 loop is one task: each tick one sync read (published as the joint state) and one sync write of the newest command's
 goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
+The env gets the servos' newest readings in the ``info`` of every step and reset (``DxlArmNode.info``, handed over
+as ``DxlArmLink.info``): ``servo_current_ma`` (the servos that sense current), ``servo_load_pct`` (those that
+report load instead, the XL430) and ``servo_temperature_c`` (every arm and gripper servo, read once a second), each
+a dict by joint name.
 A ``RobotError`` of the arm (hardware error, a silent servo: the bus's timeouts are milliseconds, well within the
 env's ``robot_timeout_s``) ends the node's task and, with it, the env's loop: the env's next call raises that
 RobotError, which names the joint, the servo's ID and what happened.
@@ -41,6 +45,7 @@ from uniros_async.bus import open_domain, open_node
 from uniros_async.bus.messages import Data, Empty, JointCommand, JointState, Trigger
 from uniros_async.bus.qos import latest
 from uniros_async.errors import ConfigError, DxlCrcError, RobotError
+from uniros_async.hardware.dxl.control_table import MODELS
 from uniros_async.placements import ArmLink, PlacementRequest
 from uniros_async.transports.base import TransportOptions, options_from_environ
 
@@ -53,6 +58,7 @@ if TYPE_CHECKING:
     from uniros_async.robots.spec import RobotSpec
 
 __all__ = [
+    "DxlArmLink",
     "DxlArmNode",
     "DxlUri",
     "check_dxl_placement",
@@ -152,7 +158,9 @@ class DxlArmNode:
         """The last ticks' bus time (sync read, then sync write), in s."""
         self.error: str = ""
         self.current_a: dict[str, float] = {}
+        self.load_pct: dict[str, float] = {}
         self.temperature_c: dict[str, float] = {}
+        self._reports_load = any(MODELS[s.model].current_unit_a is None for s in arm.read_servos)
         self._seen = 0
         self._cmd_echo: tuple[int, int] | None = None
         self._goal: np.ndarray | None = None
@@ -189,7 +197,7 @@ class DxlArmNode:
             state = await self.arm.read_state(self.node.now_ns())
         except DxlCrcError:
             return  # retried within the call, counted; RobotError after max_crc_errors ticks in a row
-        self.current_a = state.current_a
+        self.current_a, self.load_pct = state.current_a, state.load_pct
         js = state.joint_state
         echo = self._cmd_echo
         if echo is not None:
@@ -245,10 +253,33 @@ class DxlArmNode:
             "timeouts": bus.timeouts,
             "retries": bus.retries,
             "current_a": self.current_a,
+            "load_pct": self.load_pct,
             "temperature_c": self.temperature_c,
             "error": self.error,
         }
         return Data(value=value)
+
+    def info(self) -> dict[str, dict[str, float]]:
+        """The servos' newest readings, for an env's ``info``, each a dict by joint name (copies):
+        ``servo_current_ma`` (present current in mA, of the servos that sense current), ``servo_load_pct`` (present
+        load in % of the stall torque, of those that report load instead; only when the arm has such servos) and
+        ``servo_temperature_c`` (present temperature in degC, read every ``TEMPERATURE_PERIOD_S``). Current and
+        load are the newest tick's."""
+        readings = {
+            "servo_current_ma": {j: round(a * 1e3, 3) for j, a in self.current_a.items()},
+            "servo_temperature_c": dict(self.temperature_c),
+        }
+        if self._reports_load:
+            readings["servo_load_pct"] = dict(self.load_pct)
+        return readings
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DxlArmLink(ArmLink):
+    """The ``dxl://`` placement's ArmLink: ``info`` gives the env the servos' newest readings
+    (``DxlArmNode.info``), which the env adds to the ``info`` of every step and reset."""
+
+    info: Callable[[], dict[str, Any]]
 
 
 def _rate(rate_hz: float | None, watchdog_ms: int, default_hz: float) -> float:
@@ -358,9 +389,9 @@ async def open_dxl_placement(request: PlacementRequest[EnvConfig]) -> AsyncItera
             margin_s=uri.margin_s,
             shutdown=uri.shutdown,
             clock=request.clock,
-        ),
+        ) as arm_node,
     ):
-        yield ArmLink(domain=domain)
+        yield DxlArmLink(domain=domain, info=arm_node.info)
 
 
 async def serve_dxl_arm(
