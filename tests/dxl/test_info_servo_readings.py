@@ -1,5 +1,5 @@
 """``robot="dxl://..."``: the servos' present currents, loads and temperatures in the env's info, against what the
-virtual servos of ``uniros robot vbus`` hold in their registers (read over its control lines, ``_warm_servos``)."""
+virtual servos of ``uniros robot vbus`` hold in their registers (read, and warmed, over its control lines)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,6 @@ from ._vbus import MARGIN_MS, Vbus, running_vbus
 
 pytestmark = pytest.mark.slow
 
-WARM_RX200 = "dxl._warm_servos:rx200"
-"""The rx200's map, in a vbus that also takes ``temperature ID C`` and ``get ID NAME`` (tests/dxl/_warm_servos.py)."""
 ARM_AND_GRIPPER = {"waist", "shoulder", "elbow", "wrist_angle", "wrist_rotate", "gripper"}
 CURRENT_MA_PER_UNIT = (XM430_W350.current_unit_a or 0.0) * 1e3
 SERVO_KEYS = ("servo_current_ma", "servo_load_pct", "servo_temperature_c")
@@ -39,7 +37,7 @@ def _still(env: gym.Env, steps: int = 6) -> dict:
 
 
 def test_info_carries_the_servos_currents_loads_and_temperatures_and_they_update() -> None:
-    with running_vbus(servos=WARM_RX200) as vbus:
+    with running_vbus() as vbus:
         env = gym.make(
             "uniros/Rx200Reach-v0",
             robot=f"dxl://{vbus.path}?map=rx200&margin_ms={MARGIN_MS}&profile_ms=0",
@@ -97,7 +95,7 @@ def test_info_carries_the_servos_currents_loads_and_temperatures_and_they_update
 
 
 def test_a_vector_env_gets_them_from_its_bus_arm_only() -> None:
-    with running_vbus(servos=WARM_RX200) as vbus:
+    with running_vbus() as vbus:
         assert vbus.send("temperature 1 41") == "ok temperature 1 41"
         envs = uniros_async.make_vec(
             [

@@ -19,6 +19,8 @@ Faults are lines on stdin (each answered ``ok ...`` or ``error: ...`` on stdout)
 ``error ID BITS``      set servo ID's Hardware_Error_Status bits (e.g. ``0x20``, overload; 0 clears)
 ``stop`` / ``start``   the whole bus stops answering (and obeying), then starts again
 ``clear``              every fault off (hardware errors stay until a reboot or ``error ID 0``)
+``temperature ID C``   servo ID's Present_Temperature becomes C degC (a servo warming up: the sim has no heat)
+``get ID NAME``        answers ``ok get ID NAME VALUE``: register NAME of servo ID as the servo holds it now
 =====================  =========================================================================
 
 Events go to stdout as lines too: ``watchdog id=N silent_ms=... t=...`` when a servo's Bus Watchdog stops it
@@ -198,11 +200,16 @@ class VbusServer:
             if verb == "error" and len(args) == 2:
                 self.bus.set_hardware_error(self._servo(args[0]).id, int(args[1], 0))
                 return f"ok {line}"
+            if verb == "temperature" and len(args) == 2:
+                self._servo(args[0]).put("present_temperature", int(args[1], 0))
+                return f"ok {line}"
+            if verb == "get" and len(args) == 2:
+                return f"ok {line} {self._servo(args[0]).get(args[1])}"
         except (ValueError, ConfigError) as exc:
             return f"error: {line!r}: {exc}"
         return (
             f"error: {line!r}: expected one of 'crc ID [N]', 'drop ID [N]', 'silent ID', 'answer ID', "
-            "'error ID BITS', 'stop', 'start', 'clear'"
+            "'error ID BITS', 'stop', 'start', 'clear', 'temperature ID C', 'get ID NAME'"
         )
 
     def _servo(self, word: str) -> VirtualServo:
