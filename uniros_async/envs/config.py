@@ -47,8 +47,10 @@ class EnvConfig(ConfigModel):
     ``bridge --tls``; the certificate, key and CA from ``$UNIROS_TLS_CERT``, ``$UNIROS_TLS_KEY``, ``$UNIROS_TLS_CA``),
     ``"ros1://host:port"`` (an arm whose driver is a ROS 1 node, reached through that ROS master by a bridge in the
     env's process: ``adapters/ros1_bridge.py``), ``"ros2://[domain][/namespace][?...]"`` (an arm whose driver is a
-    ROS 2 node, its settings in the URI's query: ``adapters/ros2_bridge.py``), or any other placement registered
-    with ``uniros_async.register_placement``."""
+    ROS 2 node, its settings in the URI's query: ``adapters/ros2_bridge.py``), ``"dxl:///dev/ttyUSB0[?...]"`` (the
+    arm's Dynamixel servos on that serial port, driven from the env's own process with no middleware; the servo
+    map, baud, profile and margin in the query: docs/howto/real-robots.md), or any other placement registered with
+    ``uniros_async.register_placement``."""
     clock: Literal["wall", "sim"] | None = None
     """``"wall"`` (real time) or ``"sim"`` (SimClock, as fast as the CPU allows; only with ``robot="sim"``, or
     ``robot="emulated-real"``, which then runs the same emulation model (perturbed dynamics, sensor noise, command
