@@ -38,6 +38,9 @@ logger = logging.getLogger(__name__)
 DEFAULT_RATE_HZ = 30.0
 """The rate of a source that does not say its own (a device without a frame rate, a file without one)."""
 THREAD_JOIN_TIMEOUT_S = 5.0
+ADVERTISE_POLL_S = 0.05
+"""How often the capture thread, holding its second frame until the topic is advertised, looks whether it should
+stop instead."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -124,6 +127,7 @@ class CaptureCameraNode:
         self._failed: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._spec_ready: asyncio.Future[FrameSpec] = asyncio.get_running_loop().create_future()
         self._first: tuple[np.ndarray, int] | None = None
+        self._advertised = threading.Event()  # the topic exists: frames after the first can be published
         self._watch: asyncio.Task[None] | None = None
 
     @property
@@ -155,6 +159,13 @@ class CaptureCameraNode:
                     return
                 frame = self._convert(cv2, bgr)
                 loop.call_soon_threadsafe(self._publish, frame, stamp)
+                if not self._advertised.is_set():
+                    # the first frame gives the topic its size; the next waits until the topic exists, so that a
+                    # video file loses no frame to the advertising
+                    while not self._advertised.wait(ADVERTISE_POLL_S):
+                        if self._stop.is_set():
+                            return
+                    next_t = time.monotonic()
                 next_t += period_s
                 delay = next_t - time.monotonic()
                 if delay > 0:
@@ -202,6 +213,7 @@ class CaptureCameraNode:
         frame, stamp = self._first
         self.publisher.publish(frame, stamp)
         self.frames += 1
+        self._advertised.set()
 
     async def _watch_thread(self) -> None:
         await self._failed
