@@ -302,3 +302,38 @@ def test_action_l2_needs_the_async_learner() -> None:
         train_config_from_dict({"envs": [RX], "learner": "async", "async_learner": {"action_l2": -1}})
     cfg = train_config_from_dict({"envs": [RX], "learner": "async", "async_learner": {"action_l2": 1.0}})
     assert cfg.async_learner.action_l2 == 1.0
+
+
+def test_delay_aware_wraps_every_env_and_refuses_what_it_cannot_do() -> None:
+    import numpy as np
+
+    from uniros_async.training.build import build_eval_envs, build_train_env
+
+    cfg = train_config_from_dict({"envs": [RX], "delay_aware": {"action_history": 2}})
+    assert cfg.delay_aware_args() == (2, True)
+    sampler, layout = build_train_env(cfg)
+    evals = build_eval_envs(cfg, layout)
+    try:
+        # the reach observation, then the last two actions, then the age: training and evaluation envs alike
+        n_obs, n_act = 28, layout.action_size
+        assert layout.obs_size == n_obs + 2 * n_act + 1
+        assert [e.observation_space.shape for _, _, e in evals] == [(layout.obs_size,)]
+        sampler.reset(seed=0)
+        action = np.full(n_act, 0.5, dtype=np.float32)
+        obs, *_ = sampler.step(action)
+        history = obs[n_obs : n_obs + 2 * n_act]
+        assert np.allclose(history[:n_act], action) and np.allclose(history[n_act:], 0.0)  # newest first, then zeros
+        assert obs[-1] >= 0.0
+    finally:
+        sampler.close()
+        for _, _, e in evals:
+            e.close()
+    with pytest.raises(ConfigError, match="delay_aware: wraps each env of a run, and a concurrent run steps a vector"):
+        train_config_from_dict(
+            {"envs": [RX], "placement": "workers", "concurrent": True, "delay_aware": {"observation_age": False}}
+        )
+    with pytest.raises(ConfigError, match="delay_aware.observation_age: reads the env.s own timing.*workers"):
+        train_config_from_dict({"envs": [RX], "placement": "workers", "delay_aware": {}})
+    with pytest.raises(ConfigError, match="delay_aware: adds nothing"):
+        train_config_from_dict({"envs": [RX], "delay_aware": {"action_history": 0, "observation_age": False}})
+    assert train_config_from_dict({"envs": [RX]}).delay_aware_args() is None

@@ -69,7 +69,15 @@ def build_train_env(cfg: TrainConfig) -> tuple[TaskSamplerEnv, EnvLayout]:
     envs: list[gym.Env[Any, Any]] = []
     try:
         for _, env_id, kwargs in specs:
-            envs.append(build_env(env_id, kwargs, placement=cfg.placement, drop_observation=cfg.drop_observation))
+            envs.append(
+                build_env(
+                    env_id,
+                    kwargs,
+                    placement=cfg.placement,
+                    drop_observation=cfg.drop_observation,
+                    delay_aware=cfg.delay_aware_args(),
+                )
+            )
         sizes = [space_sizes(e) for e in envs]
         kinds = {isinstance(e.observation_space, gym.spaces.Dict) for e in envs}
         if len(kinds) != 1:
@@ -137,7 +145,13 @@ def build_eval_envs(cfg: TrainConfig, layout: EnvLayout) -> list[tuple[str, str,
     out: list[tuple[str, str, gym.Env[Any, Any]]] = []
     try:
         for label, env_id, kwargs in cfg.eval_specs():
-            env = build_env(env_id, kwargs, placement=cfg.placement, drop_observation=cfg.drop_observation)
+            env = build_env(
+                env_id,
+                kwargs,
+                placement=cfg.placement,
+                drop_observation=cfg.drop_observation,
+                delay_aware=cfg.delay_aware_args(),
+            )
             out.append((label, env_id, env))
             if layout.pad_to is not None and space_sizes(env) != layout.pad_to:
                 env = PadSpaces(env, *layout.pad_to)

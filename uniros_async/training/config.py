@@ -198,6 +198,15 @@ class CheckpointConfig(ConfigModel):
     """Save the replay buffer too (needed to resume exactly)."""
 
 
+class DelayAwareConfig(ConfigModel):
+    """The last actions and the observation's age in every env's observation (``envs.delay_aware``)."""
+
+    action_history: Int = Field(default=1, ge=0)
+    """How many past actions the observation carries, newest first (zeros after a reset)."""
+    observation_age: Bool = True
+    """Append how old the observation is, in seconds (the env loop's own measure)."""
+
+
 class RecordConfig(ConfigModel):
     """Every step of the training envs written to MCAP bags while training (``bag.episodes.RecordEpisodes``:
     observation, action, reward, goal, success, the env loop's joint states, commands and timings, camera
@@ -278,6 +287,11 @@ class TrainConfig(ConfigModel):
     """Show a progress bar of the run's steps (``uniros train --no-progress`` turns it off)."""
     record: RecordConfig | None = None
     """Record the training envs' steps to MCAP (not with ``concurrent``); unset: nothing is recorded."""
+    delay_aware: DelayAwareConfig | None = None
+    """Delay-aware observations (``envs.delay_aware.DelayAwareObservation``, an action buffer as rtgym's for
+    delayed MDPs) on every training and evaluation env, e.g. ``{action_history: 2}``; not with ``concurrent``, and
+    ``observation_age`` only with ``placement: inprocess`` (it reads the env's own timing). Unset: observations as
+    the env gives them."""
 
     @pydantic.model_validator(mode="after")
     def _check(self) -> TrainConfig:
@@ -306,16 +320,32 @@ class TrainConfig(ConfigModel):
                 raise key_error("concurrent", "evaluates on the training envs; remove eval.envs")
             if self.record is not None:
                 raise key_error("record", "records one env's steps, and a concurrent run steps a vector env")
+            if self.delay_aware is not None:
+                raise key_error("delay_aware", "wraps each env of a run, and a concurrent run steps a vector env")
         elif self.eval.alongside:
             raise key_error(
                 "eval.alongside", "evaluates on a second vector env of the training envs: it needs concurrent: true"
             )
+        if self.delay_aware is not None and self.delay_aware.observation_age and self.placement != "inprocess":
+            raise key_error(
+                "delay_aware.observation_age",
+                f"reads the env's own timing, which a worker process keeps: it needs placement: inprocess, got "
+                f"placement: {self.placement} (or set observation_age: false)",
+            )
+        delay = self.delay_aware
+        if delay is not None and not delay.action_history and not delay.observation_age:
+            raise key_error("delay_aware", "adds nothing: set action_history >= 1 or observation_age: true")
         if self.async_learner.action_l2 and self.learner != "async":
             raise ConfigError(
                 f"async_learner.action_l2={self.async_learner.action_l2} needs learner: async (AsyncTD3's update; "
                 "SB3's TD3 has no such term)"
             )
         return self
+
+    def delay_aware_args(self) -> tuple[int, bool] | None:
+        """``(action_history, observation_age)`` of ``delay_aware``, or None."""
+        d = self.delay_aware
+        return None if d is None else (d.action_history, d.observation_age)
 
     def labels(self) -> list[str]:
         """Label of every training env."""

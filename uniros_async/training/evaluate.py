@@ -310,7 +310,14 @@ def make_eval_env(
             named), or a task-indexed policy gets an env it was not trained on.
         ConfigError: an unknown id or keyword argument.
     """
-    env = build_env(env_id, kwargs, placement=placement, drop_observation=meta.drop_observation)
+    delay = meta.config.get("delay_aware")  # the run's TrainConfig.delay_aware, as plain data
+    env = build_env(
+        env_id,
+        kwargs,
+        placement=placement,
+        drop_observation=meta.drop_observation,
+        delay_aware=None if not delay else (int(delay["action_history"]), bool(delay["observation_age"])),
+    )
     try:
         goal = isinstance(env.observation_space, gym.spaces.Dict)
         obs_size, act_size = space_sizes(env)

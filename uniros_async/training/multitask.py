@@ -48,14 +48,16 @@ def build_env(
     placement: str = "inprocess",
     pad_to: tuple[int, int] | None = None,
     drop_observation: tuple[int, ...] = (),
+    delay_aware: tuple[int, bool] | None = None,
 ) -> gym.Env[Any, Any]:
-    """Make one env (with its registered time limit), drop observation entries, and pad it to
-    ``pad_to = (obs_size, action_size)``.
+    """Make one env (with its registered time limit), drop observation entries, add the delay-aware ones, and pad
+    it to ``pad_to = (obs_size, action_size)``.
 
     Args:
         placement: ``inprocess`` (``gymnasium.make`` here), ``workers`` (``uniros_async.make``: its own process) or
             ``ray`` (``uniros_async.make(..., backend="ray")``: a process on the node Ray places it on).
         drop_observation: see ``DropObservation``.
+        delay_aware: ``(action_history, observation_age)`` of ``envs.delay_aware.DelayAwareObservation``, or None.
 
     Raises:
         ConfigError: an unknown id or keyword argument, or an env larger than ``pad_to``.
@@ -75,6 +77,10 @@ def build_env(
     try:
         if drop_observation:
             env = DropObservation(env, tuple(drop_observation))
+        if delay_aware is not None:
+            from uniros_async.envs.delay_aware import DelayAwareObservation
+
+            env = DelayAwareObservation(env, action_history=delay_aware[0], observation_age=delay_aware[1])
         if pad_to is not None and space_sizes(env) != tuple(pad_to):
             env = PadSpaces(env, *pad_to)
     except BaseException:
