@@ -432,22 +432,32 @@ class _SentPending(_Pending[list[Any]]):
         self._results: list[Any] = [None] * len(messages) if results is None else results
         self._rest: set[int] | None = rest  # what the calling thread could not take (None: not tried yet)
         self._task: asyncio.Task[list[Any]] | None = None  # type: ignore[assignment]  # ... by request_all instead
+        self._interrupted = False  # taking the replies in the calling thread was interrupted: they cannot complete
 
     def done(self) -> bool:
         if self._task is not None:
             return self._task.done()
-        return self._rest is not None and not self._rest
+        return self._interrupted or (self._rest is not None and not self._rest)
 
     def result(self, timeout: float | None = None, decode: StepDecoder | None = None) -> list[Any]:
         """As ``_Pending.result``; ``decode``: what a step reply taken in this thread becomes instead of its result
         (``WorkerHandle.receive_reply_blocking``; the replies taken by the event loop are results as usual)."""
         sup = self._sup
+        if self._interrupted:
+            raise concurrent.futures.CancelledError()
         now = time.monotonic()
         end = None if timeout is None else now + timeout
         if self._rest is None:
             deadline = now + sup.call_timeout_s
             until = deadline if end is None else min(deadline, end)
-            owing, _, hung = sup._take_replies(self._sent, until, self._results, decode)  # raised below, with the rest
+            try:
+                owing, _, hung = sup._take_replies(self._sent, until, self._results, decode)  # raised below
+            except BaseException:
+                # Ctrl-C while taking the replies: which were taken is lost with the call (the workers still owing
+                # one are marked broken), so the requests can never complete; taking them again would wait the whole
+                # call timeout for replies already taken
+                self._interrupted = True
+                raise
             if hung is not None:
                 self._rest = set()
                 sup._report_hang_up(hung, owing, deadline)
