@@ -117,7 +117,7 @@ def test_bad_value_names_its_key_path(data: dict, message: str) -> None:
             "bogus: unknown key (valid keys: name, seed, total_steps, envs, env_defaults, randomize, placement, "
             "learner, "
             "concurrent, replay_buffer, task_id_in_obs, drop_observation, normalize_obs, td3, her, async_learner, "
-            "eval, checkpoint, max_wall_s, torch_threads, run_dir, progress_bar, record)",
+            "eval, checkpoint, max_wall_s, torch_threads, run_dir, progress_bar, record, delay_aware)",
         ),
         ({"envs": [RX], "total_step": 1}, "total_step: unknown key; did you mean 'total_steps'?"),
         ({"envs": [RX], "td3": {"lr": 1}}, "td3.lr: unknown key; did you mean 'learning_rate'?"),
