@@ -102,11 +102,14 @@ class ArmLink:
             ``"tls"``).
         process: a process that runs the arm for this env (a ``ServoSimProcess``), or None; the env keeps it as
             ``robot_process`` (tests kill it to see the env fail cleanly).
+        info: what the placement adds to the ``info`` of every step and reset (called as they return, on the env
+            loop's thread; the ``dxl://`` placement's servo readings), or None: nothing.
     """
 
     domain: Any
     transport: str = "auto"
     process: Any = None
+    info: Callable[[], dict[str, Any]] | None = None
 
 
 PlacementFactory = Callable[[PlacementRequest[Any]], AbstractAsyncContextManager[ArmLink]]

@@ -21,9 +21,9 @@ The arm is reached only through its topics (``joint_states``, ``command``) and s
 in namespace ``/<robot>``, so the same code drives the sim in this process, a sim in another process, the
 emulated real arm over tcp, or a real arm behind an adapter. Where the arm runs is the placement that
 ``config.robot`` names in ``uniros_async.placements``: it yields the domain the env's node joins, and says whether
-``reset`` may teleport the arm home (``can_teleport``) or must drive it there and wait for it to settle. A link
-that carries ``info`` (a callable: the ``dxl://`` placement's servo readings) adds what it returns to the ``info``
-of every step and reset, taken when they return; other placements add nothing.
+``reset`` may teleport the arm home (``can_teleport``) or must drive it there and wait for it to settle. A link's
+``info`` (``ArmLink.info``: the ``dxl://`` placement's servo readings) adds what it returns to the ``info`` of
+every step and reset, taken when they return.
 """
 
 from __future__ import annotations
@@ -150,7 +150,7 @@ class RobotEnv(BaseEnv):
         self._transit = StateTransit(stall_s=config.robot_timeout_s)
         self.unsafe_actions = 0
         self.robot_process: Any = None  # a process the placement runs the arm in (ArmLink.process), or None
-        self._link_info: Callable[[], dict[str, Any]] = dict  # the placement's info (see the module docstring)
+        self._link_info: Callable[[], dict[str, Any]] | None = None  # ArmLink.info: what the placement adds
 
     @property
     def _period_ns(self) -> int:
@@ -202,7 +202,7 @@ class RobotEnv(BaseEnv):
                 request = PlacementRequest(robot=spec, config=cfg, clock=clock)
                 link = await stack.enter_async_context(self.placement.open(request))
                 self.robot_process = link.process
-                self._link_info = getattr(link, "info", dict)
+                self._link_info = link.info
                 domain, transport = link.domain, link.transport
                 options = None
                 if isinstance(domain, str) and domain.startswith(("tcp://", "tls://")):
@@ -501,7 +501,8 @@ class RobotEnv(BaseEnv):
             info["unsafe_reason"] = self._target_unsafe
         if self._projected:
             info["action_projected"] = True
-        info.update(self._link_info())
+        if self._link_info is not None:
+            info.update(self._link_info())
         return obs, float(reward), bool(terminated), False, info
 
     def _on_action(self, action: np.ndarray) -> None:
@@ -563,7 +564,8 @@ class RobotEnv(BaseEnv):
         if isinstance(clock, SimClock):
             clock.pause()
         self._last_return_wall_ns = time.monotonic_ns()
-        return obs, {**info, **drawn, **self._link_info()}
+        link_info = self._link_info() if self._link_info is not None else {}
+        return obs, {**info, **drawn, **link_info}
 
     def _step_deadline(self, now: int) -> int:
         """When the step whose action arrived at ``now`` returns: one action cycle after the previous deadline.

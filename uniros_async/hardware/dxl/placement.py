@@ -19,7 +19,7 @@ temperature of each servo; the servos' Bus Watchdogs are read once a second too,
 loop is one task: each tick one sync read (published as the joint state) and one sync write of the newest command's
 goals. The bus's fd sits in the event loop, so no transaction blocks the env's loop.
 The env gets the servos' newest readings in the ``info`` of every step and reset (``DxlArmNode.info``, handed over
-as ``DxlArmLink.info``): ``servo_current_ma`` (the servos that sense current), ``servo_load_pct`` (those that
+as ``ArmLink.info``): ``servo_current_ma`` (the servos that sense current), ``servo_load_pct`` (those that
 report load instead, the XL430) and ``servo_temperature_c`` (every arm and gripper servo, read once a second), each
 a dict by joint name.
 A ``RobotError`` of the arm (hardware error, a silent servo: the bus's timeouts are milliseconds, well within the
@@ -58,7 +58,6 @@ if TYPE_CHECKING:
     from uniros_async.robots.spec import RobotSpec
 
 __all__ = [
-    "DxlArmLink",
     "DxlArmNode",
     "DxlUri",
     "check_dxl_placement",
@@ -274,14 +273,6 @@ class DxlArmNode:
         return readings
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class DxlArmLink(ArmLink):
-    """The ``dxl://`` placement's ArmLink: ``info`` gives the env the servos' newest readings
-    (``DxlArmNode.info``), which the env adds to the ``info`` of every step and reset."""
-
-    info: Callable[[], dict[str, Any]]
-
-
 def _rate(rate_hz: float | None, watchdog_ms: int, default_hz: float) -> float:
     """The bus loop's rate: ``rate_hz`` if given (at least two ticks per watchdog window), else ``default_hz``
     raised to that."""
@@ -391,7 +382,7 @@ async def open_dxl_placement(request: PlacementRequest[EnvConfig]) -> AsyncItera
             clock=request.clock,
         ) as arm_node,
     ):
-        yield DxlArmLink(domain=domain, info=arm_node.info)
+        yield ArmLink(domain=domain, info=arm_node.info)
 
 
 async def serve_dxl_arm(
