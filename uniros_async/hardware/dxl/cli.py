@@ -122,11 +122,9 @@ def serve_ros2(
         ConfigError: an unknown servo map.
     """
     from uniros_async.adapters.ros2_driver import serve_ros2_dxl_driver
-    from uniros_async.hardware.dxl.servo_map import servo_map
+    from uniros_async.hardware.dxl.servo_map import arm_servo_map
 
-    servos = servo_map(args.dxl_map or config.spec.name)
-    if args.dxl_profile_ms is not None:
-        servos = servos.with_arm_profile(args.dxl_profile_ms)
+    servos = arm_servo_map(args.dxl_map, config.spec.name, args.dxl_profile_ms)
     return serve_ros2_dxl_driver(
         config,
         args.dxl,

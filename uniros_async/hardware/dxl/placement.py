@@ -361,12 +361,10 @@ async def open_dxl_arm(
 @contextlib.asynccontextmanager
 async def open_dxl_placement(request: PlacementRequest[EnvConfig]) -> AsyncIterator[ArmLink]:
     """``robot="dxl://..."``: the arm on its bus in the env's process (see the module docstring)."""
-    from uniros_async.hardware.dxl.servo_map import servo_map
+    from uniros_async.hardware.dxl.servo_map import arm_servo_map
 
     uri = parse_dxl_uri(request.uri)
-    servos = servo_map(uri.map_name or request.robot.name)
-    if uri.profile_ms is not None:
-        servos = servos.with_arm_profile(uri.profile_ms)
+    servos = arm_servo_map(uri.map_name, request.robot.name, uri.profile_ms)
     async with (
         open_domain("memory://") as domain,
         open_dxl_arm(
@@ -408,13 +406,11 @@ async def serve_dxl_arm(
     Raises:
         ConfigError, DxlPortError, RobotError: as ``open_dxl_arm``.
     """
-    from uniros_async.hardware.dxl.servo_map import servo_map
+    from uniros_async.hardware.dxl.servo_map import arm_servo_map
     from uniros_async.robots import get_robot_spec
 
     spec = get_robot_spec(robot)
-    servos = servo_map(servo_map_name or spec.name)
-    if profile_ms is not None:
-        servos = servos.with_arm_profile(profile_ms)
+    servos = arm_servo_map(servo_map_name, spec.name, profile_ms)
     node_options = dataclasses.replace(options or options_from_environ(), bind_host=host)
     scheme = "tls" if tls else "tcp"
     async with (

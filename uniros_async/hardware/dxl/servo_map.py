@@ -39,6 +39,7 @@ __all__ = [
     "ServoConfig",
     "ServoGroup",
     "ServoMap",
+    "arm_servo_map",
     "register_servo_map",
     "servo_map",
     "servo_map_names",
@@ -418,3 +419,15 @@ def servo_map(name: str) -> ServoMap:
         except ImportError as exc:
             raise ConfigError(f"servo map '{module}:{name}': cannot import {module!r}: {exc}") from exc
     return _MAPS.get(name)
+
+
+def arm_servo_map(name: str | None, robot: str, profile_ms: int | None = None) -> ServoMap:
+    """The servo map ``name`` (None: the one registered under the robot's name), with the arm group's profile set
+    to ``profile_ms`` when given (``ServoMap.with_arm_profile``): how the placement, ``serve --dxl`` and its ROS 2
+    driver pick their map.
+
+    Raises:
+        ConfigError: as ``servo_map``.
+    """
+    servos = servo_map(name or robot)
+    return servos if profile_ms is None else servos.with_arm_profile(profile_ms)
