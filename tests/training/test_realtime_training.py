@@ -152,7 +152,7 @@ def test_wall_budget_stops_a_run(tmp_path: Path) -> None:
     ("over", "match"),
     [
         ({"placement": "inprocess"}, "needs placement: workers"),
-        ({"task_id_in_obs": True}, "does not support task_id_in_obs"),
+        ({"drop_observation": [0]}, "does not support drop_observation"),
         ({"eval": {"envs": ["uniros/Rx200Reach-v0"]}}, "remove eval.envs"),
         ({"concurrent": False, "eval": {"alongside": True}}, "eval.alongside: .*needs concurrent: true"),
         ({"max_wall_s": 0}, "max_wall_s: must be > 0, got 0"),

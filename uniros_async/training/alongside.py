@@ -164,11 +164,13 @@ def open_alongside(
     real_time: bool,
     torch_threads: int = 1,
     rank: str = "training",
+    task_id: bool = False,
 ) -> Alongside:
     """The evaluation of ``eval.alongside`` on a second set of the envs ``specs`` ((label, id, kwargs), the run's
     training envs), in an evaluation process of its own that is ready when this returns; the envs' loops rank below
     the training envs' with ``rank`` "training" (the training envs opened with ``rank_bases``' training base),
-    above them with "evaluation" (``make_vec``'s ``rt_rank_base``).
+    above them with "evaluation" (``make_vec``'s ``rt_rank_base``); ``task_id`` as the training envs'
+    (``task_id_in_obs``).
 
     Raises:
         ConfigError: ``rank`` is not one of ``RANKS``.
@@ -176,5 +178,7 @@ def open_alongside(
         UnirosError: the evaluation process did not start.
     """
     base = rank_bases(rank, len(specs))[1]
-    process = open_eval_process(specs, real_time=real_time, torch_threads=torch_threads, rt_rank_base=base)
+    process = open_eval_process(
+        specs, real_time=real_time, torch_threads=torch_threads, rt_rank_base=base, task_id=task_id
+    )
     return Alongside(process)

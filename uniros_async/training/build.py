@@ -118,17 +118,18 @@ def build_concurrent_env(cfg: TrainConfig, *, rt_rank_base: int = 0) -> tuple[Co
     """
     from uniros_async.training.concurrent import open_concurrent_env
 
-    venv = open_concurrent_env(cfg.env_specs(), rt_rank_base=rt_rank_base)
+    venv = open_concurrent_env(cfg.env_specs(), rt_rank_base=rt_rank_base, task_id=cfg.task_id_in_obs)
     try:
         goal = isinstance(venv.observation_space, gym.spaces.Dict)
         box = venv.observation_space["observation"] if goal else venv.observation_space  # type: ignore[index]
         obs_size, act_size = int(box.shape[0]), int(venv.action_space.shape[0])  # type: ignore[index]
+        n_id = venv.num_envs if cfg.task_id_in_obs else 0
     except BaseException:
         venv.close()
         raise
     layout = EnvLayout(
-        pad_to=(obs_size, act_size) if len(cfg.envs) > 1 else None,
-        task_id_size=0,
+        pad_to=(obs_size - n_id, act_size) if len(cfg.envs) > 1 else None,
+        task_id_size=n_id,
         goal_env=goal,
         obs_size=obs_size,
         action_size=act_size,

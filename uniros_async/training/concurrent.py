@@ -7,7 +7,9 @@ each step sends an action to every env at once and returns when all of them have
 four arms give four transitions per 0.8 s cycle, all into the one replay buffer of the one policy.
 
 ``ConcurrentVecEnv`` is the SB3 VecEnv wrapper the learner steps. It tags every info with its env's label
-(``info["task"]``, ``info["task_index"]``), records when the agent received each step's returns and which steps
+(``info["task"]``, ``info["task_index"]``), with ``task_id`` appends a one-hot env index to every observation (the
+``observation`` key of a goal env; ``terminal_observation`` too), so that one policy can tell arms apart whose padded
+observations and actions mean different joints, records when the agent received each step's returns and which steps
 ended an episode, and on ``timing_window()`` reads every env's timing records from its worker (cleared after the
 read) and turns them into the action-cycle statistics of ``uniros bench latency`` (``stats.loop_metrics``): the
 period between the agent's actions reaching each env loop, periods spanning a reset left out. The evaluation
@@ -27,16 +29,21 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
 from uniros_async.errors import ConfigError
 
-__all__ = ["ConcurrentVecEnv", "open_concurrent_env"]
+__all__ = ["ConcurrentVecEnv", "TaskIdVecEnv", "open_concurrent_env"]
 
 TIMING_METRICS = ("action_cycle", "actuator_cycle", "observation_age")
 
 
 def open_concurrent_env(
-    specs: Sequence[tuple[str, str, dict[str, Any]]], *, start_timeout_s: float = 120.0, rt_rank_base: int = 0
+    specs: Sequence[tuple[str, str, dict[str, Any]]],
+    *,
+    start_timeout_s: float = 120.0,
+    rt_rank_base: int = 0,
+    task_id: bool = False,
 ) -> ConcurrentVecEnv:
     """The envs ``specs`` (label, id, kwargs) as one ``ConcurrentVecEnv`` over worker processes (padded; their
-    loops' real-time ranks from ``rt_rank_base`` up, ``make_vec``).
+    loops' real-time ranks from ``rt_rank_base`` up, ``make_vec``; a one-hot env index in every observation with
+    ``task_id``).
 
     Raises:
         ConfigError: an unknown id or keyword argument, or spaces that cannot be padded together.
@@ -51,7 +58,7 @@ def open_concurrent_env(
         rt_rank_base=rt_rank_base,
     )
     try:
-        return ConcurrentVecEnv(vec.as_sb3(), [label for label, _, _ in specs])
+        return ConcurrentVecEnv(vec.as_sb3(), [label for label, _, _ in specs], task_id=task_id)
     except BaseException:
         vec.close()
         raise
@@ -63,12 +70,13 @@ class ConcurrentVecEnv(VecEnvWrapper):
     Args:
         venv: the SB3 VecEnv over the workers (``make_vec(...).as_sb3()``).
         labels: one label per sub-env, in order.
+        task_id: append the sub-env's one-hot index to its observations (the ``observation`` key of a goal env).
     """
 
-    def __init__(self, venv: VecEnv, labels: Sequence[str]) -> None:
+    def __init__(self, venv: VecEnv, labels: Sequence[str], *, task_id: bool = False) -> None:
         if len(labels) != venv.num_envs:
             raise ConfigError(f"ConcurrentVecEnv: {len(labels)} labels for {venv.num_envs} envs")
-        super().__init__(venv)
+        super().__init__(TaskIdVecEnv(venv) if task_id else venv)
         self.labels = list(labels)
         self._recv_ns: list[int] = []
         self._reset_after: set[int] = set()
@@ -118,3 +126,45 @@ class ConcurrentVecEnv(VecEnvWrapper):
         self._recv_ns.clear()
         self._reset_after.clear()
         return out
+
+
+class TaskIdVecEnv(VecEnvWrapper):
+    """A vector env whose every observation ends with its sub-env's one-hot index (the ``observation`` key of a goal
+    env), the observation an episode ended on (``info["terminal_observation"]``) included."""
+
+    def __init__(self, venv: VecEnv) -> None:
+        self._ids = np.eye(venv.num_envs, dtype=np.float32)
+        super().__init__(venv, observation_space=_with_id_space(venv.observation_space, venv.num_envs))
+
+    def reset(self) -> Any:
+        return self._with_id(self.venv.reset(), self._ids)
+
+    def step_wait(self) -> Any:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        for i, info in enumerate(infos):
+            if "terminal_observation" in info:
+                info["terminal_observation"] = self._with_id(info["terminal_observation"], self._ids[i])
+        return self._with_id(obs, self._ids), rewards, dones, infos
+
+    @staticmethod
+    def _with_id(obs: Any, ids: np.ndarray) -> Any:
+        if isinstance(obs, dict):
+            return {**obs, "observation": np.concatenate([obs["observation"], ids], axis=-1).astype(np.float32)}
+        return np.concatenate([obs, ids], axis=-1).astype(np.float32)
+
+
+def _with_id_space(space: Any, n: int) -> Any:
+    """``space`` (a 1-D Box, or a Dict with a 1-D Box ``observation``) with ``n`` one-hot entries in [0, 1] appended."""
+    import gymnasium as gym
+
+    box = space["observation"] if isinstance(space, gym.spaces.Dict) else space
+    if not isinstance(box, gym.spaces.Box) or len(box.shape) != 1:
+        raise ConfigError(f"task_id_in_obs needs a 1-D Box observation (or a goal env's 'observation'), got {box}")
+    new = gym.spaces.Box(
+        np.concatenate([box.low, np.zeros(n, np.float32)]).astype(np.float32),
+        np.concatenate([box.high, np.ones(n, np.float32)]).astype(np.float32),
+        dtype=np.float32,
+    )
+    if isinstance(space, gym.spaces.Dict):
+        return gym.spaces.Dict({**space.spaces, "observation": new})
+    return new

@@ -255,7 +255,7 @@ class TrainConfig(ConfigModel):
     replay_buffer: Literal["auto", "standard", "her"] = "auto"
     """``auto`` (HER for goal envs, plain replay otherwise), ``standard`` or ``her``."""
     task_id_in_obs: Bool = False
-    """Append a one-hot env index to observations (multi-task only; off as in the paper)."""
+    """Append a one-hot env index to observations (multi-task only, concurrent runs included; off as in the paper)."""
     drop_observation: tuple[Index, ...] = ()
     """Indices of the vector observation (the ``observation`` key of a goal env) to remove before the policy sees
     it (the reach goal envs' ``observation`` is already goal-free; this is for envs whose is not: HER's relabelled
@@ -313,9 +313,8 @@ class TrainConfig(ConfigModel):
                     "steps the envs as one vector env over worker processes: it needs placement: workers, got "
                     f"placement: {self.placement}",
                 )
-            for key in ("task_id_in_obs", "drop_observation"):
-                if getattr(self, key):
-                    raise key_error("concurrent", f"does not support {key} (the envs are padded alike)")
+            if self.drop_observation:
+                raise key_error("concurrent", "does not support drop_observation (the envs are padded alike)")
             if self.eval.envs:
                 raise key_error("concurrent", "evaluates on the training envs; remove eval.envs")
             if self.record is not None:

@@ -128,6 +128,7 @@ class _Spec:
     torch_threads: int
     start_timeout_s: float
     rt_rank_base: int
+    task_id: bool
     sys_path: tuple[str, ...]
 
 
@@ -302,7 +303,9 @@ def _child_main(spec: _Spec, conn: multiprocessing.connection.Connection, progre
             return out
 
     try:
-        venv = open_concurrent_env(spec.specs, start_timeout_s=spec.start_timeout_s, rt_rank_base=spec.rt_rank_base)
+        venv = open_concurrent_env(
+            spec.specs, start_timeout_s=spec.start_timeout_s, rt_rank_base=spec.rt_rank_base, task_id=spec.task_id
+        )
     except BaseException as exc:  # noqa: BLE001 - reported to the agent
         with contextlib.suppress(OSError):
             conn.send(("failed", _portable(exc)))
@@ -477,6 +480,7 @@ def open_eval_process(
     torch_threads: int = 1,
     start_timeout_s: float = 120.0,
     rt_rank_base: int = 0,
+    task_id: bool = False,
 ) -> EvalProcess:
     """Start an evaluation process over the envs ``specs`` ((label, id, kwargs), as ``open_concurrent_env``) and
     wait until its envs are up.
@@ -487,6 +491,7 @@ def open_eval_process(
         torch_threads: torch's thread count in the process.
         start_timeout_s: the envs' start timeout (``make_vec``).
         rt_rank_base: the lowest real-time rank of the envs' loops (``make_vec``).
+        task_id: a one-hot env index in every observation, as the training envs have it (``task_id_in_obs``).
 
     Raises:
         ConfigError, WorkerError: what opening the envs raised in the process.
@@ -499,6 +504,7 @@ def open_eval_process(
         torch_threads=torch_threads,
         start_timeout_s=start_timeout_s,
         rt_rank_base=rt_rank_base,
+        task_id=task_id,
         sys_path=tuple(p for p in sys.path if isinstance(p, str)),
     )
     ours, theirs = socket.socketpair()
