@@ -110,6 +110,9 @@ def test_evaluation_alongside_training_does_not_pause_it(tmp_path: Path) -> None
             "async",
             total_steps=steps,
             eval={"every_steps": 4, "episodes": 1, "final_episodes": 2, "alongside": True},
+            # the evaluation process gives its envs the same one-hot index as training's (a policy that takes one
+            # would refuse observations without it)
+            task_id_in_obs=True,
         ),
     )
     assert result.steps == steps
