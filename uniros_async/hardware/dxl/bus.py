@@ -8,9 +8,6 @@
 The tty is opened non-blocking in raw mode at the baud rate (termios) and its fd sits in the event loop
 (``loop.add_reader``), so a transaction never blocks the loop: it writes the instruction packet, then awaits the
 status packets the reader callback parses (``protocol.PacketParser``). One transaction at a time holds the lock.
-Before it waits, a transaction sets the tty's VMIN to the bytes it expects (up to 255): the line discipline then
-reports the fd readable once the whole answer is in, so the loop wakes once per transaction rather than once per
-status packet; at the timeout it reads whatever did come.
 
 Each transaction's timeout comes from the wire: the instruction's bytes and the expected status packets' bytes at
 10 bits a byte and the baud rate, plus each answering servo's return delay, plus ``margin_s`` for the host side
@@ -70,10 +67,6 @@ DEFAULT_MARGIN_S = 0.010
 scheduling of the process. An FTDI adapter left at its 16 ms default needs about 0.035."""
 
 
-MAX_VMIN = 255
-"""termios' VMIN is one byte."""
-
-
 def wire_time_s(n_bytes: int, baud: int) -> float:
     """Seconds ``n_bytes`` take on the wire at ``baud`` (8N1)."""
     return n_bytes * BITS_PER_BYTE / baud
@@ -87,8 +80,6 @@ class BusStats:
     crc_errors: int = 0
     timeouts: int = 0
     retries: int = 0
-    reads: int = 0
-    """Times the port was read and had bytes: the loop's wake-ups for it (one per answered transaction)."""
     crc_errors_in_a_row: int = 0
     """Transactions in a row whose last attempt still had a bad CRC (reset by a clean one)."""
 
@@ -176,7 +167,6 @@ class DxlBus:
         self._crc_base = 0
         self._waiter: asyncio.Future[None] | None = None
         self._read_error: OSError | None = None
-        self._vmin = 0  # the tty's VMIN as last set
 
     # ----------------------------------------------------------------------------------------- lifetime
 
@@ -214,41 +204,16 @@ class DxlBus:
         """A transaction's timeout: its bytes at the baud rate, the return delays, and the margin."""
         return wire_time_s(tx_bytes + rx_bytes, self.baud) + n_status * self.return_delay_s + self.margin_s
 
-    def _set_vmin(self, n_bytes: int) -> None:
-        """Have the tty report readable once ``n_bytes`` (at most 255, termios' limit) are in."""
-        n = max(1, min(n_bytes, MAX_VMIN))
-        if n == self._vmin:
-            return
-        try:
-            attrs = termios.tcgetattr(self._fd)
-            attrs[6][termios.VMIN] = n
-            termios.tcsetattr(self._fd, termios.TCSANOW, attrs)
-        except termios.error as exc:
-            raise DxlPortError(f"setting up the Dynamixel port {self.path} failed: {exc}") from exc
-        self._vmin = n
-
-    def _read_available(self) -> bytes:
-        """Every byte the port holds now. With VMIN above 64 the line discipline hands out 64 bytes a read (its
-        copy buffer), so this reads until the port would block."""
-        chunks: list[bytes] = []
-        while True:
-            try:
-                chunk = os.read(self._fd, 65536)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError as exc:
-                if exc.errno != errno.EIO:  # EIO: a pty whose other end is closed, nothing to read until it reopens
-                    self._read_error = exc
-                break
-            if not chunk:
-                break
-            chunks.append(chunk)
-        return b"".join(chunks)
-
     def _on_readable(self) -> None:
-        data = self._read_available()
-        if data:
-            self.stats.reads += 1
+        try:
+            data = os.read(self._fd, 65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            if exc.errno == errno.EIO:  # a pty whose other end is closed: nothing to read until it reopens
+                return
+            self._read_error = exc
+            data = b""
         if self._waiter is None:
             self._parser.clear()  # bytes outside a transaction: late answers, noise
             return
@@ -321,8 +286,6 @@ class DxlBus:
                 self._have = set()
                 self._crc_base = self._parser.crc_errors
                 self._read_error = None
-                if missing:
-                    self._set_vmin(sum(status_bytes(n_params[i]) for i in missing))
                 waiter = self._waiter = self._loop.create_future()
                 try:
                     await self._write(packet)
@@ -333,7 +296,7 @@ class DxlBus:
                         async with asyncio.timeout(self.timeout_s(len(packet), rx, len(missing))):
                             await waiter
                     except TimeoutError:
-                        self._on_readable()  # what came short of VMIN: a servo missing, a byte lost
+                        pass
                 finally:
                     self._waiter = None
                 if self._read_error is not None:
