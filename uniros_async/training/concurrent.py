@@ -28,6 +28,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
 from uniros_async.errors import ConfigError
+from uniros_async.training.multitask import task_id_space, with_task_id
 
 __all__ = ["ConcurrentVecEnv", "TaskIdVecEnv", "open_concurrent_env"]
 
@@ -130,41 +131,23 @@ class ConcurrentVecEnv(VecEnvWrapper):
 
 class TaskIdVecEnv(VecEnvWrapper):
     """A vector env whose every observation ends with its sub-env's one-hot index (the ``observation`` key of a goal
-    env), the observation an episode ended on (``info["terminal_observation"]``) included."""
+    env), the observation an episode ended on (``info["terminal_observation"]``) included; ``TaskIdObservation``
+    for a vector env.
+
+    Raises:
+        ConfigError: an observation with no 1-D Box to append to.
+    """
 
     def __init__(self, venv: VecEnv) -> None:
         self._ids = np.eye(venv.num_envs, dtype=np.float32)
-        super().__init__(venv, observation_space=_with_id_space(venv.observation_space, venv.num_envs))
+        super().__init__(venv, observation_space=task_id_space(venv.observation_space, venv.num_envs))
 
     def reset(self) -> Any:
-        return self._with_id(self.venv.reset(), self._ids)
+        return with_task_id(self.venv.reset(), self._ids)
 
     def step_wait(self) -> Any:
         obs, rewards, dones, infos = self.venv.step_wait()
         for i, info in enumerate(infos):
             if "terminal_observation" in info:
-                info["terminal_observation"] = self._with_id(info["terminal_observation"], self._ids[i])
-        return self._with_id(obs, self._ids), rewards, dones, infos
-
-    @staticmethod
-    def _with_id(obs: Any, ids: np.ndarray) -> Any:
-        if isinstance(obs, dict):
-            return {**obs, "observation": np.concatenate([obs["observation"], ids], axis=-1).astype(np.float32)}
-        return np.concatenate([obs, ids], axis=-1).astype(np.float32)
-
-
-def _with_id_space(space: Any, n: int) -> Any:
-    """``space`` (a 1-D Box, or a Dict with a 1-D Box ``observation``) with ``n`` one-hot entries in [0, 1] appended."""
-    import gymnasium as gym
-
-    box = space["observation"] if isinstance(space, gym.spaces.Dict) else space
-    if not isinstance(box, gym.spaces.Box) or len(box.shape) != 1:
-        raise ConfigError(f"task_id_in_obs needs a 1-D Box observation (or a goal env's 'observation'), got {box}")
-    new = gym.spaces.Box(
-        np.concatenate([box.low, np.zeros(n, np.float32)]).astype(np.float32),
-        np.concatenate([box.high, np.ones(n, np.float32)]).astype(np.float32),
-        dtype=np.float32,
-    )
-    if isinstance(space, gym.spaces.Dict):
-        return gym.spaces.Dict({**space.spaces, "observation": new})
-    return new
+                info["terminal_observation"] = with_task_id(info["terminal_observation"], self._ids[i])
+        return with_task_id(obs, self._ids), rewards, dones, infos

@@ -22,7 +22,16 @@ import numpy as np
 from uniros_async.envs.wrappers import PadSpaces
 from uniros_async.errors import ConfigError
 
-__all__ = ["DropObservation", "TaskIdObservation", "TaskSamplerEnv", "build_env", "space_sizes"]
+__all__ = [
+    "DropObservation",
+    "TaskIdObservation",
+    "TaskSamplerEnv",
+    "build_env",
+    "space_sizes",
+    "task_id_box",
+    "task_id_space",
+    "with_task_id",
+]
 
 
 def _vector_box(space: gym.Space[Any]) -> gym.spaces.Box:
@@ -140,16 +149,40 @@ class TaskIdObservation(_VectorObservationWrapper):
         super().__init__(env)
         self._onehot = np.zeros(n_tasks, np.float32)
         self._onehot[index] = 1.0
-        box = _vector_box(env.observation_space)
-        new = gym.spaces.Box(
-            np.concatenate([box.low, np.zeros(n_tasks, np.float32)]),
-            np.concatenate([box.high, np.ones(n_tasks, np.float32)]),
-            dtype=np.float32,
-        )
-        self._set_vector_space(new)
+        self._set_vector_space(task_id_box(_vector_box(env.observation_space), n_tasks))
 
     def _vector(self, vec: np.ndarray) -> np.ndarray:
-        return np.concatenate([vec, self._onehot]).astype(np.float32)
+        out: np.ndarray = with_task_id(vec, self._onehot)
+        return out
+
+
+def task_id_box(box: gym.spaces.Box, n_tasks: int) -> gym.spaces.Box:
+    """``box`` (1-D) with ``n_tasks`` one-hot entries in [0, 1] appended."""
+    return gym.spaces.Box(
+        np.concatenate([box.low, np.zeros(n_tasks, np.float32)]).astype(np.float32, copy=False),
+        np.concatenate([box.high, np.ones(n_tasks, np.float32)]).astype(np.float32, copy=False),
+        dtype=np.float32,
+    )
+
+
+def task_id_space(space: gym.Space[Any], n_tasks: int) -> gym.Space[Any]:
+    """``space`` (a 1-D Box, or a goal env's Dict) with ``n_tasks`` one-hot entries appended to its vector.
+
+    Raises:
+        ConfigError: no 1-D Box to append to.
+    """
+    new = task_id_box(_vector_box(space), n_tasks)
+    if isinstance(space, gym.spaces.Dict):
+        return gym.spaces.Dict({**space.spaces, "observation": new})
+    return new
+
+
+def with_task_id(obs: Any, onehot: np.ndarray) -> Any:
+    """``obs`` (a vector, a batch of vectors, or a goal env's dict of them) with ``onehot`` appended to its vector
+    (``onehot`` one row per batch row, or one row for all)."""
+    if isinstance(obs, dict):
+        return {**obs, "observation": with_task_id(obs["observation"], onehot)}
+    return np.concatenate([obs, onehot], axis=-1).astype(np.float32, copy=False)
 
 
 def _union(spaces: list[gym.spaces.Box]) -> gym.spaces.Box:
