@@ -138,7 +138,12 @@ def run_faults(
     """Inject each trial's fault on its own link at once, for ``duration_s``, clear them, then judge each as
     ``run_fault`` does; every trial's figures are reported before the first failure is raised."""
     for trial in trials:
-        trial.link.agent.wait_for(time.monotonic_ns(), "step", RECOVER_S, "a step before the fault")
+        left = trial.link.pair.faults_left()
+        assert not left, f"{trial.robot}: the link is not clean before {trial.name!r}: {left}"
+        try:
+            trial.link.agent.wait_for(time.monotonic_ns(), "step", RECOVER_S, "a step before the fault")
+        except AssertionError as exc:
+            raise AssertionError(f"{trial.robot}, before {trial.name!r} ({duration_s} s): {exc}") from None
     clears: list[Callable[[], None]] = []
     try:
         for trial in trials:
@@ -147,9 +152,18 @@ def run_faults(
             trial.t_fault = time.monotonic_ns()
         time.sleep(duration_s)  # the fault's duration: the things under test run meanwhile
     finally:
-        for trial, clear in zip(trials, clears, strict=False):
-            clear()
+        # Every trial's fault is cleared, each even when another's clear fails, and a link whose injection raised
+        # half way is cleared too: a fault left in place would fail every later round on that link.
+        failed: list[str] = []
+        for i, trial in enumerate(trials):
+            clear = clears[i] if i < len(clears) else trial.link.pair.clear
+            try:
+                clear()
+            except Exception as exc:  # noqa: BLE001 - reported below, after the others were cleared
+                failed.append(f"clearing {trial.name!r} on {trial.robot}: {exc!r}")
             trial.t_clear = time.monotonic_ns()
+        if failed:
+            raise RuntimeError("\n".join(failed))
     rows, failures = [], []
     for trial in trials:
         try:

@@ -14,7 +14,8 @@ namespaces (and so the link) when the block ends, also on failure. Processes run
   arm's own node loses its registry when both are in one process);
 - ``remove_address()`` / ``restore_address()``: the arm's address is deleted with ``ip addr del`` and added again;
 - ``block_port(port)``: nftables drops every tcp segment to ``port`` in the arm's namespace (its registry's);
-- ``clear()``: removes the nftables table and the qdiscs, and brings the link and the address back.
+- ``clear()``: removes the nftables tables and the qdiscs, brings the link and the address back, and checks that
+  nothing is left (``faults_left()``), raising when something is.
 
 A frozen peer is ``os.kill(pid, SIGSTOP)`` / ``SIGCONT`` of the arm's process. This kernel has no ``netem``
 (CONFIG_NET_SCH_NETEM is off), so delay and jitter come from the tests' own delaying relay
@@ -73,7 +74,8 @@ _counter = itertools.count()
 
 
 def _run(*cmd: str, check: bool = True, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=10, input=stdin)
+    # spawning ip/nft/tc can take seconds on a loaded 2-core host
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=30, input=stdin)
     if check and out.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({out.returncode}): {out.stderr.strip()}")
     return out
@@ -194,13 +196,49 @@ class NetnsPair:
         _run("ip", "netns", "exec", self.arm_ns, "nft", "delete", "table", "inet", TABLE, check=False)
         _run("ip", "netns", "exec", self.arm_ns, "nft", "delete", "table", "ip", DELAY_TABLE, check=False)
 
-    def clear(self) -> None:
-        """Remove every fault: the nftables table, the qdiscs, and a link left down."""
-        self.clear_nft()
+    def faults_left(self) -> list[str]:
+        """What of the faults is in effect: our nftables tables, a qdisc of ours on either end, the arm's end down,
+        the arm's address missing. Empty when the link is clean."""
+        left: list[str] = []
+        tables = _run("ip", "netns", "exec", self.arm_ns, "nft", "list", "tables").stdout.split()
+        left += [f"nftables table {t}" for t in (TABLE, DELAY_TABLE) if t in tables]
         for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
-            _run("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", dev, "root", check=False)
-        self.link_up()
-        self.restore_address()
+            shown = _run("ip", "netns", "exec", ns, "tc", "qdisc", "show", "dev", dev).stdout
+            if " tbf " in shown:
+                left.append(f"{dev}: {shown.strip()}")
+        link = _run("ip", "-n", self.arm_ns, "-o", "link", "show", "dev", self.arm_dev).stdout
+        flags = link.split("<", 1)[1].split(">", 1)[0].split(",") if "<" in link else []
+        if "UP" not in flags:
+            left.append(f"{self.arm_dev} is down: {link.strip()}")
+        addrs = _run("ip", "-n", self.arm_ns, "-o", "addr", "show", "dev", self.arm_dev).stdout
+        if f" {self.arm_ip}/" not in addrs:
+            left.append(f"{self.arm_dev} has no address {self.arm_ip}")
+        return left
+
+    def clear(self) -> None:
+        """Remove every fault: the nftables tables, the qdiscs, a link left down, an address removed. Every step
+        runs even when one fails, twice if something is still left.
+
+        Raises:
+            RuntimeError: something is still in effect afterwards (what, and why each step failed).
+        """
+        problems: list[str] = []
+        for _attempt in range(2):
+            problems.clear()
+            for step in (self.clear_nft, self._clear_qdiscs, self.link_up, self.restore_address):
+                try:
+                    step()
+                except (RuntimeError, subprocess.TimeoutExpired) as exc:
+                    problems.append(f"{step.__name__}: {exc}")
+            left = self.faults_left()
+            if not left:
+                return
+        raise RuntimeError(f"{self.arm_ns}: still in effect after clear(): {left}; {problems}")
+
+    def _clear_qdiscs(self) -> None:
+        for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
+            if " tbf " in _run("ip", "netns", "exec", ns, "tc", "qdisc", "show", "dev", dev).stdout:
+                _run("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", dev, "root")
 
 
 @contextlib.contextmanager
