@@ -15,11 +15,14 @@ are evaluated alongside, almost without a pause (short episodes, an evaluation e
 - **Which arms rank higher**: the runs alternate `eval.alongside_rank`: `training` (the training arms' env loops
   ranked above the evaluation process's, `train`'s default) and `evaluation` (the reverse); every row names its
   order. The in-thread path's arms rank as the lower set in both.
+- **Phase**: the runs also alternate `eval.alongside_phase`: 0 (both sets' steps, and the policy's actions for
+  them, fall due on the same instants) and 0.5 (`train`'s default: the evaluation arms' steps half a cycle after
+  the training arms'); the in-thread path's arms take the same phase.
 - **Frozen heap**: when the learner starts (the set-up done, the heap frozen by `train`), one full collection is
   timed with the heap frozen and one with it unfrozen (then frozen again), back to back; and the full (generation
   2) collections while the learner learns are counted and timed (`gc.callbacks`).
 
-    python benchmarks/agent_realtime.py                 # one 150 s run per order: about 7 minutes
+    python benchmarks/agent_realtime.py                 # one 150 s run per order and phase: about 14 minutes
     python benchmarks/agent_realtime.py --seconds 300 --runs 2 --json out.json
 
 `--json` writes the action-cycle rows of `uniros bench report`'s latency table (every run's samples pooled per arm,
@@ -43,10 +46,11 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from uniros_async.errors import ConfigError
 from uniros_async.priority import real_time_thread
 from uniros_async.stats import summary
 from uniros_async.training import recipes
-from uniros_async.training.alongside import RANKS
+from uniros_async.training.alongside import RANKS, phased
 from uniros_async.training.async_td3 import AsyncTD3
 from uniros_async.training.concurrent import TIMING_METRICS, open_concurrent_env
 from uniros_async.training.config import train_config_from_dict
@@ -58,7 +62,7 @@ PROCESS, THREAD, TRAINING = "eval process (rt)", "eval thread (rt)", "training (
 ORDERS = RANKS  # eval.alongside_rank: which set of arms' loops ranks higher
 
 
-def _config(run_dir: Path, seconds: float, order: str) -> Any:
+def _config(run_dir: Path, seconds: float, order: str, phase: float) -> Any:
     return train_config_from_dict(
         {
             "name": run_dir.name,
@@ -84,7 +88,14 @@ def _config(run_dir: Path, seconds: float, order: str) -> Any:
             "async_learner": {"updates_per_step": 1.0},
             "td3": {"learning_rate": 1.0e-3, "batch_size": 100, "learning_starts": 40, "action_noise_std": 0.01},
             # an evaluation every 4 vector steps: one episode per env, EPISODE_STEPS cycles, then the next is due
-            "eval": {"every_steps": 16, "episodes": 1, "final_episodes": 1, "alongside": True, "alongside_rank": order},
+            "eval": {
+                "every_steps": 16,
+                "episodes": 1,
+                "final_episodes": 1,
+                "alongside": True,
+                "alongside_rank": order,
+                "alongside_phase": phase,
+            },
             "checkpoint": {"every_steps": 0},
             "torch_threads": 1,
             "progress_bar": False,
@@ -232,11 +243,18 @@ def _both_paths(out: dict[str, Any]) -> Iterator[None]:
         return venv, layout
 
     def both(
-        specs: Sequence[tuple[str, str, dict[str, Any]]], *, real_time: bool, torch_threads: int = 1, rank: str
+        specs: Sequence[tuple[str, str, dict[str, Any]]],
+        *,
+        real_time: bool,
+        torch_threads: int = 1,
+        rank: str,
+        phase: float,
+        task_id: bool = False,
     ) -> Any:
-        process = open_alongside(specs, real_time=real_time, torch_threads=torch_threads, rank=rank)
+        assert not task_id, "the bench's envs have no env index"
+        process = open_alongside(specs, real_time=real_time, torch_threads=torch_threads, rank=rank, phase=phase)
         try:
-            in_thread = _InThread(specs, real_time)
+            in_thread = _InThread(phased(specs, phase) if real_time else specs, real_time)
         except BaseException:
             process.close()
             raise
@@ -296,16 +314,17 @@ def _collections(out: dict[str, Any]) -> Iterator[None]:
         AsyncTD3.learn = learn  # type: ignore[method-assign]
 
 
-def _run(seconds: float, run_dir: Path, order: str) -> dict[str, Any]:
+def _run(seconds: float, run_dir: Path, order: str, phase: float) -> dict[str, Any]:
     heap: dict[str, Any] = {}
     both: dict[str, Any] = {}
     with _both_paths(both), _collections(heap):
-        recipes.train(_config(run_dir, seconds, order))
+        recipes.train(_config(run_dir, seconds, order, phase))
     paths = both["paths"]
     samples = {PROCESS: paths.process.samples, THREAD: paths.in_thread.venv.samples, TRAINING: both["training"].samples}
     timing = json.loads((run_dir / "timing.json").read_text())
     return {
         "order": order,
+        "phase": phase,
         "samples": samples,
         "loads": both.get("loads", []),
         "real_time_class": paths.real_time_class,
@@ -314,19 +333,21 @@ def _run(seconds: float, run_dir: Path, order: str) -> dict[str, Any]:
     }
 
 
+def _setting(order: str, phase: float) -> str:
+    return f"{order} ranked higher (evaluation phase {phase:g})"
+
+
 def _rows(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per order, evaluation arm and path (the order's runs' samples pooled), and the training arms: the latency
-    table's rows, the learner column naming the path and which set of arms ranked higher."""
+    """Per setting (order and phase), evaluation arm and path (the setting's runs' samples pooled), and the training
+    arms: the latency table's rows, the learner column naming the path and the setting."""
     rows = []
-    for order in ORDERS:
-        runs = [r for r in results if r["order"] == order]
-        if not runs:
-            continue
+    for order, phase in dict.fromkeys((r["order"], r["phase"]) for r in results):
+        runs = [r for r in results if r["order"] == order and r["phase"] == phase]
         for path in (PROCESS, THREAD, TRAINING):
             for label in runs[0]["samples"][path]:
                 for metric in TIMING_METRICS:
                     pooled = [x for r in runs for x in r["samples"][path][label][metric]]
-                    rows.append(_row(label, f"{path}, {order} ranked higher", metric, summary(pooled)))
+                    rows.append(_row(label, f"{path}, {_setting(order, phase)}", metric, summary(pooled)))
     return rows
 
 
@@ -361,7 +382,7 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
     )
     head = f"{'run':>3} {'env':<11} {'path':<28} {'median':>8} {'IQR':>7} {'p99':>8} {'n':>5}"
     for i, r in enumerate(results, 1):
-        print(f"\nrun {i}: the {r['order']} arms' loops ranked higher\n{head}\n" + "-" * len(head))
+        print(f"\nrun {i}: {_setting(r['order'], r['phase'])}\n{head}\n" + "-" * len(head))
         for path in (PROCESS, THREAD, TRAINING):
             for label, metrics in r["samples"][path].items():
                 cyc = metrics["action_cycle"]
@@ -371,11 +392,10 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
                 s = summary(cyc)
                 print(f"{i:>3} {label:<11} {path:<28} {s['p50']:>8.2f} {s['iqr']:>7.2f} {s['p99']:>8.2f} {len(cyc):>5}")
         print(f"    real-time class in the evaluation process: {r['real_time_class']}")
-    print("\naction cycle (ms) per order, its runs pooled: median / IQR of each evaluation-process and training arm")
-    for order in ORDERS:
-        for row in _rows([r for r in results if r["order"] == order]):
-            if row["metric"] == "action_cycle" and not row["learner"].startswith(THREAD):
-                print(f"  {row['env']:<11} {row['learner']:<52} {row['median_ms']} / {row['iqr_ms']}")
+    print("\naction cycle (ms) per setting, its runs pooled: median / IQR of each evaluation-process and training arm")
+    for row in _rows(results):
+        if row["metric"] == "action_cycle" and not row["learner"].startswith(THREAD):
+            print(f"  {row['env']:<11} {row['learner']:<76} {row['median_ms']} / {row['iqr_ms']}")
     print("\nthe agent process's heap when the learner starts: one full collection, frozen and unfrozen")
     for i, r in enumerate(results, 1):
         h = r["heap"]
@@ -395,13 +415,26 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=150.0, help="wall time of each training run")
-    parser.add_argument("--runs", type=int, default=1, help="runs per order (the orders alternate)")
+    parser.add_argument("--runs", type=int, default=1, help="runs per setting (the settings alternate)")
+    parser.add_argument(
+        "--phases",
+        default="0,0.5",
+        help="the evaluation arms' phases to compare (eval.alongside_phase, comma-separated; default: 0,0.5)",
+    )
     parser.add_argument("--json", help="write the rows, the load and every run's records here")
     args = parser.parse_args()
+    try:
+        phases = [float(p) for p in args.phases.split(",")]
+        for p in phases:
+            phased([], p)
+    except (ValueError, ConfigError) as exc:
+        parser.error(f"--phases: expected numbers in [0, 1) separated by commas, got {args.phases!r} ({exc})")
+    settings = [(order, phase) for phase in phases for order in ORDERS]
     results = []
     with tempfile.TemporaryDirectory(prefix="agent_rt_") as tmp:
-        for k in range(1, 2 * args.runs + 1):
-            results.append(_run(args.seconds, Path(tmp) / f"run_{k}", ORDERS[(k - 1) % 2]))
+        for k in range(1, len(settings) * args.runs + 1):
+            order, phase = settings[(k - 1) % len(settings)]
+            results.append(_run(args.seconds, Path(tmp) / f"run_{k}", order, phase))
             if args.json:
                 loads = [x for r in results for x in r["loads"]]
                 out = {

@@ -240,17 +240,20 @@ def test_modelled_agent_latency_in_sim_time(latency: float) -> None:
         env.close()
 
 
-@pytest.mark.parametrize("phase_ns", [0, 3_000_000, 60_000_000])
+@pytest.mark.parametrize(
+    ("phase_ns", "cycle_phase"), [(0, 0.0), (3_000_000, 0.0), (60_000_000, 0.0), (0, 0.5), (3_000_000, 0.33)]
+)
 @pytest.mark.parametrize("env_id", ["uniros/Rx200Reach-v0", "uniros/Ned2Reach-v0"])
-def test_loops_and_deadlines_sit_on_the_clock_grid(env_id: str, phase_ns: int) -> None:
+def test_loops_and_deadlines_sit_on_the_clock_grid(env_id: str, phase_ns: int, cycle_phase: float) -> None:
     """Env-loop ticks fall TICK_OFFSET (plus the env's loop phase) after the grid of their period (where the servo
     publishes), and steps return TICK_ALIGN after a tick on the grid of the action cycle: the same instants for
-    every arm and process of one phase. The phase is capped at a quarter of the loop period."""
+    every arm and process of one phase. The phase is capped at a quarter of the loop period. ``action_cycle_phase``
+    moves the steps on by that fraction of the cycle, in whole loop periods, so they still follow a tick."""
     from uniros_async.envs.robot import TICK_ALIGN_NS, TICK_OFFSET_NS
     from uniros_async.envs.runtime import deferred_start
 
     with deferred_start():
-        env = gym.make(env_id, clock="sim")
+        env = gym.make(env_id, clock="sim", action_cycle_phase=cycle_phase)
     try:
         u = env.unwrapped
         u.loop_phase_ns = phase_ns
@@ -260,8 +263,10 @@ def test_loops_and_deadlines_sit_on_the_clock_grid(env_id: str, phase_ns: int) -
             env.step(np.zeros(env.action_space.shape, np.float32))
         period = round(1e9 / u.env_loop_rate_hz)
         phase = min(phase_ns, period // 4)  # 60 ms: 25 ms at 10 Hz, 10 ms at 25 Hz
+        # 0.5 of 800 ms: 400 ms on both arms; 0.33: 264 ms, down to 200 ms at 10 Hz and 240 ms at 25 Hz
+        offset = {0.0: 0, 0.5: 400_000_000, 0.33: 200_000_000 if period == 100_000_000 else 240_000_000}[cycle_phase]
         assert {t % period for t in u.timing.tick_ns} == {TICK_OFFSET_NS + phase}
-        assert {s % 800_000_000 for s in u.timing.step_ns} == {TICK_OFFSET_NS + TICK_ALIGN_NS + phase}
+        assert {s % 800_000_000 for s in u.timing.step_ns} == {TICK_OFFSET_NS + TICK_ALIGN_NS + phase + offset}
         # the returns the agent gets were built at the tick just before: TICK_ALIGN old
         assert set(u.timing.observation_age_ns) == {TICK_ALIGN_NS}
     finally:

@@ -21,7 +21,7 @@ import yaml
 
 from uniros_async.errors import ConfigError, UnirosError
 from uniros_async.priority import LOOP_RT_PRIORITY, RESET_ON_FORK
-from uniros_async.training.alongside import open_alongside, policy_request, rank_bases
+from uniros_async.training.alongside import open_alongside, phased, policy_request, rank_bases
 from uniros_async.training.eval_process import _load, _PolicyCopy
 
 CYCLE_S = 0.2
@@ -223,6 +223,36 @@ def test_alongside_rank_sets_which_arms_loops_rank_higher() -> None:
     with pytest.raises(ConfigError, match="alongside_rank must be one of"):
         open_alongside(SPECS, real_time=False, rank="both")
     assert set(_descendants(os.getpid())) <= before, "a bad rank started a process"
+
+
+def test_alongside_phase_moves_the_evaluation_arms_cycles_off_the_training_arms() -> None:
+    from uniros_async.training.config import train_config_from_dict
+
+    def phase(**eval_cfg: Any) -> float:
+        cfg = {"envs": [{"id": "CartPole-v1"}], "placement": "workers", "concurrent": True}
+        cfg["eval"] = {"alongside": True, **eval_cfg}
+        return float(train_config_from_dict(cfg).eval.alongside_phase)
+
+    assert phase() == 0.5
+    with pytest.raises(ConfigError, match="eval.alongside_phase"):
+        phase(alongside_phase=1.0)
+    specs = [
+        ("a", "uniros/Rx200Reach-v0", {"robot": "sim"}),
+        ("b", "uniros/Ned2Reach-v0", {"action_cycle_phase": 0.75}),
+    ]
+    # after the training envs' own phase, wrapping round the cycle; the training envs' kwargs are left alone
+    assert phased(specs, 0.5) == [
+        ("a", "uniros/Rx200Reach-v0", {"robot": "sim", "action_cycle_phase": 0.5}),
+        ("b", "uniros/Ned2Reach-v0", {"action_cycle_phase": 0.25}),
+    ]
+    assert specs[0][2] == {"robot": "sim"}
+    for bad in (1.0, -0.1, True, "half"):
+        with pytest.raises(ConfigError, match=r"eval.alongside_phase must be a number in \[0, 1\), got"):
+            phased(specs, bad)  # type: ignore[arg-type]
+    before = set(_descendants(os.getpid()))
+    with pytest.raises(ConfigError, match="eval.alongside_phase must be"):
+        open_alongside(SPECS, real_time=True, phase=2.0)
+    assert set(_descendants(os.getpid())) <= before, "a bad phase started a process"
 
 
 def test_a_negative_rank_base_is_refused_before_anything_starts() -> None:

@@ -60,6 +60,11 @@ class EnvConfig(ConfigModel):
     """Env loop rate; unset: the robot's hardware rate."""
     action_cycle_s: Float = Field(default=0.8, gt=0, le=60)
     """Time between agent steps (an absolute deadline from the previous step)."""
+    action_cycle_phase: Float = Field(default=0.0, ge=0, lt=1)
+    """Where this env's action cycles fall on the clock's common grid of them, as a fraction of the cycle, rounded
+    down to a whole number of env-loop periods (so a step still returns just after a tick). On a wall clock, envs of
+    one phase return at the same instants; two sets of arms on one machine (the evaluation arms of
+    ``eval.alongside``, which take 0.5) keep out of each other's way with different phases."""
     turn_based: Bool = False
     """The baseline, without an env loop's real-time guarantees. With the sim clock (the default when
     ``turn_based`` is set) the world is paused while the agent thinks and ``step`` advances the sim in lockstep for

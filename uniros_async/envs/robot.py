@@ -161,6 +161,12 @@ class RobotEnv(BaseEnv):
         return min(max(int(self.loop_phase_ns), 0), self._period_ns // LOOP_PHASE_MAX_FRACTION)
 
     @property
+    def _cycle_offset_ns(self) -> int:
+        """``action_cycle_phase`` in ns, rounded down to a whole number of loop periods."""
+        period = self._period_ns
+        return round(self.config.action_cycle_phase * self.config.action_cycle_s * 1e9) // period * period
+
+    @property
     def _wall_turn_based(self) -> bool:
         return self.config.turn_based and self.config.clock == "wall"
 
@@ -617,7 +623,8 @@ class RobotEnv(BaseEnv):
     def _next_deadline(self, now: int, lead_ns: int | None = None) -> int:
         """The first point, at least ``lead_ns`` (None: half an action cycle) after ``now``, of the grid of action
         cycles that starts ``TICK_ALIGN_NS`` after a scheduled env-loop tick (``TICK_OFFSET_NS`` after the clock's
-        grid), plus this env's ``loop_phase_ns``.
+        grid) and this env's ``action_cycle_phase`` of a cycle after that (whole loop periods), plus its
+        ``loop_phase_ns``.
 
         When the action cycle is a multiple of the loop period, every step returns just after a tick, so its
         returns are about ``TICK_ALIGN_NS`` old instead of up to a period; and every env on the same clock (the
@@ -625,7 +632,8 @@ class RobotEnv(BaseEnv):
         fresh.
         """
         cycle = round(self.config.action_cycle_s * 1e9)
-        point = grid_after(now + (cycle // 2 if lead_ns is None else lead_ns), cycle, TICK_OFFSET_NS + TICK_ALIGN_NS)
+        offset = TICK_OFFSET_NS + TICK_ALIGN_NS + self._cycle_offset_ns
+        point = grid_after(now + (cycle // 2 if lead_ns is None else lead_ns), cycle, offset)
         return point + self._phase_ns  # every member picks the same grid point, then returns at its own phase
 
     async def _settle(self, timeout_s: float) -> JointState:

@@ -14,7 +14,7 @@ from uniros_async.training.concurrent import TIMING_METRICS
 from uniros_async.training.eval_process import EvalProcess, EvalReply, EvalRequest, open_eval_process
 from uniros_async.training.evaluate import EvalResult, frozen_obs_stats
 
-__all__ = ["RANKS", "Alongside", "open_alongside", "policy_request", "rank_bases"]
+__all__ = ["RANKS", "Alongside", "open_alongside", "phased", "policy_request", "rank_bases"]
 
 RANKS = ("training", "evaluation")
 """The values of ``eval.alongside_rank``: which set of arms' env loops ranks higher in the real-time class."""
@@ -158,26 +158,44 @@ def rank_bases(rank: str, n_envs: int) -> tuple[int, int]:
     return (n_envs, 0) if rank == "training" else (0, n_envs)
 
 
+def phased(specs: Sequence[tuple[str, str, dict[str, Any]]], phase: float) -> list[tuple[str, str, dict[str, Any]]]:
+    """``specs`` ((label, id, kwargs)) with each env's ``action_cycle_phase`` moved on by ``phase`` (mod 1).
+
+    Raises:
+        ConfigError: ``phase`` is outside [0, 1).
+    """
+    if isinstance(phase, bool) or not isinstance(phase, (int, float)) or not 0 <= phase < 1:
+        raise ConfigError(f"eval.alongside_phase must be a number in [0, 1), got {phase!r}")
+    return [
+        (label, env_id, {**kw, "action_cycle_phase": (float(kw.get("action_cycle_phase", 0.0)) + phase) % 1.0})
+        for label, env_id, kw in specs
+    ]
+
+
 def open_alongside(
     specs: Sequence[tuple[str, str, dict[str, Any]]],
     *,
     real_time: bool,
     torch_threads: int = 1,
     rank: str = "training",
+    phase: float = 0.5,
     task_id: bool = False,
 ) -> Alongside:
     """The evaluation of ``eval.alongside`` on a second set of the envs ``specs`` ((label, id, kwargs), the run's
     training envs), in an evaluation process of its own that is ready when this returns; the envs' loops rank below
     the training envs' with ``rank`` "training" (the training envs opened with ``rank_bases``' training base),
-    above them with "evaluation" (``make_vec``'s ``rt_rank_base``); ``task_id`` as the training envs'
-    (``task_id_in_obs``).
+    above them with "evaluation" (``make_vec``'s ``rt_rank_base``); on a wall clock their action cycles fall
+    ``phase`` of a cycle after the training envs' (``action_cycle_phase``, ``eval.alongside_phase``); ``task_id`` as
+    the training envs' (``task_id_in_obs``).
 
     Raises:
-        ConfigError: ``rank`` is not one of ``RANKS``.
+        ConfigError: ``rank`` is not one of ``RANKS``, or ``phase`` is outside [0, 1).
         ConfigError, WorkerError: the envs could not be opened.
         UnirosError: the evaluation process did not start.
     """
     base = rank_bases(rank, len(specs))[1]
+    if real_time:
+        specs = phased(specs, phase)
     process = open_eval_process(
         specs, real_time=real_time, torch_threads=torch_threads, rt_rank_base=base, task_id=task_id
     )

@@ -185,6 +185,10 @@ class EvalConfig(ConfigModel):
     whose steps the policy learns from, or ``evaluation``, the arms of the evaluation process. The set ranked higher
     holds its action cycle closer to its period when the loops of both sets fall due on the same instants
     (docs/performance.md, "The agent process in real time", has both orders measured)."""
+    alongside_phase: Float = Field(default=0.5, ge=0, lt=1)
+    """(``alongside``, wall clock) The evaluation arms' ``action_cycle_phase``: how far, as a fraction of the action
+    cycle, their steps fall after the training arms' (whole env-loop periods), so that the two sets' steps, and the
+    policy's actions for them, do not fall due on the same instants. 0: the same instants."""
 
 
 class CheckpointConfig(ConfigModel):

@@ -337,6 +337,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
                 real_time=real_time_actor(cfg),
                 torch_threads=cfg.torch_threads,
                 rank=cfg.eval.alongside_rank,
+                phase=cfg.eval.alongside_phase,
                 task_id=cfg.task_id_in_obs,
             )
         if ckpt is not None:
