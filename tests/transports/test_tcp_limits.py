@@ -269,3 +269,31 @@ async def test_connect_to_a_full_listener_waits_for_a_free_slot() -> None:
         assert bytes(await server.receive()) == b"x"
         for t in (client, server, held[1], accepted[1]):
             await t.aclose()
+
+
+@pytest.mark.parametrize("scheme", ["tcp", "tls"])
+async def test_unsent_bytes_counts_a_backlog_until_the_peer_reads_it(scheme: str, tls_files: TlsFiles) -> None:
+    """``unsent_bytes`` is what was sent and has not left this host: it grows while the peer reads nothing and
+    the buffers between fill, falls to 0 once the peer has read everything, and is 0 once the connection ends."""
+    opts = tls_files.options() if scheme == "tls" else TransportOptions()
+    async with _listening(f"{scheme}://127.0.0.1:0", opts) as lst:
+        client = await connect(lst.uri, opts)
+        server = await asyncio.wait_for(lst.accept(), T_S)
+        try:
+            assert client.unsent_bytes() == 0
+            frame = bytes(1 << 20)
+            sent = 0
+            async with asyncio.timeout(T_S):
+                while client.unsent_bytes() == 0:  # the peer reads nothing: its window, then ours, fills
+                    await client.send(frame)
+                    sent += 1
+            assert client.unsent_bytes() > 0
+            async with asyncio.timeout(T_S):
+                for _ in range(sent):
+                    assert len(await server.receive()) == len(frame)
+                while client.unsent_bytes():  # noqa: ASYNC110 - no event says the kernel sent it; polled
+                    await asyncio.sleep(0.01)
+        finally:
+            await client.aclose()
+            await server.aclose()
+        assert client.unsent_bytes() == 0

@@ -45,8 +45,18 @@ Req = TypeVar("Req")
 Resp = TypeVar("Resp")
 
 
+LATEST_POLL_S = (0.001, 0.05)
+"""How often a ``latest`` sink whose link is backed up looks again whether its last frame has left (the first wait,
+doubling up to the last)."""
+
+
 class _Sink:
-    """One remote subscriber of a publisher: a bounded queue of encoded frames and the task that sends them."""
+    """One remote subscriber of a publisher: a bounded queue of encoded frames and the task that sends them.
+
+    A ``latest`` sink sends a frame only once the one before it has left this host (``Transport.unsent_bytes``),
+    and meanwhile keeps only the newest: on a link slower than the topic the subscriber gets fresh messages at the
+    rate the link carries, not every message ever later out of a send buffer that grows without bound.
+    """
 
     def __init__(self, conn: Transport, qos: QoS) -> None:
         self.conn = conn
@@ -63,12 +73,23 @@ class _Sink:
         self.wake.set()
 
     async def run(self) -> None:
+        latest = self.qos.kind == "latest"
         while True:
             await self.wake.wait()
             self.wake.clear()
             async with self.busy:
                 while self.queue:
                     await self.conn.send(self.queue.popleft())
+                    if latest and self.conn.unsent_bytes():
+                        await self._until_sent()
+
+    async def _until_sent(self) -> None:
+        """Wait until the last frame has left this host (polled: no event says so; 0 also once the connection has
+        ended, which ends this wait, and the subscriber going away cancels it)."""
+        poll_s, cap_s = LATEST_POLL_S
+        while self.conn.unsent_bytes():
+            await asyncio.sleep(poll_s)
+            poll_s = min(2 * poll_s, cap_s)
 
 
 class Publisher(Generic[M]):

@@ -201,6 +201,12 @@ class Transport(abc.ABC):
         """The largest frame ``send`` accepts on this end (None: not known before sending)."""
         return None
 
+    def unsent_bytes(self) -> int:
+        """Bytes of frames already sent that have not left this host yet: a send backlog, which grows when the
+        medium is slower than the sender. 0 where the transport keeps none or cannot tell, and once the connection
+        has ended."""
+        return 0
+
     @contextlib.asynccontextmanager
     async def loan(self, nbytes: int) -> AsyncIterator[memoryview]:
         """A writable buffer for the next frame, ``nbytes`` long: write it in the block, and it is sent when the

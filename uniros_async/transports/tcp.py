@@ -41,6 +41,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import fcntl
 import logging
 import os
 import socket
@@ -119,6 +120,8 @@ def set_keepalive(sock: socket.socket) -> None:
         with contextlib.suppress(OSError):  # within RTO_MAX_MS, not after a backoff grown to tens of seconds (<6.15)
             sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, "TCP_RTO_MAX_MS", _TCP_RTO_MAX_MS), RTO_MAX_MS)
 
+
+_SIOCOUTQNSD = 0x894B if sys.platform == "linux" else None  # linux/sockios.h: a tcp socket's bytes not yet sent
 
 _CLOSE_TIMEOUT_S = 1.0  # aclose waits this long for unsent bytes to leave, then aborts
 
@@ -205,6 +208,19 @@ class TcpTransport(TcpReceiving, Transport):
         assert self._tr is not None
         name = self._tr.get_extra_info("sockname")
         return name[0], name[1]
+
+    def unsent_bytes(self) -> int:
+        """What the event loop holds unsent, plus what the kernel holds that it has not sent (``SIOCOUTQNSD``;
+        Linux); under TLS both count ciphertext."""
+        tr = self._tr
+        if tr is None or not self._ok:
+            return 0
+        n = tr.get_write_buffer_size()
+        sock = tr.get_extra_info("socket")
+        if sock is not None and _SIOCOUTQNSD is not None:
+            with contextlib.suppress(OSError):
+                n += struct.unpack("i", fcntl.ioctl(sock.fileno(), _SIOCOUTQNSD, b"\0\0\0\0"))[0]
+        return n
 
     def has_news(self) -> bool:
         """Whether ``receive`` would return at once: a frame is buffered, or the connection has ended."""
