@@ -202,10 +202,8 @@ class NetnsPair:
         left: list[str] = []
         tables = _run("ip", "netns", "exec", self.arm_ns, "nft", "list", "tables").stdout.split()
         left += [f"nftables table {t}" for t in (TABLE, DELAY_TABLE) if t in tables]
-        for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
-            shown = _run("ip", "netns", "exec", ns, "tc", "qdisc", "show", "dev", dev).stdout
-            if " tbf " in shown:
-                left.append(f"{dev}: {shown.strip()}")
+        for _ns, dev, shown in self._our_qdiscs():
+            left.append(f"{dev}: {shown}")
         link = _run("ip", "-n", self.arm_ns, "-o", "link", "show", "dev", self.arm_dev).stdout
         flags = link.split("<", 1)[1].split(">", 1)[0].split(",") if "<" in link else []
         if "UP" not in flags:
@@ -235,10 +233,19 @@ class NetnsPair:
                 return
         raise RuntimeError(f"{self.arm_ns}: still in effect after clear(): {left}; {problems}")
 
-    def _clear_qdiscs(self) -> None:
+    def _our_qdiscs(self) -> list[tuple[str, str, str]]:
+        """(namespace, device, ``tc qdisc show`` of it) for each end that carries a qdisc of ours (``starve``'s
+        ``tbf``)."""
+        ours = []
         for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
-            if " tbf " in _run("ip", "netns", "exec", ns, "tc", "qdisc", "show", "dev", dev).stdout:
-                _run("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", dev, "root")
+            shown = _run("ip", "netns", "exec", ns, "tc", "qdisc", "show", "dev", dev).stdout
+            if " tbf " in shown:
+                ours.append((ns, dev, shown.strip()))
+        return ours
+
+    def _clear_qdiscs(self) -> None:
+        for ns, dev, _shown in self._our_qdiscs():
+            _run("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", dev, "root")
 
 
 @contextlib.contextmanager
