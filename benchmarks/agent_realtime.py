@@ -1,29 +1,33 @@
-"""The agent process of `uniros train` in real time: the evaluation arms of `eval.alongside` evaluated in a process
-of their own (as `train` runs them) against on a thread of the agent process, and the heap frozen after set-up
-against unfrozen, each in the same run; the runs alternate which set of arms ranks higher (`eval.alongside_rank`).
+"""The agent process of `uniros train` in real time: the action cycles of the evaluation arms of `eval.alongside` and
+of the training arms, and the heap frozen after set-up against unfrozen, each in the same run; the runs alternate
+which set of arms ranks higher (`eval.alongside_rank`), the evaluation arms' phase and the loops' tick phases.
 
 Four arms train (rx200 and ned2, sim and emulated real, on the wall clock, as configs/realtime_multitask_async.yaml
 has them, at a shorter action cycle so that a run gathers enough cycles) with the asynchronous learner, and four more
 are evaluated alongside, almost without a pause (short episodes, an evaluation every few vector steps).
 
-- **Evaluation arms**: the evaluations alternate between two sets of four evaluation arms: one in the evaluation
-  process (`training/eval_process.py`, what `train` does), the other in worker processes of the agent process,
-  stepped by a thread of the agent process in the real-time class with a frozen copy of the policy (`_InThread`
-  below: the path `train` had before, kept here for the comparison). Both see the same moments of the host's load
-  and of the learner's updates. Printed per evaluation arm and path: the action cycle's median and IQR over those
-  evaluations (goal: IQR < 1 ms in the evaluation process), beside the training arms' over the run.
+- **Evaluation arms**: four, in the evaluation process (`training/eval_process.py`, what `train` does). Printed per
+  arm: the action cycle's median and IQR over the evaluations (goal: IQR < 1 ms), beside the training arms' over
+  the run. With `--thread` the evaluations alternate with a second set of four evaluation arms in worker processes
+  of the agent process, stepped by a thread of the agent process in the real-time class with a frozen copy of the
+  policy (`_InThread` below: the path `train` had before), which then see the same moments of the host's load and
+  of the learner's updates; those four more arms load the host beyond what `train` runs.
 - **Which arms rank higher**: the runs alternate `eval.alongside_rank`: `training` (the training arms' env loops
   ranked above the evaluation process's, `train`'s default) and `evaluation` (the reverse); every row names its
   order. The in-thread path's arms rank as the lower set in both.
 - **Phase**: the runs also alternate `eval.alongside_phase`: 0 (both sets' steps, and the policy's actions for
   them, fall due on the same instants) and 0.5 (`train`'s default: the evaluation arms' steps half a cycle after
   the training arms'); the in-thread path's arms take the same phase.
+- **Tick phases** (`--layouts`): `higher-first` (what `train` does, `alongside.phase_bases`: the loops of the set
+  that ranks higher tick first, the other set's in the milliseconds after) against `by-rank` (each loop's tick
+  phase its real-time rank, `make_vec`'s default: the set that ranks higher ticks last). Every loop ticks every
+  period, so the two sets' ticks meet in every period whatever the evaluation phase.
 - **Frozen heap**: when the learner starts (the set-up done, the heap frozen by `train`), one full collection is
   timed with the heap frozen and one with it unfrozen (then frozen again), back to back; and the full (generation
   2) collections while the learner learns are counted and timed (`gc.callbacks`).
 
-    python benchmarks/agent_realtime.py                 # one 150 s run per order and phase: about 14 minutes
-    python benchmarks/agent_realtime.py --seconds 300 --runs 2 --json out.json
+    python benchmarks/agent_realtime.py                 # one 150 s run per order, phase and layout: about 27 minutes
+    python benchmarks/agent_realtime.py --orders training --phases 0.5 --runs 2 --json out.json
 
 `--json` writes the action-cycle rows of `uniros bench report`'s latency table (every run's samples pooled per arm,
 path and order), the load average seen during the runs, and every run's raw figures.
@@ -50,16 +54,18 @@ from uniros_async.errors import ConfigError
 from uniros_async.priority import real_time_thread
 from uniros_async.stats import summary
 from uniros_async.training import recipes
-from uniros_async.training.alongside import RANKS, phased
+from uniros_async.training.alongside import RANKS, Alongside, phased, rank_bases
 from uniros_async.training.async_td3 import AsyncTD3
 from uniros_async.training.concurrent import TIMING_METRICS, open_concurrent_env
 from uniros_async.training.config import train_config_from_dict
+from uniros_async.training.eval_process import open_eval_process
 from uniros_async.training.evaluate import EvalResult, evaluate_vec_policy, frozen_obs_stats
 
 CYCLE_S = 0.4
 EPISODE_STEPS = 10
 PROCESS, THREAD, TRAINING = "eval process (rt)", "eval thread (rt)", "training (acting thread, rt)"
 ORDERS = RANKS  # eval.alongside_rank: which set of arms' loops ranks higher
+LAYOUTS = ("higher-first", "by-rank")  # the loops' tick phases: alongside.phase_bases, or each loop's rank
 
 
 def _config(run_dir: Path, seconds: float, order: str, phase: float) -> Any:
@@ -178,7 +184,7 @@ class _Alternating:
     """``Alongside``'s API over the evaluation process and the in-thread path: the periodic evaluations take turns,
     the final one runs in the evaluation process; the load average is read at every ``take``."""
 
-    def __init__(self, process: Any, in_thread: _InThread, loads: list[float]) -> None:
+    def __init__(self, process: Any, in_thread: _InThread | None, loads: list[float]) -> None:
         self.process, self.in_thread, self.loads = process, in_thread, loads
         self.labels = process.labels
         self.samples = process.samples  # timing.json's eval_envs: the evaluation process's arms
@@ -197,7 +203,8 @@ class _Alternating:
         if self.busy():
             self._due = True
             return
-        self._active = (self.process, self.in_thread)[self._turn % 2]
+        paths = (self.process,) if self.in_thread is None else (self.process, self.in_thread)
+        self._active = paths[self._turn % len(paths)]
         self._turn += 1
         self._active.request(model, step, episodes, seed)
 
@@ -227,17 +234,22 @@ class _Alternating:
         try:
             self.process.close()
         finally:
-            self.in_thread.close()
+            if self.in_thread is not None:
+                self.in_thread.close()
 
 
 @contextlib.contextmanager
-def _both_paths(out: dict[str, Any]) -> Iterator[None]:
-    """``train`` opens an ``_Alternating`` instead of its evaluation process alone; it lands in ``out["paths"]``, the
-    training envs (their ``ConcurrentVecEnv``) in ``out["training"]``."""
+def _both_paths(out: dict[str, Any], layout: str, thread: bool) -> Iterator[None]:
+    """``train`` opens an ``_Alternating`` instead of its evaluation process alone (with the in-thread path beside it
+    with ``thread``); it lands in ``out["paths"]``, the training envs (their ``ConcurrentVecEnv``) in
+    ``out["training"]``. With ``layout`` "by-rank" both sets' loops tick at the phases of their ranks."""
     open_alongside = recipes.open_alongside
     build_concurrent_env = recipes.build_concurrent_env
+    by_rank = layout == "by-rank"
 
     def kept(cfg: Any, **kwargs: Any) -> Any:
+        if by_rank:
+            kwargs["loop_phase_base"] = None
         venv, layout = build_concurrent_env(cfg, **kwargs)
         out["training"] = venv
         return venv, layout
@@ -252,9 +264,22 @@ def _both_paths(out: dict[str, Any]) -> Iterator[None]:
         task_id: bool = False,
     ) -> Any:
         assert not task_id, "the bench's envs have no env index"
-        process = open_alongside(specs, real_time=real_time, torch_threads=torch_threads, rank=rank, phase=phase)
+        if by_rank:  # open_alongside's process, with the loops' phases left at their ranks
+            process = Alongside(
+                open_eval_process(
+                    phased(specs, phase) if real_time else specs,
+                    real_time=real_time,
+                    torch_threads=torch_threads,
+                    rt_rank_base=rank_bases(rank, len(specs))[1],
+                    loop_phase_base=None,
+                )
+            )
+        else:
+            process = open_alongside(specs, real_time=real_time, torch_threads=torch_threads, rank=rank, phase=phase)
+        in_thread = None
         try:
-            in_thread = _InThread(phased(specs, phase) if real_time else specs, real_time)
+            if thread:
+                in_thread = _InThread(phased(specs, phase) if real_time else specs, real_time)
         except BaseException:
             process.close()
             raise
@@ -314,17 +339,20 @@ def _collections(out: dict[str, Any]) -> Iterator[None]:
         AsyncTD3.learn = learn  # type: ignore[method-assign]
 
 
-def _run(seconds: float, run_dir: Path, order: str, phase: float) -> dict[str, Any]:
+def _run(seconds: float, run_dir: Path, order: str, phase: float, layout: str, thread: bool) -> dict[str, Any]:
     heap: dict[str, Any] = {}
     both: dict[str, Any] = {}
-    with _both_paths(both), _collections(heap):
+    with _both_paths(both, layout, thread), _collections(heap):
         recipes.train(_config(run_dir, seconds, order, phase))
     paths = both["paths"]
-    samples = {PROCESS: paths.process.samples, THREAD: paths.in_thread.venv.samples, TRAINING: both["training"].samples}
+    samples = {PROCESS: paths.process.samples, TRAINING: both["training"].samples}
+    if paths.in_thread is not None:
+        samples[THREAD] = paths.in_thread.venv.samples
     timing = json.loads((run_dir / "timing.json").read_text())
     return {
         "order": order,
         "phase": phase,
+        "layout": layout,
         "samples": samples,
         "loads": both.get("loads", []),
         "real_time_class": paths.real_time_class,
@@ -333,21 +361,25 @@ def _run(seconds: float, run_dir: Path, order: str, phase: float) -> dict[str, A
     }
 
 
-def _setting(order: str, phase: float) -> str:
-    return f"{order} ranked higher (evaluation phase {phase:g})"
+def _setting(order: str, phase: float, layout: str) -> str:
+    return f"{order} ranked higher (evaluation phase {phase:g}; tick phases {layout})"
+
+
+def _key(r: dict[str, Any]) -> tuple[str, float, str]:
+    return r["order"], r["phase"], r["layout"]
 
 
 def _rows(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per setting (order and phase), evaluation arm and path (the setting's runs' samples pooled), and the training
-    arms: the latency table's rows, the learner column naming the path and the setting."""
+    """Per setting (order, phase and layout), evaluation arm and path (the setting's runs' samples pooled), and the
+    training arms: the latency table's rows, the learner column naming the path and the setting."""
     rows = []
-    for order, phase in dict.fromkeys((r["order"], r["phase"]) for r in results):
-        runs = [r for r in results if r["order"] == order and r["phase"] == phase]
+    for key in dict.fromkeys(_key(r) for r in results):
+        runs = [r for r in results if _key(r) == key]
         for path in (PROCESS, THREAD, TRAINING):
-            for label in runs[0]["samples"][path]:
+            for label in runs[0]["samples"].get(path, {}):
                 for metric in TIMING_METRICS:
                     pooled = [x for r in runs for x in r["samples"][path][label][metric]]
-                    rows.append(_row(label, f"{path}, {_setting(order, phase)}", metric, summary(pooled)))
+                    rows.append(_row(label, f"{path}, {_setting(*key)}", metric, summary(pooled)))
     return rows
 
 
@@ -374,17 +406,16 @@ def _print(results: list[dict[str, Any]], seconds: float) -> None:
     print(
         f"\nhost {platform.node()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; four arms training and four"
         f" evaluated alongside on the wall clock, action cycle {CYCLE_S} s, {seconds:g} s per run, the runs alternating"
-        f" which set of arms ranks higher; {load}"
+        f" their settings; {load}"
     )
-    print(
-        "\naction cycle (ms): the evaluation arms, evaluations alternating between the evaluation process and a thread"
-        " of the agent process, and the training arms"
-    )
+    paths = "the evaluation process and a thread of the agent process" if THREAD in results[0]["samples"] else None
+    where = f", evaluations alternating between {paths}" if paths else " (in the evaluation process)"
+    print(f"\naction cycle (ms): the evaluation arms{where}, and the training arms")
     head = f"{'run':>3} {'env':<11} {'path':<28} {'median':>8} {'IQR':>7} {'p99':>8} {'n':>5}"
     for i, r in enumerate(results, 1):
-        print(f"\nrun {i}: {_setting(r['order'], r['phase'])}\n{head}\n" + "-" * len(head))
+        print(f"\nrun {i}: {_setting(*_key(r))}\n{head}\n" + "-" * len(head))
         for path in (PROCESS, THREAD, TRAINING):
-            for label, metrics in r["samples"][path].items():
+            for label, metrics in r["samples"].get(path, {}).items():
                 cyc = metrics["action_cycle"]
                 if len(cyc) < 4:
                     print(f"{i:>3} {label:<11} {path:<28} {'(fewer than 4 cycles)':>30}")
@@ -421,6 +452,19 @@ def main() -> None:
         default="0,0.5",
         help="the evaluation arms' phases to compare (eval.alongside_phase, comma-separated; default: 0,0.5)",
     )
+    parser.add_argument(
+        "--orders",
+        default=",".join(ORDERS),
+        help=f"which set ranks higher (eval.alongside_rank, comma-separated; default: {','.join(ORDERS)})",
+    )
+    parser.add_argument(
+        "--layouts",
+        default=",".join(LAYOUTS),
+        help=f"the loops' tick phases to compare (comma-separated; default: {','.join(LAYOUTS)})",
+    )
+    parser.add_argument(
+        "--thread", action="store_true", help="alternate the evaluations with four arms evaluated on a thread"
+    )
     parser.add_argument("--json", help="write the rows, the load and every run's records here")
     args = parser.parse_args()
     try:
@@ -429,12 +473,16 @@ def main() -> None:
             phased([], p)
     except (ValueError, ConfigError) as exc:
         parser.error(f"--phases: expected numbers in [0, 1) separated by commas, got {args.phases!r} ({exc})")
-    settings = [(order, phase) for phase in phases for order in ORDERS]
+    orders, layouts = args.orders.split(","), args.layouts.split(",")
+    for name, given, known in (("--orders", orders, ORDERS), ("--layouts", layouts, LAYOUTS)):
+        if not given or not set(given) <= set(known):
+            parser.error(f"{name}: expected some of {', '.join(known)} separated by commas, got {','.join(given)!r}")
+    settings = [(order, phase, layout) for phase in phases for order in orders for layout in layouts]
     results = []
     with tempfile.TemporaryDirectory(prefix="agent_rt_") as tmp:
         for k in range(1, len(settings) * args.runs + 1):
-            order, phase = settings[(k - 1) % len(settings)]
-            results.append(_run(args.seconds, Path(tmp) / f"run_{k}", order, phase))
+            order, phase, layout = settings[(k - 1) % len(settings)]
+            results.append(_run(args.seconds, Path(tmp) / f"run_{k}", order, phase, layout, args.thread))
             if args.json:
                 loads = [x for r in results for x in r["loads"]]
                 out = {

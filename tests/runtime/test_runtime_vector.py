@@ -207,18 +207,24 @@ def test_a_worker_that_cannot_start_is_named_and_the_others_are_closed() -> None
     assert children() == []
 
 
-def test_real_time_mixed_placements() -> None:
+@pytest.mark.parametrize(("rt_rank_base", "loop_phase_base"), [(0, None), (2, 0)])
+def test_real_time_mixed_placements(rt_rank_base: int, loop_phase_base: int | None) -> None:
     """Wall clock, every env at its own rates: ned2 servo sim in its own process, rx200 emulated real arm (tcp).
     Asserted on the schedules the code sets, whatever the host's load: each loop ticks on its period's grid at its
-    rank's phase, and the members' steps return at the same points of the action-cycle grid (stepped together, not
-    one after the other). How late the host runs them is the benchmarks'."""
+    phase (by default its rank; from ``loop_phase_base`` up in rank order when given), and the members' steps return
+    at the same points of the action-cycle grid (stepped together, not one after the other). How late the host runs
+    them is the benchmarks'."""
     from uniros_async.envs.robot import TICK_ALIGN_NS, TICK_OFFSET_NS
     from uniros_async.runtime.worker import LOOP_PHASE_STEP_NS
     from uniros_async.transports.shm import ShmTransport
 
     cycle_ns = 200_000_000
     venv = make_vec(
-        [(NED, {"robot": "sim-process"}), (RX, {"robot": "emulated-real"})], clock="wall", action_cycle_s=cycle_ns / 1e9
+        [(NED, {"robot": "sim-process"}), (RX, {"robot": "emulated-real"})],
+        clock="wall",
+        action_cycle_s=cycle_ns / 1e9,
+        rt_rank_base=rt_rank_base,
+        loop_phase_base=loop_phase_base,
     )
     try:
         venv.reset(seed=0)
@@ -235,11 +241,12 @@ def test_real_time_mixed_placements() -> None:
     finally:
         venv.close()
     assert children() == []
-    # each member's loop ticks at its rank's phase (worker.LOOP_PHASE_STEP_NS): the first worker (rank 1) 1 ms
+    # each member's loop ticks at its phase (worker.LOOP_PHASE_STEP_NS): the first worker (the higher rank) 1 ms
     # later than the second, so they do not tick at one instant; every scheduled tick, not only the punctual ones
+    base = rt_rank_base if loop_phase_base is None else loop_phase_base
     steps = []
     for snap, period, rank in zip(snaps, (40_000_000, 100_000_000), (1, 0), strict=True):
-        phase = rank * LOOP_PHASE_STEP_NS
+        phase = (base + rank) * LOOP_PHASE_STEP_NS
         ticks = snap["tick_deadline_ns"]
         assert len(ticks) >= 1.4e9 / period and len(ticks) == len(snap["tick_ns"]), (rank, len(ticks))
         assert {t % period for t in ticks} == {TICK_OFFSET_NS + phase}, (rank, {t % period for t in ticks})

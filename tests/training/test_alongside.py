@@ -21,7 +21,7 @@ import yaml
 
 from uniros_async.errors import ConfigError, UnirosError
 from uniros_async.priority import LOOP_RT_PRIORITY, RESET_ON_FORK
-from uniros_async.training.alongside import open_alongside, phased, policy_request, rank_bases
+from uniros_async.training.alongside import open_alongside, phase_bases, phased, policy_request, rank_bases
 from uniros_async.training.eval_process import _load, _PolicyCopy
 
 CYCLE_S = 0.2
@@ -135,7 +135,9 @@ def test_alongside_evaluates_in_its_own_process_while_the_learner_learns() -> No
 
     shm_before = _uniros_shm()
     train_base, eval_base = rank_bases("training", len(SPECS))  # eval.alongside_rank's default, as train opens them
-    train_venv = open_concurrent_env(SPECS, rt_rank_base=train_base)
+    train_venv = open_concurrent_env(
+        SPECS, rt_rank_base=train_base, loop_phase_base=phase_bases("training", len(SPECS))[0]
+    )
     alongside = open_alongside(SPECS, real_time=True, rank="training")
     pids: list[int] = []
     try:
@@ -213,12 +215,16 @@ def test_alongside_rank_sets_which_arms_loops_rank_higher() -> None:
     # (training, evaluation) rt_rank_base: the set ranked higher starts above the other's n_envs loops
     assert order() == "training" and rank_bases(order(), 4) == (4, 0)
     assert rank_bases(order(alongside_rank="evaluation"), 4) == (0, 4)
+    # (training, evaluation) loop_phase_base: the set ranked higher ticks first, the other in the phases after it
+    assert phase_bases("training", 4) == (0, 4) and phase_bases("evaluation", 4) == (4, 0)
     with pytest.raises(ConfigError, match="eval.alongside_rank: expected one of 'training', 'evaluation', got 'eval'"):
         order(alongside_rank="eval")
     with pytest.raises(ConfigError, match="eval.alongside_rank must be one of training, evaluation, got 'both'"):
         rank_bases("both", 4)
     with pytest.raises(ConfigError, match="the number of envs must be an int >= 1, got 0"):
         rank_bases("training", 0)
+    with pytest.raises(ConfigError, match="eval.alongside_rank must be one of training, evaluation, got 'both'"):
+        phase_bases("both", 4)
     before = set(_descendants(os.getpid()))
     with pytest.raises(ConfigError, match="alongside_rank must be one of"):
         open_alongside(SPECS, real_time=False, rank="both")
@@ -261,6 +267,8 @@ def test_a_negative_rank_base_is_refused_before_anything_starts() -> None:
     before = set(_descendants(os.getpid()))
     with pytest.raises(ConfigError, match="rt_rank_base must be an int >= 0, got -1"):
         make_vec(["CartPole-v1"], rt_rank_base=-1)
+    with pytest.raises(ConfigError, match="loop_phase_base must be None or an int >= 0, got -1"):
+        make_vec(["CartPole-v1"], loop_phase_base=-1)
     assert set(_descendants(os.getpid())) <= before
 
 

@@ -87,9 +87,12 @@ class Supervisor(StepExchange):
             placement, each with its own connection, stepped on the process's one event loop; ``"auto"``: as
             ``specs.plan_envs_per_worker`` decides.
         rt_rank_base: added to each worker's real-time rank (``WorkerSpec.rt_rank``: its loop's SCHED_RR priority
-            above the base and its tick phase, ``worker.LOOP_PHASE_STEP_NS`` a rank), capped at ``MAX_LOOP_RANK``:
-            a second vector env of real-time envs beside a first (``eval.alongside``) starts above the first's
-            ranks, so their loops neither tick on the same instants nor tie for a core.
+            above the base and, by default, its tick phase, ``worker.LOOP_PHASE_STEP_NS`` a rank), capped at
+            ``MAX_LOOP_RANK``: a second vector env of real-time envs beside a first (``eval.alongside``) starts
+            above the first's ranks, so their loops neither tick on the same instants nor tie for a core.
+        loop_phase_base: the loop phase (``WorkerSpec.loop_phase``) of the lowest-ranked worker, the others' one
+            step each above it in rank order; None: ``rt_rank_base`` (each loop's phase is its rank). Beside a
+            second vector env, the one whose loops rank higher takes the lower phases (``alongside.phase_bases``).
     """
 
     def __init__(
@@ -102,6 +105,7 @@ class Supervisor(StepExchange):
         transport: str = "shm",
         envs_per_worker: int | str = 1,
         rt_rank_base: int = 0,
+        loop_phase_base: int | None = None,
     ) -> None:
         if not specs:
             raise ConfigError("expected at least one env spec, got none")
@@ -113,6 +117,11 @@ class Supervisor(StepExchange):
         if isinstance(rt_rank_base, bool) or not isinstance(rt_rank_base, int) or rt_rank_base < 0:
             raise ConfigError(f"rt_rank_base must be an int >= 0, got {rt_rank_base!r}")
         self.rt_rank_base = rt_rank_base
+        if loop_phase_base is not None and (
+            isinstance(loop_phase_base, bool) or not isinstance(loop_phase_base, int) or loop_phase_base < 0
+        ):
+            raise ConfigError(f"loop_phase_base must be None or an int >= 0, got {loop_phase_base!r}")
+        self.loop_phase_shift = 0 if loop_phase_base is None else loop_phase_base - rt_rank_base
         if transport not in _LISTEN_URIS:
             raise ConfigError(f"transport must be one of {sorted(_LISTEN_URIS)}, got {transport!r}")
         # The local workers' interpreters start now and import while the env arguments are checked here; none is
@@ -218,6 +227,7 @@ class Supervisor(StepExchange):
                 accept_timeout_s=timeout_s,
                 listen_uri=listen_uri,
                 rt_rank=rt_rank,
+                loop_phase=max(rt_rank + self.loop_phase_shift, 0),
                 registration=registration(env_id) if factory_of(kwargs) is None else None,
                 environ=environ,
             )

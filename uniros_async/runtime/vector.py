@@ -588,6 +588,7 @@ def make_vec(
     backend: str = "local",
     envs_per_worker: int | str = AUTO,
     rt_rank_base: int = 0,
+    loop_phase_base: int | None = None,
     **common_kwargs: Any,
 ) -> UnirosVectorEnv:
     """A gymnasium VectorEnv over worker processes: one per env, or one per core where accelerated envs outnumber
@@ -628,7 +629,10 @@ def make_vec(
             ``info["worker_restarted"]``).
         rt_rank_base: the lowest real-time rank of these envs' loops (``Supervisor``): above another vector env's
             real-time envs on the same host (the evaluation envs beside the training envs), so they do not share
-            its loops' priorities and tick phases.
+            its loops' priorities.
+        loop_phase_base: the tick phase of the lowest-ranked of these envs' loops, in ``worker.LOOP_PHASE_STEP_NS``
+            (None: ``rt_rank_base``, each loop's phase its rank): beside another vector env's real-time envs, a
+            range of phases of their own (``alongside.phase_bases``).
         **common_kwargs: passed to every env given by id (a spec's own kwargs win), e.g. ``clock="sim"``; not
             with factories.
 
@@ -655,6 +659,7 @@ def make_vec(
         transport=transport,
         envs_per_worker=envs_per_worker,
         rt_rank_base=rt_rank_base,
+        loop_phase_base=loop_phase_base,
     )
     try:
         return UnirosVectorEnv(

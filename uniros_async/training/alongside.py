@@ -14,7 +14,7 @@ from uniros_async.training.concurrent import TIMING_METRICS
 from uniros_async.training.eval_process import EvalProcess, EvalReply, EvalRequest, open_eval_process
 from uniros_async.training.evaluate import EvalResult, frozen_obs_stats
 
-__all__ = ["RANKS", "Alongside", "open_alongside", "phased", "policy_request", "rank_bases"]
+__all__ = ["RANKS", "Alongside", "open_alongside", "phase_bases", "phased", "policy_request", "rank_bases"]
 
 RANKS = ("training", "evaluation")
 """The values of ``eval.alongside_rank``: which set of arms' env loops ranks higher in the real-time class."""
@@ -158,6 +158,24 @@ def rank_bases(rank: str, n_envs: int) -> tuple[int, int]:
     return (n_envs, 0) if rank == "training" else (0, n_envs)
 
 
+def phase_bases(rank: str, n_envs: int) -> tuple[int, int]:
+    """The lowest loop phases (``make_vec``'s ``loop_phase_base``, in ``worker.LOOP_PHASE_STEP_NS``) of the training
+    envs' loops and of the evaluation envs' loops, ``n_envs`` of each: the set that ranks higher (``rank``) ticks
+    first, the other after it.
+
+    Every loop ticks once a period, also in the action cycles in which its set does not step, so the two sets'
+    ticks meet in every period, whatever ``eval.alongside_phase``. A set's step hands out its actions just after its
+    own loops' ticks: ticking first, the higher set's actions reach their loops while the lower set ticks, and take
+    the cores from those loops; ticking after, the lower set's actions arrive when the higher set's ticks are done,
+    where with the phases the other way round they would wait behind the higher set's ticks.
+
+    Raises:
+        ConfigError: as ``rank_bases``.
+    """
+    training, evaluation = rank_bases(rank, n_envs)
+    return evaluation, training
+
+
 def phased(specs: Sequence[tuple[str, str, dict[str, Any]]], phase: float) -> list[tuple[str, str, dict[str, Any]]]:
     """``specs`` ((label, id, kwargs)) with each env's ``action_cycle_phase`` moved on by ``phase`` (mod 1).
 
@@ -184,7 +202,8 @@ def open_alongside(
     """The evaluation of ``eval.alongside`` on a second set of the envs ``specs`` ((label, id, kwargs), the run's
     training envs), in an evaluation process of its own that is ready when this returns; the envs' loops rank below
     the training envs' with ``rank`` "training" (the training envs opened with ``rank_bases``' training base),
-    above them with "evaluation" (``make_vec``'s ``rt_rank_base``); on a wall clock their action cycles fall
+    above them with "evaluation" (``make_vec``'s ``rt_rank_base``), and tick after the higher set's loops
+    (``phase_bases``); on a wall clock their action cycles fall
     ``phase`` of a cycle after the training envs' (``action_cycle_phase``, ``eval.alongside_phase``); ``task_id`` as
     the training envs' (``task_id_in_obs``).
 
@@ -193,10 +212,15 @@ def open_alongside(
         ConfigError, WorkerError: the envs could not be opened.
         UnirosError: the evaluation process did not start.
     """
-    base = rank_bases(rank, len(specs))[1]
+    base, phase_base = rank_bases(rank, len(specs))[1], phase_bases(rank, len(specs))[1]
     if real_time:
         specs = phased(specs, phase)
     process = open_eval_process(
-        specs, real_time=real_time, torch_threads=torch_threads, rt_rank_base=base, task_id=task_id
+        specs,
+        real_time=real_time,
+        torch_threads=torch_threads,
+        rt_rank_base=base,
+        loop_phase_base=phase_base,
+        task_id=task_id,
     )
     return Alongside(process)

@@ -108,9 +108,11 @@ def build_train_env(cfg: TrainConfig) -> tuple[TaskSamplerEnv, EnvLayout]:
     return sampler, layout
 
 
-def build_concurrent_env(cfg: TrainConfig, *, rt_rank_base: int = 0) -> tuple[ConcurrentVecEnv, EnvLayout]:
+def build_concurrent_env(
+    cfg: TrainConfig, *, rt_rank_base: int = 0, loop_phase_base: int | None = None
+) -> tuple[ConcurrentVecEnv, EnvLayout]:
     """The training envs as one ConcurrentVecEnv over worker processes (``concurrent: true``) and their layout; their
-    loops' real-time ranks from ``rt_rank_base`` up (``make_vec``).
+    loops' real-time ranks from ``rt_rank_base`` up and tick phases from ``loop_phase_base`` up (``make_vec``).
 
     Raises:
         ConfigError: unknown ids or arguments, or mixed goal and standard envs.
@@ -118,7 +120,9 @@ def build_concurrent_env(cfg: TrainConfig, *, rt_rank_base: int = 0) -> tuple[Co
     """
     from uniros_async.training.concurrent import open_concurrent_env
 
-    venv = open_concurrent_env(cfg.env_specs(), rt_rank_base=rt_rank_base, task_id=cfg.task_id_in_obs)
+    venv = open_concurrent_env(
+        cfg.env_specs(), rt_rank_base=rt_rank_base, loop_phase_base=loop_phase_base, task_id=cfg.task_id_in_obs
+    )
     try:
         goal = isinstance(venv.observation_space, gym.spaces.Dict)
         box = venv.observation_space["observation"] if goal else venv.observation_space  # type: ignore[index]

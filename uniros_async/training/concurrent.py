@@ -40,11 +40,12 @@ def open_concurrent_env(
     *,
     start_timeout_s: float = 120.0,
     rt_rank_base: int = 0,
+    loop_phase_base: int | None = None,
     task_id: bool = False,
 ) -> ConcurrentVecEnv:
     """The envs ``specs`` (label, id, kwargs) as one ``ConcurrentVecEnv`` over worker processes (padded; their
-    loops' real-time ranks from ``rt_rank_base`` up, ``make_vec``; a one-hot env index in every observation with
-    ``task_id``).
+    loops' real-time ranks from ``rt_rank_base`` up and their tick phases from ``loop_phase_base`` up, ``make_vec``;
+    a one-hot env index in every observation with ``task_id``).
 
     Raises:
         ConfigError: an unknown id or keyword argument, or spaces that cannot be padded together.
@@ -57,6 +58,7 @@ def open_concurrent_env(
         pad=True,
         start_timeout_s=start_timeout_s,
         rt_rank_base=rt_rank_base,
+        loop_phase_base=loop_phase_base,
     )
     try:
         return ConcurrentVecEnv(vec.as_sb3(), [label for label, _, _ in specs], task_id=task_id)

@@ -12,18 +12,18 @@ its own interpreter and needs no such coordination: no learner step can hold its
 measures the process against the thread in one run (docs/performance.md, "The agent process in real time").
 
 The process (``open_eval_process``) is a fresh interpreter, started as the env workers are (runtime/launch.py: not
-multiprocessing's spawn, which would re-import the agent's main script), its spec and the agent's ``sys.path`` read
-from its stdin. It ignores SIGINT (the agent's Ctrl-C is the agent's business, which closes it) and closes its envs
-on SIGTERM; it opens the envs with ``open_concurrent_env`` (their workers are its children and stop when it exits),
-sets torch to the agent's thread count, freezes its heap once set up (``priority.freeze_heap``) and then evaluates
-one request at a time, on its main thread, in the real-time class when asked (``priority.real_time_thread``, as the
-agent's acting thread). Its envs' loops rank below the training envs' or above them, as ``eval.alongside_rank``
-says (``make_vec``'s ``rt_rank_base``, ``alongside.rank_bases``): with the same ranks, an evaluation arm's loop and a
-training arm's tick and return on the same instants at the same priority, and on a shared host one waits for the
-other. A second thread only reads the connection (blocked in ``recv`` without
-the GIL) and wakes only when the agent writes: a request, a stop or the close. When the agent's end closes (the
-agent died), it stops the evaluation and closes the envs; if that has not ended the process within
-``ORPHAN_EXIT_S``, it exits anyway.
+multiprocessing's spawn, which would re-import the agent's main script), its spec and the agent's ``sys.path`` read from
+its stdin. It ignores SIGINT (the agent's Ctrl-C is the agent's business, which closes it) and closes its envs on
+SIGTERM; it opens the envs with ``open_concurrent_env`` (their workers are its children and stop when it exits), sets
+torch to the agent's thread count, freezes its heap once set up (``priority.freeze_heap``) and then evaluates one
+request at a time, on its main thread, in the real-time class when asked (``priority.real_time_thread``, as the agent's
+acting thread). Its envs' loops rank below the training envs' or above them, as ``eval.alongside_rank`` says
+(``make_vec``'s ``rt_rank_base``, ``alongside.rank_bases``), and tick in phases of their own (``loop_phase_base``,
+``alongside.phase_bases``): with the same ranks, an evaluation arm's loop and a training arm's would tick and return on
+the same instants at the same priority, and on a shared host one would wait for the other. A second thread only reads
+the connection (blocked in ``recv`` without the GIL) and wakes only when the agent writes: a request, a stop or the
+close. When the agent's end closes (the agent died), it stops the evaluation and closes the envs; if that has not ended
+the process within ``ORPHAN_EXIT_S``, it exits anyway.
 
 Messages (pickled tuples on one socket pair, ``multiprocessing.connection.Connection`` at both ends)::
 
@@ -128,6 +128,7 @@ class _Spec:
     torch_threads: int
     start_timeout_s: float
     rt_rank_base: int
+    loop_phase_base: int | None
     task_id: bool
     sys_path: tuple[str, ...]
 
@@ -304,7 +305,11 @@ def _child_main(spec: _Spec, conn: multiprocessing.connection.Connection, progre
 
     try:
         venv = open_concurrent_env(
-            spec.specs, start_timeout_s=spec.start_timeout_s, rt_rank_base=spec.rt_rank_base, task_id=spec.task_id
+            spec.specs,
+            start_timeout_s=spec.start_timeout_s,
+            rt_rank_base=spec.rt_rank_base,
+            loop_phase_base=spec.loop_phase_base,
+            task_id=spec.task_id,
         )
     except BaseException as exc:  # noqa: BLE001 - reported to the agent
         with contextlib.suppress(OSError):
@@ -480,6 +485,7 @@ def open_eval_process(
     torch_threads: int = 1,
     start_timeout_s: float = 120.0,
     rt_rank_base: int = 0,
+    loop_phase_base: int | None = None,
     task_id: bool = False,
 ) -> EvalProcess:
     """Start an evaluation process over the envs ``specs`` ((label, id, kwargs), as ``open_concurrent_env``) and
@@ -491,6 +497,7 @@ def open_eval_process(
         torch_threads: torch's thread count in the process.
         start_timeout_s: the envs' start timeout (``make_vec``).
         rt_rank_base: the lowest real-time rank of the envs' loops (``make_vec``).
+        loop_phase_base: the lowest tick phase of the envs' loops (``make_vec``).
         task_id: a one-hot env index in every observation, as the training envs have it (``task_id_in_obs``).
 
     Raises:
@@ -504,6 +511,7 @@ def open_eval_process(
         torch_threads=torch_threads,
         start_timeout_s=start_timeout_s,
         rt_rank_base=rt_rank_base,
+        loop_phase_base=loop_phase_base,
         task_id=task_id,
         sys_path=tuple(p for p in sys.path if isinstance(p, str)),
     )

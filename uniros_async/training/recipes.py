@@ -54,7 +54,7 @@ import yaml
 
 from uniros_async.errors import ConfigError, TrainingInterrupted
 from uniros_async.priority import freeze_heap
-from uniros_async.training.alongside import Alongside, open_alongside, rank_bases
+from uniros_async.training.alongside import Alongside, open_alongside, phase_bases, rank_bases
 from uniros_async.training.build import (
     EnvLayout,
     algo_class,
@@ -314,8 +314,14 @@ def train(cfg: TrainConfig, *, resume: bool = False, progress: bool | None = Non
 
     env: Any
     if cfg.concurrent:
-        alongside_ranks = rank_bases(cfg.eval.alongside_rank, len(cfg.env_specs())) if cfg.eval.alongside else (0, 0)
-        env, layout = build_concurrent_env(cfg, rt_rank_base=alongside_ranks[0])
+        n_envs = len(cfg.env_specs())
+        if cfg.eval.alongside:
+            rank = cfg.eval.alongside_rank
+            env, layout = build_concurrent_env(
+                cfg, rt_rank_base=rank_bases(rank, n_envs)[0], loop_phase_base=phase_bases(rank, n_envs)[0]
+            )
+        else:
+            env, layout = build_concurrent_env(cfg)
     else:
         env, layout = build_train_env(cfg)
         if cfg.record is not None:  # every training step to MCAP (bag/episodes.py)
