@@ -82,13 +82,13 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 LOOP_PHASE_STEP_NS = 1_000_000
-"""A real-time env's loop ticks and step deadlines fall ``loop_phase`` (by default its ``rt_rank``) times this much
-after the common grid (``RobotEnv.loop_phase_ns``), so the members of a vector env tick and return one after the other,
-the highest-ranked last. On one instant, workers that outnumber the cores run in priority order anyway, and the later
-ones start whenever the others' variable work lets them, so the last reply, which the agent waits for, scatters;
-staggered, each runs alone and the last reply comes from the worker with the highest priority. The step is well above a
-worker's tick or return, even with cold caches; the first member's returns wait up to ``n - 1`` steps longer for the
-agent."""
+"""A real-time env's loop ticks and step deadlines fall ``loop_phase`` (the supervisor's choice: by default its rank)
+times this much after the common grid (``RobotEnv.loop_phase_ns``), so the members of a vector env tick and return one
+after the other, the highest-ranked last. On one instant, workers that outnumber the cores run in priority order anyway,
+and the later ones start whenever the others' variable work lets them, so the last reply, which the agent waits for,
+scatters; staggered, each runs alone and the last reply comes from the worker with the highest priority. The step is
+well above a worker's tick or return, even with cold caches; the first member's returns wait up to ``n - 1`` steps
+longer for the agent."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -108,7 +108,8 @@ class WorkerSpec:
             placed by Ray listens with its vector env's key.
         rt_rank: for a real-time env, the rank of its SCHED_RR priority among the workers of its vector env
             (``priority.raise_loop_priority``; the supervisor gives the first worker the highest).
-        loop_phase: for a real-time env, its loop's phase in ``LOOP_PHASE_STEP_NS``; None: ``rt_rank``.
+        loop_phase: for a real-time env, its loop's phase in ``LOOP_PHASE_STEP_NS`` (``Supervisor``'s
+            ``loop_phase_base``).
         registration: ``gymnasium.register`` keyword arguments for ``env_id`` as the agent's process has it
             registered (``envargs.registration``), used when this fresh interpreter does not know the id.
         agent_pid: the agent's pid when it is not ``parent_pid`` (a worker a Ray actor started): over tcp on
@@ -129,7 +130,7 @@ class WorkerSpec:
     listen_uri: str = "shm://"
     auth_key: bytes | None = None
     rt_rank: int = 0
-    loop_phase: int | None = None
+    loop_phase: int = 0
     registration: dict[str, Any] | None = None
     agent_pid: int = 0
     environ: dict[str, str] = dataclasses.field(default_factory=dict)
@@ -379,8 +380,7 @@ class _Server:
             base = env.unwrapped
             realtime = getattr(getattr(base, "config", None), "clock", "sim") != "sim"
             if realtime and hasattr(base, "loop_phase_ns"):
-                phase = self.spec.rt_rank if self.spec.loop_phase is None else self.spec.loop_phase
-                base.loop_phase_ns = phase * LOOP_PHASE_STEP_NS  # before its loop starts
+                base.loop_phase_ns = self.spec.loop_phase * LOOP_PHASE_STEP_NS  # before its loop starts
             base_env = _base_env_class()
             if base_env is not None and isinstance(base, base_env) and base.attached:
                 if supports_async(env):
