@@ -93,14 +93,39 @@ def by_topic(msgs: list[BagMessage]) -> dict[str, list[Any]]:
     return out
 
 
-async def collect(uri: str, topics: dict[str, type], into: dict[str, list[Any]]) -> Any:
+class Played(defaultdict[str, list[Any]]):
+    """Messages per topic, in arrival order, with an event set on each arrival."""
+
+    def __init__(self) -> None:
+        super().__init__(list)
+        self.arrived = asyncio.Event()
+
+    async def wait_for(self, expected: dict[str, list[Any]], timeout_s: float = 20.0) -> None:
+        """Wait until every topic holds as many messages as ``expected``: the player's process can exit while its last
+        messages are still on their way to this process's subscriptions. On a timeout it returns, and the caller's
+        count assertions name the topic that fell short."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                while any(len(self[t]) < len(msgs) for t, msgs in expected.items()):
+                    self.arrived.clear()
+                    await self.arrived.wait()
+
+
+async def collect(uri: str, topics: dict[str, type], into: Played) -> Any:
     """A node of ``uri`` that appends every message of ``topics`` to ``into`` (an async context manager)."""
+
+    def appender(topic: str) -> Callable[[Any], None]:
+        def on(msg: Any) -> None:
+            into[topic].append(msg)
+            into.arrived.set()
+
+        return on
 
     @contextlib.asynccontextmanager
     async def cm() -> AsyncIterator[None]:
         async with open_node("collector", domain=uri) as node:
             for topic, cls in topics.items():
-                await node.create_subscription(cls, topic, into[topic].append, qos=reliable(10_000))
+                await node.create_subscription(cls, topic, appender(topic), qos=reliable(10_000))
             yield
 
     return cm()
@@ -128,12 +153,13 @@ async def test_record_info_and_play_on_both_clocks_round_trip_every_type(tmp_pat
     span_s = (recorded[-1].log_time_ns - recorded[0].log_time_ns) / 1e9
     # on the wall clock: everything, in order, spread over the bag's span
     async with open_domain() as domain2:
-        played: dict[str, list[Any]] = defaultdict(list)
+        played = Played()
         async with await collect(domain2.uri, types, played):
             t0 = asyncio.get_running_loop().time()
             rc, out, err = await uniros("bag", "play", str(bag), "--domain", domain2.uri, "--wait-subscribers", "1")
             took_s = asyncio.get_running_loop().time() - t0
-        assert rc == 0, err
+            assert rc == 0, err
+            await played.wait_for(got)
     assert took_s >= span_s * 0.9
     for topic, msgs in got.items():
         assert len(played[topic]) == len(msgs), topic
@@ -146,7 +172,7 @@ async def test_record_info_and_play_on_both_clocks_round_trip_every_type(tmp_pat
     types["/clock"] = m.ClockTick
     again = tmp_path / "again.mcap"
     async with open_domain() as domain3:
-        played = defaultdict(list)
+        played = Played()
         async with await collect(domain3.uri, types, played):
             rec = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "uniros_async.cli", "bag", "record", "-o", str(again), "--domain", domain3.uri,
@@ -160,7 +186,9 @@ async def test_record_info_and_play_on_both_clocks_round_trip_every_type(tmp_pat
                     "bag", "play", str(bag), "--domain", domain3.uri, "--clock", "sim", "--rate", "0",
                     "--wait-subscribers", "2",
                 )  # fmt: skip
-                await asyncio.sleep(0.5)  # the last messages reach the recorder
+                assert rc == 0, err
+                await played.wait_for({t: msgs for t, msgs in got.items() if t != "/clock"})
+                await asyncio.sleep(0.5)  # the recorder, another subscriber of the same publisher, has them too
                 rec.send_signal(signal.SIGINT)
                 async with asyncio.timeout(30):
                     rec_out, rec_err = await rec.communicate()
@@ -271,7 +299,7 @@ async def test_play_loops_on_the_sim_clock_with_time_going_on(tmp_path: Path) ->
         for i in range(5):
             w.put("/text", m.Text(data=f"t{i}"), 1_000 + 1_000 * i)
     async with open_domain() as domain:
-        got: dict[str, list[Any]] = defaultdict(list)
+        got = Played()
         async with await collect(domain.uri, {"/text": m.Text, "/clock": m.ClockTick}, got):
             task = asyncio.create_task(
                 play(PlayConfig(path=bag, domain=domain.uri, clock="sim", rate=0, loop=True, wait_subscribers=1))
