@@ -108,6 +108,11 @@ class NetnsPair:
     arm_ip: str = ARM_IP
     env_ip: str = ENV_IP
 
+    @property
+    def ends(self) -> tuple[tuple[str, str], tuple[str, str]]:
+        """(namespace, device) of the link's two ends: the arm's, then the env's."""
+        return ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev))
+
     def popen(self, side: str, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[str]:
         """Start ``argv`` in the ``arm`` or ``env`` namespace (text mode, stdout piped unless told otherwise)."""
         ns = self.arm_ns if side == "arm" else self.env_ns
@@ -145,7 +150,7 @@ class NetnsPair:
     def starve(self, rate: str = "8kbit") -> None:
         """Limit the link to ``rate`` each way (a ``tbf`` qdisc on both ends; excess waits up to 200 ms, then is
         dropped)."""
-        for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
+        for ns, dev in self.ends:
             _run("ip", "netns", "exec", ns, "tc", "qdisc", "replace", "dev", dev, "root", "tbf", "rate", rate,
                  "burst", "1600", "latency", "200ms")  # fmt: skip
 
@@ -237,7 +242,7 @@ class NetnsPair:
         """(namespace, device, ``tc qdisc show`` of it) for each end that carries a qdisc of ours (``starve``'s
         ``tbf``)."""
         ours = []
-        for ns, dev in ((self.arm_ns, self.arm_dev), (self.env_ns, self.env_dev)):
+        for ns, dev in self.ends:
             shown = _run("ip", "netns", "exec", ns, "tc", "qdisc", "show", "dev", dev).stdout
             if " tbf " in shown:
                 ours.append((ns, dev, shown.strip()))
