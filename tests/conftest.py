@@ -40,3 +40,39 @@ def _sb3_logs_in_the_sessions_tmp(tmp_path_factory: pytest.TempPathFactory) -> I
         os.environ.pop("SB3_LOGDIR", None)
     else:
         os.environ["SB3_LOGDIR"] = old
+
+
+# tests/_serial.py: a test marked ``serial`` runs with no other test beside it on the suite's xdist workers (its hooks,
+# made this conftest's by importing them; tests/test_serial.py runs it as a plugin of its own)
+from _serial import pytest_configure, pytest_runtest_protocol  # noqa: E402, F401
+
+SERIAL_FILES = {
+    # real-time env loops whose cycles the test holds near their period
+    "bag/test_bag_bench.py": "real time",
+    "bench/test_latency.py": "real time",
+    # real-time arms beside a learner, held to their action-cycle timing
+    "training/test_alongside.py": "real time",
+    "training/test_realtime_training.py": "real time",
+    "training/test_training_cli.py": "real time",
+    # compares the whole of /dev/shm before and after, which another test's processes may write to meanwhile
+    "transports/test_shm.py": "machine-wide check",
+}
+"""Test files (under tests/) whose every test runs alone, and why."""
+
+GROUPED_FILES = {
+    # every case starts a Ray cluster and checks afterwards that no Ray process is left, machine-wide: the cases
+    # take turns on one worker (xdist's loadgroup), beside the other worker's tests
+    "runtime/test_runtime_ray.py": "ray",
+}
+"""Test files whose tests run one after the other on one xdist worker, under this group name."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if not item.path.is_relative_to(TESTS_DIR):
+            continue
+        path = item.path.relative_to(TESTS_DIR).as_posix()
+        if path in SERIAL_FILES:
+            item.add_marker(pytest.mark.serial)
+        if path in GROUPED_FILES:
+            item.add_marker(pytest.mark.xdist_group(GROUPED_FILES[path]))

@@ -40,6 +40,7 @@ async def uniros(*args: str, domain: str | None = None, timeout_s: float = 60) -
     return proc.returncode or 0, out.decode(), err.decode()
 
 
+@pytest.mark.serial  # times replies against the bus's rates
 async def test_introspection_commands() -> None:
     async with open_domain() as domain, open_node("arm", domain=domain, namespace="/rx200") as arm:
         pub = await arm.create_publisher(JointState, "joint_states")

@@ -123,6 +123,7 @@ async def test_name_conflicts_and_type_mismatch(domain) -> None:  # type: ignore
             pub.publish(Text(data="x"))  # type: ignore[arg-type]
 
 
+@pytest.mark.serial  # holds a timer to its deadlines
 async def test_timer_fires_at_absolute_deadlines(domain) -> None:  # type: ignore[no-untyped-def]
     """The deadlines are ``start + k * period`` whatever the host's load: a late fire delays neither the next
     deadline nor the grid (no drift), and every deadline skipped after a late fire is counted in ``overruns``.

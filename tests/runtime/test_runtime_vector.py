@@ -207,6 +207,7 @@ def test_a_worker_that_cannot_start_is_named_and_the_others_are_closed() -> None
     assert children() == []
 
 
+@pytest.mark.serial  # real-time loops held to their tick phases
 @pytest.mark.parametrize(("rt_rank_base", "loop_phase_base"), [(0, None), (2, 0)])
 def test_real_time_mixed_placements(rt_rank_base: int, loop_phase_base: int | None) -> None:
     """Wall clock, every env at its own rates: ned2 servo sim in its own process, rx200 emulated real arm (tcp).

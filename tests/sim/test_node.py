@@ -46,6 +46,7 @@ async def test_command_over_the_bus_reaches_target(robot: str) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.serial  # counts messages against the hardware rate
 @pytest.mark.parametrize(("robot", "rate_hz"), [("rx200", 10.0), ("ned2", 25.0)])
 async def test_joint_states_arrive_at_the_hardware_rate(robot: str, rate_hz: float) -> None:
     """Wall clock. One joint state per tick of the node's timer, and the ticks' deadlines are the multiples of the
