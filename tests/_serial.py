@@ -1,6 +1,6 @@
 """A pytest plugin: a test marked ``serial`` runs with no other test beside it when the suite runs on several xdist
-workers (``-n 2`` in the README's test command). Serial are the real-time tests, whose loops must have the cores they
-were promised, the benchmarks, whose figures are ratios of one run, and the tests that check machine-wide state.
+workers (the README's test command): the tests that hold real-time loops to their timing, and the tests that check
+machine-wide state.
 
 The workers share a readers-writer lock, two ``flock``ed files in the session's temporary folder: every other test
 holds it shared, a serial test exclusively. A serial test takes the turnstile first, which every new shared holder
