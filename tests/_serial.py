@@ -5,7 +5,8 @@ machine-wide state.
 The workers share a readers-writer lock, two ``flock``ed files in the session's temporary folder: every other test
 holds it shared, a serial test exclusively. A serial test takes the turnstile first, which every new shared holder
 passes through, so that the other workers cannot keep the lock shared forever. Setup, call, teardown and reruns of a
-test all run under its lock. Outside xdist (one process) there is nothing to lock."""
+test all run under its lock, and a worker keeps it across consecutive serial tests (the suite's conftest puts them in
+one xdist group, so that they come one after the other). Outside xdist (one process) there is nothing to lock."""
 
 from __future__ import annotations
 
@@ -41,6 +42,29 @@ def _flocked(path: Path, how: int) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
+_held: list[int] = []
+"""The descriptors of the turnstile and the lock while this worker runs a block of serial tests."""
+
+
+def _acquire(path: Path, how: int) -> int:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, how)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _release() -> None:
+    while _held:
+        os.close(_held.pop())  # closing the descriptor releases its lock
+
+
+def _serial(item: pytest.Item | None) -> bool:
+    return item is not None and item.get_closest_marker("serial") is not None
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     folder = _lock_dir(item.config)
@@ -48,9 +72,17 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         yield
         return
     turnstile, lock = folder / "uniros-serial.turnstile", folder / "uniros-serial.lock"
-    if item.get_closest_marker("serial") is not None:
-        with _flocked(turnstile, fcntl.LOCK_EX), _flocked(lock, fcntl.LOCK_EX):
+    if _serial(item):
+        # consecutive serial tests of this worker keep the lock between them: the other workers' tests, once they
+        # are done, wait once for the whole block, not once per test
+        if not _held:
+            _held.append(_acquire(turnstile, fcntl.LOCK_EX))
+            _held.append(_acquire(lock, fcntl.LOCK_EX))
+        try:
             yield
+        finally:
+            if not _serial(nextitem):
+                _release()
     else:
         with _flocked(turnstile, fcntl.LOCK_EX):
             pass

@@ -74,5 +74,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         path = item.path.relative_to(TESTS_DIR).as_posix()
         if path in SERIAL_FILES:
             item.add_marker(pytest.mark.serial)
-        if path in GROUPED_FILES:
+        if item.get_closest_marker("serial") is not None:
+            item.add_marker(pytest.mark.xdist_group("serial"))  # one after the other, on one worker
+        elif path in GROUPED_FILES:
             item.add_marker(pytest.mark.xdist_group(GROUPED_FILES[path]))
