@@ -56,15 +56,11 @@ SERIAL_FILES = {
     "training/test_training_cli.py": "real time",
     # compares the whole of /dev/shm before and after, which another test's processes may write to meanwhile
     "transports/test_shm.py": "machine-wide check",
+    # each case runs a Ray cluster, holds it to a time (a lost node reported within one action cycle) and checks
+    # afterwards that no Ray process is left, machine-wide
+    "runtime/test_runtime_ray.py": "machine-wide check",
 }
 """Test files (under tests/) whose every test runs alone, and why."""
-
-GROUPED_FILES = {
-    # every case starts a Ray cluster and checks afterwards that no Ray process is left, machine-wide: the cases
-    # take turns on one worker (xdist's loadgroup), beside the other worker's tests
-    "runtime/test_runtime_ray.py": "ray",
-}
-"""Test files whose tests run one after the other on one xdist worker, under this group name."""
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -76,5 +72,3 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.serial)
         if item.get_closest_marker("serial") is not None:
             item.add_marker(pytest.mark.xdist_group("serial"))  # one after the other, on one worker
-        elif path in GROUPED_FILES:
-            item.add_marker(pytest.mark.xdist_group(GROUPED_FILES[path]))

@@ -20,8 +20,6 @@ import pytest
 HERE = pathlib.Path(__file__).resolve().parent
 INNER = HERE.parent / "ray_netns"
 MODULES = sorted(p.name for p in INNER.glob("test_*.py"))
-TIMED = {"test_ray_lifecycle.py"}
-"""Modules that hold Ray to a time (a lost node reported within one action cycle): they run alone (``serial``)."""
 ROOT = HERE.parent.parent
 
 
@@ -38,7 +36,7 @@ def _missing() -> str | None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("module", [pytest.param(m, marks=[pytest.mark.serial] if m in TIMED else []) for m in MODULES])
+@pytest.mark.parametrize("module", MODULES)
 def test_ray_module_in_a_network_namespace(module: str) -> None:
     missing = _missing()
     if missing is not None:
