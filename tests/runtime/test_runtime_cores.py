@@ -28,6 +28,7 @@ def _last_cpu(pid: int) -> int:
         return int(f.read().rsplit(")", 1)[1].split()[36])  # field 39: the CPU it last ran on
 
 
+@pytest.mark.serial  # reads which core the worker runs on, which the other tests' processes move it off
 @pytest.mark.parametrize("transport", ["shm", "tcp"])
 def test_a_worker_placed_on_its_agents_core_moves_to_another_and_keeps_every_core_allowed(transport: str) -> None:
     """shm learns where the agent runs from the ring's shared page, tcp on loopback from /proc
