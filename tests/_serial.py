@@ -32,16 +32,6 @@ def _lock_dir(config: pytest.Config) -> Path | None:
     return Path(config._tmp_path_factory.getbasetemp()).parent  # type: ignore[attr-defined]
 
 
-@contextlib.contextmanager
-def _flocked(path: Path, how: int) -> Iterator[None]:
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-    try:
-        fcntl.flock(fd, how)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
-
-
 _held: list[int] = []
 """The descriptors of the turnstile and the lock while this worker runs a block of serial tests."""
 
@@ -54,6 +44,15 @@ def _acquire(path: Path, how: int) -> int:
         os.close(fd)
         raise
     return fd
+
+
+@contextlib.contextmanager
+def _flocked(path: Path, how: int) -> Iterator[None]:
+    fd = _acquire(path, how)
+    try:
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _release() -> None:

@@ -48,19 +48,19 @@ from _serial import pytest_configure, pytest_runtest_protocol  # noqa: E402, F40
 
 SERIAL_FILES = {
     # real-time env loops whose cycles the test holds near their period
-    "bag/test_bag_bench.py": "real time",
-    "bench/test_latency.py": "real time",
+    "bag/test_bag_bench.py",
+    "bench/test_latency.py",
     # real-time arms beside a learner, held to their action-cycle timing
-    "training/test_alongside.py": "real time",
-    "training/test_realtime_training.py": "real time",
-    "training/test_training_cli.py": "real time",
+    "training/test_alongside.py",
+    "training/test_realtime_training.py",
+    "training/test_training_cli.py",
     # compares the whole of /dev/shm before and after, which another test's processes may write to meanwhile
-    "transports/test_shm.py": "machine-wide check",
+    "transports/test_shm.py",
     # each case runs a Ray cluster, holds it to a time (a lost node reported within one action cycle) and checks
     # afterwards that no Ray process is left, machine-wide
-    "runtime/test_runtime_ray.py": "machine-wide check",
+    "runtime/test_runtime_ray.py",
 }
-"""Test files (under tests/) whose every test runs alone, and why."""
+"""Test files (under tests/) whose every test runs alone; the comments say why."""
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
