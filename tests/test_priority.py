@@ -18,8 +18,10 @@ from uniros_async.priority import (
     DEFAULT_LOOP_NICE,
     LOOP_RT_PRIORITY,
     MAX_LOOP_RANK,
+    PM_QOS_DEVICE,
     RESET_ON_FORK,
     cores_kept_awake,
+    cores_kept_polling,
     loop_nice,
     loop_priority_mode,
 )
@@ -228,6 +230,27 @@ def test_cores_kept_awake_runs_one_idle_class_poller_per_core_and_stops_them() -
             time.sleep(0.1)
         assert all(int(_stat(p)[11]) > t for p, t in zip(pids, t0, strict=True)), "the pollers should burn idle CPU"
     assert not any(pid_alive(p) for p in pids)
+
+
+def _fds_on(device: str) -> list[str]:
+    fds = Path("/proc/self/fd")
+    return [fd.name for fd in fds.iterdir() if os.path.realpath(fd) == device]
+
+
+def test_cores_kept_polling_holds_a_zero_wake_up_latency_limit_for_the_block_and_drops_it_after() -> None:
+    if not os.access(PM_QOS_DEVICE, os.W_OK):
+        pytest.skip(f"{PM_QOS_DEVICE} is not writable here (it needs root); cores_kept_polling yields False there")
+    with cores_kept_polling() as held:
+        assert held
+        assert len(_fds_on(PM_QOS_DEVICE)) == 1  # the limit lasts as long as this file stays open
+        with open(PM_QOS_DEVICE, "rb") as f:  # reading gives the limit in force: the least of every holder's
+            assert int.from_bytes(f.read(4), sys.byteorder) == 0
+    assert _fds_on(PM_QOS_DEVICE) == []
+
+
+def test_cores_kept_polling_yields_false_where_the_device_cannot_be_opened(tmp_path: Path) -> None:
+    with cores_kept_polling(str(tmp_path / "no_such_device")) as held:
+        assert held is False
 
 
 def test_cores_kept_awake_pollers_die_with_a_sigkilled_parent() -> None:

@@ -62,6 +62,7 @@ __all__ = [
     "ACTOR_GIL_SWITCH_S",
     "ACTOR_RT_PRIORITY",
     "cores_kept_awake",
+    "cores_kept_polling",
     "DEFAULT_LOOP_NICE",
     "environ_choice",
     "freeze_heap",
@@ -325,6 +326,34 @@ while os.getppid() == parent:
     for _ in range(100_000):
         pass
 """
+
+
+PM_QOS_DEVICE = "/dev/cpu_dma_latency"
+
+
+@contextlib.contextmanager
+def cores_kept_polling(device: str = PM_QOS_DEVICE) -> Iterator[bool]:
+    """Keep every core's idle loop polling instead of halting while the block runs, through the kernel's PM QoS:
+    a CPU wake-up latency limit of 0 us written to ``/dev/cpu_dma_latency`` and held while its file stays open, as
+    cyclictest does. Yields whether the limit is held (False where the device is missing or not writable: it
+    needs root).
+
+    Unlike ``cores_kept_awake``'s pollers, this adds no task to any run queue: a core's idle loop runs only when
+    nothing else, kernel workers included, wants the core. A ``SCHED_IDLE`` poller is only a very light ordinary
+    task, and the fair scheduler can pick it over a runnable kernel worker for a whole time slice; a task that waits
+    for that worker (a pty's bytes are moved to the reader by one) then waits that long. Where the cpuidle driver
+    has no polling state the limit still keeps the cores in their shallowest one.
+    """
+    try:
+        fd = os.open(device, os.O_WRONLY | os.O_CLOEXEC)
+    except OSError:
+        yield False
+        return
+    try:
+        os.write(fd, (0).to_bytes(4, sys.byteorder))
+        yield True
+    finally:
+        os.close(fd)  # closing the file drops the limit
 
 
 @contextlib.contextmanager

@@ -41,6 +41,7 @@ PRESENT_LENGTH = 10
 GOAL_ADDRESS = 116
 POSITION_OFFSET = 6  # present position's offset in the present block
 _HIST_BINS = 1_000_000  # 1 us bins up to 1 s
+_AWAKE = {"pm_qos": "kept polling (PM QoS 0 us)", "pollers": "kept awake by idle-class pollers"}
 MARGIN_S = 0.05
 """Our client's timeout margin here: the virtual bus is a process on a shared host, and a late answer should
 count as a slow cycle, not fail the run (dynamixel-sdk waits 34 ms past the wire time)."""
@@ -59,9 +60,12 @@ class DxlBenchConfig:
     """Run the virtual bus's thread and the bench's (both clients') in the real-time class the env loops and the
     servo sims use (``priority.raise_loop_priority``), so other load on the host delays neither."""
     keep_cores_awake: bool = True
-    """Keep idle cores from halting (``priority.cores_kept_awake``), as the latency benchmark does: on a virtual
-    machine, waking a halted core for the bus's bytes costs the hypervisor's scheduling delay. dynamixel-sdk's
-    polling keeps its own core awake; this gives our client, which sleeps until the bytes come, the same cores."""
+    """Keep idle cores from halting: on a virtual machine, waking a halted core for the bus's bytes costs the
+    hypervisor's scheduling delay. dynamixel-sdk's polling keeps its own core awake; this gives our client, which
+    sleeps until the bytes come, the same cores. By the kernel's PM QoS limit where it can be set
+    (``priority.cores_kept_polling``, root), else by the latency benchmark's idle-class pollers
+    (``priority.cores_kept_awake``). The pollers delay the kernel worker that carries a pty's bytes now and then
+    (see ``cores_kept_polling``), which the cycle's p99 shows."""
 
 
 @contextlib.contextmanager
@@ -349,7 +353,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     """Run the benchmark; returns its JSON records (rows, the loop lag, the codec alone)."""
     from uniros_async.hardware.dxl.control_table import RETURN_DELAY_UNIT_S
     from uniros_async.hardware.dxl.servo_map import servo_map
-    from uniros_async.priority import cores_kept_awake, freeze_heap
+    from uniros_async.priority import cores_kept_awake, cores_kept_polling
 
     servos = servo_map(config.servo_map)
     baud = config.baud or servos.baud
@@ -357,11 +361,30 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     arm_ids = [servos.primary(j).id for j in servos.arm.joints]
     sets = {len(arm_ids): arm_ids, len(servos.ids): list(servos.ids)}
     records: list[dict[str, Any]] = []
-    awake: contextlib.AbstractContextManager[list[int]] = (
-        cores_kept_awake() if config.keep_cores_awake else contextlib.nullcontext([])
-    )
+    with contextlib.ExitStack() as stack:
+        awake = "no"
+        if config.keep_cores_awake:
+            awake = "pm_qos" if stack.enter_context(cores_kept_polling()) else "pollers"
+            if awake == "pollers":
+                stack.enter_context(cores_kept_awake())
+        _rows(config, servos, baud, return_delay_s, sets, awake, records, log)
+    return _report(config, baud, records, log)
+
+
+def _rows(
+    config: DxlBenchConfig,
+    servos: Any,
+    baud: int,
+    return_delay_s: float,
+    sets: dict[int, list[int]],
+    awake: str,
+    records: list[dict[str, Any]],
+    log: Callable[[str], None],
+) -> None:
+    """Both clients' rows, then the event loop's lag and hold, then the codec alone, appended to ``records``."""
+    from uniros_async.priority import freeze_heap
+
     with (
-        awake as pollers,
         _vbus(config.servo_map, config.baud, config.real_time) as path,
         _real_time(config.real_time) as klass,
     ):
@@ -395,7 +418,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
                             "failed_cycles": clients[impl].failures - failed[impl],
                             "baud": baud,
                             "scheduling": klass,
-                            "cores_kept_awake": bool(pollers),
+                            "cores_kept_awake": awake,
                         }
                     )
             if ours.bus.stats.retries:
@@ -427,12 +450,17 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
         for impl, us in codec.items():
             records.append({"case": "codec alone", "impl": impl, "servos": n, "cpu_us": round(us, 1)})
 
+
+def _report(
+    config: DxlBenchConfig, baud: int, records: list[dict[str, Any]], log: Callable[[str], None]
+) -> list[dict[str, Any]]:
+    """Print the table (and write the JSON); returns ``records``."""
     rows = [r for r in records if "p50_us" in r]
     lines = [
         f"uniros bench dxl: sync read of {PRESENT_LENGTH} bytes + sync write of goal positions per tick, "
         f"{config.servo_map} vbus at {baud} baud, host {os.uname().nodename} ({os.cpu_count()} cores), "
         f"{time.strftime('%Y-%m-%d %H:%M %Z')}, clients and vbus {rows[0]['scheduling'] if rows else '?'}, "
-        f"idle cores {'kept awake' if rows and rows[0]['cores_kept_awake'] else 'allowed to halt'}",
+        f"idle cores {_AWAKE.get(rows[0]['cores_kept_awake'] if rows else 'no', 'allowed to halt')}",
         f"{'impl':<14} {'servos':>6} {'p50 us':>9} {'p99 us':>9} {'cpu us':>8} {'floor us':>9} "
         f"{'p50/floor':>9} {'p99/floor':>9} {'failed':>6}",
     ]
