@@ -93,6 +93,7 @@ def test_frame_payloads_beside_the_memcpy_floor_and_iceoryx2() -> None:
     cfg = transport.TransportBenchConfig(
         transports=kinds, payloads=("image", "hd"), rtt_samples=20, throughput_frames=20, progress=False
     )
+
     def iox2_segments() -> set[str]:
         # iceoryx2's machine-wide management file (``*.global_mgmt``) is made by its first node on the machine
         # and kept for every later one: on a fresh machine this run makes it, and it is not a segment left over
@@ -106,3 +107,25 @@ def test_frame_payloads_beside_the_memcpy_floor_and_iceoryx2() -> None:
     assert table.count("shm p50 vs one memcpy of the payload") == 2
     assert table.count("shm-loan p50 vs fastest peer") == 2
     assert iox2_segments() == before  # no segment left by the run
+
+
+def test_each_rows_echo_runs_on_another_core_than_its_client() -> None:
+    """The client on one core, the echo process it starts on another (where this process may use two)."""
+    import os
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one core: the client and its echo share it, and the bench leaves both unpinned")
+    before = os.sched_getaffinity(0)
+    client_cpus, echo_cpus = transport._cores()
+    assert client_cpus and echo_cpus and not client_cpus & echo_cpus
+    with transport._on_cores(client_cpus):
+        assert os.sched_getaffinity(0) == client_cpus
+        with transport._on_cores(echo_cpus):
+            client = transport._make_client("shm")
+        try:
+            assert os.sched_getaffinity(0) == client_cpus
+            assert os.sched_getaffinity(client._proc.pid) == echo_cpus  # type: ignore[attr-defined]
+            assert len(client.rtt(b"x" * 277, 20)) == 20
+        finally:
+            client.close()
+    assert os.sched_getaffinity(0) == before
