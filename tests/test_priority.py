@@ -21,6 +21,7 @@ from uniros_async.priority import (
     PM_QOS_DEVICE,
     RESET_ON_FORK,
     cores_kept_awake,
+    cores_kept_from_halting,
     cores_kept_polling,
     loop_nice,
     loop_priority_mode,
@@ -251,6 +252,33 @@ def test_cores_kept_polling_holds_a_zero_wake_up_latency_limit_for_the_block_and
 def test_cores_kept_polling_yields_false_where_the_device_cannot_be_opened(tmp_path: Path) -> None:
     with cores_kept_polling(str(tmp_path / "no_such_device")) as held:
         assert held is False
+
+
+def test_cores_kept_from_halting_holds_the_pm_qos_limit_where_it_can_and_starts_no_poller() -> None:
+    if not os.access(PM_QOS_DEVICE, os.W_OK):
+        pytest.skip(f"{PM_QOS_DEVICE} is not writable here (it needs root)")
+    before = set(_children(os.getpid()))
+    with cores_kept_from_halting() as how:
+        assert how == "pm_qos"
+        assert len(_fds_on(PM_QOS_DEVICE)) == 1
+        assert set(_children(os.getpid())) == before
+    assert _fds_on(PM_QOS_DEVICE) == []
+
+
+def test_cores_kept_from_halting_falls_back_to_the_pollers_without_the_limit(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import functools
+
+    from uniros_async import priority
+
+    monkeypatch.setattr(priority, "cores_kept_polling", functools.partial(cores_kept_polling, str(tmp_path / "none")))
+    with cores_kept_from_halting() as how:
+        assert how == "pollers"
+        pollers = _children(os.getpid())
+        assert len(pollers) == len(os.sched_getaffinity(0))
+        assert all(os.sched_getscheduler(p) == os.SCHED_IDLE for p in pollers)
+    assert not any(pid_alive(p) for p in pollers)
 
 
 def test_cores_kept_awake_pollers_die_with_a_sigkilled_parent() -> None:

@@ -62,6 +62,7 @@ __all__ = [
     "ACTOR_GIL_SWITCH_S",
     "ACTOR_RT_PRIORITY",
     "cores_kept_awake",
+    "cores_kept_from_halting",
     "cores_kept_polling",
     "DEFAULT_LOOP_NICE",
     "environ_choice",
@@ -394,6 +395,19 @@ def cores_kept_awake(cpus: set[int] | None = None) -> Iterator[list[int]]:
         yield [p.pid for p in procs]
     finally:
         reap(procs)
+
+
+@contextlib.contextmanager
+def cores_kept_from_halting() -> Iterator[str]:
+    """Keep idle cores from halting while the block runs, by the PM QoS limit where this process may set it
+    (``cores_kept_polling``), else by idle-class pollers (``cores_kept_awake``). Yields which: ``"pm_qos"`` or
+    ``"pollers"`` (``"no"`` where neither exists)."""
+    with cores_kept_polling() as held:
+        if held:
+            yield "pm_qos"
+            return
+        with cores_kept_awake() as pids:
+            yield "pollers" if pids else "no"
 
 
 def reap(procs: Sequence[subprocess.Popen[bytes]], timeout_s: float = 5.0) -> None:

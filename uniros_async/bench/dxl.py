@@ -60,12 +60,11 @@ class DxlBenchConfig:
     """Run the virtual bus's thread and the bench's (both clients') in the real-time class the env loops and the
     servo sims use (``priority.raise_loop_priority``), so other load on the host delays neither."""
     keep_cores_awake: bool = True
-    """Keep idle cores from halting: on a virtual machine, waking a halted core for the bus's bytes costs the
-    hypervisor's scheduling delay. dynamixel-sdk's polling keeps its own core awake; this gives our client, which
-    sleeps until the bytes come, the same cores. By the kernel's PM QoS limit where it can be set
-    (``priority.cores_kept_polling``, root), else by the latency benchmark's idle-class pollers
-    (``priority.cores_kept_awake``). The pollers delay the kernel worker that carries a pty's bytes now and then
-    (see ``cores_kept_polling``), which the cycle's p99 shows."""
+    """Keep idle cores from halting (``priority.cores_kept_from_halting``): on a virtual machine, waking a halted
+    core for the bus's bytes costs the hypervisor's scheduling delay. dynamixel-sdk's polling keeps its own core
+    awake; this gives our client, which sleeps until the bytes come, the same cores. By the kernel's PM QoS limit
+    where it can be set (root), else by the latency benchmark's idle-class pollers, which now and then delay the
+    kernel worker that carries a pty's bytes (``priority.cores_kept_polling``), as the cycle's p99 shows."""
 
 
 @contextlib.contextmanager
@@ -353,7 +352,7 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     """Run the benchmark; returns its JSON records (rows, the loop lag, the codec alone)."""
     from uniros_async.hardware.dxl.control_table import RETURN_DELAY_UNIT_S
     from uniros_async.hardware.dxl.servo_map import servo_map
-    from uniros_async.priority import cores_kept_awake, cores_kept_polling
+    from uniros_async.priority import cores_kept_from_halting, freeze_heap
 
     servos = servo_map(config.servo_map)
     baud = config.baud or servos.baud
@@ -361,30 +360,11 @@ def main(config: DxlBenchConfig, *, log: Callable[[str], None] = print) -> list[
     arm_ids = [servos.primary(j).id for j in servos.arm.joints]
     sets = {len(arm_ids): arm_ids, len(servos.ids): list(servos.ids)}
     records: list[dict[str, Any]] = []
-    with contextlib.ExitStack() as stack:
-        awake = "no"
-        if config.keep_cores_awake:
-            awake = "pm_qos" if stack.enter_context(cores_kept_polling()) else "pollers"
-            if awake == "pollers":
-                stack.enter_context(cores_kept_awake())
-        _rows(config, servos, baud, return_delay_s, sets, awake, records, log)
-    return _report(config, baud, records, log)
-
-
-def _rows(
-    config: DxlBenchConfig,
-    servos: Any,
-    baud: int,
-    return_delay_s: float,
-    sets: dict[int, list[int]],
-    awake: str,
-    records: list[dict[str, Any]],
-    log: Callable[[str], None],
-) -> None:
-    """Both clients' rows, then the event loop's lag and hold, then the codec alone, appended to ``records``."""
-    from uniros_async.priority import freeze_heap
-
+    awake: contextlib.AbstractContextManager[str] = (
+        cores_kept_from_halting() if config.keep_cores_awake else contextlib.nullcontext("no")
+    )
     with (
+        awake as kept_awake,
         _vbus(config.servo_map, config.baud, config.real_time) as path,
         _real_time(config.real_time) as klass,
     ):
@@ -418,7 +398,7 @@ def _rows(
                             "failed_cycles": clients[impl].failures - failed[impl],
                             "baud": baud,
                             "scheduling": klass,
-                            "cores_kept_awake": awake,
+                            "cores_kept_awake": kept_awake,
                         }
                     )
             if ours.bus.stats.retries:
@@ -450,11 +430,6 @@ def _rows(
         for impl, us in codec.items():
             records.append({"case": "codec alone", "impl": impl, "servos": n, "cpu_us": round(us, 1)})
 
-
-def _report(
-    config: DxlBenchConfig, baud: int, records: list[dict[str, Any]], log: Callable[[str], None]
-) -> list[dict[str, Any]]:
-    """Print the table (and write the JSON); returns ``records``."""
     rows = [r for r in records if "p50_us" in r]
     lines = [
         f"uniros bench dxl: sync read of {PRESENT_LENGTH} bytes + sync write of goal positions per tick, "
