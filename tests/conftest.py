@@ -42,8 +42,11 @@ def _sb3_logs_in_the_sessions_tmp(tmp_path_factory: pytest.TempPathFactory) -> I
         os.environ["SB3_LOGDIR"] = old
 
 
-# tests/_serial.py: a test marked ``serial`` runs with no other test beside it on the suite's xdist workers (its hooks,
-# made this conftest's by importing them; tests/test_serial.py runs it as a plugin of its own)
+# Two plugins of the suite's own, their hooks made this conftest's by importing them (tests/test_serial.py and
+# tests/test_reruns.py run each as a plugin of its own):
+# - tests/_reruns.py: the failed first attempt of each test that passed on its rerun, printed at the end of the run;
+# - tests/_serial.py: a test marked ``serial`` runs with no other test beside it on the suite's xdist workers.
+from _reruns import pytest_runtest_logreport, pytest_terminal_summary  # noqa: E402, F401
 from _serial import pytest_configure, pytest_runtest_protocol  # noqa: E402, F401
 
 SERIAL_FILES = {

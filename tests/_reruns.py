@@ -1,0 +1,31 @@
+"""A pytest plugin: the failure of every test that passed only on its rerun (pytest-rerunfailures), printed at the end
+of the run.
+
+A rerun's first failure is otherwise lost: the JUnit report keeps only the last attempt, and on the suite's xdist
+workers the attempt's output is not shown. The workers send every report to the controller (``rerun`` among the
+outcomes), which keeps the last lines of each failure and prints them in a section of the terminal summary, so that a
+test that fails now and then leaves its reason in the CI log."""
+
+from __future__ import annotations
+
+import pytest
+
+TAIL_LINES = 40
+"""How many of a failure's last lines are kept: the assertion and the frames nearest to it."""
+
+_reruns: list[tuple[str, str, str]] = []  # (node id, phase, the failure's last lines)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.outcome == "rerun":  # type: ignore[comparison-overlap]  # pytest-rerunfailures' outcome
+        lines = report.longreprtext.splitlines()
+        _reruns.append((report.nodeid, report.when or "", "\n".join(lines[-TAIL_LINES:])))
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    if not _reruns:
+        return
+    terminalreporter.section("failures that passed on their rerun")
+    for nodeid, when, text in _reruns:
+        terminalreporter.write_line(f"--- {nodeid} ({when}), its failed attempt:")
+        terminalreporter.write_line(text)
