@@ -85,10 +85,11 @@ def test_the_loan_echo_answers_in_place_with_the_stamp_only() -> None:
 @pytest.mark.slow
 def test_frame_payloads_beside_the_memcpy_floor_and_iceoryx2() -> None:
     """image and hd frames through shm, shm-loan and iceoryx2's Python binding (a real echo in another process,
-    which the client checks answers each frame), with one memcpy of the frame timed in the same run."""
+    which the client checks answers each frame), with the two floors (one memcpy of the frame; two copies between
+    processes) timed in the same run."""
     import os
 
-    kinds = ("memcpy", "shm", "shm-loan", "iceoryx2", "iceoryx2-loan")
+    kinds = ("memcpy", "copy-pingpong", "shm", "shm-loan", "iceoryx2", "iceoryx2-loan")
     lines: list[str] = []
     cfg = transport.TransportBenchConfig(
         transports=kinds, payloads=("image", "hd"), rtt_samples=20, throughput_frames=20, progress=False
@@ -105,6 +106,7 @@ def test_frame_payloads_beside_the_memcpy_floor_and_iceoryx2() -> None:
     assert all(r["rtt_p50_us"] > 0 and r["throughput_msg_s"] > 0 for r in records)
     table = "\n".join(lines)
     assert table.count("shm p50 vs one memcpy of the payload") == 2
+    assert table.count("shm p50 vs two copies between processes and nothing else") == 2
     assert table.count("shm-loan p50 vs fastest peer") == 2
     assert iox2_segments() == before  # no segment left by the run
 
@@ -129,3 +131,49 @@ def test_each_rows_echo_runs_on_another_core_than_its_client() -> None:
         finally:
             client.close()
     assert os.sched_getaffinity(0) == before
+
+
+def test_the_copy_pingpong_floor_copies_each_frame_there_and_back() -> None:
+    """The two-copy floor: a real echo process copies each frame back (the client reads the reply's bytes), is on
+    another core than its client where there are two, and is gone when the client closes."""
+    import os
+
+    from uniros_async.bench._copy_floor import CopyPingPong
+
+    client_cpus, echo_cpus = transport._cores()
+    with transport._on_cores(client_cpus):
+        with transport._on_cores(echo_cpus):
+            floor = transport._make_client("copy-pingpong")
+        assert isinstance(floor, CopyPingPong)
+        pid = floor.echo_pid()
+        assert pid is not None
+        try:
+            if echo_cpus is not None:
+                assert os.sched_getaffinity(pid) == echo_cpus
+            for size in (277, 640 * 480 * 3):
+                payload = os.urandom(size)
+                assert len(floor.rtt(payload, 5)) == 5
+                assert floor.echoed(size) == payload
+            with pytest.raises(ValueError, match="exceeds the row's buffers"):
+                floor.rtt(b"x" * (max(transport.PAYLOADS.values()) + 1), 1)
+        finally:
+            floor.close()
+    assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
+
+
+def test_the_copy_pingpong_echo_exits_when_its_client_is_gone() -> None:
+    """An echo whose client stops asking (died without the stop word) exits after its idle time."""
+    import time
+
+    from uniros_async.bench._copy_floor import CopyPingPong
+
+    floor = CopyPingPong(4096, idle_exit_s=0.5)
+    try:
+        floor.rtt(b"x" * 100, 3)
+        proc = floor._proc
+        proc.join(10)
+        assert proc.exitcode == 0, "the echo did not exit on its own"
+    finally:
+        t0 = time.monotonic()
+        floor.close()
+        assert time.monotonic() - t0 < 5

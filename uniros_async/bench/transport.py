@@ -56,9 +56,11 @@ sample on both sides (as ``shm`` copies it); ``iceoryx2-loan`` writes only an 8-
 rclpy: ``sensor_msgs/Image`` through an rclpy echo, both in the rclpy venv (``_rclpy_frames``)."""
 COPYING_PEERS = ("mp-pipe", "zmq-ipc", "zmq-tcp", "zenoh", "iceoryx2", "rclpy")
 NETWORK_PEERS = ("zmq-tcp", "zenoh")
-FLOOR = ("memcpy",)
+FLOOR = ("memcpy", "copy-pingpong")
 """memcpy: one copy of the payload into a buffer of its size (numpy ``copyto``), timed as a round trip is: the
-floor a copying transport is measured against."""
+floor a copying transport is measured against. copy-pingpong: the payload copied there and back between two
+processes, one copy each way into a shared buffer and nothing else (``_copy_floor``): the least a copying round
+trip between processes costs here, each copy meeting lines the other core holds."""
 ALL = FLOOR + OURS + PEERS
 
 
@@ -497,6 +499,10 @@ class _Iceoryx2Client(_Client):
 def _make_client(kind: str) -> _Client:
     if kind == "memcpy":
         return _MemcpyFloor()
+    if kind == "copy-pingpong":
+        from uniros_async.bench._copy_floor import CopyPingPong
+
+        return CopyPingPong(max(PAYLOADS.values()))  # type: ignore[return-value]  # the same methods, outside _Client
     if kind in ("iceoryx2", "iceoryx2-loan"):
         return _Iceoryx2Client(kind)
     if kind == "rclpy":
@@ -652,6 +658,11 @@ def format_table(records: list[dict[str, Any]]) -> str:
                 if floor and mine:
                     x = mine["rtt_p50_us"] / floor["rtt_p50_us"]
                     lines.append(f"{'':<8} {ours} p50 vs one memcpy of the payload: {x:.2f}x")
+            two = next((r for r in rows if r["transport"] == "copy-pingpong"), None)
+            mine = next((r for r in rows if r["transport"] == "shm"), None)
+            if two and mine:
+                x = mine["rtt_p50_us"] / two["rtt_p50_us"]
+                lines.append(f"{'':<8} shm p50 vs two copies between processes and nothing else: {x:.2f}x")
             tcp_row = next((r for r in rows if r["transport"] == "tcp"), None)
             tls_row = next((r for r in rows if r["transport"] == "tls"), None)
             if tcp_row and tls_row:
