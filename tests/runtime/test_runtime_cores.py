@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -133,23 +134,19 @@ def test_workers_that_outnumber_the_cores_are_pinned_round_robin_and_run_their_s
         venv.close()
 
 
-def test_crowded_workers_replies_are_taken_last_sent_first_and_returned_in_index_order(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_crowded_workers_replies_are_taken_last_sent_first_and_returned_in_index_order() -> None:
     import gymnasium as gym
-
-    from uniros_async.runtime.supervisor import WorkerHandle
 
     n = len(os.sched_getaffinity(0)) + 1
     taken: list[int] = []
-    take = WorkerHandle.receive_reply_blocking
-
-    def recording(self: WorkerHandle, *args: object, **kwargs: object) -> object:
-        taken.append(self.index)
-        return take(self, *args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(WorkerHandle, "receive_reply_blocking", recording)
     venv = make_vec(["CartPole-v1"] * n, pad=False)
+    for w in venv._sup.workers:  # each worker's reply is taken through its transport's receive_blocking
+
+        def recording(*args: object, _take: Any = w.receive_blocking, _index: int = w.index) -> object:
+            taken.append(_index)
+            return _take(*args)
+
+        w.receive_blocking = recording
     bare = [gym.make("CartPole-v1") for _ in range(n)]
     try:
         obs, _ = venv.reset(seed=0)

@@ -25,17 +25,23 @@ import asyncio
 import concurrent.futures
 import threading
 import time
-from collections.abc import Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from typing import Any, Generic, NoReturn, TypeVar
 
 from uniros_async.errors import StepTimeoutError, WorkerError
-from uniros_async.runtime.handle import LATER, Request, StepDecoder, WorkerHandle
+from uniros_async.runtime.handle import Request, WorkerHandle
 from uniros_async.runtime.hangup import HANG_UP_REPORT_S, hang_up_report, hung_up
-from uniros_async.runtime.protocol import PackedRequest
+from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, unpack
 
 __all__ = ["StepExchange", "bounded"]
 
 T = TypeVar("T")
+
+StepDecoder = Callable[[int, memoryview], Any]
+"""``decode(worker index, step reply frame)``: what a step's reply becomes when taken in the calling thread
+(``StepExchange._take_replies``); reads the frame before it returns (the ring reuses its bytes)."""
+LATER: Any = object()
+"""``StepExchange._take_replies``: no reply this way (the loop's ``request_all`` must take it)."""
 
 
 class StepExchange:
@@ -122,10 +128,13 @@ class StepExchange:
 
     def send_steps_now(self, messages: Sequence[PackedRequest]) -> int:
         """The first half of ``UnirosVectorEnv.step``: send one packed step request to every worker, in this thread
-        (``WorkerHandle.try_send_request``), in index order until one cannot go; returns how many went. Its second
-        half is ``receive_steps_now``; ``submit_steps`` (``step_async``) sends with it too. In as few lines of Python
-        as it can: this runs on every step, and at one env the agent's share of a step's overhead is what its lines of
-        Python cost (its goal over the bare env step: docs/performance.md).
+        with the transport's ``try_send`` (shm and tcp: no event-loop round), in index order until one cannot go
+        that way; returns how many went. A worker that cannot take its request so is left, with the rest, to the
+        loop (``receive_steps_now``: ``request_all``, which also reports what stood in the way): one that is broken,
+        a transport without ``try_send``, no room in its ring, or a Ray-placed worker whose actor has news. Its
+        second half is ``receive_steps_now``; ``submit_steps`` (``step_async``) sends with it too. Flat, in as few
+        lines of Python as it can: this runs on every step, and at one env the agent's share of a step's overhead is
+        what its lines of Python cost (its goal over the bare env step: docs/performance.md).
 
         Raises:
             gymnasium.error.AlreadyPendingCallError: a worker still owes a reply (nothing was sent).
@@ -144,8 +153,15 @@ class StepExchange:
                 return 0
             sent = 0
             for w, m in zip(workers, messages):  # noqa: B905  (one message per worker: _step_messages checks it)
-                if not w.try_send_request(m.frame):
+                try_send = w.try_send
+                if w.broken is not None or try_send is None:
                     break
+                remote = w.remote
+                if remote is not None and remote.lifeline_has_news():  # send_request reports the actor's news
+                    break
+                if not try_send(m.frame):
+                    break
+                w.in_flight = True
                 sent += 1
             return sent
         finally:
@@ -179,12 +195,13 @@ class StepExchange:
         self, sent: int, deadline: float, results: list[Any], decode: StepDecoder | None
     ) -> tuple[set[int], Exception | None, int | None]:
         """Take the step replies of the first ``sent`` workers in this thread into ``results``, one after the other in
-        the order of ``_reply_rank``, until one cannot be had that way (``WorkerHandle.receive_reply_blocking``, with
-        ``decode``; nothing is consumed then). Returns the indices among the first ``sent`` whose replies were not
-        taken, the first error other than a WorkerError that taking one raised (it is in that one's slot as well;
-        ``request_all`` raises such an error once every reply is in), and, with ``fail_fast``, the index of a Ray-placed
-        worker still owing its reply whose tcp connection ended while another reply was awaited (its node or process
-        is gone: ``_report_hang_up``), else None.
+        the order of ``_reply_rank``, until one cannot be had that way (the transport's ``receive_blocking``:
+        nothing is consumed then). ``decode(index, frame)``: what a step's reply frame becomes, read while it is
+        still in the ring (an error reply is no step frame: its WorkerError goes in its slot). Returns the indices
+        among the first ``sent`` whose replies were not taken, the first error other than a WorkerError that taking
+        one raised (it is in that one's slot as well; ``request_all`` raises such an error once every reply is
+        in), and, with ``fail_fast``, the index of a Ray-placed worker still owing its reply whose tcp connection
+        ended while another reply was awaited (its node or process is gone: ``_report_hang_up``), else None.
 
         The order: index order, unless the workers outnumber their cores (``cores.cores_shared``), then the last sent
         first. Those run their steps one after the other on their core in the order their requests came, so the last
@@ -199,31 +216,50 @@ class StepExchange:
         k = 0
         unexpected: Exception | None = None
         watched = self._hangup_fds if self.fail_fast and sent > 1 else ()
+        monotonic = time.monotonic
         try:
             if self._orphans or self._loop.is_closed():
                 return set(range(sent)), None, None
             while k < sent:
                 i = order[k]
-                here = rank[i]
+                w = workers[i]
+                receive_blocking = w.receive_blocking
+                if w.broken is not None or not w.in_flight or receive_blocking is None:
+                    break  # (the loop reports a broken one)
+                here = rank[i] if watched else 0
                 watch = [fd for j, fd in watched if rank[j] > here] if watched else ()
+                r: Any = LATER
                 try:
-                    r = workers[i].receive_reply_blocking("step", max(deadline - time.monotonic(), 0.0), decode, watch)
-                except Exception as exc:  # noqa: BLE001 - in its slot, as request_all does
+                    left_s = max(deadline - monotonic(), 0.0)
+                    frame = receive_blocking(left_s, watch) if watch else receive_blocking(left_s)
+                    if frame is not None:
+                        w.in_flight = False
+                        if decode is not None and frame[0] == STEP_TAG:
+                            r = decode(i, frame)  # (reads the frame while it is still in the ring)
+                        else:
+                            r = unpack(frame)
+                            r = w.reply_result(r)  # a WorkerError: the worker raised, and stays usable
+                except WorkerError as exc:
                     r = exc
-                    if unexpected is None and not isinstance(exc, WorkerError):
+                except BaseException as exc:  # Ctrl-C in the wait, a malformed reply: replies out of step
+                    w.broken = f"waiting for the reply to 'step' was interrupted ({w.spec.env_id})"
+                    if not isinstance(exc, Exception):
+                        raise
+                    r = exc  # in its slot, as request_all does
+                    if unexpected is None:
                         unexpected = exc
-                if r is LATER:
+                if r is LATER:  # not had this way (nothing within the deadline, a hang-up, the slow path)
                     if watched:  # a hang-up, of one of them or of this one (then no need to wait for the others)?
                         hung, replied = hung_up([(j, fd) for j, fd in watched if rank[j] >= here])
                         if hung is not None:
                             return set(order[k:]), unexpected, hung
-                        if replied and deadline > time.monotonic():  # its reply came before it hung up: taken in
+                        if replied and deadline > monotonic():  # its reply came before it hung up: taken in
                             watched = [(j, fd) for j, fd in watched if fd not in replied]  # its turn
                             continue
                     break
                 results[i] = r
                 k += 1
-            return set(order[k:]), unexpected, None
+            return (set() if k == sent else set(order[k:])), unexpected, None
         except BaseException:  # Ctrl-C: the replies still owed can no longer be matched to requests
             for j in order[k:]:
                 w = workers[j]

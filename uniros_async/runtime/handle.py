@@ -1,12 +1,12 @@
 """One worker's connection as the agent side holds it: ``WorkerHandle``.
 
-A handle sends a request and takes its reply (``request``, or its halves ``send_request`` and ``receive_reply``
-on the supervisor's event loop; ``try_send_request`` and ``receive_reply_blocking`` in the calling thread, without
-the loop, where the transport has ``try_send`` and ``receive_blocking``: shm and tcp). One request at a time per
-connection. A reply that does not come within its deadline raises StepTimeoutError (a WorkerError and a
-TimeoutError, naming the worker's index, the operation and the timeout); a broken connection or a dead process
-raises WorkerError with why (``_death_reason``: the exit code, or a Ray-placed worker's lost node). Either marks
-the worker broken: every later request to it raises at once.
+A handle sends a request and takes its reply (``request``, or its halves ``send_request`` and ``receive_reply``)
+on the supervisor's event loop; the step exchange (runtime/exchange.py) sends steps and takes their replies in the
+calling thread instead, with the transport's ``try_send`` and ``receive_blocking`` where it has them (shm, tcp). One
+request at a time per connection. A reply that does not come within its deadline raises StepTimeoutError (a
+WorkerError and a TimeoutError, naming the worker's index, the operation and the timeout); a broken connection or a
+dead process raises WorkerError with why (``_death_reason``: the exit code, or a Ray-placed worker's lost node).
+Either marks the worker broken: every later request to it raises at once.
 """
 
 from __future__ import annotations
@@ -14,26 +14,20 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import functools
-from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
 
 from uniros_async.errors import StepTimeoutError, TransportError, WorkerError
 from uniros_async.runtime.launch import WorkerProcess
-from uniros_async.runtime.protocol import STEP_TAG, PackedRequest, pack, unpack
+from uniros_async.runtime.protocol import PackedRequest, pack, unpack
 from uniros_async.runtime.ray_process import RayWorkerProcess
 from uniros_async.runtime.worker import WorkerSpec
 
-__all__ = ["LATER", "Request", "StepDecoder", "WorkerHandle"]
+__all__ = ["Request", "WorkerHandle"]
 
 Request = dict[str, Any] | PackedRequest
 """A request to a worker: a message, or a step request already packed (``protocol.pack_step_request``)."""
-StepDecoder = Callable[[int, memoryview], Any]
-"""``decode(worker index, step reply frame)``: what a step's reply becomes when taken in the calling thread (see
-``WorkerHandle.receive_reply_blocking``); reads the frame before it returns (the ring reuses its bytes)."""
-LATER: Any = object()
-"""``WorkerHandle.receive_reply_blocking``: no reply this way; ``receive_reply`` must follow."""
 
 
 @dataclasses.dataclass
@@ -117,21 +111,6 @@ class WorkerHandle:
             raise
         self.in_flight = True
 
-    def try_send_request(self, frame: bytes) -> bool:
-        """Send an already packed request at once, outside the event loop, when nothing stands in the way (not
-        broken, no news from a Ray-placed worker's actor, room in the transport); True if sent (``receive_reply`` must
-        follow). False: nothing was sent, ``send_request`` must do it (and raises what is wrong)."""
-        try_send = self.try_send
-        if self.broken is not None or self.in_flight or try_send is None:
-            return False
-        remote = self.remote
-        if remote is not None and remote.lifeline_has_news():  # send_request reports the actor's news
-            return False
-        if not try_send(frame):
-            return False
-        self.in_flight = True
-        return True
-
     async def receive_reply(self, op: Any, timeout_s: float | None) -> Any:
         """The second half of ``request``: wait for the reply to the request of ``op`` sent last, at most
         ``timeout_s`` (None: no deadline of its own; the caller's bounds the wait)."""
@@ -154,39 +133,14 @@ class WorkerHandle:
         except BaseException:  # cancelled, Ctrl-C inside this frame, a malformed reply: replies out of step
             self.broken = f"waiting for the reply to {op!r} was interrupted ({self.spec.env_id})"
             raise
-        return self._result(reply)
+        return self.reply_result(reply)
 
-    def receive_reply_blocking(
-        self, op: Any, timeout_s: float, decode: StepDecoder | None = None, watch: Sequence[int] = ()
-    ) -> Any:
-        """``receive_reply`` in this thread without the event loop (the transport's ``receive_blocking``), for a
-        worker whose request is in flight: returns its result, or ``LATER`` when the reply cannot be had that way
-        (not there within ``timeout_s``, the worker hung up, a transport without it, ...: nothing was consumed, and
-        ``receive_reply`` must follow, which also reports what went wrong). ``decode``: what a step's reply frame
-        becomes instead of its result, ``decode(index, frame)``, called while the frame is still in the ring (an
-        error reply is not a step frame: it raises as usual). ``watch``: other workers' ``hangup_fd``; one of them
-        hung up also returns ``LATER`` (the transport's ``receive_blocking``).
+    def reply_result(self, reply: dict[str, Any]) -> Any:
+        """A reply's result.
 
         Raises:
-            WorkerError: the worker raised (its traceback attached; the worker stays usable).
+            WorkerError: the reply says the worker raised (its traceback attached).
         """
-        receive_blocking = self.receive_blocking
-        if self.broken is not None or not self.in_flight or receive_blocking is None:
-            return LATER
-        try:
-            frame = receive_blocking(timeout_s, watch) if watch else receive_blocking(timeout_s)
-            if frame is None:
-                return LATER
-            self.in_flight = False
-            if decode is not None and frame[0] == STEP_TAG:
-                return decode(self.index, frame)
-            reply = unpack(frame)
-        except BaseException:  # Ctrl-C in the wait, a malformed reply: replies out of step
-            self.broken = f"waiting for the reply to {op!r} was interrupted ({self.spec.env_id})"
-            raise
-        return self._result(reply)
-
-    def _result(self, reply: dict[str, Any]) -> Any:
         if not reply.get("ok"):
             raise WorkerError(
                 self.index, f"{self.spec.env_id}: {reply.get('error')}", remote_traceback=reply.get("traceback", "")

@@ -123,6 +123,9 @@ _STEP_REQ = struct.Struct("<BBBBq")  # tag, kind, autoreset mode (index in AUTOR
 _STEP_REP = struct.Struct("<BBBBId")  # tag, kind, flags, observation's encoding, observation's bytes, reward
 _MSGPACK, _ARRAY = 0, 1  # how the action (request) or observation (reply) travels: msgpack, or as ``codec.array_bytes``
 _TERMINATED, _TRUNCATED = 1, 2
+_EMPTY_MAP = 0x80  # msgpack's fixmap of no entries
+_FIXINTS = tuple(bytes((i,)) for i in range(128))
+_MODE_INDEX = {mode: i for i, mode in enumerate(AUTORESET_MODES)}
 
 
 class PackedRequest:
@@ -142,7 +145,10 @@ class PackedRequest:
 def _part(value: Any) -> tuple[int, bytes]:
     """(encoding, bytes) of an action or observation: an array of numbers as it is (``codec.array_bytes``: no msgpack
     ExtType and no hook on either side), anything else in msgpack."""
-    if type(value) is np.ndarray and not value.dtype.hasobject:
+    kind = type(value)
+    if kind is int and 0 <= value < 128:  # msgpack's positive fixint: the int's own byte (a Discrete action)
+        return _MSGPACK, _FIXINTS[value]
+    if kind is np.ndarray and not value.dtype.hasobject:
         return _ARRAY, array_bytes(value)
     return _MSGPACK, pack_value(value)
 
@@ -155,10 +161,11 @@ def pack_step_request(action: Any, autoreset: str | None, t: int | None) -> Pack
     Raises:
         ValueError: ``autoreset`` is not one of ``AUTORESET_MODES``.
     """
-    if autoreset not in AUTORESET_MODES:
-        raise ValueError(f"autoreset must be one of {AUTORESET_MODES}, got {autoreset!r}")
+    try:
+        mode = _MODE_INDEX[autoreset]
+    except (KeyError, TypeError):
+        raise ValueError(f"autoreset must be one of {AUTORESET_MODES}, got {autoreset!r}") from None
     enc, body = _part(action)
-    mode = AUTORESET_MODES.index(autoreset)
     return PackedRequest(_STEP_REQ.pack(STEP_TAG, _STEP_REQUEST, mode, enc, -1 if t is None else t) + body)
 
 
@@ -210,15 +217,20 @@ def unpack_step_reply_into(
         CodecError: the info is not a map, or not msgpack.
     """
     size = _STEP_REP.size
-    if len(frame) < size or frame[0] != STEP_TAG or frame[1] != _STEP_REPLY:
+    n = len(frame)
+    if n < size:
         return None
-    _, _, flags, enc, obs_len, reward = _STEP_REP.unpack_from(frame)
+    tag, kind, flags, enc, obs_len, reward = _STEP_REP.unpack_from(frame)
+    if tag != STEP_TAG or kind != _STEP_REPLY or enc != _ARRAY:
+        return None
     data = size + len(head)
     end = size + obs_len
-    if enc != _ARRAY or end > len(frame) or end - data != len(out) or frame[size:data] != head:
+    if end > n or end - data != len(out) or frame[size:data] != head:
         return None
     out[:] = frame[data:end]
-    return reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), _reply_info(frame, end)
+    # an empty info is msgpack's empty map, one byte: the common case of a plain gymnasium env, read without msgpack
+    info = {} if end == n - 1 and frame[end] == _EMPTY_MAP else _reply_info(frame, end)
+    return reward, bool(flags & _TERMINATED), bool(flags & _TRUNCATED), info
 
 
 def _reply_info(frame: bytes | memoryview, start: int) -> dict[str, Any]:

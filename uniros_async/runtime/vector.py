@@ -567,6 +567,8 @@ class _Returns:
                     obs[i] = o
                 else:
                     others.append(o)
+            if not info:  # nothing to add (a plain gymnasium env's info, at every step)
+                continue
             if venv._conform_obs and "final_obs" in info:
                 info["final_obs"] = conform(venv.single_observation_space, info["final_obs"])
             infos = venv._add_info(infos, info, i)
