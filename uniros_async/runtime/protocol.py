@@ -124,6 +124,7 @@ _STEP_REP = struct.Struct("<BBBBId")  # tag, kind, flags, observation's encoding
 _MSGPACK, _ARRAY = 0, 1  # how the action (request) or observation (reply) travels: msgpack, or as ``codec.array_bytes``
 _TERMINATED, _TRUNCATED = 1, 2
 _EMPTY_MAP = 0x80  # msgpack's fixmap of no entries
+_EMPTY_MAP_BYTES = bytes((_EMPTY_MAP,))
 _FIXINTS = tuple(bytes((i,)) for i in range(128))
 _MODE_INDEX = {mode: i for i, mode in enumerate(AUTORESET_MODES)}
 
@@ -177,7 +178,7 @@ def pack_step_reply(result: list[Any]) -> bytes:
     flags = (_TERMINATED if terminated else 0) | (_TRUNCATED if truncated else 0)
     try:
         enc, obs_part = _part(obs)
-        info_part = pack_value(info)
+        info_part = pack_value(info) if info or type(info) is not dict else _EMPTY_MAP_BYTES
     except CodecError:  # something msgpack refuses: the general, forgiving path
         return pack({"ok": True, "result": result})
     return _STEP_REP.pack(STEP_TAG, _STEP_REPLY, flags, enc, len(obs_part), reward) + obs_part + info_part
@@ -247,6 +248,8 @@ def _reply_info(frame: bytes | memoryview, start: int) -> dict[str, Any]:
 
 def _unpart(enc: int, frame: bytes | memoryview, start: int, stop: int) -> Any:
     if enc == _MSGPACK:
+        if stop - start == 1 and frame[start] < 0x80:  # msgpack's positive fixint (a Discrete action): its byte
+            return frame[start]
         return unpack_value(frame[start:stop])
     if enc != _ARRAY:
         raise CodecError(f"malformed step frame: encoding {enc}; expected {_MSGPACK} (msgpack) or {_ARRAY} (array)")

@@ -619,11 +619,13 @@ class _Server:
         Raises:
             ValueError: an unknown autoreset mode.
         """
+        if autoreset == "next_step":
+            if self.needs_autoreset:
+                self.needs_autoreset = False
+                return True
+            return False
         if autoreset not in AUTORESET_MODES:
             raise ValueError(f"autoreset must be one of {AUTORESET_MODES}, got {autoreset!r}")
-        if autoreset == "next_step" and self.needs_autoreset:
-            self.needs_autoreset = False
-            return True
         return False
 
     def _returns(
@@ -632,7 +634,8 @@ class _Server:
         """A step's reply, and whether the env must now be reset in the same step (SAME_STEP: the reply then carries
         the reset's observation, ``_same_step_info``)."""
         done = bool(terminated or truncated)
-        info = self._info(info)
+        if self.tag_infos:
+            info = self._info(info)
         if autoreset == "next_step":
             self.needs_autoreset = done
         elif autoreset == "same_step" and done:
