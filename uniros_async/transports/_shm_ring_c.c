@@ -56,6 +56,18 @@ static inline uint64_t load_acquire(uint64_t *p) { return __atomic_load_n(p, __A
 static inline void store_release(uint64_t *p, uint64_t v) { __atomic_store_n(p, v, __ATOMIC_RELEASE); }
 static inline void full_fence(void) { __atomic_thread_fence(__ATOMIC_SEQ_CST); }
 
+/* poll() between its looks: the CPU's spin-wait hint, and sched_yield() once every YIELD_EVERY_NS, so that a
+ * frame is seen within a look's time of its arrival (a sched_yield() is a system call, far longer than a look)
+ * while another task runnable on this core still gets its turn within microseconds. */
+#define YIELD_EVERY_NS 2000
+#if defined(__x86_64__) || defined(__i386__)
+static inline void cpu_relax(void) { __builtin_ia32_pause(); }
+#elif defined(__aarch64__)
+static inline void cpu_relax(void) { __asm__ __volatile__("yield"); }
+#else
+static inline void cpu_relax(void) {}
+#endif
+
 static inline int64_t now_ns(void) /* CLOCK_MONOTONIC: time.perf_counter_ns on Linux */
 {
     struct timespec ts;
@@ -232,6 +244,7 @@ static PyObject *RingEnd_poll(RingEnd *self, PyObject *const *args, Py_ssize_t n
     long result;
     self->polling = 1;
     Py_BEGIN_ALLOW_THREADS /* as os.sched_yield does between the Python class's polls */
+    int64_t next_yield = now_ns() + YIELD_EVERY_NS;
     for (;;) {
         if (load_acquire(w) != rpos) {
             result = 1;
@@ -246,7 +259,12 @@ static PyObject *RingEnd_poll(RingEnd *self, PyObject *const *args, Py_ssize_t n
             result = 0;
             break;
         }
-        sched_yield();
+        if (now >= next_yield) {
+            sched_yield();
+            next_yield = now_ns() + YIELD_EVERY_NS;
+        } else {
+            cpu_relax();
+        }
     }
     Py_END_ALLOW_THREADS
     self->polling = 0;
