@@ -149,6 +149,7 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
         # the writer in this process is likely on this very event loop: spinning cannot help
         self._spin_allowed = self.spin_ns > 0 and pid != os.getpid()
         self._spin_credit = _SPIN_CREDIT if self._spin_allowed else 0
+        self._woken = False  # woken from a wait since the last poll, with a way to move (_look_after_wake_up)
         self._loop.add_reader(self._doorbell, self._on_doorbell)
         self._loop.add_reader(sock.fileno(), self._on_socket)
 
@@ -198,10 +199,13 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
                 what = "in the middle of a frame" if self._rx_partial is not None else "the connection"
                 raise TransportBrokenError(f"peer {self.peer} closed {what}")
             else:
+                if self._woken:  # the first poll since a wake-up (_wait_readable): see _look_after_wake_up
+                    self._look_after_wake_up()
                 window_ns = self._window_ns()
                 if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
                     continue  # (polled here, not in _wait_readable: a coroutine less per frame that a poll catches)
                 await self._wait_readable(window_ns)
+                self._woken = self.on_shared_core is not None
 
     def _window_ns(self) -> int:
         """How long to poll for the next frame: ``spin_ns``, plus, after a large send, the time the peer needs to
@@ -231,6 +235,17 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
         moved = _this_cpu() + 1
         self._rx_ctl[R_CPU] = moved
         return bool(moved == cpu)
+
+    def _look_after_wake_up(self) -> None:
+        """Look where the peer runs (``_peer_here``, which moves this end off the peer's core where it can), once
+        after a wake-up, before the first poll for the next frame. A wake-up is where the scheduler places this end
+        anew, and it often puts it on the core of the peer that woke it: there the two take turns (each poll yields
+        the core to the other) while the other core idles, every exchange a pair of context switches, and no poll
+        lasts long enough to look (``SHARED_CORE_NS``). Looked for here, after the frame that woke it has been
+        answered, so that moving does not delay that answer: a peer whose wait for it ran out would sleep, and be
+        woken onto this end's new core in turn."""
+        self._woken = False
+        self._peer_here()
 
     def _spin(self, window_ns: int) -> bool:
         """Poll for data past our read position for up to ``window_ns``, yielding the CPU between polls
