@@ -511,8 +511,9 @@ class _Server:
         """``share``: ``[slot, count, mode]`` from the supervisor, this worker's rank among the ``count`` workers of
         its vector env on this machine and the agent's ``shared_cores_mode``. When they outnumber the cores here
         (``cores_shared``; never for a real-time env loop, which has its own priority), stop polling for the next
-        request, run each step through (``priority.run_steps_through``) and, with ``pin``, stay on core ``slot``
-        modulo the cores (round robin: as many workers on each core as can be).
+        request and moving off the agent's core (``on_shared_core``), run each step through
+        (``priority.run_steps_through``) and, with ``pin``, stay on core ``slot`` modulo the cores (round robin: as
+        many workers on each core as can be).
 
         Left to the scheduler, where a step's wake-ups put the workers decides how long the step takes (4 on 2
         cores placed 3 and 1: the core with 3 takes 3 step times while the other idles after 1, ~67 % of the
@@ -530,6 +531,8 @@ class _Server:
 
         if hasattr(self.transport, "spin_ns"):
             self.transport.spin_ns = 0
+        if hasattr(self.transport, "on_shared_core"):  # sharing a core is the plan here: no moving off the agent's
+            self.transport.on_shared_core = None
         how = run_steps_through()
         cpus = usable_cpus()
         if mode == "pin":
