@@ -1,4 +1,5 @@
-"""The ``copy-pingpong`` floor of ``uniros bench transport``: a frame copied there and back between two processes.
+"""The floors of ``uniros bench transport``'s copying rows: ``memcpy``, one copy of the frame in this process, and
+``copy-pingpong``, the frame copied there and back between two processes and nothing else.
 
 A copying round trip between two processes copies the frame twice: the client into memory the echo reads, the echo
 into memory the client reads. This row does exactly that and no more: one shared buffer each way in a memfd (nothing
@@ -20,7 +21,7 @@ import time
 from multiprocessing.connection import Connection
 from typing import Any
 
-__all__ = ["CopyPingPong"]
+__all__ = ["CopyPingPong", "MemcpyFloor"]
 
 IDLE_EXIT_S = 10.0
 """The echo exits after this long without a request: its client died without saying stop."""
@@ -67,8 +68,41 @@ def _echo(path: str, capacity: int, ready: Connection, idle_exit_s: float) -> No
     buf.close()
 
 
-class CopyPingPong:
-    """The bench's client of the row: the same methods as its ``_Client`` rows."""
+class _Floor:
+    """A row that is no transport: what it sends one way is as fast as its round trips back to back."""
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        raise NotImplementedError
+
+    def throughput(self, payload: bytes, n: int) -> float:
+        t0 = time.perf_counter()
+        self.rtt(payload, n)
+        return n / (time.perf_counter() - t0)
+
+
+class MemcpyFloor(_Floor):
+    """One numpy copy of the payload per sample, into a buffer of its size, timed as a round trip is."""
+
+    name = "memcpy"
+
+    def rtt(self, payload: bytes, n: int) -> list[float]:
+        import numpy as np
+
+        src = np.frombuffer(payload, np.uint8)
+        dst = np.empty_like(src)
+        clock, out = time.perf_counter_ns, []
+        for _ in range(n):
+            t0 = clock()
+            np.copyto(dst, src)
+            out.append((clock() - t0) / 1e3)
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+class CopyPingPong(_Floor):
+    """The two-copy floor: this process's side, with the bench's client methods; the echo is ``_echo``."""
 
     name = "copy-pingpong"
 
@@ -115,11 +149,6 @@ class CopyPingPong:
                     raise TimeoutError(f"the copy-pingpong echo did not answer within {REPLY_TIMEOUT_S} s")
             out.append((clock() - t0) / 1e3)
         return out
-
-    def throughput(self, payload: bytes, n: int) -> float:
-        t0 = time.perf_counter()
-        self.rtt(payload, n)
-        return n / (time.perf_counter() - t0)
 
     def echo_pid(self) -> int | None:
         """The echo process's pid while it runs."""
