@@ -1,12 +1,12 @@
 """The floors of ``uniros bench transport``'s copying rows: ``memcpy``, one copy of the frame in this process, and
 ``copy-pingpong``, the frame copied there and back between two processes and nothing else.
 
-A copying round trip between two processes copies the frame twice: the client into memory the echo reads, the echo
-into memory the client reads. This row does exactly that and no more: one shared buffer each way in a memfd (nothing
-in /dev/shm), a sequence number each way that the other side spins on (each side on a core of its own, as in every
-row), no ring, no framing, no wake-up. Each copy reads or writes lines that the other core's cache holds, so it costs
-more than the ``memcpy`` floor's copy between two buffers in one core's cache; this row's p50 is what any copying
-transport's round trip costs here at the least, and the ``shm`` row is measured against it beside the ``memcpy`` one.
+A copying round trip between two processes copies the frame twice: the client into memory the echo reads, the echo into
+memory the client reads. ``copy-pingpong`` does exactly that and no more: one shared buffer each way in a memfd (nothing
+in /dev/shm), a sequence number each way that the other side spins on (each side on a core of its own, as in every row),
+no ring, no framing, no wake-up. Each copy reads or writes lines that the other core's cache holds, so it costs more
+than the ``memcpy`` floor's copy between two buffers in one core's cache; its p50 is what any copying transport's round
+trip costs here at the least, and the ``shm`` row is measured against it beside the ``memcpy`` one.
 
 The echo reaches the memfd through ``/proc/<client pid>/fd/<fd>`` (Linux), so no descriptor needs passing. It exits
 on the stop word, or when no request came for ``IDLE_EXIT_S`` (its client is gone), so it never outlives the run.
