@@ -477,7 +477,7 @@ class _SentPending(_Pending[list[Any]]):
 
     def result(self, timeout: float | None = None, decode: StepDecoder | None = None) -> list[Any]:
         """As ``_Pending.result``; ``decode``: what a step reply taken in this thread becomes instead of its result
-        (``WorkerHandle.receive_reply_blocking``; the replies taken by the event loop are results as usual)."""
+        (``StepExchange._take_replies``; the replies taken by the event loop are results as usual)."""
         sup = self._sup
         if self._interrupted:
             raise concurrent.futures.CancelledError()
