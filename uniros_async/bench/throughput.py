@@ -673,9 +673,14 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
                     f"  {impl}: {row['bound_pct']:.1f} % of its bound ({_pct_interval(row)}, {row['tight_steps']}"
                     f" steps back to back){_cpu_line(row)}"
                 )
-    image = {r["impl"]: r for r in records if r["env"] == IMAGE_ID}
-    if image["gymnasium-async"]["overhead_us"] > 0:
-        frac = image["uniros"]["overhead_us"] / image["gymnasium-async"]["overhead_us"]
-        lines.append(f"image env: uniros overhead / gymnasium-async overhead = {frac:.2f}")
+    for label, env_id, in_turn in (
+        ("CartPole", TRIVIAL_ID, False),
+        ("CartPole in turn", TRIVIAL_ID, True),
+        ("image env", IMAGE_ID, False),
+    ):
+        pair = {r["impl"]: r for r in records if r["env"] == env_id and bool(r.get("envs_in_turn")) == in_turn}
+        if "uniros" in pair and pair.get("gymnasium-async", {}).get("overhead_us", 0) > 0:
+            frac = pair["uniros"]["overhead_us"] / pair["gymnasium-async"]["overhead_us"]
+            lines.append(f"{label}: uniros overhead / gymnasium-async overhead = {frac:.2f}")
     report("\n".join(lines), records, config.json_path, log)
     return records
