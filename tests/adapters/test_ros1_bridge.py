@@ -292,6 +292,62 @@ def test_a_state_that_waited_on_the_way_is_stamped_as_old_and_stale_states_stop_
     assert len(sent) == 1
 
 
+def test_a_command_meets_no_closed_publisher_and_never_ends_the_bridge() -> None:
+    """While the command publisher is replaced, its node closes, which can take seconds while the master is cut off.
+    ``run_commands`` lets go of the publisher before it closes, and a command that meets a closed publisher anyway
+    counts as stale instead of raising in the command topic's callback (whose error would end the bridge and the
+    env with it). The bridge's own code; the publisher's context is a stand-in that holds its exit open, as closing
+    a ROS node does while the master does not answer, and the closed publication is the real class, closed."""
+    from uniros_async.adapters.ros1 import msgs
+    from uniros_async.adapters.ros1.topics import Ros1Publisher, _Publication
+    from uniros_async.adapters.ros1_bridge import Ros1Bridge, Ros1BridgeConfig
+
+    spec = get_robot_spec("rx200")
+    bridge = Ros1Bridge(Ros1BridgeConfig(robot="rx200", max_command_age_s=0.5), lambda msg: None, time.monotonic_ns)
+    names = list(spec.joint_state_names)
+    zeros = np.zeros(len(names))
+    header = msgs.RosHeader(seq=0, stamp_ns=time.time_ns(), frame_id="")
+    bridge.on_ros_state(msgs.JointState(header=header, name=names, position=zeros, velocity=zeros, effort=zeros))
+    q = np.zeros(len(spec.arm_joint_names))
+
+    closed = _Publication(None, "/rx200/commands/joint_group", msgs.JointGroupCommand, False, 1)  # type: ignore[arg-type]
+    closed.closed = True
+    bridge._send = Ros1Publisher(closed, msgs.JointGroupCommand).publish
+    bridge.on_command(JointCommand(header=Header(), position=q))  # does not raise
+    assert bridge.stats.commands_stale == 1 and bridge.stats.commands_out == 0
+
+    async def main() -> list[object]:
+        seen: list[object] = []
+        closing = asyncio.Event()
+        sent: list[Any] = []
+
+        @contextlib.asynccontextmanager
+        async def open_publisher(generation: int) -> Any:
+            pub = Ros1Publisher(_Publication(None, "/c", msgs.JointGroupCommand, False, 1), msgs.JointGroupCommand)  # type: ignore[arg-type]
+            pub.publish = sent.append  # type: ignore[method-assign]
+            try:
+                yield pub
+            finally:
+                closing.set()
+                seen.append(bridge._send)  # what a command arriving while the node closes would be sent with
+                await asyncio.sleep(0.05)
+
+        async def watch_once(pub: Any) -> None:
+            await asyncio.sleep(0.01)  # a connection was reset: replace the publisher
+
+        bridge._watch = watch_once  # type: ignore[method-assign]
+        ready: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        task = asyncio.create_task(bridge.run_commands(open_publisher, ready))
+        await ready
+        await closing.wait()
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        return seen
+
+    assert asyncio.run(main())[0] is None
+
+
 @pytest.mark.slow
 def test_real_time_env_drives_the_ros_arm(ros_master: str, fake_arm: Any) -> None:
     """The same TaskEnv as on the sim, on the ROS 1 arm: reset walks it home, and one step's env loop re-sends

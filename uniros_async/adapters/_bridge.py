@@ -26,6 +26,7 @@ from uniros_async.adapters._driver_mirror import MirrorConfig
 from uniros_async.bus import open_domain
 from uniros_async.bus.messages import Data, Empty, Header, JointCommand, JointState, Trigger
 from uniros_async.bus.qos import latest
+from uniros_async.errors import TransportClosedError
 from uniros_async.transports.base import options_from_environ
 
 if TYPE_CHECKING:
@@ -238,11 +239,18 @@ class Bridge(abc.ABC, Generic[C]):
         self._send_ros(self.ros_command(clamped, cmd.duration_s))
 
     def _send_ros(self, msg: Any) -> bool:
-        """Send ``msg`` to the driver; False (counted as stale) while the command publisher is being replaced."""
-        if self._send is None:
+        """Send ``msg`` to the driver; False (counted as stale) while the command publisher is being replaced or
+        was closed under it. Never raises that: it runs in the command topic's callback, whose error would end the
+        bridge."""
+        send = self._send
+        if send is None:
             self.stats.commands_stale += 1
             return False
-        self._send(msg)
+        try:
+            send(msg)
+        except TransportClosedError:
+            self.stats.commands_stale += 1
+            return False
         self.stats.commands_out += 1
         return True
 

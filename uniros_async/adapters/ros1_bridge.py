@@ -264,7 +264,12 @@ class Ros1Bridge(Bridge[Ros1BridgeConfig]):
                     self._send = pub.publish
                     if not ready.done():
                         ready.set_result(None)
-                    await self._watch(pub)
+                    try:
+                        await self._watch(pub)
+                    finally:
+                        # before the publisher closes: closing its node unregisters it with the master, which can
+                        # take seconds while the master is cut off, and a command meanwhile must not reach it
+                        self._send = None
             except RobotError as exc:
                 if not ready.done():
                     ready.set_exception(exc)
