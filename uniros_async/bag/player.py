@@ -103,7 +103,9 @@ async def play(config: PlayConfig) -> int:
         for t in info.topics.values():
             if (topics is None or t.topic in topics) and not (sim and t.topic == "/clock"):
                 pubs[t.topic] = await node.create_publisher(message_type(t.type_name), t.topic, qos=reliable(1000))
-        clock_pub = await node.create_publisher(ClockTick, "/clock") if sim else None
+        # every tick reaches a follower, as the bag's messages do: a recorder on the sim clock stamps each message with
+        # the tick published just before it, and a tick kept only as the latest could be replaced before it was sent
+        clock_pub = await node.create_publisher(ClockTick, "/clock", qos=reliable(1000)) if sim else None
         for p in [*pubs.values(), *([clock_pub] if clock_pub is not None else [])]:
             await p.wait_for_subscribers(config.wait_subscribers, timeout_s=config.wait_timeout_s)
         offset_ns = 0
