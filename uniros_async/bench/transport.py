@@ -538,10 +538,10 @@ def main(config: TransportBenchConfig, *, log: Callable[[str], None] = print) ->
 
 def _cores() -> tuple[set[int] | None, set[int] | None]:
     """The client's core and the echoes' core: two of the cores this process may use, or (None, None) with one."""
-    if not hasattr(os, "sched_getaffinity"):
-        return None, None
-    cpus = sorted(os.sched_getaffinity(0))
-    return ({cpus[0]}, {cpus[1]}) if len(cpus) >= 2 else (None, None)
+    from uniros_async.runtime.cores import usable_cpus
+
+    cpus = usable_cpus()
+    return ({cpus[0]}, {cpus[1]}) if len(cpus) >= 2 and hasattr(os, "sched_setaffinity") else (None, None)
 
 
 @contextlib.contextmanager

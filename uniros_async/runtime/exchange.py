@@ -237,8 +237,7 @@ class StepExchange:
                         if decode is not None and frame[0] == STEP_TAG:
                             r = decode(i, frame)  # (reads the frame while it is still in the ring)
                         else:
-                            r = unpack(frame)
-                            r = w.reply_result(r)  # a WorkerError: the worker raised, and stays usable
+                            r = w.reply_result(unpack(frame))  # a WorkerError: the worker raised, stays usable
                 except WorkerError as exc:
                     r = exc
                 except BaseException as exc:  # Ctrl-C in the wait, a malformed reply: replies out of step
