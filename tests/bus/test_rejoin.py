@@ -158,6 +158,49 @@ async def test_a_registry_restarted_in_the_same_process_gets_the_graph_back() ->
         await domain.__aexit__(None, None, None)
 
 
+async def test_a_registry_that_answers_again_is_rejoined_without_waiting_out_a_hung_attempt() -> None:
+    """While the registry is gone, something at its port accepts connections and never answers (as a cut link
+    holds an attempt until its bound, ``REJOIN_ATTEMPT_S``); the real registry comes back just after an attempt
+    started hanging. The node does not wait for that attempt to run out: a new one starts within ``REJOIN_MAX_S``."""
+    from uniros_async.bus.registry_client import REJOIN_ATTEMPT_S, REJOIN_MAX_S
+
+    port = _free_port()
+    uri = f"tcp://127.0.0.1:{port}"
+    hung: list[asyncio.StreamWriter] = []
+    arrived = asyncio.Event()
+
+    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        hung.append(writer)  # accepted and never answered: the attempt waits for the registry's hello
+        arrived.set()
+
+    domain = open_domain(uri)
+    await domain.__aenter__()
+    try:
+        async with open_node("arm", domain=uri) as node:
+            await domain.__aexit__(None, None, None)
+            mute = await asyncio.start_server(hold, "127.0.0.1", port, reuse_address=True)
+            async with asyncio.timeout(REJOIN_S):
+                await arrived.wait()
+            arrived.clear()
+            async with asyncio.timeout(REJOIN_S):
+                await arrived.wait()  # a later attempt, so that the backoff is past its first short delays
+            await asyncio.sleep(0.05)
+            mute.close()
+            domain = open_domain(uri)
+            await domain.__aenter__()
+            back = asyncio.get_running_loop().time()
+            async with asyncio.timeout(REJOIN_S):
+                await node._registry.rejoined.wait()
+            took = asyncio.get_running_loop().time() - back
+            # one attempt waiting out its bound would take REJOIN_ATTEMPT_S less the 0.05 s, plus the backoff
+            assert took < REJOIN_MAX_S + 0.3 < REJOIN_ATTEMPT_S, took
+            assert "/arm" in await node.list_nodes()
+    finally:
+        for writer in hung:
+            writer.close()
+        await domain.__aexit__(None, None, None)
+
+
 async def test_a_node_whose_connection_broke_takes_its_registration_over() -> None:
     """The registry has not noticed a node's old connection end yet: the same node (its incarnation id) registering
     over a new connection takes over what it held; another node of that name is still refused."""

@@ -1,16 +1,17 @@
 """A node's connection to its domain registry: requests with ids, pushed notifications, and rejoining.
 
 When the connection breaks (the registry's process died or was restarted, the link was cut past the keepalive, the
-registry's port blocked), the client connects again to the same URI, retrying with capped backoff
-(``REJOIN_FIRST_S`` doubling to ``REJOIN_MAX_S``, each attempt bounded by ``REJOIN_ATTEMPT_S``) for as long as the node
-lives, and then calls ``on_rejoin``: the node registers everything it holds again (``Node._register_all``). Requests
-made while the connection is down fail at once with ``DomainError``; data between nodes does not pass through the
-registry and keeps flowing where its own connections hold.
+registry's port blocked), the client connects again to the same URI, starting an attempt after each capped backoff
+delay (``REJOIN_FIRST_S`` doubling to ``REJOIN_MAX_S``; attempts overlap, each bounded by ``REJOIN_ATTEMPT_S``) for as
+long as the node lives, and then calls ``on_rejoin``: the node registers everything it holds again
+(``Node._register_all``). Requests made while the connection is down fail at once with ``DomainError``; data between
+nodes does not pass through the registry and keeps flowing where its own connections hold.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -34,11 +35,11 @@ logger = logging.getLogger(__name__)
 REJOIN_FIRST_S = 0.05
 """First wait between attempts to reach a lost registry again."""
 REJOIN_MAX_S = 0.25
-"""Longest wait between those attempts (a registry that answers again is rejoined within about this, plus one
-attempt)."""
+"""Longest wait between the starts of two attempts (a registry that answers again is rejoined within about this,
+plus one connection's round trips)."""
 REJOIN_ATTEMPT_S = 1.0
-"""Bound on one attempt (connect and handshake): a SYN lost in a cut link is sent afresh by the next attempt, not
-after the kernel's backed-off retransmission (up to seconds later). The node's first connection uses the full
+"""Bound on one attempt (connect and handshake), which may take this long over a starved link; attempts overlap, so
+a SYN lost in a cut link does not hold the next one back. The node's first connection uses the full
 ``connect_timeout_s``."""
 
 
@@ -121,16 +122,39 @@ class _RegistryClient:
                 logger.error("lost the connection to the domain registry at %s: %s%s", self._conn.peer, exc, again)
 
     async def _reconnect(self, uri: str) -> Transport:
-        """Connect to ``uri`` again, with capped backoff, until it answers (cancelled when the node closes)."""
+        """Connect to ``uri`` again until it answers (cancelled when the node closes).
+
+        A new attempt starts after each backoff delay (``REJOIN_FIRST_S`` doubling to ``REJOIN_MAX_S``) whether or
+        not the earlier ones have ended, each bounded by ``REJOIN_ATTEMPT_S``; the first to connect wins and the
+        others are cancelled (or closed, when they connected too). A link that comes back is so tried within
+        ``REJOIN_MAX_S``, not after an attempt whose SYN the cut link dropped has run out its bound."""
         options = self._options or TransportOptions()
         attempt = dataclasses.replace(options, connect_timeout_s=min(options.connect_timeout_s, REJOIN_ATTEMPT_S))
         backoff = Backoff(first_s=REJOIN_FIRST_S, max_s=REJOIN_MAX_S)
-        while True:
+        won: asyncio.Future[Transport] = asyncio.get_running_loop().create_future()
+
+        async def try_once() -> None:
             try:
-                return await connect(uri, attempt)
+                conn = await connect(uri, attempt)
             except (TimeoutError, OSError, TransportError) as exc:
                 logger.debug("domain registry at %s not back yet: %s", uri, exc)
-            await backoff.sleep()
+                return
+            if won.done():
+                await conn.aclose()
+            else:
+                won.set_result(conn)
+
+        async with asyncio.TaskGroup() as tg:
+            tries: list[asyncio.Task[None]] = []
+            while not won.done():
+                tries = [t for t in tries if not t.done()]
+                tries.append(tg.create_task(try_once()))
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(backoff.next_s()):
+                        await asyncio.shield(won)
+            for t in tries:
+                t.cancel()
+        return won.result()
 
     async def _rejoin(self) -> None:
         assert self._on_rejoin is not None
