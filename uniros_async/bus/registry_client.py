@@ -144,16 +144,21 @@ class _RegistryClient:
             else:
                 won.set_result(conn)
 
-        async with asyncio.TaskGroup() as tg:
-            tries: list[asyncio.Task[None]] = []
-            while not won.done():
-                tries = [t for t in tries if not t.done()]
-                tries.append(tg.create_task(try_once()))
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(backoff.next_s()):
-                        await asyncio.shield(won)
-            for t in tries:
-                t.cancel()
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tries: list[asyncio.Task[None]] = []
+                while not won.done():
+                    tries = [t for t in tries if not t.done()]
+                    tries.append(tg.create_task(try_once()))
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(backoff.next_s()):
+                            await asyncio.shield(won)
+                for t in tries:
+                    t.cancel()
+        except BaseException:  # the node closing: a connection that won meanwhile is not left open
+            if won.done():
+                await won.result().aclose()
+            raise
         return won.result()
 
     async def _rejoin(self) -> None:
