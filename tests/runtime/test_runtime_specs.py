@@ -58,6 +58,16 @@ def test_specs_of_every_form_and_what_is_refused() -> None:
         normalize_specs([CART, lambda: lock], {})
     with pytest.raises(ConfigError, match="spec 0: expected an env id, an .env id, kwargs. pair or an env factory"):
         normalize_specs([3], {})  # type: ignore[list-item]
+    # one id as a string, as gymnasium.make_vec has it: num_envs copies of it (not its letters)
+    assert normalize_specs(CART, {"a": 1}, 3) == [(CART, {"a": 1})] * 3
+    assert normalize_specs(CART, {}) == [(CART, {})]
+    with pytest.raises(
+        ConfigError, match=r"num_envs=2 goes with one env id given as a string .* \(here 1\): repeat the list"
+    ):
+        normalize_specs([CART], {}, 2)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ConfigError, match="num_envs must be an int >= 1, got"):
+            normalize_specs(CART, {}, bad)  # type: ignore[arg-type]
 
 
 @pytest.mark.slow
@@ -74,6 +84,18 @@ def test_factories_and_ids_mix_and_auto_hosts_one_process_per_core() -> None:
         # each factory's own argument reached its worker: the first one's time limit ends its episode at once
         obs, rewards, terminated, truncated, _ = venv.step(np.zeros(n, np.int64))
         assert rewards.tolist() == [1.0] * n and truncated.tolist() == [True] + [False] * (n - 1)
+    finally:
+        venv.close()
+    assert children() == []
+
+
+def test_one_id_with_num_envs_as_gymnasium_make_vec_takes_it() -> None:
+    venv = make_vec(CART, num_envs=2, max_episode_steps=1)
+    try:
+        assert venv.num_envs == 2 and list(venv.env_ids) == [CART, CART]
+        venv.reset(seed=0)
+        _, _, _, truncated, _ = venv.step(np.zeros(2, np.int64))
+        assert truncated.tolist() == [True, True]  # the common keyword reached both copies
     finally:
         venv.close()
     assert children() == []

@@ -48,16 +48,29 @@ FACTORY_KWARG = "__env_factory__"
 AUTO: Literal["auto"] = "auto"
 
 
-def normalize_specs(specs: Sequence[EnvSpec], common_kwargs: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+def normalize_specs(
+    specs: Sequence[EnvSpec] | str, common_kwargs: dict[str, Any], num_envs: int | None = None
+) -> list[tuple[str, dict[str, Any]]]:
     """``specs`` as ``(name, kwargs)`` pairs: an id's kwargs are ``common_kwargs`` updated with its own; a factory's
-    hold the pickled factory alone (``FACTORY_KWARG``).
+    hold the pickled factory alone (``FACTORY_KWARG``). One id as a string, with ``num_envs`` (default 1), is that
+    many copies of it, as ``gymnasium.make_vec(id, num_envs=n)`` has it.
 
     Raises:
-        ConfigError: a spec that is none of the three forms, a factory that cannot be pickled, or ``common_kwargs``
-            given with a factory (a factory builds its env itself; keyword arguments go to ids).
+        ConfigError: a spec that is none of the three forms, a factory that cannot be pickled, ``common_kwargs``
+            given with a factory (a factory builds its env itself; keyword arguments go to ids), or ``num_envs``
+            that is not an int >= 1 or is given with a list (a list has one env per spec).
     """
     import cloudpickle
 
+    if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1):
+        raise ConfigError(f"num_envs must be an int >= 1, got {num_envs!r}")
+    if isinstance(specs, str):
+        specs = [specs] * (num_envs or 1)
+    elif num_envs is not None:
+        raise ConfigError(
+            f"num_envs={num_envs} goes with one env id given as a string (make_vec('CartPole-v1', num_envs=4)); "
+            f"a list of specs has one env per spec (here {len(specs)}): repeat the list instead"
+        )
     out: list[tuple[str, dict[str, Any]]] = []
     for i, s in enumerate(specs):
         if isinstance(s, str):

@@ -579,8 +579,9 @@ class _Returns:
 
 
 def make_vec(
-    specs: Sequence[EnvSpec],
+    specs: Sequence[EnvSpec] | str,
     *,
+    num_envs: int | None = None,
     pad: bool = True,
     restart_on_failure: bool = False,
     start_timeout_s: float = 60.0,
@@ -604,7 +605,9 @@ def make_vec(
             which registers ``Id``). A factory (a callable without arguments that returns a gymnasium.Env) is
             cloudpickled into its worker and called there (runtime/specs.py). ``{"worker": "ray"}`` or
             ``{"worker": {"ray": {...}}}`` has Ray place that spec's worker on a node of its cluster (see
-            ``backend``; its pid in ``pids`` is on that node); ``"worker": None`` keeps it here.
+            ``backend``; its pid in ``pids`` is on that node); ``"worker": None`` keeps it here. One id as a string
+            is ``num_envs`` copies of it, as ``gymnasium.make_vec("CartPole-v1", num_envs=4)``.
+        num_envs: how many copies of the one id given as a string (default 1); not with a list.
         pad: when the envs' spaces differ, pad observations and actions to the largest sizes (1-D Box spaces, or a
             Dict with a 1-D ``observation``); identical spaces are never padded. Without it the spaces must match.
         start_timeout_s: bound on starting all workers and building their envs.
@@ -639,15 +642,15 @@ def make_vec(
             with factories.
 
     Raises:
-        ConfigError: a malformed spec, a factory that cannot be pickled (or with ``backend="ray"``, or with
-            ``common_kwargs``), an unknown id or a ``worker`` that is neither None nor a Ray placement
-            (before any process starts), an unknown or invalid keyword argument (before any worker is given its
-            env: the workers' interpreters, started meanwhile, are stopped), or spaces that cannot be padded or
-            combined (naming the envs; the workers are closed).
+        ConfigError: a malformed spec (or ``num_envs`` with a list), a factory that cannot be pickled (or with
+            ``backend="ray"``, or with ``common_kwargs``), an unknown id or a ``worker`` that is neither None nor a
+            Ray placement (before any process starts), an unknown or invalid keyword argument (before any worker is
+            given its env: the workers' interpreters, started meanwhile, are stopped), or spaces that cannot be padded
+            or combined (naming the envs; the workers are closed).
         WorkerError: a worker failed to start or to build its env, or Ray could not place or start it (its index
             and traceback; the others are closed).
     """
-    norm = normalize_specs(specs, common_kwargs)
+    norm = normalize_specs(specs, common_kwargs, num_envs)
     if backend == "ray" and any(factory_of(kw) is not None for _, kw in norm):
         raise ConfigError(
             "backend='ray' places workers built from env ids (their nodes are sent plain data, not pickles); env "
