@@ -520,10 +520,16 @@ class _Server:
         physics bound), and a woken worker tends to land where it ran before, so a placement lasts. Pinned, each
         core gets its share in every run (docs/performance.md, "More envs than cores"). Once set up, the policy
         stays.
+
+        As many workers as cores or more have no core each apart from the agent's: a worker then does not look where
+        the agent runs after each wake-up (``ShmTransport.look_after_wake_up``; it still does after a long poll),
+        since one that moved off the agent's core would land on a fellow worker's and the two would step in turn.
         """
         if self.cores_shared or self.realtime or not share:
             return
         slot, count, mode = int(share[0]), int(share[1]), str(share[2])
+        if count >= len(usable_cpus()) and hasattr(self.transport, "look_after_wake_up"):
+            self.transport.look_after_wake_up = False
         if mode == "off" or not cores_shared(count):
             return
         self.cores_shared = True
@@ -566,6 +572,7 @@ class _Server:
             "realtime": self.realtime,  # a real-time env loop shares this worker's event loop
             "cores_shared": self.cores_shared,
             "pinned_cpu": self.pinned_cpu,
+            "looks_after_wake_up": getattr(self.transport, "look_after_wake_up", None),
         }
 
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:
