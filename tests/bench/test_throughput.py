@@ -26,16 +26,19 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
 ) -> None:
     out = tmp_path / "t.json"
     lines: list[str] = []
+    cores_before = os.sched_getaffinity(0)
     records = throughput.main(
         throughput.ThroughputBenchConfig(n_envs=(1,), steps=5, json_path=str(out)), log=lines.append
     )
-    # the progress bar: 3 rx200 rows, 3 CartPole rows, 3 rows of two envs in turn, 3 Dict-env rows, 3 image-env rows
+    # the progress bar: 3 rx200 rows, 3 CartPole rows and 2 of gymnasium's placed, 3 rows of two envs in turn,
+    # 3 Dict-env rows, 3 image-env rows
     err = capsys.readouterr().err
-    assert "throughput bench" in err and "15/15" in err
+    assert "throughput bench" in err and "17/17" in err
     assert json.loads(out.read_text()) == records
     rows = {(r["env"], r["impl"]) for r in records}
     envs = (throughput.ENV_ID, throughput.TRIVIAL_ID, *throughput.SPACE_IDS)
-    assert rows == {(e, i) for e in envs for i in throughput.IMPLS}
+    placed = {(throughput.TRIVIAL_ID, i) for i in throughput.PLACED_IMPLS}
+    assert rows == {(e, i) for e in envs for i in throughput.IMPLS} | placed
     in_turns = [r for r in records if r.get("envs_in_turn")]
     assert sorted(r["impl"] for r in in_turns) == sorted(throughput.IMPLS)
     assert all(r["env"] == throughput.TRIVIAL_ID and r["envs_in_turn"] == 2 for r in in_turns)
@@ -61,9 +64,31 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
     assert "UnirosBenchDictObs-v0 (Dict observation" in text and "UnirosBenchImageObs-v0 (84x84x3 uint8" in text
     for label in ("CartPole", "CartPole in turn", "image env"):  # the ratios the goals are stated in
         assert f"\n{label}: uniros overhead / gymnasium-async overhead = " in text
+    assert "(its worker on the agent's core: " in text and "; on the other core: " in text
+    assert os.sched_getaffinity(0) == cores_before  # the agent's thread got its cores back after the placed rows
     assert "95 % CI" in text and "too few steps" in text
     assert "--n-envs 1 --steps 1500" in text  # 5 rx200 steps: the hint to pin N = 1 down
     assert "make_vec's workers over shm (ring end: compiled)" in text  # which shm ring end the rows ran on
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the placed rows need two cores")
+def test_the_placed_gymnasium_rows_pin_its_worker_and_the_agent_for_their_blocks() -> None:
+    agent_cpu, other_cpu = throughput._placed_cpus()
+    had = os.sched_getaffinity(0)
+    for impl, cpu in zip(throughput.PLACED_IMPLS, (agent_cpu, other_cpu), strict=True):
+        venv, reset, step = throughput._vector(impl, 1, throughput.TRIVIAL_ID, {})
+        try:
+            reset()
+            (proc,) = venv.processes
+            assert os.sched_getaffinity(proc.pid) == {cpu}
+            with throughput._agent_placed(impl):
+                assert os.sched_getaffinity(0) == {agent_cpu}
+                step(np.zeros(1, np.int64))
+            assert os.sched_getaffinity(0) == had
+            with throughput._agent_placed("gymnasium-async"):  # the free row: left where it is
+                assert os.sched_getaffinity(0) == had
+        finally:
+            venv.close()
 
 
 @pytest.mark.parametrize("kw", [{"n_envs": ()}, {"n_envs": (0,)}, {"steps": 2}])

@@ -28,7 +28,10 @@ first step of each block, which starts on idle (halted, cache-cold) cores, is le
   the first overhead can be negative; the second is what the runtime costs on top of the env's work.
 
 A second table does the same for a trivial env (gymnasium's ``CartPole-v1``, ~10 us a step), N = 1: what each
-runtime costs per step when the env costs nothing. A third steps two vector envs of that env in turn, a block of
+runtime costs per step when the env costs nothing. Two more rows of it pin gymnasium's AsyncVectorEnv worker to the
+agent's core (the agent's thread pinned there for those rows' blocks) and to the other core (``PLACED_IMPLS``): its
+overhead is bimodal, and the free row falls in either mode; the line under the tables gives uniros's overhead as a
+fraction of all three. A third steps two vector envs of that env in turn, a block of
 20 steps each, as a training loop with an evaluation env does (``envs_in_turn`` in the records): a worker woken
 after its pause must not find itself sharing the agent's core. The rows of both tables are measured in one run,
 their blocks interleaved in a shuffled order (``_run_trivial``), so that each meets the same moments of the host's
@@ -96,6 +99,11 @@ ENV_ID = "uniros/Rx200Reach-v0"
 # absolute joint targets: the action mode the recorded figures were measured with (the task default is deltas)
 ENV_KW: dict[str, Any] = {"turn_based": True, "action_mode": "absolute", "max_episode_steps": 10**9}
 TRIVIAL_ID = "CartPole-v1"
+PLACED_IMPLS = ("gymnasium-async@agent-core", "gymnasium-async@other-core")
+"""Extra rows of the CartPole table: gymnasium's AsyncVectorEnv with its worker pinned to the core the agent's thread
+is pinned to for that row's blocks, and to the other core. Its overhead is bimodal on a VM (a pipe round trip on
+one core is two context switches; across cores each wake-up is an IPI to a halted vCPU), and a free-running worker
+lands in one mode or the other from run to run; these rows measure both in the same run."""
 SPACE_IDS = (DICT_ID, IMAGE_ID)
 SPACE_STEPS = 500
 """Steps per row of the Dict and image envs' tables (interleaved as the trivial env's)."""
@@ -203,10 +211,15 @@ def _vector(
         )
         return venv, lambda: venv.reset(seed=0), venv.step
     factory = functools.partial(_make_env, env_id, kwargs)
-    if impl == "gymnasium-async":
+    if impl.startswith("gymnasium-async"):
         from gymnasium.vector import AsyncVectorEnv
 
         avenv = AsyncVectorEnv([factory] * n, context="spawn")
+        if impl in PLACED_IMPLS:
+            cpu = _placed_cpus()[PLACED_IMPLS.index(impl)]
+            for proc in avenv.processes:
+                assert proc.pid is not None  # started by AsyncVectorEnv
+                os.sched_setaffinity(proc.pid, {cpu})
         return avenv, lambda: avenv.reset(seed=0), avenv.step
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
@@ -221,6 +234,27 @@ def _vector(
         return sb.step_wait()
 
     return sb, reset, step
+
+
+def _placed_cpus() -> tuple[int, int]:
+    """(the agent's core for the placed rows, the other core): the first two this process may run on."""
+    cpus = sorted(os.sched_getaffinity(0))
+    return cpus[0], cpus[1]
+
+
+@contextlib.contextmanager
+def _agent_placed(impl: str) -> Iterator[None]:
+    """For a placed row (``PLACED_IMPLS``), pin the calling thread (the agent's) to its core while the row's blocks
+    run, then give it back the cores it had; nothing for another row."""
+    if impl not in PLACED_IMPLS:
+        yield
+        return
+    had = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {_placed_cpus()[0]})
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, had)
 
 
 def _actions(space: Any, steps: int) -> list[Any]:
@@ -341,16 +375,18 @@ def _run_trivial(
             ks = range(k0, k0 + block)
             for i in order.permutation(len(rows)):
                 row = rows[i]
-                time.sleep(QUIET_S)
-                b = bare_block(bare, actions, ks)
-                for _, _, step in row.envs:
-                    row.vec_t += timed_block(step, batch, ks)[1:]
-                    row.bare_t += b[1:]
+                with _agent_placed(row.impl):
+                    time.sleep(QUIET_S)
+                    b = bare_block(bare, actions, ks)
+                    for _, _, step in row.envs:
+                        row.vec_t += timed_block(step, batch, ks)[1:]
+                        row.bare_t += b[1:]
         singles = [row for row in rows if len(row.envs) == 1]
         for k0 in range(0, steps, block):
             for i in order.permutation(len(singles)):
-                time.sleep(QUIET_S)
-                singles[i].tight_t += timed_block(singles[i].envs[0][2], batch, range(k0, k0 + block))
+                with _agent_placed(singles[i].impl):
+                    time.sleep(QUIET_S)
+                    singles[i].tight_t += timed_block(singles[i].envs[0][2], batch, range(k0, k0 + block))
     finally:
         for row in rows:
             for venv, _, _ in row.envs:
@@ -415,7 +451,7 @@ def _measure(
     """Run every row into ``records``, counting each on ``bar``."""
     impls = IMPLS + (("uniros-ray",) if _RAY is not None else ())
     cores = os.cpu_count() or 1
-    trivial_impls = IMPLS + (RAY_IMPLS if _RAY is not None else ())
+    trivial_impls = IMPLS + _placed_impls() + (RAY_IMPLS if _RAY is not None else ())
     bare = _make_env(ENV_ID, ENV_KW)
     try:
         floor: Floor | None = Floor(ENV_ID, ENV_KW)
@@ -453,6 +489,11 @@ def _measure(
             bar(len(rows))
         finally:
             env.close()
+
+
+def _placed_impls() -> tuple[str, ...]:
+    """``PLACED_IMPLS`` where this process may run on two cores or more, else none."""
+    return PLACED_IMPLS if len(os.sched_getaffinity(0)) >= 2 else ()
 
 
 def _bound_pct(record: dict[str, Any], cores: int) -> None:
@@ -603,7 +644,7 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     records: list[dict[str, Any]] = []
     in_turns = IMPLS[:2] if config.quick else IMPLS  # (--quick: against gymnasium's only, to keep within its minute)
     ray = config.backend == "ray"
-    n_rows = len(ns) * (len(IMPLS) + ray) + len(IMPLS) + len(RAY_IMPLS) * ray + len(in_turns)
+    n_rows = len(ns) * (len(IMPLS) + ray) + len(IMPLS) + len(_placed_impls()) + len(RAY_IMPLS) * ray + len(in_turns)
     n_rows += len(SPACE_IDS) * len(IMPLS)
     with _open_ray_rows(config) as cluster:
         bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
@@ -613,8 +654,9 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
             bar(0, done=True)
         where = cluster.describe() if cluster is not None else ""
     bare_ms = float(np.median([r["bare_ms"] for r in records if r["env"] == ENV_ID]))
+    width = max(16, *(len(r["impl"]) for r in records))
     head = (
-        f"{'N':>3} {'impl':<16} {'env steps/s':>12} {'overhead us/step':>17} {'its 95 % CI':>18} {'step ms':>8}"
+        f"{'N':>3} {'impl':<{width}} {'env steps/s':>12} {'overhead us/step':>17} {'its 95 % CI':>18} {'step ms':>8}"
         f" {'bare ms':>8}"
     )
     lines = [
@@ -645,7 +687,7 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
             what = "Dict observation, 3 float64 arrays" if r["env"] == DICT_ID else "84x84x3 uint8 frame observation"
             lines += ["", f"{r['env'].partition(':')[2]} ({what}; N = 1, rows interleaved)", head, "-" * len(head)]
         lines.append(
-            f"{r['n_envs']:>3} {r['impl']:<16} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}"
+            f"{r['n_envs']:>3} {r['impl']:<{width}} {r['steps_per_s']:>12.1f} {r['overhead_us']:>17.1f}"
             f" {_interval(r['overhead_ci_us']):>18} {r['step_ms']:>8.3f} {r['bare_ms']:>8.3f}"
         )
     lines.append("")
@@ -680,7 +722,11 @@ def main(config: ThroughputBenchConfig, *, log: Callable[[str], None] = print) -
     ):
         pair = {r["impl"]: r for r in records if r["env"] == env_id and bool(r.get("envs_in_turn")) == in_turn}
         if "uniros" in pair and pair.get("gymnasium-async", {}).get("overhead_us", 0) > 0:
-            frac = pair["uniros"]["overhead_us"] / pair["gymnasium-async"]["overhead_us"]
-            lines.append(f"{label}: uniros overhead / gymnasium-async overhead = {frac:.2f}")
+            ours, theirs = pair["uniros"]["overhead_us"], pair["gymnasium-async"]["overhead_us"]
+            line = f"{label}: uniros overhead / gymnasium-async overhead = {ours / theirs:.2f}"
+            placed = [ours / pair[i]["overhead_us"] for i in PLACED_IMPLS if pair.get(i, {}).get("overhead_us", 0) > 0]
+            if len(placed) == 2:
+                line += f" (its worker on the agent's core: {placed[0]:.2f}; on the other core: {placed[1]:.2f})"
+            lines.append(line)
     report("\n".join(lines), records, config.json_path, log)
     return records
