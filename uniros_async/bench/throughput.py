@@ -88,7 +88,7 @@ from uniros_async.bench._stepmeter import (
 from uniros_async.bench.common import cpu_times, progress_counter, report, steal_percent
 from uniros_async.bench.envs import DICT_ID, IMAGE_ID
 from uniros_async.errors import ConfigError
-from uniros_async.runtime.cores import SHARED_CORES_MODES
+from uniros_async.runtime.cores import SHARED_CORES_MODES, usable_cpus
 from uniros_async.stats import median_ci
 from uniros_async.transports._shm_ring import describe_ring_end
 
@@ -238,7 +238,7 @@ def _vector(
 
 def _placed_cpus() -> tuple[int, int]:
     """(the agent's core for the placed rows, the other core): the first two this process may run on."""
-    cpus = sorted(os.sched_getaffinity(0))
+    cpus = usable_cpus()
     return cpus[0], cpus[1]
 
 
@@ -493,7 +493,7 @@ def _measure(
 
 def _placed_impls() -> tuple[str, ...]:
     """``PLACED_IMPLS`` where this process may run on two cores or more, else none."""
-    return PLACED_IMPLS if len(os.sched_getaffinity(0)) >= 2 else ()
+    return PLACED_IMPLS if len(usable_cpus()) >= 2 else ()
 
 
 def _bound_pct(record: dict[str, Any], cores: int) -> None:
