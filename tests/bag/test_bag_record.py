@@ -258,6 +258,14 @@ async def test_a_topic_that_does_not_exist_names_the_closest(tmp_path: Path) -> 
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_one_topic_given_as_a_string_is_that_topic(tmp_path: Path) -> None:
+    from uniros_async.bag.player import PlayConfig
+    from uniros_async.bag.recorder import RecordConfig
+
+    assert RecordConfig(path=tmp_path / "x.mcap", topics="/rx200/joint_states").topics == ("/rx200/joint_states",)
+    assert PlayConfig(path=tmp_path / "x.mcap", topics="/clock").topics == ("/clock",)
+
+
 def big_images(i: int) -> list[tuple[str, Any]]:
     rng = np.random.default_rng(i)  # noise: compresses to nothing, so a 1 MiB disk fills in a few frames
     return [("/camera/image", m.Image(header=m.Header(stamp_ns=i), data=rng.integers(0, 255, (80, 80, 3), np.uint8)))]

@@ -39,7 +39,7 @@ class PlayConfig:
     Args:
         path: the bag.
         domain: the domain's URI (None: ``$UNIROS_DOMAIN``).
-        topics: only these (empty: all).
+        topics: only these (one may be given as a string; empty: all).
         rate: playback speed (2.0: twice as fast); 0 on the sim clock: as fast as possible.
         loop: start again at the end, until cancelled.
         clock: "wall", or "sim" to publish the bag's time on ``/clock``.
@@ -57,6 +57,8 @@ class PlayConfig:
     wait_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
+        if isinstance(self.topics, str):  # one topic given as a string: that topic, not its letters
+            object.__setattr__(self, "topics", (self.topics,))
         if self.clock not in ("wall", "sim"):
             raise ConfigError(f"play clock: expected 'wall' or 'sim', got {self.clock!r}")
         if not (self.rate > 0 or (self.rate == 0 and self.clock == "sim")):

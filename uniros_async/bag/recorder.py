@@ -36,7 +36,8 @@ class RecordConfig:
 
     Args:
         path: the MCAP file to write.
-        topics: the topics; empty: every topic of the domain, including those that appear while recording.
+        topics: the topics (one may be given as a string); empty: every topic of the domain, including those that
+            appear while recording.
         domain: the domain's URI (None: ``$UNIROS_DOMAIN``).
         duration_s: stop after this many seconds of the recorder's clock (None: until cancelled).
         clock: "wall", or "sim" to stamp log times with the domain's ``/clock``.
@@ -55,6 +56,8 @@ class RecordConfig:
     discover_interval_s: float = 1.0
 
     def __post_init__(self) -> None:
+        if isinstance(self.topics, str):  # one topic given as a string: that topic, not its letters
+            object.__setattr__(self, "topics", (self.topics,))
         if self.clock not in ("wall", "sim"):
             raise ConfigError(f"record clock: expected 'wall' or 'sim', got {self.clock!r}")
         if self.duration_s is not None and self.duration_s <= 0:
