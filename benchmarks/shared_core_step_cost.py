@@ -38,7 +38,7 @@ async def _step_envs(k: int, steps: int, cpu: int) -> float:
     from uniros_async.bench.throughput import ENV_ID, ENV_KW
     from uniros_async.envs.runtime import deferred_start
     from uniros_async.priority import freeze_heap
-    from uniros_async.runtime.worker import areset_through, astep_through
+    from uniros_async.runtime.attached import areset_through, astep_through
 
     os.sched_setaffinity(0, {cpu})
     envs = []

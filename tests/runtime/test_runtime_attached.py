@@ -13,7 +13,7 @@ import pytest
 import uniros_async  # noqa: F401  (registers the ids)
 from uniros_async.envs.runtime import deferred_start
 from uniros_async.envs.wrappers import PadSpaces
-from uniros_async.runtime.worker import areset_through, astep_through, supports_async
+from uniros_async.runtime.attached import areset_through, astep_through, supports_async
 
 pytestmark = pytest.mark.slow
 

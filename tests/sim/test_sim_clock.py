@@ -216,7 +216,7 @@ async def test_two_envs_on_one_loop_step_as_they_would_alone() -> None:
 
     import uniros_async  # noqa: F401
     from uniros_async.envs.runtime import deferred_start
-    from uniros_async.runtime.worker import areset_through, astep_through
+    from uniros_async.runtime.attached import areset_through, astep_through
 
     kw: dict[str, Any] = {"turn_based": True, "action_mode": "absolute", "max_episode_steps": 10**9}
 

@@ -68,12 +68,12 @@ class Floor:
         self.loop.run_until_complete(base.astart())
 
     def reset(self, seed: int) -> None:
-        from uniros_async.runtime.worker import areset_through
+        from uniros_async.runtime.attached import areset_through
 
         self.loop.run_until_complete(areset_through(self.env, seed, None))
 
     def step_s(self, action: Any) -> float:
-        from uniros_async.runtime.worker import astep_through
+        from uniros_async.runtime.attached import astep_through
 
         async def timed() -> float:
             t0 = time.perf_counter()

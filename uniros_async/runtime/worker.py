@@ -15,9 +15,9 @@ started on the worker's own loop (``await env.astart()``), so its bus, servo sim
 request handler, and a step is ``await env.astep(action)`` in the handler's own task: no loop thread, no hand-over
 between threads, and the reply leaves as soon as the step's coroutine returns (before the rest of what the same
 sim event woke runs). The wrappers gymnasium and ``make_vec`` put around it (OrderEnforcing, TimeLimit, PadSpaces)
-are applied by ``astep_through`` / ``areset_through`` with the same semantics; an env with any other wrapper, or
-one that is not a uniros BaseEnv, runs on a loop thread and is stepped through its synchronous API, as it would be
-in the agent's own process.
+are applied by ``astep_through`` / ``areset_through`` (runtime/attached.py) with the same semantics; an env with any
+other wrapper, or one that is not a uniros BaseEnv, runs on a loop thread and is stepped through its synchronous API,
+as it would be in the agent's own process.
 
 The requests and replies are those of runtime/protocol.py. An exception while serving a request is sent back (the
 supervisor raises it as WorkerError) and the worker keeps serving; an exception while building the env is sent as
@@ -46,16 +46,15 @@ import multiprocessing.connection
 import os
 import select
 import signal
-import sys
 import threading
 import time
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
 from uniros_async._signals import cancel_on_signals
 from uniros_async.errors import TransportError
+from uniros_async.runtime.attached import areset_through, astep_through, base_env_class, supports_async
 from uniros_async.runtime.cores import cores_shared, move_off_core, on_loopback, turn_spin_ns, usable_cpus
 from uniros_async.runtime.protocol import (
     AUTORESET_MODES,
@@ -72,9 +71,6 @@ from uniros_async.runtime.specs import factory_of
 __all__ = [
     "LOOP_PHASE_STEP_NS",
     "WorkerSpec",
-    "areset_through",
-    "astep_through",
-    "supports_async",
     "worker_entry",
     "worker_main",
 ]
@@ -194,79 +190,6 @@ def _start_watchdog(spec: WorkerSpec, loop: asyncio.AbstractEventLoop, task: asy
     threading.Thread(target=watch, name=f"uniros-worker-{spec.index}-watchdog", daemon=True).start()
 
 
-# ---------------------------------------------------------------- async stepping through known wrappers
-
-
-def _async_wrappers() -> tuple[type, ...]:
-    from uniros_async.envs import wrappers as uw
-
-    return (gym.wrappers.OrderEnforcing, gym.wrappers.TimeLimit, uw.TimeLimit, uw.PadSpaces)
-
-
-def _base_env_class() -> Any:
-    """uniros's ``BaseEnv`` if this process has loaded it, else None: then no env here is one. A worker of another
-    gymnasium env (CartPole) thus never imports it, nor the pydantic configs it brings."""
-    module = sys.modules.get("uniros_async.envs.base")
-    return getattr(module, "BaseEnv", None)
-
-
-def supports_async(env: gym.Env[Any, Any]) -> bool:
-    """Whether ``env`` is an attached uniros BaseEnv under wrappers that ``astep_through`` knows (exact types)."""
-    BaseEnv = _base_env_class()  # noqa: N806
-    if BaseEnv is None:
-        return False
-    known = _async_wrappers()
-    e: Any = env
-    while isinstance(e, gym.Wrapper):
-        if type(e) not in known:
-            return False
-        e = e.env
-    return isinstance(e, BaseEnv) and e.attached and type(e).step is BaseEnv.step and type(e).reset is BaseEnv.reset
-
-
-async def astep_through(env: Any, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
-    """``env.step(action)`` for a stack ``supports_async`` accepted, awaiting the base env's ``astep``."""
-    from uniros_async.envs import wrappers as uw
-
-    t = type(env)
-    if t is uw.PadSpaces:
-        a = np.asarray(action, dtype=np.float32)
-        if a.shape != env.action_space.shape:
-            raise gym.error.InvalidAction(f"action must have shape {env.action_space.shape}, got {a.shape}")
-        obs, reward, terminated, truncated, info = await astep_through(env.env, a[: env._n_act])
-        return env._pad(obs), reward, terminated, truncated, {**info, "padding": dict(env.padding)}
-    if t is gym.wrappers.OrderEnforcing:
-        if not env._has_reset:
-            raise gym.error.ResetNeeded("Cannot call env.step() before calling env.reset()")
-        return await astep_through(env.env, action)
-    if t is gym.wrappers.TimeLimit or t is uw.TimeLimit:
-        obs, reward, terminated, truncated, info = await astep_through(env.env, action)
-        env._elapsed_steps += 1
-        if env._elapsed_steps >= env._max_episode_steps:
-            truncated = True
-        if t is uw.TimeLimit and truncated and not terminated:
-            info = {**info, "is_success": False}
-        return obs, reward, terminated, truncated, info
-    return await env.astep(action)  # type: ignore[no-any-return]
-
-
-async def areset_through(env: Any, seed: int | None, options: dict[str, Any] | None) -> tuple[Any, dict[str, Any]]:
-    """``env.reset(seed=seed, options=options)`` for a stack ``supports_async`` accepted."""
-    from uniros_async.envs import wrappers as uw
-
-    t = type(env)
-    if t is uw.PadSpaces:
-        obs, info = await areset_through(env.env, seed, options)
-        return env._pad(obs), {**info, "padding": dict(env.padding)}
-    if t is gym.wrappers.OrderEnforcing:
-        env._has_reset = True
-        return await areset_through(env.env, seed, options)
-    if t is gym.wrappers.TimeLimit or t is uw.TimeLimit:
-        env._elapsed_steps = 0
-        return await areset_through(env.env, seed, options)
-    return await env.areset(seed=seed, options=options)  # type: ignore[no-any-return]
-
-
 async def worker_main(spec: WorkerSpec, conn: multiprocessing.connection.Connection) -> None:
     """Listen (once per env this process hosts: ``spec`` and its ``mates``), hand the URIs over ``conn`` in that
     order, then accept, build and serve each env on this event loop until every one is closed."""
@@ -381,7 +304,7 @@ class _Server:
             realtime = getattr(getattr(base, "config", None), "clock", "sim") != "sim"
             if realtime and hasattr(base, "loop_phase_ns"):
                 base.loop_phase_ns = self.spec.loop_phase * LOOP_PHASE_STEP_NS  # before its loop starts
-            base_env = _base_env_class()
+            base_env = base_env_class()
             if base_env is not None and isinstance(base, base_env) and base.attached:
                 if supports_async(env):
                     await base.astart()
