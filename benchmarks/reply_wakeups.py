@@ -19,7 +19,8 @@ import time
 
 import numpy as np
 
-from uniros_async.bench.throughput import ENV_ID, ENV_KW, _actions, _cpu_s, _make_env
+from uniros_async.bench._stepmeter import cpu_s as _cpu_s
+from uniros_async.bench._vector_rows import ENV_ID, ENV_KW, _actions, _make_env
 
 
 def _switches(pid: int) -> tuple[int, int]:

@@ -35,7 +35,7 @@ async def _step_envs(k: int, steps: int, cpu: int) -> float:
     import gymnasium as gym
 
     import uniros_async  # noqa: F401  (registers the ids)
-    from uniros_async.bench.throughput import ENV_ID, ENV_KW
+    from uniros_async.bench._vector_rows import ENV_ID, ENV_KW
     from uniros_async.envs.runtime import deferred_start
     from uniros_async.priority import freeze_heap
     from uniros_async.runtime.attached import areset_through, astep_through

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uniros_async.bench import _stepmeter, throughput
+from uniros_async.bench import _stepmeter, _vector_rows, throughput
 from uniros_async.errors import ConfigError
 from uniros_async.runtime.cores import usable_cpus
 
@@ -75,19 +75,19 @@ def test_a_short_run_prints_the_table_and_writes_every_record(
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the placed rows need two cores")
 def test_the_placed_gymnasium_rows_pin_its_worker_and_the_agent_for_their_blocks() -> None:
-    agent_cpu, other_cpu = throughput._placed_cpus()
+    agent_cpu, other_cpu = _vector_rows._placed_cpus()
     had = os.sched_getaffinity(0)
     for impl, cpu in zip(throughput.PLACED_IMPLS, (agent_cpu, other_cpu), strict=True):
-        venv, reset, step = throughput._vector(impl, 1, throughput.TRIVIAL_ID, {})
+        venv, reset, step = _vector_rows._vector(impl, 1, throughput.TRIVIAL_ID, {})
         try:
             reset()
             (proc,) = venv.processes
             assert os.sched_getaffinity(proc.pid) == {cpu}
-            with throughput._agent_placed(impl):
+            with _vector_rows._agent_placed(impl):
                 assert os.sched_getaffinity(0) == {agent_cpu}
                 step(np.zeros(1, np.int64))
             assert os.sched_getaffinity(0) == had
-            with throughput._agent_placed("gymnasium-async"):  # the free row: left where it is
+            with _vector_rows._agent_placed("gymnasium-async"):  # the free row: left where it is
                 assert os.sched_getaffinity(0) == had
         finally:
             venv.close()

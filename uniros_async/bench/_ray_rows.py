@@ -85,7 +85,7 @@ class _EnvActor:
     """An env inside a Ray actor (the ``ray-actor`` row)."""
 
     def __init__(self, env_id: str, kwargs: dict[str, Any]) -> None:
-        from uniros_async.bench.throughput import _make_env
+        from uniros_async.bench._vector_rows import _make_env
 
         self.env = _make_env(env_id, kwargs)
 
