@@ -20,7 +20,8 @@ import time
 import numpy as np
 
 from uniros_async.bench._stepmeter import cpu_s as _cpu_s
-from uniros_async.bench._vector_rows import ENV_ID, ENV_KW, _actions, _make_env
+from uniros_async.bench._vector_rows import ENV_ID, ENV_KW, _actions
+from uniros_async.bench.envs import make_env as _make_env
 
 
 def _switches(pid: int) -> tuple[int, int]:

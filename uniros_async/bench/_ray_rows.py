@@ -85,9 +85,9 @@ class _EnvActor:
     """An env inside a Ray actor (the ``ray-actor`` row)."""
 
     def __init__(self, env_id: str, kwargs: dict[str, Any]) -> None:
-        from uniros_async.bench._vector_rows import _make_env
+        from uniros_async.bench.envs import make_env
 
-        self.env = _make_env(env_id, kwargs)
+        self.env = make_env(env_id, kwargs)
 
     def reset(self, seed: int) -> Any:
         return self.env.reset(seed=seed)

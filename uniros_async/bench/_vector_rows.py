@@ -30,7 +30,7 @@ from uniros_async.bench._stepmeter import (
     tight,
     timed_block,
 )
-from uniros_async.bench.envs import DICT_ID, IMAGE_ID
+from uniros_async.bench.envs import DICT_ID, IMAGE_ID, make_env
 from uniros_async.runtime.cores import usable_cpus
 from uniros_async.stats import median_ci
 
@@ -56,17 +56,6 @@ CROWDED_N = 4
 share the cores, and a row's steps/s says how well they share them."""
 
 
-def _make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
-    import gymnasium as gym
-
-    if env_id.startswith("uniros/"):
-        import uniros_async  # noqa: F401  (registers the uniros ids, also in a spawned process)
-    if env_id in SPACE_IDS:
-        import uniros_async.bench.envs  # noqa: F401  (registers them, also in a spawned process)
-
-    return gym.make(env_id, **kwargs)
-
-
 def _vector(
     impl: str, n: int, env_id: str, kwargs: dict[str, Any], transport: str = "shm", envs_per_worker: int = 1
 ) -> tuple[Any, Callable[[], Any], Callable[[Any], Any]]:
@@ -80,7 +69,7 @@ def _vector(
             [env_id] * n, pad=env_id == ENV_ID, transport=transport, envs_per_worker=envs_per_worker, **kwargs
         )
         return venv, lambda: venv.reset(seed=0), venv.step
-    factory = functools.partial(_make_env, env_id, kwargs)
+    factory = functools.partial(make_env, env_id, kwargs)
     if impl.startswith("gymnasium-async"):
         from gymnasium.vector import AsyncVectorEnv
 

@@ -11,7 +11,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-__all__ = ["DICT_ID", "IMAGE_ID", "DictObsEnv", "ImageObsEnv"]
+__all__ = ["DICT_ID", "IMAGE_ID", "DictObsEnv", "ImageObsEnv", "make_env"]
 
 DICT_ID = "uniros_async.bench.envs:UnirosBenchDictObs-v0"
 IMAGE_ID = "uniros_async.bench.envs:UnirosBenchImageObs-v0"
@@ -75,3 +75,12 @@ if DICT_ID.partition(":")[2] not in gym.registry:
     gym.register(DICT_ID.partition(":")[2], entry_point="uniros_async.bench.envs:DictObsEnv")
 if IMAGE_ID.partition(":")[2] not in gym.registry:
     gym.register(IMAGE_ID.partition(":")[2], entry_point="uniros_async.bench.envs:ImageObsEnv")
+
+
+def make_env(env_id: str, kwargs: dict[str, Any]) -> Any:
+    """``gymnasium.make(env_id, **kwargs)`` for the benches: the uniros ids are registered first (also in a process
+    spawned to call this), and this module's by its import."""
+    if env_id.startswith("uniros/"):
+        import uniros_async  # noqa: F401  (registers the uniros ids)
+
+    return gym.make(env_id, **kwargs)

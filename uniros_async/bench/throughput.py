@@ -80,7 +80,6 @@ from uniros_async.bench._vector_rows import (
     PLACED_IMPLS,
     SPACE_IDS,
     TRIVIAL_ID,
-    _make_env,
     _placed_impls,
     _run,
     _run_trivial,
@@ -88,7 +87,7 @@ from uniros_async.bench._vector_rows import (
     ray_rows,
 )
 from uniros_async.bench.common import cpu_times, progress_counter, report, steal_percent
-from uniros_async.bench.envs import DICT_ID, IMAGE_ID
+from uniros_async.bench.envs import DICT_ID, IMAGE_ID, make_env
 from uniros_async.errors import ConfigError
 from uniros_async.runtime.cores import SHARED_CORES_MODES
 from uniros_async.transports._shm_ring import describe_ring_end
@@ -201,7 +200,7 @@ def _measure(
     impls = IMPLS + (("uniros-ray",) if ray else ())
     cores = os.cpu_count() or 1
     trivial_impls = IMPLS + _placed_impls() + (RAY_IMPLS if ray else ())
-    bare = _make_env(ENV_ID, ENV_KW)
+    bare = make_env(ENV_ID, ENV_KW)
     try:
         floor: Floor | None = Floor(ENV_ID, ENV_KW)
     except ImportError:  # a tree without the attached mode (to compare an older runtime with the same benchmark)
@@ -218,7 +217,7 @@ def _measure(
         if floor is not None:
             floor.close()
         bare.close()
-    trivial = _make_env(TRIVIAL_ID, {})
+    trivial = make_env(TRIVIAL_ID, {})
     try:
         cpu0 = cpu_times()
         rows = _run_trivial(trivial_impls, in_turns, trivial, TRIVIAL_ID, TRIVIAL_STEPS, transport=config.transport)
@@ -231,7 +230,7 @@ def _measure(
         trivial.close()
     space_steps = min(SPACE_STEPS, TRIVIAL_STEPS // 5) if config.quick else SPACE_STEPS
     for env_id in SPACE_IDS:
-        env = _make_env(env_id, {})
+        env = make_env(env_id, {})
         try:
             rows = _run_trivial(IMPLS, (), env, env_id, space_steps, transport=config.transport)
             records += rows
@@ -291,7 +290,7 @@ def main_repeat(config: ThroughputBenchConfig, *, log: Callable[[str], None] = p
         pers = config.envs_per_worker
         n_rows = config.repeat * len(ns) * len(impls) * len(modes) * len(pers)
         bar = progress_counter(n_rows, config.progress, "throughput bench", "row")
-        bare = _make_env(ENV_ID, ENV_KW)
+        bare = make_env(ENV_ID, ENV_KW)
         try:
             for run in range(1, config.repeat + 1):
                 for n in ns:
