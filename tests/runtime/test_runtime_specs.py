@@ -61,10 +61,15 @@ def test_specs_of_every_form_and_what_is_refused() -> None:
     # one id as a string, as gymnasium.make_vec has it: num_envs copies of it (not its letters)
     assert normalize_specs(CART, {"a": 1}, 3) == [(CART, {"a": 1})] * 3
     assert normalize_specs(CART, {}) == [(CART, {})]
-    with pytest.raises(
-        ConfigError, match=r"num_envs=2 goes with one env id given as a string .* \(here 1\): repeat the list"
-    ):
+    with pytest.raises(ConfigError, match=r"num_envs=2 goes with one spec .* \(here 1\): repeat the list"):
         normalize_specs([CART], {}, 2)
+    # one pair or one factory, alone, as one id
+    assert normalize_specs((CART, {"a": 1}), {}, 2) == [(CART, {"a": 1})] * 2
+    factories = normalize_specs(_cartpole, {}, 2)
+    assert len(factories) == 2 and all(name == "_cartpole()" for name, _ in factories)
+    assert normalize_specs((CART for _ in range(2)), {}) == [(CART, {})] * 2  # a generator of specs
+    with pytest.raises(ConfigError, match="specs: expected a list of env ids, .* got int"):
+        normalize_specs(5, {})  # type: ignore[arg-type]
     for bad in (0, 1.5, True):
         with pytest.raises(ConfigError, match="num_envs must be an int >= 1, got"):
             normalize_specs(CART, {}, bad)  # type: ignore[arg-type]

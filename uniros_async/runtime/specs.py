@@ -25,8 +25,8 @@ A factory is counted as accelerated: a factory that builds a wall-clock uniros e
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Any, Literal
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, Literal, cast
 
 from uniros_async.errors import ConfigError
 from uniros_async.runtime.cores import usable_cpus
@@ -49,28 +49,37 @@ AUTO: Literal["auto"] = "auto"
 
 
 def normalize_specs(
-    specs: Sequence[EnvSpec] | str, common_kwargs: dict[str, Any], num_envs: int | None = None
+    specs: Sequence[EnvSpec] | EnvSpec, common_kwargs: dict[str, Any], num_envs: int | None = None
 ) -> list[tuple[str, dict[str, Any]]]:
     """``specs`` as ``(name, kwargs)`` pairs: an id's kwargs are ``common_kwargs`` updated with its own; a factory's
-    hold the pickled factory alone (``FACTORY_KWARG``). One id as a string, with ``num_envs`` (default 1), is that
-    many copies of it, as ``gymnasium.make_vec(id, num_envs=n)`` has it.
+    hold the pickled factory alone (``FACTORY_KWARG``). One spec given alone (an id, a pair or a factory), with
+    ``num_envs`` (default 1), is that many copies of it, as ``gymnasium.make_vec(id, num_envs=n)`` has it.
 
     Raises:
         ConfigError: a spec that is none of the three forms, a factory that cannot be pickled, ``common_kwargs``
-            given with a factory (a factory builds its env itself; keyword arguments go to ids), or ``num_envs``
-            that is not an int >= 1 or is given with a list (a list has one env per spec).
+            given with a factory (a factory builds its env itself; keyword arguments go to ids), ``specs`` that is
+            neither a list nor one spec, or ``num_envs`` that is not an int >= 1 or is given with a list (a list has
+            one env per spec).
     """
     import cloudpickle
 
     if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1):
         raise ConfigError(f"num_envs must be an int >= 1, got {num_envs!r}")
-    if isinstance(specs, str):
-        specs = [specs] * (num_envs or 1)
-    elif num_envs is not None:
+    one_pair = isinstance(specs, tuple) and len(specs) == 2 and isinstance(specs[0], str) and isinstance(specs[1], dict)
+    if isinstance(specs, str) or callable(specs) or one_pair:  # one spec: num_envs copies of it
+        specs = [specs] * (num_envs or 1)  # type: ignore[list-item]
+    elif not isinstance(specs, Iterable):
         raise ConfigError(
-            f"num_envs={num_envs} goes with one env id given as a string (make_vec('CartPole-v1', num_envs=4)); "
-            f"a list of specs has one env per spec (here {len(specs)}): repeat the list instead"
+            "specs: expected a list of env ids, (env id, kwargs) pairs or env factories, or one of them with "
+            f"num_envs; got {type(specs).__name__}"
         )
+    else:
+        specs = list(cast(Iterable[EnvSpec], specs))  # (a generator of factories too)
+        if num_envs is not None:
+            raise ConfigError(
+                f"num_envs={num_envs} goes with one spec (make_vec('CartPole-v1', num_envs=4)); a list of specs has "
+                f"one env per spec (here {len(specs)}): repeat the list instead"
+            )
     out: list[tuple[str, dict[str, Any]]] = []
     for i, s in enumerate(specs):
         if isinstance(s, str):

@@ -579,7 +579,7 @@ class _Returns:
 
 
 def make_vec(
-    specs: Sequence[EnvSpec] | str,
+    specs: Sequence[EnvSpec] | EnvSpec,
     *,
     num_envs: int | None = None,
     pad: bool = True,
@@ -605,9 +605,10 @@ def make_vec(
             which registers ``Id``). A factory (a callable without arguments that returns a gymnasium.Env) is
             cloudpickled into its worker and called there (runtime/specs.py). ``{"worker": "ray"}`` or
             ``{"worker": {"ray": {...}}}`` has Ray place that spec's worker on a node of its cluster (see
-            ``backend``; its pid in ``pids`` is on that node); ``"worker": None`` keeps it here. One id as a string
-            is ``num_envs`` copies of it, as ``gymnasium.make_vec("CartPole-v1", num_envs=4)``.
-        num_envs: how many copies of the one id given as a string (default 1); not with a list.
+            ``backend``; its pid in ``pids`` is on that node); ``"worker": None`` keeps it here. One spec given
+            alone (an id, a pair or a factory) is ``num_envs`` copies of it, as
+            ``gymnasium.make_vec("CartPole-v1", num_envs=4)``.
+        num_envs: how many copies of the one spec given alone (default 1); not with a list.
         pad: when the envs' spaces differ, pad observations and actions to the largest sizes (1-D Box spaces, or a
             Dict with a 1-D ``observation``); identical spaces are never padded. Without it the spaces must match.
         start_timeout_s: bound on starting all workers and building their envs.
