@@ -39,8 +39,8 @@ def test_a_worker_placed_on_its_agents_core_moves_to_another_and_keeps_every_cor
     venv = make_vec(["CartPole-v1"], pad=False, transport=transport)
     pid = venv.pids[0]
     try:
-        # a worker with a core of its own apart from the agent's looks after each wake-up too (shm)
-        assert venv._sup.workers[0].info["looks_after_wake_up"] is (True if transport == "shm" else None)
+        # a worker with a core of its own apart from the agent's moves off the agent's core
+        assert venv._sup.workers[0].info["moves_off_agent_core"] is True
         venv.reset(seed=0)
         os.sched_setaffinity(0, {here})  # the agent (this process) stays on one core ...
         os.sched_setaffinity(pid, {here})  # ... the worker is put on the same one (it moves there once it runs) ...
@@ -180,8 +180,8 @@ def test_as_many_workers_as_cores_are_left_where_the_scheduler_puts_them() -> No
             # (the policy it started with: a gymnasium env's worker may run SCHED_RR, see worker._real_time)
             assert _unpinned(pid, cpus) and os.sched_getscheduler(pid) != os.SCHED_BATCH
             assert w.transport.spin_ns == REPLY_SPIN_NS
-            # no core each apart from the agent's: moving off it after a wake-up would land on a fellow's core
-            assert w.info["looks_after_wake_up"] is False
+            # no core each apart from the agent's: moving off it would land on a fellow worker's core
+            assert w.info["moves_off_agent_core"] is False
         assert venv._sup._reply_rank == list(range(len(cpus)))  # their replies taken in index order
     finally:
         venv.close()

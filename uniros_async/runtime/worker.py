@@ -434,7 +434,7 @@ class _Server:
         """``share``: ``[slot, count, mode]`` from the supervisor, this worker's rank among the ``count`` workers of
         its vector env on this machine and the agent's ``shared_cores_mode``. When they outnumber the cores here
         (``cores_shared``; never for a real-time env loop, which has its own priority), stop polling for the next
-        request and moving off the agent's core (``on_shared_core``), run each step through
+        request, run each step through
         (``priority.run_steps_through``) and, with ``pin``, stay on core ``slot`` modulo the cores (round robin: as
         many workers on each core as can be).
 
@@ -444,15 +444,16 @@ class _Server:
         core gets its share in every run (docs/performance.md, "More envs than cores"). Once set up, the policy
         stays.
 
-        As many workers as cores or more have no core each apart from the agent's: a worker then does not look where
-        the agent runs after each wake-up (``ShmTransport.look_after_wake_up``; it still does after a long poll),
-        since one that moved off the agent's core would land on a fellow worker's and the two would step in turn.
+        As many workers as cores or more (crowded or not) have no core each apart from the agent's: they do not move
+        off the agent's core (``on_shared_core`` cleared), since one that did would land on a fellow worker's and the
+        two would step in turn.
         """
         if self.cores_shared or self.realtime or not share:
             return
         slot, count, mode = int(share[0]), int(share[1]), str(share[2])
-        if count >= len(usable_cpus()) and hasattr(self.transport, "look_after_wake_up"):
-            self.transport.look_after_wake_up = False
+        cpus = usable_cpus()
+        if count >= len(cpus) and hasattr(self.transport, "on_shared_core"):
+            self.transport.on_shared_core = None
         if mode == "off" or not cores_shared(count):
             return
         self.cores_shared = True
@@ -460,10 +461,7 @@ class _Server:
 
         if hasattr(self.transport, "spin_ns"):
             self.transport.spin_ns = 0
-        if hasattr(self.transport, "on_shared_core"):  # sharing a core is the plan here: no moving off the agent's
-            self.transport.on_shared_core = None
         how = run_steps_through()
-        cpus = usable_cpus()
         if mode == "pin":
             cpu = cpus[slot % len(cpus)]
             try:
@@ -495,7 +493,7 @@ class _Server:
             "realtime": self.realtime,  # a real-time env loop shares this worker's event loop
             "cores_shared": self.cores_shared,
             "pinned_cpu": self.pinned_cpu,
-            "looks_after_wake_up": getattr(self.transport, "look_after_wake_up", None),
+            "moves_off_agent_core": getattr(self.transport, "on_shared_core", None) is not None,
         }
 
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:

@@ -102,11 +102,6 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
     """Called with the CPU when this end, about to poll for the peer's next frame, finds the peer on its own core
     (``_peer_here``): a worker moves itself off it (``runtime.worker``); the agent's process is left where it is."""
 
-    look_after_wake_up: bool = True
-    """With ``on_shared_core`` set, look where the peer runs once after each wake-up too (``_look_after_wake_up``),
-    not only after a long poll. A worker turns it off where it and its fellow workers have no core apart from the
-    agent's: moving off it would put two of them on one core."""
-
     def __init__(
         self,
         *,
@@ -210,7 +205,7 @@ class ShmTransport(SpinCredit, Transport, ShmSlowPaths):
                 if self._spin_credit > 0 and self.spin_ns and self._spin(window_ns):
                     continue  # (polled here, not in _wait_readable: a coroutine less per frame that a poll catches)
                 await self._wait_readable(window_ns)
-                self._woken = self.look_after_wake_up and self.on_shared_core is not None
+                self._woken = self.on_shared_core is not None
 
     def _window_ns(self) -> int:
         """How long to poll for the next frame: ``spin_ns``, plus, after a large send, the time the peer needs to
