@@ -4,7 +4,8 @@ A worker polls for its next request for a while before it sleeps (``turn_spin_ns
 hold a core the agent or another worker needs. When the workers of a vector env outnumber a machine's cores
 (``cores_shared``), neither side polls, each worker runs its steps through and, by default, stays on a core of its
 own slot (``shared_cores_mode``; ``worker._Server._share_cores`` applies it, the supervisor hands out the slots).
-A worker that finds its agent on its own core moves off it (``move_off_core``).
+A worker that finds its agent on its own core moves off it (``move_off_core``), where the workers are fewer than the
+cores: as many or more have no core each apart from the agent's.
 """
 
 from __future__ import annotations
