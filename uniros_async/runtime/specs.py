@@ -65,9 +65,8 @@ def normalize_specs(
 
     if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1):
         raise ConfigError(f"num_envs must be an int >= 1, got {num_envs!r}")
-    one_pair = isinstance(specs, tuple) and len(specs) == 2 and isinstance(specs[0], str) and isinstance(specs[1], dict)
-    if isinstance(specs, str) or callable(specs) or one_pair:  # one spec: num_envs copies of it
-        specs = [specs] * (num_envs or 1)  # type: ignore[list-item]
+    if isinstance(specs, str) or callable(specs) or (isinstance(specs, tuple) and _is_pair(specs)):  # one spec alone
+        specs = [specs] * (num_envs or 1)
     elif not isinstance(specs, Iterable):
         raise ConfigError(
             "specs: expected a list of env ids, (env id, kwargs) pairs or env factories, or one of them with "
@@ -84,7 +83,7 @@ def normalize_specs(
     for i, s in enumerate(specs):
         if isinstance(s, str):
             out.append((s, dict(common_kwargs)))
-        elif isinstance(s, tuple | list) and len(s) == 2 and isinstance(s[0], str) and isinstance(s[1], dict):
+        elif isinstance(s, tuple | list) and _is_pair(s):
             out.append((s[0], {**common_kwargs, **s[1]}))
         elif callable(s):
             name = f"{getattr(s, '__qualname__', type(s).__qualname__)}()"
@@ -107,6 +106,11 @@ def normalize_specs(
                 f"arguments that returns a gymnasium.Env), got {s!r:.80}"
             )
     return out
+
+
+def _is_pair(s: Sequence[Any]) -> bool:
+    """Whether ``s`` is an ``(env id, kwargs)`` pair."""
+    return len(s) == 2 and isinstance(s[0], str) and isinstance(s[1], dict)
 
 
 def factory_of(kwargs: dict[str, Any]) -> bytes | None:
